@@ -1,0 +1,597 @@
+"""Read a deployment YAML (a valid ROS 2 parameters file) into validated frozen dataclasses.
+
+The file looks like::
+
+    /**:
+      ros__parameters:
+        deployment: {name: ..., description: ...}
+        scales: {names: [robot, laptop], robot: {...}, laptop: {...}}
+        links: {names: [wifi], wifi: {ends: [robot, laptop], ...}}
+        nodes: {names: [...], amcl: {launch: {...}, cpu: 50.0, ...}}
+        connections: {names: [...], laser_amcl: {topic: /scan, ...}}
+        decider: {...}
+        monitoring: {...}
+        agent: {...}
+
+ROS parameters have no lists of maps, so every collection is a map of named sections plus a
+``names`` list that fixes the order. Every error names the file, the path inside it and what
+was expected; all errors are collected and reported at once.
+"""
+
+import math
+import re
+from dataclasses import dataclass, fields, replace
+from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
+
+import yaml
+
+from . import types as t
+
+NAME_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+TOPIC_RE = re.compile(r'^/?[A-Za-z~{][A-Za-z0-9_/{}~]*$')
+MISSING = object()
+
+
+@dataclass(frozen=True)
+class Problem:
+    source: str
+    path: str
+    message: str
+
+    def __str__(self) -> str:
+        where = f'{self.source}: {self.path}' if self.path else self.source
+        return f'{where}: {self.message}'
+
+
+class DeploymentError(ValueError):
+    """A deployment file that cannot be used; carries every problem found."""
+
+    def __init__(self, problems: List[Problem]):
+        self.problems = list(problems)
+        super().__init__('\n'.join(str(p) for p in self.problems))
+
+
+def _describe(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + '...'
+
+
+class _Context:
+    def __init__(self, source: str):
+        self.source = source
+        self.problems: List[Problem] = []
+
+    def error(self, path: str, message: str) -> None:
+        self.problems.append(Problem(self.source, path, message))
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+class _Section:
+    """One map in the file: typed reads that record errors instead of raising."""
+
+    def __init__(self, ctx: _Context, path: str, data: Any):
+        self.ctx = ctx
+        self.path = path
+        self.ok = isinstance(data, dict)
+        if not self.ok:
+            ctx.error(path, f'expected a map, got {_describe(data)}')
+        self.data: Dict[str, Any] = data if self.ok else {}
+        self.seen = set()
+
+    def sub(self, key: str) -> str:
+        return f'{self.path}.{key}' if self.path else key
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def raw(self, key: str, default: Any = MISSING) -> Any:
+        self.seen.add(key)
+        if key not in self.data:
+            if default is MISSING:
+                self.ctx.error(self.sub(key), 'required key is missing')
+            return default
+        return self.data[key]
+
+    def section(self, key: str, required: bool = True) -> '_Section':
+        value = self.raw(key, MISSING if required else {})
+        return _Section(self.ctx, self.sub(key), value if value is not MISSING else {})
+
+    def string(self, key: str, default: Any = MISSING, pattern: Optional[re.Pattern] = None,
+               choices: Optional[Tuple[str, ...]] = None) -> Any:
+        v = self.raw(key, default)
+        if v is default and key not in self.data:
+            return default
+        if not isinstance(v, str):
+            self.ctx.error(self.sub(key), f'expected a string, got {_describe(v)}')
+            return default if default is not MISSING else ''
+        if choices is not None and v not in choices:
+            self.ctx.error(self.sub(key), f'expected one of {", ".join(choices)}, got {v!r}')
+        if pattern is not None and not pattern.match(v):
+            self.ctx.error(self.sub(key), f'{v!r} is not a valid name here')
+        return v
+
+    def number(self, key: str, default: Any = MISSING, low: float = -math.inf,
+               high: float = math.inf, low_open: bool = False, unit: str = '') -> Any:
+        v = self.raw(key, default)
+        if key not in self.data:
+            return default
+        if not _is_number(v):
+            self.ctx.error(self.sub(key), f'expected a number{unit and " in " + unit}, '
+                                          f'got {_describe(v)}')
+            return default if default is not MISSING else 0.0
+        bad_low = v <= low if low_open else v < low
+        if bad_low or v > high:
+            lo = '(' if low_open else '['
+            self.ctx.error(self.sub(key), f'{v} is out of range: expected a value in '
+                                          f'{lo}{low}, {high}]{unit and " " + unit}')
+        return float(v)
+
+    def integer(self, key: str, default: Any = MISSING, low: int = 0,
+                high: int = 2 ** 31) -> Any:
+        v = self.raw(key, default)
+        if key not in self.data:
+            return default
+        if not isinstance(v, int) or isinstance(v, bool):
+            self.ctx.error(self.sub(key), f'expected an integer, got {_describe(v)}')
+            return default if default is not MISSING else 0
+        if not low <= v <= high:
+            self.ctx.error(self.sub(key), f'{v} is out of range: expected {low}..{high}')
+        return v
+
+    def boolean(self, key: str, default: Any = MISSING) -> Any:
+        v = self.raw(key, default)
+        if key not in self.data:
+            return default
+        if not isinstance(v, bool):
+            self.ctx.error(self.sub(key), f'expected true or false, got {_describe(v)}')
+            return default if default is not MISSING else False
+        return v
+
+    def _list(self, key: str, default: Any, item_ok: Callable[[Any], bool],
+              what: str) -> Any:
+        v = self.raw(key, default)
+        if key not in self.data:
+            return default
+        if not isinstance(v, list):
+            self.ctx.error(self.sub(key), f'expected a list of {what}, got {_describe(v)}')
+            return ()
+        if not v:
+            # rcl's parameter parser rejects empty sequences: omit the key instead.
+            self.ctx.error(self.sub(key), 'an empty list is not a valid ROS parameter; '
+                                          'leave the key out instead')
+            return ()
+        bad = [i for i, x in enumerate(v) if not item_ok(x)]
+        if bad:
+            self.ctx.error(f'{self.sub(key)}[{bad[0]}]',
+                           f'expected {what}, got {_describe(v[bad[0]])}')
+            return ()
+        return tuple(v)
+
+    def strings(self, key: str, default: Any = MISSING) -> Any:
+        return self._list(key, default, lambda x: isinstance(x, str), 'strings')
+
+    def numbers(self, key: str, default: Any = MISSING) -> Any:
+        v = self._list(key, default, _is_number, 'numbers')
+        if isinstance(v, tuple) and v and len({type(x) for x in v}) > 1:
+            # A ROS parameter array has one type: [1, 2.5] fails to load as parameters.
+            self.ctx.error(self.sub(key), 'mixes integers and decimals, which ROS parameter '
+                                          'files reject: write every value as a decimal')
+        return tuple(float(x) for x in v) if isinstance(v, tuple) else v
+
+    def scalar_map(self, key: str) -> Mapping[str, Any]:
+        v = self.raw(key, {})
+        if not isinstance(v, dict):
+            self.ctx.error(self.sub(key), f'expected a map, got {_describe(v)}')
+            return t.frozen_map()
+        out = {}
+        for k, x in v.items():
+            if isinstance(x, (dict, type(None))) or (isinstance(x, list) and not x):
+                self.ctx.error(f'{self.sub(key)}.{k}', f'expected a scalar or a non-empty list, '
+                                                      f'got {_describe(x)}')
+            else:
+                out[str(k)] = x
+        return t.frozen_map(out)
+
+    def done(self) -> None:
+        for key in self.data:
+            if key not in self.seen:
+                self.ctx.error(self.sub(str(key)), 'unknown key')
+
+
+def _named_sections(parent: _Section, key: str, required: bool = True
+                    ) -> List[Tuple[str, _Section]]:
+    """A collection written as ``names: [...]`` plus one map per name."""
+    sec = parent.section(key, required=required)
+    if not sec.ok or (not required and not sec.data):
+        sec.seen.update(sec.data)
+        return []
+    names = sec.strings('names', ())
+    out = []
+    seen = set()
+    for name in names:
+        if not NAME_RE.match(name):
+            sec.ctx.error(sec.sub('names'), f'{name!r} is not a valid name: use letters, '
+                                            'digits and underscores, starting with a letter')
+            continue
+        if name in seen:
+            sec.ctx.error(sec.sub('names'), f'{name!r} is listed twice')
+            continue
+        seen.add(name)
+        if name not in sec.data:
+            sec.ctx.error(sec.sub(name), f'{name!r} is listed in names but has no section')
+            continue
+        out.append((name, sec.section(name)))
+    for k in sec.data:
+        if k != 'names' and k not in seen:
+            sec.seen.add(k)
+            sec.ctx.error(sec.sub(str(k)), f'section {k!r} is not listed in '
+                                           f'{sec.sub("names")}')
+    sec.done()
+    return out
+
+
+def _dataclass_settings(parent: _Section, key: str, cls: type, checks: Dict[str, dict]) -> Any:
+    """A flat settings section whose keys are the fields of ``cls`` with their defaults."""
+    sec = parent.section(key, required=False)
+    values = {}
+    for f in fields(cls):
+        if not sec.has(f.name):
+            continue
+        default = getattr(cls(), f.name)
+        spec = checks.get(f.name, {})
+        if isinstance(default, bool):
+            values[f.name] = sec.boolean(f.name)
+        elif isinstance(default, int):
+            values[f.name] = sec.integer(f.name, **spec)
+        elif isinstance(default, float):
+            values[f.name] = sec.number(f.name, **spec)
+        elif isinstance(default, str):
+            values[f.name] = sec.string(f.name, **spec)
+        else:
+            values[f.name] = sec.scalar_map(f.name)
+    sec.done()
+    return cls(**{k: v for k, v in values.items() if v is not MISSING})
+
+
+def _read_scale(name: str, sec: _Section) -> t.Scale:
+    scale = t.Scale(
+        name=name,
+        role=sec.string('role', choices=(t.MASTER, t.REMOTE)),
+        kind=sec.string('kind', choices=(t.ROBOT, t.SERVER)),
+        capacity_cpu=sec.number('capacity_cpu', low=0, unit='reference-core percent'),
+        cores=sec.integer('cores', 1, low=1, high=4096),
+        clock_ghz=sec.number('clock_ghz', 1.0, low=0, high=100, low_open=True, unit='GHz'),
+        gain=sec.number('gain', 1.0, low=0, high=1e6, low_open=True),
+        host=sec.string('host', 'localhost'),
+    )
+    sec.done()
+    return scale
+
+
+def _read_link(name: str, sec: _Section) -> t.Link:
+    ends = sec.strings('ends')
+    if isinstance(ends, tuple) and len(ends) != 2:
+        sec.ctx.error(sec.sub('ends'), f'expected exactly two scale names, got {len(ends)}')
+    link = t.Link(
+        name=name,
+        ends=tuple(ends[:2]) if isinstance(ends, tuple) and len(ends) >= 2 else ('', ''),
+        bandwidth_kbps=sec.number('bandwidth_kbps', low=0, low_open=True, unit='kbit/s'),
+        medium=sec.string('medium', t.WIRELESS, choices=(t.WIRED, t.WIRELESS)),
+    )
+    sec.done()
+    return link
+
+
+def _read_launch(sec: _Section) -> t.Launch:
+    launch = t.Launch(
+        package=sec.string('package', ''),
+        executable=sec.string('executable', ''),
+        command=sec.strings('command', ()),
+        arguments=sec.strings('arguments', ()),
+        env=sec.scalar_map('env'),
+        parameters=sec.scalar_map('parameters'),
+        ros_name=sec.string('ros_name', ''),
+    )
+    if launch.command and (launch.package or launch.executable):
+        sec.ctx.error(sec.path, 'give either command or package and executable, not both')
+    elif bool(launch.package) != bool(launch.executable):
+        sec.ctx.error(sec.path, 'package and executable go together')
+    for k, v in launch.env.items():
+        if not isinstance(v, str):
+            sec.ctx.error(f'{sec.sub("env")}.{k}', f'expected a string, got {_describe(v)}')
+    sec.done()
+    return launch
+
+
+def _read_settings(sec: _Section) -> t.Settings:
+    forms = t.REGRESSION_FORMS
+    s = t.Settings(
+        parameter=sec.string('parameter', 'cpu'),
+        values=sec.numbers('values', ()),
+        cpu=sec.numbers('cpu'),
+        performance=sec.numbers('performance'),
+        form=sec.string('form', 'linear', choices=forms),
+        parameter_form=sec.string('parameter_form', 'linear', choices=forms),
+        frequency_hz=sec.numbers('frequency_hz', ()),
+    )
+    n = len(s.cpu)
+    for key in ('values', 'performance', 'frequency_hz'):
+        got = getattr(s, key)
+        if got and n and len(got) != n:
+            sec.ctx.error(sec.sub(key), f'expected {n} values (one per cpu sample), '
+                                        f'got {len(got)}')
+    if any(c <= 0 for c in s.cpu):
+        sec.ctx.error(sec.sub('cpu'), 'every CPU sample must be > 0')
+    if s.form == 'log' and any(c <= 0 for c in s.cpu):
+        sec.ctx.error(sec.sub('form'), 'a log form needs positive CPU samples')
+    sec.done()
+    return s
+
+
+def _read_node(name: str, sec: _Section) -> t.Node:
+    launch = _read_launch(sec.section('launch', required=False))
+    settings = None
+    if sec.has('settings'):
+        settings = _read_settings(sec.section('settings'))
+    cpu_default = settings.cpu[len(settings.cpu) // 2] if settings and settings.cpu else MISSING
+    perf_default = (settings.performance[len(settings.performance) // 2]
+                    if settings and settings.performance else 0.0)
+    migratable = sec.boolean('migratable', None) if sec.has('migratable') else None
+    node = t.Node(
+        name=name,
+        launch=launch,
+        cpu=sec.number('cpu', cpu_default, low=0, unit='reference-core percent'),
+        performance=sec.number('performance', perf_default),
+        weight=sec.number('weight', 1.0, low=0),
+        residence=sec.strings('residence', ()),
+        coresidence=sec.strings('coresidence', ()),
+        migratable=migratable,
+        managed=sec.boolean('managed', True),
+        move_order=sec.string('move_order', t.START_BEFORE_STOP,
+                              choices=(t.START_BEFORE_STOP, t.STOP_BEFORE_START)),
+        settings=settings,
+    )
+    if node.cpu is MISSING:
+        node = replace(node, cpu=0.0)
+    sec.done()
+    return node
+
+
+def _read_connection(name: str, sec: _Section) -> t.Connection:
+    c = t.Connection(
+        name=name,
+        topic=sec.string('topic', pattern=TOPIC_RE),
+        publisher=sec.string('publisher'),
+        subscriber=sec.string('subscriber'),
+        bandwidth_kbps=sec.number('bandwidth_kbps', 0.0, low=0, unit='kbit/s'),
+        freq_min_hz=sec.number('freq_min_hz', None, low=0, high=1e6, unit='Hz'),
+        freq_opt_hz=sec.number('freq_opt_hz', None, low=0, high=1e6, unit='Hz'),
+        tolerance_s=sec.number('tolerance_s', None, low=0, high=1e6, unit='s'),
+        msg_type=sec.string('msg_type', ''),
+    )
+    if (c.freq_min_hz is None) != (c.tolerance_s is None):
+        sec.ctx.error(sec.path, 'freq_min_hz and tolerance_s go together: a monitored '
+                                'connection needs both')
+    if c.freq_min_hz is not None and c.freq_opt_hz is not None and c.freq_opt_hz < c.freq_min_hz:
+        sec.ctx.error(sec.sub('freq_opt_hz'), f'{c.freq_opt_hz} is below freq_min_hz '
+                                              f'{c.freq_min_hz}')
+    if c.msg_type and not re.match(r'^[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+$', c.msg_type):
+        sec.ctx.error(sec.sub('msg_type'), f'expected package/msg/Type, got {c.msg_type!r}')
+    sec.done()
+    return c
+
+
+def _cross_check(ctx: _Context, d: t.Deployment) -> None:
+    scales = set(d.scale_names)
+    nodes = set(d.node_names)
+    masters = [s.name for s in d.scales if s.is_master]
+    if len(masters) != 1:
+        ctx.error('scales', f'expected exactly one scale with role master, got {len(masters)}'
+                            + (f' ({", ".join(masters)})' if masters else ''))
+    for link in d.links:
+        for end in link.ends:
+            if end and end not in scales:
+                ctx.error(f'links.{link.name}.ends', f'unknown scale {end!r}')
+        if link.ends[0] and link.ends[0] == link.ends[1]:
+            ctx.error(f'links.{link.name}.ends', 'a link joins two different scales')
+    pairs = {}
+    for link in d.links:
+        key = frozenset(link.ends)
+        if key in pairs:
+            ctx.error(f'links.{link.name}', f'scales {" and ".join(link.ends)} are already '
+                                            f'joined by link {pairs[key]!r}')
+        pairs[key] = link.name
+    for n in d.nodes:
+        for s in n.residence:
+            if s not in scales:
+                ctx.error(f'nodes.{n.name}.residence', f'unknown scale {s!r}')
+        for other in n.coresidence:
+            if other not in nodes:
+                ctx.error(f'nodes.{n.name}.coresidence', f'unknown node {other!r}')
+            elif other == n.name:
+                ctx.error(f'nodes.{n.name}.coresidence', 'a node is always on its own scale')
+    for c in d.connections:
+        for role in ('publisher', 'subscriber'):
+            ref = getattr(c, role)
+            if ref and ref not in nodes:
+                ctx.error(f'connections.{c.name}.{role}', f'unknown node {ref!r}')
+        if c.publisher and c.publisher == c.subscriber:
+            ctx.error(f'connections.{c.name}', 'publisher and subscriber are the same node')
+    layout = d.decider.layout
+    for node, scale in layout.items():
+        if node not in nodes:
+            ctx.error(f'decider.layout.{node}', f'unknown node {node!r}')
+        if scale not in scales:
+            ctx.error(f'decider.layout.{node}', f'unknown scale {scale!r}')
+    if d.decider.initial_layout == 'explicit' and not layout:
+        ctx.error('decider.layout', 'initial_layout is explicit but no layout is given')
+
+
+def _derived_checks(ctx: _Context, d: t.Deployment) -> None:
+    critical = set(d.critical_nodes)
+    master = d.master.name
+    for n in d.nodes:
+        if n.name in critical and n.migratable is True:
+            zero = [c.name for c in d.connections_of(n.name) if c.tolerance_s == 0]
+            ctx.error(f'nodes.{n.name}.migratable',
+                      f'declared migratable, but connection {zero[0]!r} has tolerance_s 0, '
+                      'which makes the node critical (pinned to the master scale)')
+        if n.name in critical and n.residence and master not in n.residence:
+            ctx.error(f'nodes.{n.name}.residence',
+                      f'critical node must run on the master scale {master!r}, '
+                      f'but residence allows only {", ".join(n.residence)}')
+        group = d.coresidence_group(n.name)
+        if len(group) > 1 and not d.allowed_scales(n.name):
+            ctx.error(f'nodes.{n.name}.coresidence',
+                      f'no scale satisfies the residence of every node that must share a scale '
+                      f'with it ({", ".join(group)})')
+        if n.migratable is True and n.name not in d.migratable_nodes and n.name not in critical:
+            ctx.error(f'nodes.{n.name}.migratable',
+                      'declared migratable, but its residence, coresidence or launch leaves it '
+                      'no second scale to run on')
+    for node, scale in d.decider.layout.items():
+        if node in d.node_names and scale in d.scale_names \
+                and scale not in d.allowed_scales(node):
+            ctx.error(f'decider.layout.{node}', f'node {node!r} may not run on {scale!r} '
+                                                f'(allowed: {", ".join(d.allowed_scales(node))})')
+
+
+def _unwrap_ros(ctx: _Context, data: Any) -> Any:
+    """Accept the ROS parameters-file wrapper ``/**: {ros__parameters: {...}}``."""
+    if not isinstance(data, dict) or len(data) != 1:
+        ctx.error('', 'expected a ROS 2 parameters file: one top-level key such as /** '
+                      'holding ros__parameters')
+        return None
+    (key, inner), = data.items()
+    if not isinstance(inner, dict) or set(inner) != {'ros__parameters'}:
+        ctx.error(str(key), 'expected exactly one key, ros__parameters')
+        return None
+    return inner['ros__parameters']
+
+
+def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> t.Deployment:
+    """Validate a parsed deployment; ``wrapped`` means it still has the ROS file wrapper."""
+    ctx = _Context(source)
+    if wrapped:
+        data = _unwrap_ros(ctx, data)
+        if data is None:
+            raise DeploymentError(ctx.problems)
+    root = _Section(ctx, '', data)
+    if not root.ok:
+        raise DeploymentError(ctx.problems)
+    meta = root.section('deployment', required=False)
+    name = meta.string('name', 'deployment')
+    description = meta.string('description', '')
+    meta.done()
+    scales = tuple(_read_scale(n, s) for n, s in _named_sections(root, 'scales'))
+    links = tuple(_read_link(n, s) for n, s in _named_sections(root, 'links', required=False))
+    nodes = tuple(_read_node(n, s) for n, s in _named_sections(root, 'nodes'))
+    connections = tuple(_read_connection(n, s)
+                        for n, s in _named_sections(root, 'connections', required=False))
+    decider = _dataclass_settings(root, 'decider', t.DeciderSettings, {
+        'period_s': dict(low=0, high=3600, low_open=True),
+        'cpu_headroom': dict(low=0, high=1, low_open=True),
+        'bandwidth_margin': dict(low=0, high=1, low_open=True),
+        'observation_max_age_s': dict(low=0, high=3600, low_open=True),
+        'hysteresis_s': dict(low=0, high=86400),
+        'grace_s': dict(low=0, high=3600),
+        'agent_timeout_s': dict(low=0, high=3600, low_open=True),
+        'initial_layout': dict(choices=t.INITIAL_LAYOUTS),
+    })
+    monitoring = _dataclass_settings(root, 'monitoring', t.MonitorSettings, {
+        'scale_rate_hz': dict(low=0, high=1000, low_open=True),
+        'heartbeat_rate_hz': dict(low=0, high=1000, low_open=True),
+        'heartbeat_misses_down': dict(low=1, high=1000),
+        'probe_window_s': dict(low=0, high=3600, low_open=True),
+        'probe_publish_rate_hz': dict(low=0, high=1000, low_open=True),
+        'bandwidth_probe_interval_s': dict(low=0, high=86400, low_open=True),
+        'bandwidth_probe_duration_s': dict(low=0, high=60, low_open=True),
+        'bandwidth_probe_port': dict(low=1, high=65535),
+    })
+    agent = _dataclass_settings(root, 'agent', t.AgentSettings, {
+        'sigint_grace_s': dict(low=0, high=3600),
+        'sigterm_grace_s': dict(low=0, high=3600),
+        'readiness_timeout_s': dict(low=0, high=3600, low_open=True),
+        'restart_backoff_s': dict(low=0, high=3600),
+        'restart_backoff_max_s': dict(low=0, high=86400),
+        'heartbeat_rate_hz': dict(low=0, high=1000, low_open=True),
+    })
+    root.done()
+    if ctx.problems:
+        raise DeploymentError(ctx.problems)
+    deployment = t.Deployment(name=name, source=source, scales=scales, links=links,
+                              nodes=nodes, connections=connections, decider=decider,
+                              monitoring=monitoring, agent=agent, description=description)
+    _cross_check(ctx, deployment)
+    if ctx.problems:
+        raise DeploymentError(ctx.problems)
+    _derived_checks(ctx, deployment)
+    if ctx.problems:
+        raise DeploymentError(ctx.problems)
+    return deployment
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """A YAML loader that refuses duplicate keys instead of keeping the last one."""
+
+
+def _construct_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode, deep: bool = False):
+    seen = {}
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(
+                None, None, f'duplicate key {key!r} (first at line {seen[key] + 1})',
+                key_node.start_mark)
+        seen[key] = key_node.start_mark.line
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
+                                 _construct_mapping)
+
+
+def load_deployment(path: str) -> t.Deployment:
+    """Load and validate a deployment file; raises DeploymentError naming every problem."""
+    source = str(path)
+    try:
+        with open(path, encoding='utf-8') as f:
+            data = yaml.load(f, Loader=_UniqueKeyLoader)
+    except OSError as e:
+        raise DeploymentError([Problem(source, '', f'cannot read: {e.strerror}')]) from e
+    except yaml.YAMLError as e:
+        mark = getattr(e, 'problem_mark', None)
+        where = f'line {mark.line + 1}, column {mark.column + 1}' if mark else ''
+        what = getattr(e, 'problem', None) or str(e)
+        raise DeploymentError([Problem(source, where, f'invalid YAML: {what}')]) from e
+    return load_mapping(data, source)
+
+
+def nest_parameters(flat: Mapping[str, Any]) -> Dict[str, Any]:
+    """Turn ROS parameter names with dots (``scales.robot.gain``) back into nested maps."""
+    root: Dict[str, Any] = {}
+    for name in sorted(flat):
+        value = flat[name]
+        if isinstance(value, (list, tuple)):
+            value = list(value)
+        parts = name.split('.')
+        here = root
+        for part in parts[:-1]:
+            here = here.setdefault(part, {})
+            if not isinstance(here, dict):
+                break
+        else:
+            here[parts[-1]] = value
+    return root
+
+
+def load_from_parameters(flat: Mapping[str, Any], source: str = '<ROS parameters>'
+                         ) -> t.Deployment:
+    """Rebuild a deployment from a node's parameters (loaded with --params-file)."""
+    sections = ('deployment', 'scales', 'links', 'nodes', 'connections', 'decider',
+                'monitoring', 'agent')
+    picked = {k: v for k, v in flat.items() if k.split('.', 1)[0] in sections}
+    return load_mapping(nest_parameters(picked), source, wrapped=False)

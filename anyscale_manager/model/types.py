@@ -1,0 +1,299 @@
+"""Frozen dataclasses describing one deployment: scales, links, nodes, connections, settings."""
+
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Mapping, Optional, Tuple
+
+MASTER = 'master'
+REMOTE = 'remote'
+ROBOT = 'robot'
+SERVER = 'server'
+WIRED = 'wired'
+WIRELESS = 'wireless'
+START_BEFORE_STOP = 'start_before_stop'
+STOP_BEFORE_START = 'stop_before_start'
+REGRESSION_FORMS = ('linear', 'log', 'poly2', 'poly3', 'quadratic')
+INITIAL_LAYOUTS = ('master', 'problem1', 'problem2', 'explicit')
+
+
+def frozen_map(mapping: Optional[Mapping] = None) -> Mapping:
+    return MappingProxyType(dict(mapping or {}))
+
+
+@dataclass(frozen=True)
+class Scale:
+    """A computer that can run nodes; CPU in percent of one reference core."""
+
+    name: str
+    role: str                 # master | remote
+    kind: str                 # robot | server
+    capacity_cpu: float       # reference-core percent (a 2-core robot of the reference: 200)
+    cores: int
+    clock_ghz: float
+    gain: float               # the ICAR cost function's alpha_k
+    host: str
+
+    @property
+    def is_master(self) -> bool:
+        return self.role == MASTER
+
+    @property
+    def power(self) -> float:
+        """Raw compute power (cores x GHz); the paper sorts remote scales by it."""
+        return self.cores * self.clock_ghz
+
+
+@dataclass(frozen=True)
+class Link:
+    """A network link between two scales; bandwidth in kbit/s, both directions summed."""
+
+    name: str
+    ends: Tuple[str, str]
+    bandwidth_kbps: float
+    medium: str               # wired | wireless
+
+    def joins(self, a: str, b: str) -> bool:
+        return {a, b} == set(self.ends)
+
+    def other(self, scale: str) -> str:
+        return self.ends[1] if self.ends[0] == scale else self.ends[0]
+
+
+@dataclass(frozen=True)
+class Launch:
+    """How an agent starts a node: a package executable or an explicit command."""
+
+    package: str = ''
+    executable: str = ''
+    command: Tuple[str, ...] = ()
+    arguments: Tuple[str, ...] = ()
+    env: Mapping[str, str] = field(default_factory=frozen_map)
+    parameters: Mapping[str, object] = field(default_factory=frozen_map)
+    ros_name: str = ''        # the node's name in the ROS graph (readiness check)
+
+    @property
+    def startable(self) -> bool:
+        return bool(self.command) or bool(self.package and self.executable)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Profiling samples of one configurable node: parameter value, CPU and performance."""
+
+    parameter: str
+    values: Tuple[float, ...]
+    cpu: Tuple[float, ...]
+    performance: Tuple[float, ...]
+    form: str = 'linear'      # the CPU -> performance regression form
+    parameter_form: str = 'linear'   # the parameter -> CPU regression form
+    frequency_hz: Tuple[float, ...] = ()  # expected output frequency per sample, when known
+
+    @property
+    def configurable(self) -> bool:
+        return len(self.cpu) > 1
+
+    @property
+    def cpu_min(self) -> float:
+        return min(self.cpu)
+
+    @property
+    def cpu_max(self) -> float:
+        return max(self.cpu)
+
+
+@dataclass(frozen=True)
+class Node:
+    name: str
+    launch: Launch
+    cpu: float                        # nominal CPU (reference-core percent) on the reference
+    performance: float = 0.0          # performance at the nominal setting
+    weight: float = 1.0
+    residence: Tuple[str, ...] = ()   # scales it may run on; empty = any
+    coresidence: Tuple[str, ...] = ()  # nodes that must share its scale
+    migratable: Optional[bool] = None  # None = derive; False = never move it
+    managed: bool = True              # False: the agent does not start it (e.g. the decider)
+    move_order: str = START_BEFORE_STOP
+    settings: Optional[Settings] = None
+
+    @property
+    def configurable(self) -> bool:
+        return self.settings is not None and self.settings.configurable
+
+
+@dataclass(frozen=True)
+class Connection:
+    """A directed topic flow from one node to another, with the ICAR thresholds."""
+
+    name: str
+    topic: str
+    publisher: str
+    subscriber: str
+    bandwidth_kbps: float
+    freq_min_hz: Optional[float] = None
+    freq_opt_hz: Optional[float] = None
+    tolerance_s: Optional[float] = None   # Delta; None = not monitored
+    msg_type: str = ''                    # e.g. sensor_msgs/msg/LaserScan; '' = from the graph
+
+    @property
+    def monitored(self) -> bool:
+        return self.freq_min_hz is not None and self.tolerance_s is not None
+
+
+@dataclass(frozen=True)
+class DeciderSettings:
+    period_s: float = 1.0
+    cpu_headroom: float = 0.9             # usable fraction of a scale's capacity
+    bandwidth_margin: float = 0.9         # usable fraction of a link's available bandwidth
+    observation_max_age_s: float = 3.0    # older observations count as missing
+    hysteresis_s: float = 20.0            # the paper's T
+    grace_s: float = 5.0                  # after a move, its connections are not judged
+    agent_timeout_s: float = 5.0          # a silent agent's scale is lost
+    migration: bool = True                # False: keep the first layout (the baseline)
+    initial_layout: str = 'master'
+    layout: Mapping[str, str] = field(default_factory=frozen_map)
+
+
+@dataclass(frozen=True)
+class MonitorSettings:
+    scale_rate_hz: float = 2.0
+    heartbeat_rate_hz: float = 4.0
+    heartbeat_misses_down: int = 3
+    probe_window_s: float = 2.0
+    probe_publish_rate_hz: float = 2.0
+    bandwidth_probe_interval_s: float = 30.0
+    bandwidth_probe_duration_s: float = 0.5
+    bandwidth_probe_port: int = 47800
+
+
+@dataclass(frozen=True)
+class AgentSettings:
+    sigint_grace_s: float = 5.0
+    sigterm_grace_s: float = 3.0
+    readiness_timeout_s: float = 15.0
+    restart_backoff_s: float = 1.0
+    restart_backoff_max_s: float = 30.0
+    heartbeat_rate_hz: float = 2.0
+    state_dir: str = ''                   # '' = ~/.ros/anyscale_manager
+    log_dir: str = ''                     # '' = ~/.ros/log/anyscale_manager
+
+
+@dataclass(frozen=True)
+class Deployment:
+    name: str
+    source: str
+    scales: Tuple[Scale, ...]
+    links: Tuple[Link, ...]
+    nodes: Tuple[Node, ...]
+    connections: Tuple[Connection, ...]
+    decider: DeciderSettings = DeciderSettings()
+    monitoring: MonitorSettings = MonitorSettings()
+    agent: AgentSettings = AgentSettings()
+    description: str = ''
+
+    # --- look-ups -------------------------------------------------------------------------
+    def scale(self, name: str) -> Scale:
+        for s in self.scales:
+            if s.name == name:
+                return s
+        raise KeyError(f'unknown scale {name!r}')
+
+    def node(self, name: str) -> Node:
+        for n in self.nodes:
+            if n.name == name:
+                return n
+        raise KeyError(f'unknown node {name!r}')
+
+    def connection(self, name: str) -> Connection:
+        for c in self.connections:
+            if c.name == name:
+                return c
+        raise KeyError(f'unknown connection {name!r}')
+
+    @property
+    def scale_names(self) -> Tuple[str, ...]:
+        return tuple(s.name for s in self.scales)
+
+    @property
+    def node_names(self) -> Tuple[str, ...]:
+        return tuple(n.name for n in self.nodes)
+
+    @property
+    def master(self) -> Scale:
+        return next(s for s in self.scales if s.is_master)
+
+    @property
+    def remote_scales(self) -> Tuple[Scale, ...]:
+        return tuple(s for s in self.scales if not s.is_master)
+
+    def link_between(self, a: str, b: str) -> Optional[Link]:
+        for link in self.links:
+            if link.joins(a, b):
+                return link
+        return None
+
+    def connections_of(self, node: str) -> Tuple[Connection, ...]:
+        return tuple(c for c in self.connections if node in (c.publisher, c.subscriber))
+
+    # --- derived sets (the ICAR paper's static analysis) ------------------------------------
+    @property
+    def critical_nodes(self) -> Tuple[str, ...]:
+        """Nodes in at least one connection whose tolerance is 0: pinned to the master."""
+        names = set()
+        for c in self.connections:
+            if c.tolerance_s is not None and c.tolerance_s == 0:
+                names.update((c.publisher, c.subscriber))
+        return tuple(n.name for n in self.nodes if n.name in names)
+
+    @property
+    def data_providers(self) -> Tuple[str, ...]:
+        """Nodes that publish into the graph but subscribe to nothing: sensor drivers and the like."""
+        publishers = {c.publisher for c in self.connections}
+        subscribers = {c.subscriber for c in self.connections}
+        return tuple(n.name for n in self.nodes
+                     if n.name in publishers and n.name not in subscribers)
+
+    def coresidence_group(self, node: str) -> Tuple[str, ...]:
+        """The node and every node it must share a scale with (symmetric, transitive)."""
+        links = {n.name: set(n.coresidence) for n in self.nodes}
+        for n in self.nodes:
+            for other in n.coresidence:
+                links.setdefault(other, set()).add(n.name)
+        group, todo = {node}, [node]
+        while todo:
+            for other in links.get(todo.pop(), ()):
+                if other not in group:
+                    group.add(other)
+                    todo.append(other)
+        return tuple(n for n in self.node_names if n in group)
+
+    def own_scales(self, node: str) -> Tuple[str, ...]:
+        """Scales one node may run on by itself: residence, criticality, provider pinning."""
+        n = self.node(node)
+        master = self.master.name
+        if node in self.critical_nodes:
+            return (master,)
+        if n.residence:
+            return tuple(s for s in self.scale_names if s in n.residence)
+        if node in self.data_providers or not n.managed:
+            return (master,)
+        return self.scale_names
+
+    def allowed_scales(self, node: str) -> Tuple[str, ...]:
+        """Scales a node may run on, its coresidence group's constraints included."""
+        allowed = set(self.scale_names)
+        for member in self.coresidence_group(node):
+            allowed &= set(self.own_scales(member))
+        return tuple(s for s in self.scale_names if s in allowed)
+
+    @property
+    def migratable_nodes(self) -> Tuple[str, ...]:
+        """Nodes the runtime may move between the master and remote scales."""
+        master = self.master.name
+        out = []
+        for n in self.nodes:
+            if n.migratable is False or not n.managed or not n.launch.startable:
+                continue
+            allowed = self.allowed_scales(n.name)
+            if master in allowed and len(allowed) > 1:
+                out.append(n.name)
+        return tuple(out)

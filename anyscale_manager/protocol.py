@@ -1,0 +1,310 @@
+"""The project's own topics: names, QoS roles and JSON payloads, with strict decoding.
+
+Every project topic carries a std_msgs/msg/String whose ``data`` is one JSON object, so the
+package needs no generated interfaces and any tool (``ros2 topic echo``) can read it. Decoding
+never trusts the sender: wrong types, missing fields, non-finite numbers, oversized payloads and
+unknown kinds raise ProtocolError with a message naming the topic and the field. Stamps are the
+sender's wall clock and only informative; freshness is judged by the receiver's own clock.
+"""
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Any, Dict, Mapping, Optional, Type, TypeVar
+
+PREFIX = '/anyscale'
+TOPIC_LAYOUT = PREFIX + '/layout'                  # decider -> agents, latched
+TOPIC_AGENT_STATE = PREFIX + '/agent_state'        # agents -> decider, latched per agent
+TOPIC_SCALE_STATUS = PREFIX + '/scale_status'      # scale monitor (in each agent)
+TOPIC_LINK_STATUS = PREFIX + '/link_status'        # link monitor (in the master's agent)
+TOPIC_CONNECTION_STATUS = PREFIX + '/connection_status'  # probes (in each agent)
+TOPIC_HEARTBEAT = PREFIX + '/heartbeat'            # master agent -> remote agents
+TOPIC_HEARTBEAT_ECHO = PREFIX + '/heartbeat_echo'  # remote agents -> master agent
+TOPIC_EVENTS = PREFIX + '/events'                  # decider decisions with reasons
+TOPIC_OBJECTIVE = PREFIX + '/objective'            # decider cost function
+TOPIC_PLAN_CHECK = PREFIX + '/plan_check'          # decider plan-against-reality report
+TOPIC_DIAGNOSTICS = '/diagnostics'
+
+MAX_PAYLOAD_BYTES = 1 << 20
+
+# Diagnostic levels as plain ints (DiagnosticStatus.level is bytes in Python).
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+NODE_STATES = ('starting', 'running', 'stopping', 'stopped', 'crashed', 'backoff', 'failed')
+
+
+class ProtocolError(ValueError):
+    """A message that does not match its topic's schema."""
+
+
+T = TypeVar('T', bound='Message')
+
+
+def _check(value: Any, kind: Any, where: str) -> Any:
+    """Validate one JSON value against a small type language; return it normalised."""
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not math.isfinite(value):
+            raise ProtocolError(f'{where}: expected a finite number, got {value!r:.60}')
+        return float(value)
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ProtocolError(f'{where}: expected an integer, got {value!r:.60}')
+        return value
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise ProtocolError(f'{where}: expected true or false, got {value!r:.60}')
+        return value
+    if kind is str:
+        if not isinstance(value, str):
+            raise ProtocolError(f'{where}: expected a string, got {value!r:.60}')
+        return value
+    if isinstance(kind, tuple) and kind[0] == 'optional':
+        return None if value is None else _check(value, kind[1], where)
+    if isinstance(kind, tuple) and kind[0] == 'map':
+        if not isinstance(value, dict):
+            raise ProtocolError(f'{where}: expected a map, got {value!r:.60}')
+        return {str(k): _check(v, kind[1], f'{where}.{k}') for k, v in value.items()}
+    if isinstance(kind, type) and issubclass(kind, Message):
+        return kind.from_dict(value, where)
+    raise TypeError(f'unsupported schema kind {kind!r}')  # a bug in this module, not input
+
+
+class Message:
+    """Base of every payload: ``SCHEMA`` maps field name to kind; all fields are required."""
+
+    SCHEMA: Dict[str, Any] = {}
+
+    @classmethod
+    def from_dict(cls: Type[T], data: Any, where: str = '') -> T:
+        where = where or cls.__name__
+        if not isinstance(data, dict):
+            raise ProtocolError(f'{where}: expected a JSON object, got {data!r:.60}')
+        values = {}
+        for name, kind in cls.SCHEMA.items():
+            if name not in data:
+                optional = isinstance(kind, tuple) and kind[0] == 'optional'
+                if optional:
+                    values[name] = None
+                    continue
+                raise ProtocolError(f'{where}: missing field {name!r}')
+            values[name] = _check(data[name], kind, f'{where}.{name}')
+        obj = cls(**values)
+        obj.validate(where)
+        return obj
+
+    def validate(self, where: str) -> None:
+        """Checks beyond types; override where a message has them."""
+
+    def to_dict(self) -> Dict[str, Any]:
+        return asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), separators=(',', ':'), sort_keys=True)
+
+    @classmethod
+    def from_json(cls: Type[T], text: Any, topic: str = '') -> T:
+        where = topic or cls.__name__
+        if not isinstance(text, str):
+            raise ProtocolError(f'{where}: expected JSON text')
+        if len(text) > MAX_PAYLOAD_BYTES:
+            raise ProtocolError(f'{where}: payload of {len(text)} bytes is over the '
+                                f'{MAX_PAYLOAD_BYTES}-byte limit')
+        try:
+            data = json.loads(text, parse_constant=_reject_constant)
+        except (ValueError, RecursionError) as e:
+            raise ProtocolError(f'{where}: not valid JSON ({e})') from None
+        return cls.from_dict(data, where)
+
+
+def _reject_constant(name: str) -> None:
+    raise ValueError(f'{name} is not allowed')
+
+
+def _names_ok(mapping: Mapping[str, Any], where: str, what: str) -> None:
+    for key in mapping:
+        if not key or len(key) > 256:
+            raise ProtocolError(f'{where}: bad {what} name {key!r:.60}')
+
+
+@dataclass
+class Layout(Message):
+    """The desired layout: node -> scale for every managed node, with a generation number."""
+
+    generation: int
+    deployment: str
+    assignments: Dict[str, str]
+    reason: str
+    stamp: float
+    SCHEMA = {'generation': int, 'deployment': str, 'assignments': ('map', str),
+              'reason': str, 'stamp': float}
+
+    def validate(self, where: str) -> None:
+        if self.generation < 0:
+            raise ProtocolError(f'{where}.generation: must be >= 0')
+        _names_ok(self.assignments, where + '.assignments', 'node')
+
+
+@dataclass
+class NodeReport(Message):
+    """What an agent knows of one node it supervises."""
+
+    state: str
+    pid: int
+    since: float
+    restarts: int
+    ready: bool
+    exit_reason: str
+    SCHEMA = {'state': str, 'pid': int, 'since': float, 'restarts': int, 'ready': bool,
+              'exit_reason': str}
+
+    def validate(self, where: str) -> None:
+        if self.state not in NODE_STATES:
+            raise ProtocolError(f'{where}.state: expected one of {", ".join(NODE_STATES)}, '
+                                f'got {self.state!r:.40}')
+
+
+@dataclass
+class AgentState(Message):
+    """An agent's report of what actually runs on its scale."""
+
+    scale: str
+    generation: int           # the newest layout generation this agent has applied
+    stamp: float
+    nodes: Dict[str, NodeReport]
+    SCHEMA = {'scale': str, 'generation': int, 'stamp': float, 'nodes': ('map', NodeReport)}
+
+    def to_dict(self) -> Dict[str, Any]:
+        return {'scale': self.scale, 'generation': self.generation, 'stamp': self.stamp,
+                'nodes': {k: asdict(v) for k, v in self.nodes.items()}}
+
+    def running(self) -> Dict[str, NodeReport]:
+        return {k: v for k, v in self.nodes.items() if v.state in ('starting', 'running')}
+
+
+@dataclass
+class ScaleStatus(Message):
+    """CPU (reference-core percent), memory and load of one scale and its managed nodes."""
+
+    scale: str
+    stamp: float
+    cpu_total: float
+    capacity_cpu: float
+    cpu_by_node: Dict[str, float]
+    mem_percent: float
+    load_1m: float
+    SCHEMA = {'scale': str, 'stamp': float, 'cpu_total': float, 'capacity_cpu': float,
+              'cpu_by_node': ('map', float), 'mem_percent': float, 'load_1m': float}
+
+
+@dataclass
+class LinkStatus(Message):
+    """The master's view of its link to one remote scale."""
+
+    master: str
+    remote: str
+    stamp: float
+    up: bool
+    rtt_ms: Optional[float]
+    loss: float                                  # fraction of recent beats lost
+    bandwidth_available_kbps: Optional[float]    # last active probe; None = never measured
+    bandwidth_available_age_s: Optional[float]
+    bandwidth_used_kbps: float                   # measured traffic of crossing connections
+    SCHEMA = {'master': str, 'remote': str, 'stamp': float, 'up': bool,
+              'rtt_ms': ('optional', float), 'loss': float,
+              'bandwidth_available_kbps': ('optional', float),
+              'bandwidth_available_age_s': ('optional', float),
+              'bandwidth_used_kbps': float}
+
+
+@dataclass
+class ConnectionReading(Message):
+    rate_hz: float
+    bytes_per_s: float
+    below_for_s: float        # continuous time below freq_min (0 when at or above)
+    level: int                # OK / WARN (below, within tolerance) / ERROR (past tolerance)
+    SCHEMA = {'rate_hz': float, 'bytes_per_s': float, 'below_for_s': float, 'level': int}
+
+
+@dataclass
+class ConnectionStatus(Message):
+    """Readings of every probe on one scale (the scale where each subscriber runs)."""
+
+    scale: str
+    stamp: float
+    connections: Dict[str, ConnectionReading]
+    SCHEMA = {'scale': str, 'stamp': float, 'connections': ('map', ConnectionReading)}
+
+    def to_dict(self) -> Dict[str, Any]:
+        return {'scale': self.scale, 'stamp': self.stamp,
+                'connections': {k: asdict(v) for k, v in self.connections.items()}}
+
+
+@dataclass
+class Heartbeat(Message):
+    scale: str        # the sender
+    target: str       # the scale it is meant for ('' = every remote)
+    seq: int
+    sent: float       # the master's monotonic clock, echoed back unchanged
+    SCHEMA = {'scale': str, 'target': str, 'seq': int, 'sent': float}
+
+
+@dataclass
+class Event(Message):
+    """One decision of the decider, with its reason."""
+
+    stamp: float
+    kind: str         # migrate, migrate_back, adopt, scale_lost, warning, layout, ...
+    node: str
+    from_scale: str
+    to_scale: str
+    reason: str
+    generation: int
+    SCHEMA = {'stamp': float, 'kind': str, 'node': str, 'from_scale': str, 'to_scale': str,
+              'reason': str, 'generation': int}
+
+
+@dataclass
+class Objective(Message):
+    """The ICAR cost function: Perf_map now, and its integral over the run."""
+
+    stamp: float
+    perf_map: float
+    integral: float
+    elapsed_s: float
+    SCHEMA = {'stamp': float, 'perf_map': float, 'integral': float, 'elapsed_s': float}
+
+
+@dataclass
+class PlanNode(Message):
+    expected_hz: float
+    measured_hz: float
+    expected_performance: float
+    measured_performance: float
+    deviation: float
+    SCHEMA = {'expected_hz': float, 'measured_hz': float, 'expected_performance': float,
+              'measured_performance': float, 'deviation': float}
+
+
+@dataclass
+class PlanCheck(Message):
+    """Plan against reality (IROS 2016 Eq. 10) per node and overall."""
+
+    stamp: float
+    nodes: Dict[str, PlanNode]
+    overall_deviation: float
+    overloaded: Dict[str, float] = field(default_factory=dict)
+    SCHEMA = {'stamp': float, 'nodes': ('map', PlanNode), 'overall_deviation': float,
+              'overloaded': ('map', float)}
+
+    def to_dict(self) -> Dict[str, Any]:
+        return {'stamp': self.stamp, 'overall_deviation': self.overall_deviation,
+                'nodes': {k: asdict(v) for k, v in self.nodes.items()},
+                'overloaded': dict(self.overloaded)}
+
+
+__all__ = [
+    'AgentState', 'ConnectionReading', 'ConnectionStatus', 'ERROR', 'Event', 'Heartbeat',
+    'Layout', 'LinkStatus', 'Message', 'NodeReport', 'OK', 'Objective', 'PlanCheck', 'PlanNode',
+    'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
+]

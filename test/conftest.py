@@ -1,0 +1,44 @@
+"""Test-wide settings: DDS stays on loopback, in a domain of this run's own."""
+
+import os
+import random
+import sys
+
+import pytest
+
+# Pin discovery to this machine's loopback before anything imports rclpy, and pick a domain of
+# our own so concurrent runs on one machine never see each other's nodes.
+os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+os.environ.pop('ROS_LOCALHOST_ONLY', None)
+os.environ.pop('ROS_STATIC_PEERS', None)
+if 'ANYSCALE_TEST_DOMAIN_ID' not in os.environ:
+    os.environ['ANYSCALE_TEST_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 100))
+os.environ['ROS_DOMAIN_ID'] = os.environ['ANYSCALE_TEST_DOMAIN_ID']
+os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CONFIG = os.path.join(REPO, 'config')
+TESTBED = os.path.join(CONFIG, 'icar2015_testbed.yaml')
+
+
+def pytest_report_header(config):
+    return (f"ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']} "
+            f"ROS_AUTOMATIC_DISCOVERY_RANGE={os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']}")
+
+
+@pytest.fixture
+def ros_env():
+    """An explicit environment for child ROS processes (same domain, loopback only)."""
+    env = dict(os.environ)
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+@pytest.fixture
+def testbed_path():
+    return TESTBED
+
+
+@pytest.fixture
+def python():
+    return sys.executable
