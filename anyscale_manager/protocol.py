@@ -80,6 +80,10 @@ class Message:
         where = where or cls.__name__
         if not isinstance(data, dict):
             raise ProtocolError(f'{where}: expected a JSON object, got {data!r:.60}')
+        unknown = sorted(str(k) for k in data if k not in cls.SCHEMA)
+        if unknown:
+            # A layout that smuggles a command (or any field we do not know) is refused whole.
+            raise ProtocolError(f'{where}: unknown field {unknown[0]!r:.60}')
         values = {}
         for name, kind in cls.SCHEMA.items():
             if name not in data:

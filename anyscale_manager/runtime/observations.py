@@ -1,0 +1,69 @@
+"""What the runtime core sees and what it decides: plain frozen values, no ROS.
+
+The live decider builds an ``Observations`` from the monitors' topics and the agents' reports;
+the simulator builds one from its simulated world; a unit test writes one by hand. The policy
+only ever sees this snapshot and the time passed in with it.
+"""
+
+from dataclasses import dataclass, field
+from typing import FrozenSet, Mapping, Optional
+
+from ..model.types import frozen_map
+
+
+@dataclass(frozen=True)
+class ScaleObs:
+    """One scale's measured CPU (reference-core percent), received at ``stamp``."""
+
+    cpu_total: float
+    stamp: float
+    cpu_by_node: Mapping[str, float] = field(default_factory=frozen_map)
+
+
+@dataclass(frozen=True)
+class LinkObs:
+    """The master's link to one remote scale, received at ``stamp``."""
+
+    up: bool
+    stamp: float
+    available_kbps: Optional[float] = None   # None = not measured yet: use the nominal
+    used_kbps: float = 0.0
+    rtt_ms: Optional[float] = None
+
+
+@dataclass(frozen=True)
+class ConnectionObs:
+    """One connection's measured rate, received at ``stamp``."""
+
+    rate_hz: float
+    stamp: float
+    below_for_s: float = 0.0                 # as tracked by the probe
+    bytes_per_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Observations:
+    """A frozen snapshot of everything the decider knows at time ``now`` (its own clock)."""
+
+    now: float
+    running: Mapping[str, str]                       # node -> scale where it actually runs
+    scales: Mapping[str, ScaleObs] = field(default_factory=frozen_map)
+    links: Mapping[str, LinkObs] = field(default_factory=frozen_map)   # keyed by remote scale
+    connections: Mapping[str, ConnectionObs] = field(default_factory=frozen_map)
+    lost_scales: FrozenSet[str] = frozenset()        # scales whose agent went silent
+
+
+MIGRATE = 'migrate'            # master -> remote (Algorithm 1's else branch)
+MIGRATE_BACK = 'migrate_back'  # remote -> master (Algorithm 1's violation branch)
+RELOCATE = 'relocate'          # a node of a lost scale placed elsewhere
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One move, with the reason that is logged and published."""
+
+    kind: str
+    node: str
+    from_scale: str
+    to_scale: str
+    reason: str
