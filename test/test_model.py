@@ -1,0 +1,225 @@
+"""The deployment model: loading, every class of validation error, derived sets."""
+
+import copy
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from anyscale_manager.model import DeploymentError, load_deployment, load_mapping
+from anyscale_manager.model.iros2016 import INSTANCES, build_instance
+from conftest import CONFIG, TESTBED
+
+
+def load_testbed_dict():
+    with open(TESTBED, encoding='utf-8') as f:
+        return yaml.safe_load(f)
+
+
+def params(data):
+    return data['/**']['ros__parameters']
+
+
+def problems_of(data, source='t.yaml'):
+    with pytest.raises(DeploymentError) as info:
+        load_mapping(data, source)
+    return [str(p) for p in info.value.problems]
+
+
+def test_testbed_loads_and_derives_the_papers_sets():
+    d = load_deployment(TESTBED)
+    assert d.name == 'icar2015_testbed'
+    assert d.master.name == 'robot'
+    assert [s.name for s in d.remote_scales] == ['laptop']
+    assert len(d.nodes) == 11
+    assert len(d.connections) == 8
+    assert d.migratable_nodes == ('amcl', 'ar')
+    assert set(d.critical_nodes) == {'laser', 'odometer', 'odometry', 'ekf', 'navigation'}
+    assert set(d.data_providers) == {'laser', 'odometer', 'camera'}
+    assert d.allowed_scales('amcl') == ('robot', 'laptop')
+    assert d.allowed_scales('camera') == ('robot',)
+    assert d.link_between('laptop', 'robot').bandwidth_kbps == 54000.0
+    # Table I exactly.
+    table1 = {
+        ('laser', 'amcl'): (5, 10, 2), ('laser', 'navigation'): (2, 10, 0),
+        ('odometer', 'odometry'): (10, 40, 0), ('camera', 'ar'): (1, 30, 1),
+        ('amcl', 'ekf'): (2, 5, 2), ('odometry', 'ekf'): (5, 10, 0),
+        ('ekf', 'navigation'): (2, 5, 0), ('ar', 'navigation'): (1, 30, 1),
+    }
+    got = {(c.publisher, c.subscriber): (c.freq_min_hz, c.freq_opt_hz, c.tolerance_s)
+           for c in d.connections}
+    assert got == table1
+
+
+def test_loaded_values_are_frozen():
+    d = load_deployment(TESTBED)
+    with pytest.raises(Exception):
+        d.scales[0].capacity_cpu = 1.0
+    with pytest.raises(TypeError):
+        d.decider.layout['amcl'] = 'laptop'
+
+
+@pytest.mark.parametrize('number', sorted(INSTANCES))
+def test_iros_instances_match_the_case_study(number):
+    computers, robots, cameras = INSTANCES[number]
+    d = load_deployment(os.path.join(CONFIG, 'iros2016', f'instance_{number}.yaml'))
+    assert len(d.scales) == computers
+    assert len(d.nodes) == 1 + cameras + 6 * robots
+    assert sum(n.configurable for n in d.nodes) == cameras + 3 * robots
+    wireless = [link for link in d.links if link.medium == 'wireless']
+    assert all(link.bandwidth_kbps == 54000 // len(wireless) for link in wireless)
+    robots_ = [s for s in d.scales if s.kind == 'robot']
+    assert len(robots_) == robots and all(s.capacity_cpu == 100 for s in robots_)
+    assert d.node('tracker_1').cpu == 120 and d.node('tracker_1').performance == 70
+    assert d.allowed_scales('planner_1') == d.allowed_scales('navigation_1')
+    assert d.allowed_scales('youbot_core_1') == ('c1',)
+
+
+def test_shipped_iros_files_are_what_the_generator_makes():
+    for number in INSTANCES:
+        with open(os.path.join(CONFIG, 'iros2016', f'instance_{number}.yaml'),
+                  encoding='utf-8') as f:
+            assert yaml.safe_load(f) == build_instance(number), number
+
+
+# --- every class of validation error --------------------------------------------------------
+
+def mutate(fn):
+    data = load_testbed_dict()
+    fn(params(data))
+    return data
+
+
+@pytest.mark.parametrize('change, path, words', [
+    (lambda p: p['scales']['robot'].update(speed=3), 'scales.robot.speed', 'unknown key'),
+    (lambda p: p.update(extras={'a': 1}), 'extras', 'unknown key'),
+    (lambda p: p['scales']['robot'].update(capacity_cpu='lots'), 'scales.robot.capacity_cpu',
+     'expected a number'),
+    (lambda p: p['scales']['robot'].update(capacity_cpu=-5.0), 'scales.robot.capacity_cpu',
+     'out of range'),
+    (lambda p: p['scales']['robot'].update(cores=0), 'scales.robot.cores', 'out of range'),
+    (lambda p: p['scales']['robot'].update(role='boss'), 'scales.robot.role', 'expected one of'),
+    (lambda p: p['scales']['robot'].pop('capacity_cpu'), 'scales.robot.capacity_cpu',
+     'required key is missing'),
+    (lambda p: p['links']['wifi'].update(bandwidth_kbps=0.0), 'links.wifi.bandwidth_kbps',
+     'out of range'),
+    (lambda p: p['links']['wifi'].update(ends=['robot', 'moon']), 'links.wifi.ends',
+     "unknown scale 'moon'"),
+    (lambda p: p['connections']['laser_amcl'].update(subscriber='ghost'),
+     'connections.laser_amcl.subscriber', "unknown node 'ghost'"),
+    (lambda p: p['connections']['laser_amcl'].update(freq_min_hz=-1.0),
+     'connections.laser_amcl.freq_min_hz', 'out of range'),
+    (lambda p: p['connections']['laser_amcl'].update(freq_opt_hz=1.0),
+     'connections.laser_amcl.freq_opt_hz', 'below freq_min_hz'),
+    (lambda p: p['connections']['laser_amcl'].update(tolerance_s=True),
+     'connections.laser_amcl.tolerance_s', 'expected a number'),
+    (lambda p: p['nodes']['amcl'].update(residence=['mars']), 'nodes.amcl.residence',
+     "unknown scale 'mars'"),
+    (lambda p: p['nodes']['amcl'].update(coresidence=['nobody']), 'nodes.amcl.coresidence',
+     "unknown node 'nobody'"),
+    (lambda p: p['nodes']['amcl'].update(residence=[]), 'nodes.amcl.residence',
+     'empty list'),
+    (lambda p: p['nodes']['navigation'].update(migratable=True), 'nodes.navigation.migratable',
+     'tolerance_s 0'),
+    (lambda p: p['nodes']['navigation'].update(residence=['laptop']),
+     'nodes.navigation.residence', 'critical node must run on the master'),
+    (lambda p: p['nodes']['ar'].update(coresidence=['camera'], residence=['laptop']),
+     'nodes.ar.coresidence', 'no scale satisfies'),
+    (lambda p: p['nodes']['camera'].update(migratable=True), 'nodes.camera.migratable',
+     'no second scale'),
+    (lambda p: p['nodes']['names'].append('ghost'), 'nodes.ghost', 'has no section'),
+    (lambda p: p['nodes'].update(stray={'cpu': 1.0}), 'nodes.stray', 'not listed'),
+    (lambda p: p['nodes']['names'].append('bad name'), 'nodes.names', 'not a valid name'),
+    (lambda p: p['nodes']['amcl']['launch'].update(command=['x']), 'nodes.amcl.launch',
+     'either command or package'),
+    (lambda p: p['scales']['laptop'].update(role='master'), 'scales',
+     'exactly one scale with role master'),
+    (lambda p: p['decider'].update(cpu_headroom=1.5), 'decider.cpu_headroom', 'out of range'),
+    (lambda p: p['decider'].update(initial_layout='random'), 'decider.initial_layout',
+     'expected one of'),
+    (lambda p: p['decider'].update(layout={'navigation': 'laptop'}), 'decider.layout.navigation',
+     'may not run on'),
+    (lambda p: p['monitoring'].update(heartbeat_misses_down=0),
+     'monitoring.heartbeat_misses_down', 'out of range'),
+    (lambda p: p['agent'].update(sigint_grace_s='soon'), 'agent.sigint_grace_s',
+     'expected a number'),
+])
+def test_validation_error_names_file_path_and_expectation(change, path, words):
+    found = problems_of(mutate(change))
+    assert any(p.startswith(f't.yaml: {path}: ') and words in p for p in found), found
+
+
+def test_mixed_int_and_decimal_list_is_refused_as_ros_parameters_would():
+    data = copy.deepcopy(build_instance(1))
+    params(data)['nodes']['model_1']['settings']['cpu'] = [17, 39.5, 59]
+    found = problems_of(data)
+    assert any('nodes.model_1.settings.cpu' in p and 'mixes integers' in p for p in found)
+
+
+def test_all_errors_are_reported_at_once():
+    def change(p):
+        p['scales']['robot']['capacity_cpu'] = 'x'
+        p['links']['wifi']['medium'] = 'smoke'
+        p['connections']['camera_ar']['tolerance_s'] = -2.0
+    found = problems_of(mutate(change))
+    assert len(found) >= 3
+    assert any('scales.robot.capacity_cpu' in p for p in found)
+    assert any('links.wifi.medium' in p for p in found)
+    assert any('connections.camera_ar.tolerance_s' in p for p in found)
+
+
+def test_file_must_be_a_ros_parameters_file():
+    found = problems_of(params(load_testbed_dict()))
+    assert any('ROS 2 parameters file' in p for p in found)
+
+
+def test_settings_lengths_must_agree():
+    data = copy.deepcopy(build_instance(1))
+    params(data)['nodes']['amcl_1']['settings']['performance'] = [1.0, 2.0]
+    found = problems_of(data)
+    assert any('nodes.amcl_1.settings.performance' in p and 'expected 3 values' in p
+               for p in found)
+
+
+def test_yaml_syntax_and_duplicate_keys_name_the_line(tmp_path):
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text('/**:\n  ros__parameters:\n    scales: [unclosed\n')
+    with pytest.raises(DeploymentError) as info:
+        load_deployment(str(bad))
+    assert str(bad) in str(info.value) and 'invalid YAML' in str(info.value)
+    dup = tmp_path / 'dup.yaml'
+    dup.write_text('/**:\n  ros__parameters:\n    nodes: {}\n    nodes: {}\n')
+    with pytest.raises(DeploymentError) as info:
+        load_deployment(str(dup))
+    assert 'duplicate key' in str(info.value) and 'line 4' in str(info.value)
+    with pytest.raises(DeploymentError) as info:
+        load_deployment(str(tmp_path / 'missing.yaml'))
+    assert 'cannot read' in str(info.value)
+
+
+# --- the command ----------------------------------------------------------------------------
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, '-m', 'anyscale_manager.cli', *args],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_validate_prints_a_summary_and_exits_0():
+    r = run_cli('validate', TESTBED)
+    assert r.returncode == 0, r.stderr
+    assert 'migratable: amcl, ar' in r.stdout
+    assert 'laser_amcl' in r.stdout and 'tolerance 2 s' in r.stdout
+
+
+def test_validate_exits_2_with_every_error(tmp_path):
+    data = mutate(lambda p: (p['scales']['robot'].update(capacity_cpu=-1.0),
+                             p['nodes']['amcl'].update(weight='heavy')))
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text(yaml.safe_dump(data))
+    r = run_cli('validate', TESTBED, str(bad))
+    assert r.returncode == 2
+    assert f'{bad}: scales.robot.capacity_cpu' in r.stderr
+    assert f'{bad}: nodes.amcl.weight' in r.stderr
+    assert 'deployment' in r.stdout   # the good file is still summarised
