@@ -1,0 +1,171 @@
+"""What one scale's agent may start: argv and environment per node, built from the deployment.
+
+The catalogue is the only source of commands: a layout names nodes, never commands, so the agent
+starts nothing that is not in here. Every entry is resolved once, when the agent starts; an entry
+that cannot be resolved carries its problem and is reported as failed instead of started.
+"""
+
+import os
+import shutil
+import sys
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Mapping, Optional, Tuple
+
+from ..model import types as t
+
+# Variables a child inherits from the agent; everything else comes from launch.env.
+BASE_ENV_NAMES = ('PATH', 'HOME', 'LANG', 'LC_ALL', 'PYTHONPATH', 'AMENT_PREFIX_PATH',
+                  'LD_LIBRARY_PATH', 'USER', 'LOGNAME', 'TZ')
+BASE_ENV_PREFIXES = ('ROS_', 'RMW_', 'RCUTILS_', 'FASTRTPS_', 'FASTDDS_', 'CYCLONEDDS_')
+ENV_NODE = 'ANYSCALE_AGENT_NODE'          # marks a child: which catalogue entry it is
+ENV_SCALE = 'ANYSCALE_AGENT_SCALE'        # and which scale's agent started it
+ENV_INSTANCE = 'ANYSCALE_AGENT_INSTANCE'  # a per-start token, checked when adopting
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One startable node: a complete argv and an explicit environment."""
+
+    name: str
+    argv: Tuple[str, ...]
+    env: Mapping[str, str] = field(default_factory=t.frozen_map)
+    ros_name: str = ''
+    move_order: str = t.START_BEFORE_STOP
+    problem: str = ''           # why it cannot be started ('' = it can)
+
+    @property
+    def startable(self) -> bool:
+        return not self.problem and bool(self.argv)
+
+
+def base_environment(environ: Mapping[str, str]) -> Dict[str, str]:
+    """The minimal inherited environment: paths, locale and the ROS middleware settings."""
+    out = {k: v for k, v in environ.items()
+           if k in BASE_ENV_NAMES or k.startswith(BASE_ENV_PREFIXES)}
+    # Children write to log files: unbuffered Python output keeps them readable after a crash.
+    out.setdefault('PYTHONUNBUFFERED', '1')
+    return out
+
+
+def _ament_prefix(package: str) -> Optional[str]:
+    try:
+        from ament_index_python.packages import get_package_prefix
+    except ImportError:
+        return None
+    try:
+        return get_package_prefix(package)
+    except (LookupError, OSError, ValueError):
+        # PackageNotFoundError is a KeyError; an unset AMENT_PREFIX_PATH is an EnvironmentError.
+        return None
+
+
+def _is_executable(path: str) -> bool:
+    return os.path.isfile(path) and os.access(path, os.X_OK)
+
+
+def resolve_executable(package: str, executable: str, search_path: str,
+                       ament_prefix: Callable[[str], Optional[str]] = _ament_prefix
+                       ) -> Tuple[str, str]:
+    """Find a package's executable: (path, '') or ('', problem).
+
+    Order: <prefix>/lib/<package>/<executable> from the ament index; the executable next to the
+    running interpreter (a virtual environment's editable install has no ament index entry);
+    then PATH.
+    """
+    tried = []
+    prefix = ament_prefix(package)
+    if prefix:
+        candidate = os.path.join(prefix, 'lib', package, executable)
+        if _is_executable(candidate):
+            return candidate, ''
+        tried.append(candidate)
+    else:
+        tried.append(f'ament index (package {package!r} not found)')
+    beside = os.path.join(os.path.dirname(sys.executable), executable)
+    if _is_executable(beside):
+        return beside, ''
+    tried.append(beside)
+    found = shutil.which(executable, path=search_path)
+    if found:
+        return found, ''
+    tried.append('PATH')
+    return '', f'executable {executable!r} of package {package!r} not found (tried ' \
+               f'{", ".join(tried)})'
+
+
+def format_parameter(value: object) -> str:
+    """A value as rcl's YAML parser reads it back with the same type."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(format_parameter(v) for v in value) + ']'
+    text = str(value)
+    # Quote every string so '5', 'true' or 'null' stay strings.
+    return "'" + text.replace("'", "''") + "'"
+
+
+def build_argv(node: t.Node, search_path: str,
+               ament_prefix: Callable[[str], Optional[str]] = _ament_prefix
+               ) -> Tuple[Tuple[str, ...], str]:
+    """The full argv of a node's launch, or ((), problem)."""
+    launch = node.launch
+    if launch.command:
+        head = list(launch.command)
+        if os.sep not in head[0]:
+            found = shutil.which(head[0], path=search_path)
+            if not found:
+                return (), f'command {head[0]!r} not found on PATH'
+            head[0] = found
+    elif launch.package and launch.executable:
+        path, problem = resolve_executable(launch.package, launch.executable, search_path,
+                                           ament_prefix)
+        if problem:
+            return (), problem
+        head = [path]
+    else:
+        return (), 'no command and no package/executable to start'
+    argv = head + list(launch.arguments) + ['--ros-args', '-r',
+                                            f'__node:={ros_base_name(node)}']
+    for key in sorted(launch.parameters):
+        argv += ['-p', f'{key}:={format_parameter(launch.parameters[key])}']
+    return tuple(argv), ''
+
+
+def ros_base_name(node: t.Node) -> str:
+    """The node's name without namespace: what __node remaps."""
+    name = node.launch.ros_name or node.name
+    return name.rstrip('/').rsplit('/', 1)[-1]
+
+
+def ros_full_name(node: t.Node) -> str:
+    """The name the readiness check looks for: '/ns/name' or 'name'."""
+    return node.launch.ros_name or node.name
+
+
+def build_catalogue(deployment: t.Deployment, scale: str,
+                    environ: Optional[Mapping[str, str]] = None,
+                    ament_prefix: Callable[[str], Optional[str]] = _ament_prefix
+                    ) -> Dict[str, Entry]:
+    """Every managed, startable node that may run on ``scale``, in deployment order."""
+    if scale not in deployment.scale_names:
+        raise ValueError(f'{deployment.source}: unknown scale {scale!r} (scales: '
+                         f'{", ".join(deployment.scale_names)})')
+    environ = os.environ if environ is None else environ
+    base = base_environment(environ)
+    out = {}
+    for node in deployment.nodes:
+        if not node.managed or not node.launch.startable:
+            continue
+        if scale not in deployment.allowed_scales(node.name):
+            continue
+        env = dict(base)
+        env.update({str(k): str(v) for k, v in node.launch.env.items()})
+        env[ENV_NODE] = node.name
+        env[ENV_SCALE] = scale
+        argv, problem = build_argv(node, env.get('PATH', os.defpath), ament_prefix)
+        out[node.name] = Entry(name=node.name, argv=argv, env=t.frozen_map(env),
+                               ros_name=ros_full_name(node), move_order=node.move_order,
+                               problem=problem)
+    return out

@@ -1,0 +1,472 @@
+"""Two network namespaces joined by a shaped veth link, and CPU quota cgroups, for one run.
+
+``Network`` builds the ICAR test-bed's plumbing on one Linux machine: a namespace per scale
+("robot" and "laptop"), a veth pair between them with a private /30, loopback up and a multicast
+route (so DDS discovery stays on the pair), a token bucket (tbf) on both ends at the WiFi's
+54 Mbit/s, and a CPU quota cgroup per scale. The link can be cut (both ends' root qdisc replaced
+by ``blackhole``: every packet is dropped while the interfaces stay up, as when a robot drives out
+of WiFi coverage; multicast loop-back inside a namespace is untouched, so nodes on one scale keep
+discovering each other), restored and throttled at any time.
+
+Every name carries the creating process's pid and a per-process counter (``asm-<pid>-<n>-robot``),
+so concurrent runs never collide, and ``remove_stale()`` removes what a killed run left behind.
+``teardown()`` kills every process still inside the namespaces or cgroups, deletes the
+namespaces (the veth pair goes with them) and removes the cgroups; it runs from ``__exit__``, so
+an exception inside ``with Network(...)`` leaves nothing behind either.
+
+Needs root (CAP_NET_ADMIN and CAP_SYS_ADMIN), iproute2 (``ip``, ``tc``) and either cgroup v1's
+cpu controller (``cpu.cfs_quota_us``) or cgroup v2 (``cpu.max``). ``available()`` says plainly
+which of these is missing.
+"""
+
+import itertools
+import os
+import re
+import shutil
+import signal
+import subprocess
+import time
+from dataclasses import dataclass
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+
+SCALES = ('robot', 'laptop')
+NAME_PREFIX = 'asm'
+DEFAULT_RATE_KBPS = 54000.0
+DEFAULT_SUBNET = '10.77.0.'        # .1 = robot, .2 = laptop, /30
+CFS_PERIOD_US = 100000
+_NAME_RE = re.compile(r'^%s-(\d+)-(\d+)-(\w+)$' % NAME_PREFIX)
+_counter = itertools.count(1)
+
+
+class TestbedError(RuntimeError):
+    """A step of building or driving the test-bed failed; the message names the command."""
+
+
+def _run(argv: Sequence[str], check: bool = True, timeout: float = 10.0) -> str:
+    try:
+        out = subprocess.run(list(argv), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, timeout=timeout)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        raise TestbedError(f'{" ".join(argv)}: {e}') from None
+    if check and out.returncode != 0:
+        raise TestbedError(f'{" ".join(argv)}: exit {out.returncode}: '
+                           f'{(out.stderr or out.stdout).strip()}')
+    return out.stdout
+
+
+# --- capability checks ----------------------------------------------------------------------
+
+def _mounts() -> List[Tuple[str, str, str]]:
+    try:
+        with open('/proc/mounts') as f:
+            return [tuple(line.split()[1:4]) for line in f if len(line.split()) >= 4]
+    except OSError:
+        return []
+
+
+def cgroup_mode() -> Tuple[Optional[str], str]:
+    """('v1', cpu mount) or ('v2', root) when a cpu quota can be set, else (None, reason)."""
+    for mount, fstype, options in _mounts():
+        if fstype == 'cgroup' and 'cpu' in options.split(','):
+            if os.path.exists(os.path.join(mount, 'cpu.cfs_quota_us')):
+                return 'v1', mount
+    for mount, fstype, _ in _mounts():
+        if fstype == 'cgroup2':
+            try:
+                with open(os.path.join(mount, 'cgroup.controllers')) as f:
+                    if 'cpu' in f.read().split():
+                        return 'v2', mount
+            except OSError:
+                continue
+    return None, 'no cgroup cpu controller (neither v1 cpu.cfs_quota_us nor v2 cpu.max)'
+
+
+def _cpuacct_mount() -> Optional[str]:
+    for mount, fstype, options in _mounts():
+        if fstype == 'cgroup' and 'cpuacct' in options.split(','):
+            return mount
+    return None
+
+
+def available() -> Tuple[bool, str]:
+    """Whether this process can build the test-bed, and if not, plainly why."""
+    if os.geteuid() != 0:
+        return False, 'not running as root: network namespaces and cgroups need root'
+    for tool in ('ip', 'tc'):
+        if shutil.which(tool) is None:
+            return False, f'the {tool!r} command (iproute2) is not installed'
+    probe = f'{NAME_PREFIX}-{os.getpid()}-probe'
+    try:
+        _run(['ip', 'netns', 'add', probe])
+    except TestbedError as e:
+        return False, f'cannot create a network namespace ({e})'
+    try:
+        _run(['ip', '-n', probe, 'link', 'add', 'p0', 'type', 'veth', 'peer', 'name', 'p1'])
+        _run(['tc', '-n', probe, 'qdisc', 'add', 'dev', 'p0', 'root', 'tbf', 'rate',
+              '1mbit', 'burst', '4kb', 'latency', '50ms'])
+        _run(['tc', '-n', probe, 'qdisc', 'replace', 'dev', 'p0', 'root', 'blackhole'])
+    except TestbedError as e:
+        return False, f'cannot shape a veth link with tbf/blackhole ({e})'
+    finally:
+        _run(['ip', 'netns', 'del', probe], check=False)
+    mode, where = cgroup_mode()
+    if mode is None:
+        return False, where
+    return True, f'network namespaces, tbf and cgroup {mode} CPU quotas available'
+
+
+# --- CPU quota cgroups ----------------------------------------------------------------------
+
+class CpuGroup:
+    """One cgroup with a CPU quota (in machine cores), v1 or v2, plus CPU accounting."""
+
+    def __init__(self, name: str):
+        mode, root = cgroup_mode()
+        if mode is None:
+            raise TestbedError(root)
+        self.name = name
+        self.mode = mode
+        self.path = os.path.join(root, name)
+        self.acct_path: Optional[str] = None
+        self.cores: Optional[float] = None
+        if mode == 'v2':
+            # The root is exempt from "no internal processes"; enable cpu for its children.
+            control = os.path.join(root, 'cgroup.subtree_control')
+            try:
+                with open(control) as f:
+                    enabled = f.read().split()
+                if 'cpu' not in enabled:
+                    with open(control, 'w') as f:
+                        f.write('+cpu')
+            except OSError as e:
+                raise TestbedError(f'{control}: cannot enable the cpu controller ({e})') from None
+        try:
+            os.makedirs(self.path, exist_ok=False)
+        except OSError as e:
+            raise TestbedError(f'{self.path}: {e}') from None
+        if mode == 'v1':
+            acct = _cpuacct_mount()
+            if acct and not os.path.samefile(acct, root):
+                path = os.path.join(acct, name)
+                try:
+                    os.makedirs(path, exist_ok=False)
+                    self.acct_path = path
+                except OSError:
+                    self.acct_path = None
+
+    def _write(self, filename: str, value: str, base: Optional[str] = None) -> None:
+        path = os.path.join(base or self.path, filename)
+        try:
+            with open(path, 'w') as f:
+                f.write(value)
+        except OSError as e:
+            raise TestbedError(f'{path}: cannot write {value!r} ({e})') from None
+
+    def set_cores(self, cores: Optional[float]) -> None:
+        """Cap the group at ``cores`` machine cores (None = no cap)."""
+        if cores is not None and not cores > 0:
+            raise ValueError(f'CPU quota must be > 0 cores, got {cores!r}')
+        quota = -1 if cores is None else max(1000, int(round(cores * CFS_PERIOD_US)))
+        if self.mode == 'v1':
+            self._write('cpu.cfs_period_us', str(CFS_PERIOD_US))
+            self._write('cpu.cfs_quota_us', str(quota))
+        else:
+            self._write('cpu.max', f'{"max" if quota < 0 else quota} {CFS_PERIOD_US}')
+        self.cores = cores
+
+    @property
+    def procs_files(self) -> Tuple[str, ...]:
+        files = [os.path.join(self.path, 'cgroup.procs')]
+        if self.acct_path:
+            files.append(os.path.join(self.acct_path, 'cgroup.procs'))
+        return tuple(files)
+
+    def add(self, pid: int) -> None:
+        for path in self.procs_files:
+            self._write(os.path.basename(path), str(pid), os.path.dirname(path))
+
+    def pids(self) -> List[int]:
+        pids = set()
+        for path in self.procs_files:
+            try:
+                with open(path) as f:
+                    pids.update(int(x) for x in f.read().split())
+            except (OSError, ValueError):
+                continue
+        return sorted(pids)
+
+    def usage_s(self) -> Optional[float]:
+        """CPU time used by the group's processes so far, in seconds (None if not accounted)."""
+        try:
+            if self.mode == 'v2':
+                with open(os.path.join(self.path, 'cpu.stat')) as f:
+                    for line in f:
+                        key, _, value = line.partition(' ')
+                        if key == 'usage_usec':
+                            return int(value) / 1e6
+                return None
+            if self.acct_path:
+                with open(os.path.join(self.acct_path, 'cpuacct.usage')) as f:
+                    return int(f.read()) / 1e9
+        except (OSError, ValueError):
+            return None
+        return None
+
+    def remove(self, timeout_s: float = 5.0) -> None:
+        """Kill what is left in the group and remove it."""
+        for path in (self.path, self.acct_path):
+            if path:
+                _remove_cgroup_dir(path, timeout_s)
+
+
+def _remove_cgroup_dir(path: str, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while os.path.isdir(path):
+        pids = []
+        try:
+            with open(os.path.join(path, 'cgroup.procs')) as f:
+                pids = [int(x) for x in f.read().split()]
+        except (OSError, ValueError):
+            pass
+        for pid in pids:
+            _kill(pid, signal.SIGKILL)
+        try:
+            os.rmdir(path)
+            return
+        except OSError as e:
+            if time.monotonic() > deadline:
+                raise TestbedError(f'{path}: cannot remove cgroup ({e}); pids {pids}') from None
+            time.sleep(0.05)
+
+
+def _kill(pid: int, sig: int) -> None:
+    try:
+        os.kill(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+        return True
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+
+
+# --- the namespaces and the link -------------------------------------------------------------
+
+@dataclass(frozen=True)
+class LinkState:
+    up: bool
+    rate_kbps: float
+
+
+def tbf_arguments(rate_kbps: float) -> List[str]:
+    """tbf parameters for a rate: a 10 ms bucket (at least two full frames), 50 ms of queue."""
+    if not rate_kbps > 0:
+        raise ValueError(f'link rate must be > 0 kbit/s, got {rate_kbps!r}')
+    burst = max(3200, int(rate_kbps * 1000 / 8 * 0.010))
+    return ['tbf', 'rate', f'{int(round(rate_kbps))}kbit', 'burst', str(burst),
+            'latency', '50ms']
+
+
+class Network:
+    """The robot and laptop namespaces, their shaped veth link and per-scale CPU quotas."""
+
+    def __init__(self, rate_kbps: float = DEFAULT_RATE_KBPS,
+                 cpu_cores: Optional[Mapping[str, Optional[float]]] = None,
+                 subnet: str = DEFAULT_SUBNET, tag: Optional[str] = None):
+        self.tag = tag or f'{NAME_PREFIX}-{os.getpid()}-{next(_counter)}'
+        self.namespaces = {s: f'{self.tag}-{s}' for s in SCALES}
+        self.interfaces = {s: f'wifi-{s}' for s in SCALES}
+        self.addresses = {'robot': subnet + '1', 'laptop': subnet + '2'}
+        self.cpu_cores = dict(cpu_cores or {})
+        self.groups: Dict[str, CpuGroup] = {}
+        self._rate_kbps = float(rate_kbps)
+        self._up = True
+        self._built = False
+        tbf_arguments(rate_kbps)      # validate before building anything
+
+    # -- life cycle --
+    def setup(self) -> 'Network':
+        if self._built:
+            return self
+        self._built = True            # from here on, teardown() has something to undo
+        try:
+            robot, laptop = self.namespaces['robot'], self.namespaces['laptop']
+            for ns in (robot, laptop):
+                _run(['ip', 'netns', 'add', ns])
+                _run(['ip', '-n', ns, 'link', 'set', 'lo', 'up'])
+            _run(['ip', 'link', 'add', self.interfaces['robot'], 'netns', robot, 'type', 'veth',
+                  'peer', 'name', self.interfaces['laptop'], 'netns', laptop])
+            for scale in SCALES:
+                ns, dev = self.namespaces[scale], self.interfaces[scale]
+                _run(['ip', '-n', ns, 'addr', 'add', self.addresses[scale] + '/30', 'dev', dev])
+                _run(['ip', '-n', ns, 'link', 'set', dev, 'multicast', 'on', 'up'])
+                # DDS discovery multicast goes over the pair (there is no default route).
+                _run(['ip', '-n', ns, 'route', 'add', '224.0.0.0/4', 'dev', dev])
+                self._shape(scale)
+            for scale, cores in self.cpu_cores.items():
+                if scale not in SCALES:
+                    raise ValueError(f'unknown scale {scale!r} for a CPU quota')
+                group = CpuGroup(f'{self.tag}-{scale}')
+                self.groups[scale] = group
+                group.set_cores(cores)
+        except BaseException:
+            self.teardown()
+            raise
+        return self
+
+    def teardown(self) -> List[str]:
+        """Kill every process left in the namespaces and cgroups, remove them; return problems."""
+        problems: List[str] = []
+        if not self._built:
+            return problems
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            pids = self.leftover_pids()
+            for pid in pids:
+                _kill(pid, sig)
+            deadline = time.monotonic() + (1.0 if sig == signal.SIGTERM else 3.0)
+            while pids and time.monotonic() < deadline:
+                pids = [p for p in self.leftover_pids() if _alive(p)]
+                time.sleep(0.05)
+        for ns in self.namespaces.values():
+            if ns in list_namespaces():
+                try:
+                    _run(['ip', 'netns', 'del', ns])
+                except TestbedError as e:
+                    problems.append(str(e))
+        for group in self.groups.values():
+            try:
+                group.remove()
+            except TestbedError as e:
+                problems.append(str(e))
+        self.groups = {}
+        self._built = False
+        return problems
+
+    def __enter__(self) -> 'Network':
+        return self.setup()
+
+    def __exit__(self, *exc) -> None:
+        self.teardown()
+
+    def leftover_pids(self) -> List[int]:
+        pids = set()
+        for ns in self.namespaces.values():
+            if ns in list_namespaces():
+                out = _run(['ip', 'netns', 'pids', ns], check=False)
+                pids.update(int(x) for x in out.split() if x.isdigit())
+        for group in self.groups.values():
+            pids.update(group.pids())
+        pids.discard(os.getpid())
+        return sorted(pids)
+
+    # -- the link --
+    def _shape(self, scale: str) -> None:
+        ns, dev = self.namespaces[scale], self.interfaces[scale]
+        qdisc = tbf_arguments(self._rate_kbps) if self._up else ['blackhole']
+        _run(['tc', '-n', ns, 'qdisc', 'replace', 'dev', dev, 'root'] + qdisc)
+
+    def cut(self) -> None:
+        """Drop every packet on the link, both ways (interfaces stay up)."""
+        self._up = False
+        for scale in SCALES:
+            self._shape(scale)
+
+    def restore(self) -> None:
+        self._up = True
+        for scale in SCALES:
+            self._shape(scale)
+
+    def throttle(self, rate_kbps: float) -> None:
+        """Shape both directions to ``rate_kbps`` (applies at once if up, else on restore)."""
+        tbf_arguments(rate_kbps)
+        self._rate_kbps = float(rate_kbps)
+        if self._up:
+            for scale in SCALES:
+                self._shape(scale)
+
+    @property
+    def link(self) -> LinkState:
+        return LinkState(self._up, self._rate_kbps)
+
+    def qdisc(self, scale: str) -> str:
+        """The kernel's view of one end's root qdisc (for checks and the status table)."""
+        return _run(['tc', '-n', self.namespaces[scale], 'qdisc', 'show', 'dev',
+                     self.interfaces[scale]]).strip()
+
+    # -- processes --
+    def command(self, scale: str, argv: Sequence[str], cpu_quota: bool = True) -> List[str]:
+        """argv wrapped to run in ``scale``'s namespace (and its cgroup, joined before exec)."""
+        if scale not in SCALES:
+            raise ValueError(f'unknown scale {scale!r}; expected one of {", ".join(SCALES)}')
+        ip = shutil.which('ip') or '/sbin/ip'
+        inner = [ip, 'netns', 'exec', self.namespaces[scale]] + list(argv)
+        group = self.groups.get(scale) if cpu_quota else None
+        if group is None:
+            return inner
+        files = group.procs_files
+        script = ('n=$1; shift; while [ "$n" -gt 0 ]; do echo $$ > "$1" || exit 125; '
+                  'shift; n=$((n-1)); done; exec "$@"')
+        return ['/bin/sh', '-c', script, 'sh', str(len(files))] + list(files) + inner
+
+    def popen(self, scale: str, argv: Sequence[str], env: Mapping[str, str],
+              cpu_quota: bool = True, **kwargs) -> subprocess.Popen:
+        """Start argv inside ``scale``'s namespace and cgroup with exactly ``env``."""
+        kwargs.setdefault('start_new_session', True)
+        return subprocess.Popen(self.command(scale, argv, cpu_quota), env=dict(env), **kwargs)
+
+    def run(self, scale: str, argv: Sequence[str], timeout: float = 10.0) -> str:
+        """Run a short command inside ``scale``'s namespace (no quota) and return its output."""
+        return _run(self.command(scale, argv, cpu_quota=False), timeout=timeout)
+
+    def cpu_usage_s(self, scale: str) -> Optional[float]:
+        group = self.groups.get(scale)
+        return group.usage_s() if group else None
+
+
+# --- leftovers --------------------------------------------------------------------------------
+
+def list_namespaces() -> List[str]:
+    out = _run(['ip', 'netns', 'list'], check=False)
+    return [line.split()[0] for line in out.splitlines() if line.strip()]
+
+
+def remove_stale() -> List[str]:
+    """Remove namespaces and cgroups left by test-bed runs whose process is gone."""
+    removed = []
+    for ns in list_namespaces():
+        m = _NAME_RE.match(ns)
+        if m and not _alive(int(m.group(1))):
+            for pid in _run(['ip', 'netns', 'pids', ns], check=False).split():
+                _kill(int(pid), signal.SIGKILL)
+            _run(['ip', 'netns', 'del', ns], check=False)
+            removed.append(ns)
+    mode, root = cgroup_mode()
+    roots = [root] if mode else []
+    acct = _cpuacct_mount() if mode == 'v1' else None
+    if acct:
+        roots.append(acct)
+    for base in roots:
+        try:
+            names = os.listdir(base)
+        except OSError:
+            continue
+        for name in names:
+            m = _NAME_RE.match(name)
+            path = os.path.join(base, name)
+            if m and os.path.isdir(path) and not _alive(int(m.group(1))):
+                try:
+                    _remove_cgroup_dir(path, 2.0)
+                    removed.append(path)
+                except TestbedError:
+                    pass
+    return removed
+
+
+__all__ = ['CpuGroup', 'LinkState', 'Network', 'SCALES', 'TestbedError', 'available',
+           'cgroup_mode', 'list_namespaces', 'remove_stale', 'tbf_arguments']
