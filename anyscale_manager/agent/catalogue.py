@@ -128,6 +128,9 @@ def build_argv(node: t.Node, search_path: str,
         return (), 'no command and no package/executable to start'
     argv = head + list(launch.arguments) + ['--ros-args', '-r',
                                             f'__node:={ros_base_name(node)}']
+    full = ros_full_name(node)
+    if full.startswith('/') and full.count('/') > 1:
+        argv += ['-r', f'__ns:={full.rsplit("/", 1)[0]}']
     for key in sorted(launch.parameters):
         argv += ['-p', f'{key}:={format_parameter(launch.parameters[key])}']
     return tuple(argv), ''

@@ -1,11 +1,382 @@
-"""The agent node (entry point `ros2 run anyscale_manager agent`); built in its own issue."""
+"""The agent of one scale: starts and stops the deployment's nodes there, and hosts its monitors.
 
+    ros2 run anyscale_manager agent --ros-args --params-file DEPLOYMENT.yaml -p scale:=NAME
+
+Glue only: the catalogue, the supervisor and the move-order rules live in anyscale_manager.agent.
+The node subscribes to the latched layout and to the other agents' reports, publishes its own
+report (latched) on every change and at ``agent.heartbeat_rate_hz``, and drives the supervisor
+from a timer. SIGINT or SIGTERM stops every node it runs (SIGINT, SIGTERM, SIGKILL with the
+configured graces) while it keeps reporting, then it exits 0; a second signal skips the graces.
+"""
+
+import array
+import fcntl
+import os
+import re
+import signal
 import sys
+import time
+import traceback
+from typing import Any, Dict, List, Optional, Sequence
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import String
+
+from .. import protocol
+from ..agent.catalogue import build_catalogue, Entry
+from ..agent.reconcile import Reconciler
+from ..agent.supervisor import Supervisor
+from ..model.loader import DeploymentError, load_from_parameters
+
+try:
+    from . import monitors as _monitors
+    _MONITORS_MISSING = ''
+except ImportError as exc:   # built in its own issue; the agent works without it
+    _monitors = None
+    _MONITORS_MISSING = str(exc)
+
+TICK_S = 0.1
+SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 
-def main(args=None) -> int:
-    print('anyscale_manager agent: not yet implemented', file=sys.stderr)
-    return 2
+class AgentError(RuntimeError):
+    """A reason the agent cannot run, said in one line."""
+
+
+def latched_qos() -> QoSProfile:
+    return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def scale_from_args(args: Sequence[str]) -> Optional[str]:
+    """The ``scale`` parameter given with -p/--param in the ROS arguments (the last one wins).
+
+    The node's name depends on the scale, so it is read before the node exists.
+    """
+    found = None
+    in_ros = False
+    items = list(args)
+    for i, arg in enumerate(items):
+        if arg == '--ros-args':
+            in_ros = True
+        elif arg == '--':
+            in_ros = False
+        elif in_ros and arg in ('-p', '--param') and i + 1 < len(items):
+            name, sep, value = items[i + 1].partition(':=')
+            if sep and name.rsplit(':', 1)[-1] == 'scale':
+                found = value.strip().strip('\'"')
+    return found
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, array.array):
+        return list(value)
+    return value
+
+
+def _ros_home() -> str:
+    return os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'), '.ros')
+
+
+class AgentNode(Node):
+    def __init__(self, scale: str, **kwargs):
+        super().__init__(f'anyscale_agent_{scale}',
+                         automatically_declare_parameters_from_overrides=True, **kwargs)
+        self._lock_file = None
+        self._monitors: List[Any] = []
+        try:
+            self._setup(scale)
+        except Exception:
+            self._release_lock()
+            self.destroy_node()
+            raise
+
+    # --- construction ---------------------------------------------------------------------
+    def _setup(self, scale: str) -> None:
+        flat = {name: _plain(p.value) for name, p in self.get_parameters_by_prefix('').items()}
+        self.deployment = load_from_parameters(flat)
+        d = self.deployment
+        if scale not in d.scale_names:
+            raise AgentError(f'scale {scale!r} is not a scale of deployment {d.name!r} '
+                             f'(scales: {", ".join(d.scale_names)})')
+        self.scale = scale
+        self.settings = d.agent
+        state_dir = self.settings.state_dir or os.path.join(_ros_home(), 'anyscale_manager')
+        log_root = self.settings.log_dir or os.path.join(
+            os.environ.get('ROS_LOG_DIR') or os.path.join(_ros_home(), 'log'),
+            'anyscale_manager')
+        self.log_dir = os.path.join(log_root, d.name, scale)
+        stem = os.path.join(state_dir, f'agent_{d.name}_{scale}')
+        self._take_lock(stem + '.lock')
+
+        self.catalogue: Dict[str, Entry] = build_catalogue(d, scale)
+        for entry in self.catalogue.values():
+            if entry.problem:
+                self.get_logger().error(f'{entry.name}: {entry.problem}')
+        self.supervisor = Supervisor(self.catalogue, self.settings, self.log_dir,
+                                     state_path=stem + '.json',
+                                     identity={'deployment': d.name, 'scale': scale})
+        self.reconciler = Reconciler(d, scale, self.catalogue,
+                                     readiness_timeout_s=self.settings.readiness_timeout_s,
+                                     agent_timeout_s=d.decider.agent_timeout_s)
+        self._wall_offset = time.time() - time.monotonic()
+        for note in self.supervisor.adopt(time.monotonic(), time.time()):
+            self.get_logger().info(f'adoption: {note}')
+        self._shutdown_requested = 0
+        self._shutdown_at = 0.0
+        self._probe_names: Optional[tuple] = None
+        self._last_waiting: Dict[str, str] = {}
+
+        qos = latched_qos()
+        self._state_pub = self.create_publisher(String, protocol.TOPIC_AGENT_STATE, qos)
+        self.create_subscription(String, protocol.TOPIC_LAYOUT, self._on_layout, qos)
+        self.create_subscription(String, protocol.TOPIC_AGENT_STATE, self._on_agent_state,
+                                 latched_qos())
+        self.create_timer(TICK_S, self._tick)
+        self.create_timer(1.0 / self.settings.heartbeat_rate_hz, self._publish_state)
+        self._start_monitors()
+        self.get_logger().info(
+            f'agent for scale {scale!r} of {d.name!r}: catalogue '
+            f'{", ".join(self.catalogue) or "(empty)"}; logs in {self.log_dir}')
+        self._tick()
+
+    def _take_lock(self, path: str) -> None:
+        """One agent per scale and machine: a second one would start every node twice."""
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        f = open(path, 'a+')
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.close()
+            raise AgentError(f'another agent for scale {self.scale!r} of '
+                             f'{self.deployment.name!r} runs on this machine (it holds {path}); '
+                             'not starting a second one') from None
+        f.seek(0)
+        f.truncate()
+        f.write(f'{os.getpid()}\n')
+        f.flush()
+        self._lock_file = f
+
+    def _release_lock(self) -> None:
+        if self._lock_file is not None:
+            self._lock_file.close()
+            self._lock_file = None
+
+    def _start_monitors(self) -> None:
+        if _monitors is None:
+            self.get_logger().warn(f'monitors not available ({_MONITORS_MISSING}); '
+                                   'this agent supervises nodes only')
+            return
+        d, scale = self.deployment, self.scale
+        builders = (('ScaleMonitor', lambda cls: cls(self, d, scale,
+                                                     pids=self.supervisor.pids)),
+                    ('LinkMonitor', lambda cls: cls(self, d, scale)),
+                    ('ProbeManager', lambda cls: cls(self, d, scale)))
+        for name, build in builders:
+            cls = getattr(_monitors, name, None)
+            if cls is None:
+                self.get_logger().warn(f'monitors.{name} not available; not hosted')
+                continue
+            try:
+                monitor = build(cls)
+            except Exception as e:   # a monitor must never take the supervision down
+                self.get_logger().error(f'cannot start {name}: {e!r}')
+                continue
+            self._monitors.append(monitor)
+            if name == 'ProbeManager':
+                self._probes = monitor
+
+    # --- inputs ---------------------------------------------------------------------------
+    def _on_layout(self, msg: String) -> None:
+        try:
+            layout = protocol.Layout.from_json(msg.data, protocol.TOPIC_LAYOUT)
+        except protocol.ProtocolError as e:
+            self.get_logger().error(f'ignored a layout message: {e}')
+            return
+        verdict = self.reconciler.apply_layout(layout, time.monotonic())
+        for w in verdict.warnings:
+            self.get_logger().warn(w)
+        if verdict.applied:
+            mine = sorted(n for n, s in self.reconciler.assignments.items() if s == self.scale)
+            self.get_logger().info(f'layout generation {layout.generation} applied '
+                                   f'({layout.reason or "no reason given"}); here: '
+                                   f'{", ".join(mine) or "nothing"}')
+            self._tick()
+            # The new generation is news for the others even when nothing here changed.
+            self._publish_state()
+
+    def _on_agent_state(self, msg: String) -> None:
+        try:
+            state = protocol.AgentState.from_json(msg.data, protocol.TOPIC_AGENT_STATE)
+        except protocol.ProtocolError as e:
+            self.get_logger().warn(f'ignored an agent state message: {e}')
+            return
+        warning = self.reconciler.peer_state(state, time.monotonic())
+        if warning:
+            self.get_logger().warn(warning)
+        elif state.scale != self.scale:
+            self._tick()
+
+    # --- the loop -------------------------------------------------------------------------
+    def _visible_counts(self) -> Dict[str, int]:
+        counts: Dict[str, int] = {}
+        for name, ns in self.get_node_names_and_namespaces():
+            full = (ns.rstrip('/') + '/' + name)
+            for key in {name, full} if ns in ('', '/') else {full}:
+                counts[key] = counts.get(key, 0) + 1
+        return counts
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        sup = self.supervisor
+        if self._shutdown_requested:
+            sup.stop_all(now)
+        else:
+            want = self.reconciler.desired(now, sup.active())
+            sup.set_wanted(want, now)
+            waiting = self.reconciler.waiting
+            for node, why in waiting.items():
+                if self._last_waiting.get(node) != why.split(' (')[0]:
+                    self.get_logger().info(f'{node}: {why}')
+            self._last_waiting = {n: w.split(' (')[0] for n, w in waiting.items()}
+        counts = self._visible_counts()
+
+        def visible(entry: Entry) -> bool:
+            # A copy still running on another scale has the same name: count ours.
+            elsewhere = self.reconciler.copies_elsewhere(entry.name, now)
+            return counts.get(entry.ros_name, 0) > elsewhere
+
+        changed = sup.step(now, visible)
+        self._log_events()
+        if changed:
+            self._publish_state()
+            self._update_probes()
+
+    def _log_events(self) -> None:
+        log = self.get_logger()
+        for level, text in self.supervisor.events:
+            # rclpy refuses one call site with changing severities: one call per level.
+            if level == 'error':
+                log.error(text)
+            elif level == 'warn':
+                log.warn(text)
+            else:
+                log.info(text)
+        self.supervisor.events.clear()
+
+    def _update_probes(self) -> None:
+        probes = getattr(self, '_probes', None)
+        if probes is None:
+            return
+        here = set(self.supervisor.active())
+        for n in self.deployment.nodes:
+            if not n.managed and self.deployment.allowed_scales(n.name) == (self.scale,):
+                here.add(n.name)
+        names = tuple(c.name for c in self.deployment.connections if c.subscriber in here)
+        if names != self._probe_names:
+            self._probe_names = names
+            try:
+                probes.set_connections(names)
+            except Exception as e:
+                self.get_logger().error(f'ProbeManager.set_connections failed: {e!r}')
+
+    def report(self) -> protocol.AgentState:
+        nodes = {}
+        for name, r in self.supervisor.reports().items():
+            since = r.since + self._wall_offset if r.since else 0.0
+            nodes[name] = protocol.NodeReport(state=r.state, pid=r.pid, since=since,
+                                              restarts=r.restarts, ready=r.ready,
+                                              exit_reason=r.exit_reason)
+        return protocol.AgentState(scale=self.scale, generation=self.reconciler.generation,
+                                   stamp=time.time(), nodes=nodes)
+
+    def _publish_state(self) -> None:
+        self._state_pub.publish(String(data=self.report().to_json()))
+
+    # --- shutdown -------------------------------------------------------------------------
+    def request_shutdown(self) -> None:
+        self._shutdown_requested += 1
+        now = time.monotonic()
+        if self._shutdown_requested == 1:
+            self.get_logger().info('shutting down: stopping every node of this scale')
+            self._shutdown_at = now
+            self.supervisor.stop_all(now)
+        else:
+            self.get_logger().warn('second shutdown request: killing every node now')
+            self.supervisor.kill_all(now)
+
+    @property
+    def finished(self) -> bool:
+        return bool(self._shutdown_requested) and self.supervisor.all_stopped()
+
+    def finish_offline(self, deadline_s: float) -> None:
+        """Stop what still runs without ROS (the context is gone): graces still apply."""
+        end = time.monotonic() + deadline_s
+        self.supervisor.stop_all(time.monotonic())
+        while not self.supervisor.all_stopped() and time.monotonic() < end:
+            self.supervisor.step(time.monotonic())
+            time.sleep(0.05)
+
+    def destroy_node(self) -> None:
+        for monitor in self._monitors:
+            try:
+                monitor.destroy()
+            except Exception as e:
+                self.get_logger().error(f'destroying {type(monitor).__name__}: {e!r}')
+        self._monitors = []
+        self._release_lock()
+        super().destroy_node()
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    argv = list(sys.argv if args is None else args)
+    scale = scale_from_args(argv)
+    if not scale:
+        print('agent: the scale parameter is required: '
+              '--ros-args --params-file DEPLOYMENT.yaml -p scale:=NAME', file=sys.stderr)
+        return 2
+    if not SCALE_RE.match(scale):
+        print(f'agent: scale {scale!r} is not a valid scale name', file=sys.stderr)
+        return 2
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    try:
+        try:
+            node = AgentNode(scale)
+        except (DeploymentError, AgentError, ValueError) as e:
+            print(f'agent: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
+            return 2
+
+        def on_signal(signum, frame):
+            node.request_shutdown()
+
+        signal.signal(signal.SIGINT, on_signal)
+        signal.signal(signal.SIGTERM, on_signal)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        while rclpy.ok() and not node.finished:
+            try:
+                executor.spin_once(timeout_sec=TICK_S)
+            except (KeyboardInterrupt, ExternalShutdownException):
+                raise
+            except Exception:   # a bug in one callback must not orphan or stop the nodes
+                node.get_logger().error('callback failed:\n' + traceback.format_exc())
+        if node.finished:
+            node._publish_state()    # the final report: everything stopped
+            executor.spin_once(timeout_sec=0.05)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            s = node.settings
+            node.finish_offline(s.sigint_grace_s + s.sigterm_grace_s + 5.0)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 if __name__ == '__main__':

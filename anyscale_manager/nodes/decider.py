@@ -1,11 +1,395 @@
-"""The decider node (entry point `ros2 run anyscale_manager decider`); built in its own issue."""
+"""The decider node: ``ros2 run anyscale_manager decider --ros-args --params-file FILE.yaml``.
 
+Glue only. It rebuilds the deployment from its parameters, listens to the agents and monitors,
+runs the migration policy once per ``decider.period_s`` and publishes the desired layout
+(latched, with a generation number), every decision with its reason, the cost function, the
+plan-against-reality check and its own health on /diagnostics.
+"""
+
+import math
+import socket
 import sys
+import time
+from dataclasses import fields, replace
+from typing import Any, Dict, List, Optional, Set, Tuple
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+from std_msgs.msg import String
+
+from .. import protocol as p
+from ..model.loader import DeploymentError, load_from_parameters
+from ..model.types import INITIAL_LAYOUTS, DeciderSettings, Deployment
+from ..runtime.constraints import ConstraintReport
+from ..runtime.cost import CostIntegrator
+from ..runtime.intake import ObservationBook
+from ..runtime.layout import LayoutError, adopt, initial_plan
+from ..runtime.plan_check import check_plan, expectations
+from ..runtime.policy import MigrationPolicy
+
+NODE_NAME = 'anyscale_decider'
+
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+AGENT_STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.VOLATILE)
+MONITOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
+                         reliability=qos_profile_sensor_data.reliability,
+                         durability=DurabilityPolicy.VOLATILE)
+
+# decider.* parameters a person may change while it runs: description and check.
+DESCRIPTIONS = {
+    'period_s': 'seconds between two turns of the migration loop (> 0)',
+    'cpu_headroom': 'usable fraction of the CPU capacity of a scale, in (0, 1]',
+    'bandwidth_margin': 'usable fraction of the available bandwidth of a link, in (0, 1]',
+    'observation_max_age_s': 'older observations count as missing; a silent link is down (> 0)',
+    'hysteresis_s': 'T: a node migrated back is not moved out again for this long (>= 0)',
+    'grace_s': 'after a move, the connections of the moved node are not judged (>= 0)',
+    'agent_timeout_s': 'an agent silent this long loses its scale; its nodes move (> 0)',
+    'migration': 'false: never move a node out (the no-migration baseline)',
+    'initial_layout': 'master | problem1 | problem2 | explicit; read once, at start',
+}
+RANGES = {
+    'period_s': (0.0, 3600.0, True), 'cpu_headroom': (0.0, 1.0, True),
+    'bandwidth_margin': (0.0, 1.0, True), 'observation_max_age_s': (0.0, 3600.0, True),
+    'hysteresis_s': (0.0, 86400.0, False), 'grace_s': (0.0, 3600.0, False),
+    'agent_timeout_s': (0.0, 3600.0, True),
+}
+
+
+def settings_with(settings: DeciderSettings, changes: Dict[str, Any]) -> DeciderSettings:
+    """New decider settings from parameter changes; ValueError names the bad one."""
+    values = {}
+    for name, value in changes.items():
+        if name in RANGES:
+            low, high, low_open = RANGES[name]
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not math.isfinite(value):
+                raise ValueError(f'decider.{name}: expected a number, got {value!r:.40}')
+            if (value <= low if low_open else value < low) or value > high:
+                raise ValueError(f'decider.{name}: {value} out of range '
+                                 f'{"(" if low_open else "["}{low:g}, {high:g}]')
+            values[name] = float(value)
+        elif name == 'migration':
+            if not isinstance(value, bool):
+                raise ValueError(f'decider.migration: expected true or false, got {value!r:.40}')
+            values[name] = value
+        elif name == 'initial_layout':
+            if value not in INITIAL_LAYOUTS:
+                raise ValueError(f'decider.initial_layout: expected one of '
+                                 f'{", ".join(INITIAL_LAYOUTS)}, got {value!r:.40}')
+            values[name] = value
+        else:
+            raise ValueError(f'decider.{name}: cannot be changed while the decider runs')
+    return replace(settings, **values)
+
+
+class DeciderNode(Node):
+    """One decider per deployment, on the master scale."""
+
+    def __init__(self, *, parameter_overrides: Optional[List[Parameter]] = None,
+                 clock=time.monotonic, **kwargs):
+        super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
+                         parameter_overrides=parameter_overrides, **kwargs)
+        self._now = clock
+        flat = {name: self.get_parameter(name).value
+                for name in self.list_parameters([], 0).names}
+        self.deployment: Deployment = load_from_parameters(flat, source=f'{NODE_NAME} parameters')
+        self.settings = self.deployment.decider
+        self._declare_descriptors()
+        self.planned, self.placements = initial_plan(self.deployment, self.settings)
+
+        started = self._now()
+        self.started = started
+        self.book = ObservationBook(self.deployment, self.settings, started)
+        self.policy = MigrationPolicy(self.deployment, self.settings)
+        self.cost = CostIntegrator(self.deployment)
+        self.expected = expectations(self.deployment, self.placements)
+        self.generation = 0
+        self.layout: Optional[Dict[str, str]] = None
+        self.last_report: Optional[ConstraintReport] = None
+        self._active: Set[Tuple[str, str]] = set()    # (kind, subject) violations announced
+        self._said: Set[str] = set()                  # warnings and notes announced
+        self._rejected = 0
+        self._decisions = 0
+        self.host = socket.gethostname()
+
+        self.pub_layout = self.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
+        self.pub_events = self.create_publisher(String, p.TOPIC_EVENTS, EVENTS_QOS)
+        self.pub_objective = self.create_publisher(String, p.TOPIC_OBJECTIVE, 10)
+        self.pub_plan = self.create_publisher(String, p.TOPIC_PLAN_CHECK, 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS, 10)
+        self.create_subscription(String, p.TOPIC_AGENT_STATE, self._on_agent_state,
+                                 AGENT_STATE_QOS)
+        self.create_subscription(String, p.TOPIC_SCALE_STATUS, self._on_scale_status,
+                                 MONITOR_QOS)
+        self.create_subscription(String, p.TOPIC_LINK_STATUS, self._on_link_status,
+                                 MONITOR_QOS)
+        self.create_subscription(String, p.TOPIC_CONNECTION_STATUS, self._on_connection_status,
+                                 MONITOR_QOS)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
+        self.timer = self.create_timer(self.settings.period_s, self._tick)
+        self.get_logger().info(
+            f'deployment {self.deployment.name!r}: {len(self.deployment.scales)} scales, '
+            f'{len(self.deployment.nodes)} nodes, migratable: '
+            f'{", ".join(self.deployment.migratable_nodes) or "none"}; first layout '
+            f'{self.settings.initial_layout!r}, waiting up to {self.settings.agent_timeout_s:g} s '
+            f'for the agents to report what runs')
+
+    # --- parameters ---------------------------------------------------------------------------
+    def _declare_descriptors(self) -> None:
+        for f in fields(DeciderSettings):
+            if f.name not in DESCRIPTIONS:
+                continue
+            name = f'decider.{f.name}'
+            descriptor = ParameterDescriptor(description=DESCRIPTIONS[f.name],
+                                             dynamic_typing=True)
+            if self.has_parameter(name):
+                self.set_descriptor(name, descriptor)
+            else:
+                value = getattr(self.settings, f.name)
+                self.declare_parameter(name, value, descriptor)
+
+    def _on_set_parameters(self, params: List[Parameter]) -> SetParametersResult:
+        changes = {}
+        for prm in params:
+            section, _, key = prm.name.partition('.')
+            if section != 'decider' or '.' in key:
+                return SetParametersResult(
+                    successful=False,
+                    reason=f'{prm.name}: the deployment is fixed while the decider runs; '
+                           'restart it with a new parameters file')
+            if prm.type_ == Parameter.Type.NOT_SET:
+                return SetParametersResult(successful=False,
+                                           reason=f'{prm.name}: cannot be undeclared')
+            changes[key] = prm.value
+        try:
+            settings_with(self.settings, changes)
+        except ValueError as e:
+            return SetParametersResult(successful=False, reason=str(e))
+        return SetParametersResult(successful=True)
+
+    def _after_set_parameters(self, params: List[Parameter]) -> None:
+        changes = {prm.name.partition('.')[2]: prm.value for prm in params
+                   if prm.name.startswith('decider.')}
+        try:
+            new = settings_with(self.settings, changes)
+        except ValueError:
+            return                     # refused before; nothing changed
+        old, self.settings = self.settings, new
+        self.policy.update_settings(new)
+        self.book.settings = new
+        if new.period_s != old.period_s:
+            self.timer.cancel()
+            self.destroy_timer(self.timer)
+            self.timer = self.create_timer(new.period_s, self._tick)
+        for key in changes:
+            self._event('settings', '', '', '', f'decider.{key} = {changes[key]!r}')
+
+    # --- first layout -------------------------------------------------------------------------
+    def _start(self, now: float) -> None:
+        running = self.book.running(now)
+        layout, notes = adopt(self.deployment, self.planned, running)
+        self.generation = max(self.book.max_generation, 0) + 1
+        self.layout = layout
+        self.policy.reset(layout, now, running)
+        lost = sorted(self.book.lost_scales(now))
+        reason = f'first layout ({self.settings.initial_layout})'
+        if notes:
+            reason += ': ' + '; '.join(notes)
+        self._publish_layout(reason)
+        for note in notes:
+            self._event('adopt', '', '', '', note)
+        if lost:
+            self._event('warning', '', '', '', 'no report from the agent of '
+                        + ', '.join(lost) + ' at start')
+        self.get_logger().info(f'generation {self.generation}: {reason}')
+
+    # --- intake -------------------------------------------------------------------------------
+    def _intake(self, msg: Any, cls: type, topic: str, handle) -> None:
+        try:
+            decoded = cls.from_json(msg.data, topic)
+            handle(decoded, self._now())
+        except (p.ProtocolError, ValueError, KeyError, TypeError) as e:
+            self._rejected += 1
+            self.get_logger().warning(f'ignored a message on {topic}: {e}',
+                                      throttle_duration_sec=5.0)
+        except Exception as e:  # noqa: B902 - a message must never stop the decider
+            self._rejected += 1
+            self.get_logger().error(f'ignored a message on {topic} ({type(e).__name__}: {e})',
+                                    throttle_duration_sec=5.0)
+
+    def _on_agent_state(self, msg: String) -> None:
+        self._intake(msg, p.AgentState, p.TOPIC_AGENT_STATE, self._agent_state)
+
+    def _agent_state(self, state: p.AgentState, now: float) -> None:
+        self.book.agent_state(state, now)
+        if self.layout is not None and state.generation > self.generation:
+            # Someone published a newer generation than ours (a previous decider): stay above.
+            self.generation = state.generation + 1
+            self._publish_layout('re-published above the generation an agent reported')
+
+    def _on_scale_status(self, msg: String) -> None:
+        self._intake(msg, p.ScaleStatus, p.TOPIC_SCALE_STATUS, self.book.scale_status)
+
+    def _on_link_status(self, msg: String) -> None:
+        self._intake(msg, p.LinkStatus, p.TOPIC_LINK_STATUS, self.book.link_status)
+
+    def _on_connection_status(self, msg: String) -> None:
+        self._intake(msg, p.ConnectionStatus, p.TOPIC_CONNECTION_STATUS,
+                     self.book.connection_status)
+
+    # --- the loop -----------------------------------------------------------------------------
+    def _tick(self) -> None:
+        try:
+            self._turn(self._now())
+        except Exception as e:  # noqa: B902 - report, keep the last layout, try again
+            self.get_logger().error(f'decider turn failed: {type(e).__name__}: {e}',
+                                    throttle_duration_sec=5.0)
+            self._diagnostics(p.ERROR, f'turn failed: {e}')
+
+    def _turn(self, now: float) -> None:
+        if self.layout is None:
+            waited = now - self.started
+            if self.book.all_agents_heard() or waited >= self.settings.agent_timeout_s:
+                self._start(now)
+            else:
+                self._diagnostics(p.OK, 'waiting for the agents to report what runs')
+                return
+        obs = self.book.snapshot(now, self.layout)
+        decisions = self.policy.step(obs)
+        report = self.policy.last_report
+        self.last_report = report
+        if decisions:
+            self.layout = dict(self.policy.layout)
+            self.generation += 1
+            self._publish_layout('; '.join(f'{d.kind} {d.node}: {d.reason}' for d in decisions))
+            for d in decisions:
+                self._decisions += 1
+                self._event(d.kind, d.node, d.from_scale, d.to_scale, d.reason)
+                self.get_logger().info(f'{d.kind} {d.node} {d.from_scale} -> {d.to_scale}: '
+                                       f'{d.reason}')
+        self._announce(report, obs.lost_scales)
+
+        cpu_by_node: Dict[str, float] = {}
+        for so in obs.scales.values():
+            cpu_by_node.update(so.cpu_by_node)
+        perf, integral = self.cost.update(now, obs.running, cpu_by_node)
+        self._publish(self.pub_objective, p.Objective(
+            stamp=time.time(), perf_map=perf, integral=integral, elapsed_s=self.cost.elapsed_s))
+
+        checked = check_plan(self.deployment, self.expected, obs, self.settings)
+        self._publish(self.pub_plan, p.PlanCheck(
+            stamp=time.time(), overall_deviation=checked.overall_deviation,
+            nodes={n: p.PlanNode(expected_hz=c.expected_hz, measured_hz=c.measured_hz,
+                                 expected_performance=c.expected_performance,
+                                 measured_performance=c.measured_performance,
+                                 deviation=c.deviation) for n, c in checked.nodes.items()},
+            overloaded=dict(checked.overloaded)))
+        for w in checked.warnings:
+            self._say_once(w)
+
+        level, message = p.OK, 'constraints hold'
+        if report is not None and report.violations:
+            level, message = p.WARN, f'{len(report.violations)} violation(s): ' + \
+                report.violations[0].reason
+        if obs.lost_scales:
+            level, message = p.WARN, 'lost: ' + ', '.join(sorted(obs.lost_scales))
+        self._diagnostics(level, message, perf, integral, len(obs.running))
+
+    def _announce(self, report: Optional[ConstraintReport], lost) -> None:
+        """Events for violations as they appear and clear, and for new notes (not each turn)."""
+        active = set()
+        if report is not None:
+            for v in report.violations:
+                key = (v.kind, v.subject)
+                active.add(key)
+                if key not in self._active:
+                    self._event('violation', ','.join(v.nodes), '', '', f'{v.kind}: {v.reason}')
+        for kind, subject in sorted(self._active - active):
+            self._event('cleared', '', '', '', f'{kind} on {subject} holds again')
+        self._active = active
+        for scale in sorted(lost):
+            self._say_once(f'scale {scale} lost: its agent has been silent for more than '
+                           f'{self.settings.agent_timeout_s:g} s', kind='scale_lost')
+        for note in self.policy.notes:
+            self._say_once(note, kind='note')
+
+    def _say_once(self, text: str, kind: str = 'warning') -> None:
+        if text in self._said:
+            return
+        if len(self._said) > 1000:
+            self._said.clear()
+        self._said.add(text)
+        self._event(kind, '', '', '', text)
+
+    # --- publishing ---------------------------------------------------------------------------
+    def _publish(self, pub, message: p.Message) -> None:
+        pub.publish(String(data=message.to_json()))
+
+    def _publish_layout(self, reason: str) -> None:
+        self._publish(self.pub_layout, p.Layout(
+            generation=self.generation, deployment=self.deployment.name,
+            assignments=dict(self.layout), reason=reason[:2000], stamp=time.time()))
+        self._event('layout', '', '', '', reason[:2000])
+
+    def _event(self, kind: str, node: str, from_scale: str, to_scale: str, reason: str) -> None:
+        self._publish(self.pub_events, p.Event(
+            stamp=time.time(), kind=kind, node=node, from_scale=from_scale, to_scale=to_scale,
+            reason=reason, generation=self.generation))
+
+    def _diagnostics(self, level: int, message: str, perf: float = 0.0,
+                     integral: float = 0.0, running: int = 0) -> None:
+        status = DiagnosticStatus(
+            level=bytes([level]), name=f'{NODE_NAME}: {self.deployment.name}',
+            message=message[:500], hardware_id=self.host)
+        values = {
+            'generation': self.generation, 'nodes running': running,
+            'lost scales': ', '.join(sorted(self.book.lost_scales(self._now()))),
+            'migrated': ', '.join(f'{n}@{s}' for n, s in self.policy.migrated),
+            'decisions': self._decisions, 'messages ignored': self._rejected,
+            'perf_map': round(perf, 3), 'perf integral': round(integral, 3),
+            'migration': self.settings.migration,
+        }
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        array = DiagnosticArray(status=[status])
+        array.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(array)
 
 
 def main(args=None) -> int:
-    print('anyscale_manager decider: not yet implemented', file=sys.stderr)
-    return 2
+    try:
+        rclpy.init(args=args)
+    except Exception as e:  # noqa: B902 - rcl refuses the arguments or the parameters file
+        print(f'anyscale_manager decider: cannot start: {e}', file=sys.stderr)
+        return 2
+    node = None
+    code = 0
+    try:
+        node = DeciderNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (DeploymentError, LayoutError) as e:
+        print(f'anyscale_manager decider: {e}', file=sys.stderr)
+        code = 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
 
 
 if __name__ == '__main__':

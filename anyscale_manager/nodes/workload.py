@@ -1,11 +1,240 @@
-"""The workload node (entry point `ros2 run anyscale_manager workload`); built in its own issue."""
+"""A stand-in for one node of a robot application: its topics, rates, message sizes and CPU.
 
+Entry point ``workload`` (``ros2 run anyscale_manager workload --name amcl --sub /scan ...``).
+Every message is a std_msgs/msg/UInt8MultiArray of ``--bytes`` bytes.
+
+- A sensor (no ``--sub``) publishes at ``--rate-hz``; with ``--once`` it publishes one latched
+  message (a map, an initial pose) and then just stays up.
+- A processing node (one or more ``--sub``) is driven by its first ``--sub`` topic: for a new
+  input it does ``--work-ms`` of real CPU work and publishes one output, as fast as the CPU it
+  gets allows, at most ``--rate-hz``. Its output rate is therefore min(cap, input rate, CPU).
+
+``--work-ms`` is measured at the reference speed: one reference core (the ICAR test-bed's Atom
+1.6 GHz core, ``capacity_cpu`` 100) is ``--reference-core`` of one of this machine's cores
+(0.2 by default: a current x86 core does roughly five times an Atom's work). The work is a busy
+loop that runs until the thread has used ``work_ms * reference_core`` of CPU time, so under a
+CPU quota (or on a busy machine) the same work takes longer in wall time, as it would on a
+slower computer.
+"""
+
+import argparse
 import sys
+import time
+from dataclasses import dataclass
+from typing import Callable, List, Optional, Sequence
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+from std_msgs.msg import UInt8MultiArray
+
+REFERENCE_CORE = 0.2      # one reference (robot) core as a fraction of one core of this machine
+MAX_BYTES = 16 * 1024 * 1024
 
 
-def main(args=None) -> int:
-    print('anyscale_manager workload: not yet implemented', file=sys.stderr)
-    return 2
+@dataclass(frozen=True)
+class WorkloadSpec:
+    name: str
+    pubs: tuple
+    subs: tuple
+    rate_hz: float
+    bytes: int
+    work_ms: float
+    once: bool
+    reference_core: float
+
+    @property
+    def is_sensor(self) -> bool:
+        return not self.subs
+
+    @property
+    def cpu_s_per_output(self) -> float:
+        """Machine CPU seconds one output costs."""
+        return self.work_ms / 1000.0 * self.reference_core
+
+
+def _positive(kind: str) -> Callable[[str], float]:
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'{kind}: expected a number, got {text!r}')
+        if not value > 0 or value != value or value == float('inf'):
+            raise argparse.ArgumentTypeError(f'{kind}: must be a finite number > 0, got {text}')
+        return value
+    return parse
+
+
+def _non_negative(kind: str, integer: bool = False, limit: float = float('inf')):
+    def parse(text: str):
+        try:
+            value = int(text) if integer else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f'{kind}: expected {"an integer" if integer else "a number"}, got {text!r}')
+        if not 0 <= value <= limit:
+            raise argparse.ArgumentTypeError(f'{kind}: must be between 0 and {limit}, '
+                                             f'got {text}')
+        return value
+    return parse
+
+
+def _topic(text: str) -> str:
+    if not text or any(c.isspace() for c in text):
+        raise argparse.ArgumentTypeError(f'bad topic name {text!r}')
+    return text
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog='workload',
+        description='Publish and subscribe like one node of a robot application, with real '
+                    'CPU work per output.')
+    p.add_argument('--name', required=True, help='the ROS node name')
+    p.add_argument('--pub', action='append', type=_topic, default=[], metavar='TOPIC',
+                   help='topic to publish (repeatable)')
+    p.add_argument('--sub', action='append', type=_topic, default=[], metavar='TOPIC',
+                   help='topic to subscribe (repeatable); the first one drives the outputs')
+    p.add_argument('--rate-hz', type=_positive('--rate-hz'), default=10.0,
+                   help='publishing rate of a sensor; the cap of a processing node')
+    p.add_argument('--bytes', type=_non_negative('--bytes', True, MAX_BYTES), default=64,
+                   help='payload size of each message')
+    p.add_argument('--work-ms', type=_non_negative('--work-ms', limit=60000.0), default=0.0,
+                   help='CPU work per output, in ms of one reference core')
+    p.add_argument('--once', action='store_true',
+                   help='publish one latched message, then stay up')
+    p.add_argument('--reference-core', type=_positive('--reference-core'),
+                   default=REFERENCE_CORE,
+                   help='one reference core as a fraction of one core of this machine '
+                        f'(default {REFERENCE_CORE})')
+    return p
+
+
+def parse_spec(argv: Sequence[str]) -> WorkloadSpec:
+    """Parse workload arguments (ROS arguments already removed); argparse exits 2 on errors."""
+    parser = build_parser()
+    a = parser.parse_args(list(argv))
+    if not a.name or not a.name.replace('_', 'a').isalnum() or a.name[0].isdigit():
+        parser.error(f'--name: {a.name!r} is not a valid ROS node name')
+    if not a.pub and not a.sub:
+        parser.error('nothing to do: give at least one --pub or --sub')
+    if a.once and a.sub:
+        parser.error('--once is for publishers of one message; it cannot be combined '
+                     'with --sub')
+    return WorkloadSpec(name=a.name, pubs=tuple(a.pub), subs=tuple(a.sub), rate_hz=a.rate_hz,
+                        bytes=a.bytes, work_ms=a.work_ms, once=a.once,
+                        reference_core=a.reference_core)
+
+
+def burn_cpu(cpu_s: float, clock: Callable[[], float] = time.thread_time) -> int:
+    """Busy computation until this thread has used ``cpu_s`` seconds of CPU; returns a checksum."""
+    if cpu_s <= 0:
+        return 0
+    end = clock() + cpu_s
+    x = 1
+    while clock() < end:
+        for _ in range(500):
+            x = (x * 1103515245 + 12345) & 0x7fffffff
+    return x
+
+
+class OutputGate:
+    """Decides when a processing node may produce its next output, capped at ``rate_hz``.
+
+    Scheduled outputs are due every 1/rate; an input up to 40% of a period early counts as on
+    time, so a 10 Hz input under a 5 Hz cap gives 5 Hz and not 3.3 Hz when arrivals jitter.
+    """
+
+    def __init__(self, rate_hz: float):
+        self.period_s = 1.0 / rate_hz
+        self.next_due: Optional[float] = None
+
+    def ready(self, now: float) -> bool:
+        return self.next_due is None or now >= self.next_due - 0.4 * self.period_s
+
+    def produced(self, now: float) -> None:
+        if self.next_due is None or now - self.next_due > self.period_s:
+            self.next_due = now + self.period_s     # too late to catch up: restart the schedule
+        else:
+            self.next_due += self.period_s
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    argv = sys.argv if args is None else args
+    spec = parse_spec(remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
+    node = None
+    try:
+        node = WorkloadNode(spec)
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def workload_qos() -> QoSProfile:
+    # Reliable + transient-local, depth 1: a node that starts late (a migrated AMCL) still gets
+    # the map and the newest sample, and a slow or unreachable reader never blocks a writer.
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+class WorkloadNode(Node):
+    """The rclpy shell: publishers, subscriptions, a timer for sensors, work for processors."""
+
+    def __init__(self, spec: WorkloadSpec, clock: Callable[[], float] = time.monotonic):
+        super().__init__(spec.name)
+        self.spec = spec
+        self._now = clock
+        self._msg = UInt8MultiArray()
+        self._msg.data = bytes(spec.bytes)
+        self.outputs = 0
+        self.inputs = {topic: 0 for topic in spec.subs}
+        self.checksum = 0
+        self._pubs = [self.create_publisher(UInt8MultiArray, t, workload_qos())
+                      for t in spec.pubs]
+        self._gate = OutputGate(spec.rate_hz)
+        self._pending = False
+        for topic in spec.subs:
+            self.create_subscription(UInt8MultiArray, topic, self._make_callback(topic),
+                                     workload_qos(), raw=True)
+        if spec.once:
+            self._publish()
+        elif spec.is_sensor:
+            self.create_timer(1.0 / spec.rate_hz, self._publish)
+        else:
+            # Checks for a waiting input that arrived while the cap held the output back.
+            self.create_timer(min(0.01, self._gate.period_s / 4), self._maybe_produce)
+
+    def _make_callback(self, topic: str):
+        driving = topic == self.spec.subs[0]
+
+        def callback(_raw: bytes) -> None:
+            self.inputs[topic] += 1
+            if driving:
+                self._pending = True
+                self._maybe_produce()
+        return callback
+
+    def _maybe_produce(self) -> None:
+        if not self._pending or not self._gate.ready(self._now()):
+            return
+        self._pending = False
+        self.checksum ^= burn_cpu(self.spec.cpu_s_per_output)
+        self._gate.produced(self._now())
+        self._publish()
+
+    def _publish(self) -> None:
+        for pub in self._pubs:
+            pub.publish(self._msg)
+        self.outputs += 1
 
 
 if __name__ == '__main__':

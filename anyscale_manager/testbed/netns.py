@@ -14,7 +14,8 @@ so concurrent runs never collide, and ``remove_stale()`` removes what a killed r
 namespaces (the veth pair goes with them) and removes the cgroups; it runs from ``__exit__``, so
 an exception inside ``with Network(...)`` leaves nothing behind either.
 
-Needs root (CAP_NET_ADMIN and CAP_SYS_ADMIN), iproute2 (``ip``, ``tc``) and either cgroup v1's
+Needs root (CAP_NET_ADMIN and CAP_SYS_ADMIN), iproute2 (``ip``, ``tc``), util-linux's
+``nsenter`` and either cgroup v1's
 cpu controller (``cpu.cfs_quota_us``) or cgroup v2 (``cpu.max``). ``available()`` says plainly
 which of these is missing.
 """
@@ -34,6 +35,7 @@ NAME_PREFIX = 'asm'
 DEFAULT_RATE_KBPS = 54000.0
 DEFAULT_SUBNET = '10.77.0.'        # .1 = robot, .2 = laptop, /30
 CFS_PERIOD_US = 100000
+NETNS_RUN_DIR = '/var/run/netns'
 _NAME_RE = re.compile(r'^%s-(\d+)-(\d+)-(\w+)$' % NAME_PREFIX)
 _counter = itertools.count(1)
 
@@ -92,9 +94,9 @@ def available() -> Tuple[bool, str]:
     """Whether this process can build the test-bed, and if not, plainly why."""
     if os.geteuid() != 0:
         return False, 'not running as root: network namespaces and cgroups need root'
-    for tool in ('ip', 'tc'):
+    for tool, package in (('ip', 'iproute2'), ('tc', 'iproute2'), ('nsenter', 'util-linux')):
         if shutil.which(tool) is None:
-            return False, f'the {tool!r} command (iproute2) is not installed'
+            return False, f'the {tool!r} command ({package}) is not installed'
     probe = f'{NAME_PREFIX}-{os.getpid()}-probe'
     try:
         _run(['ip', 'netns', 'add', probe])
@@ -404,8 +406,10 @@ class Network:
         """argv wrapped to run in ``scale``'s namespace (and its cgroup, joined before exec)."""
         if scale not in SCALES:
             raise ValueError(f'unknown scale {scale!r}; expected one of {", ".join(SCALES)}')
-        ip = shutil.which('ip') or '/sbin/ip'
-        inner = [ip, 'netns', 'exec', self.namespaces[scale]] + list(argv)
+        # nsenter switches only the network namespace; ``ip netns exec`` would also remount
+        # /sys, hiding /sys/fs/cgroup from the scale monitor inside.
+        nsenter = shutil.which('nsenter') or '/usr/bin/nsenter'
+        inner = [nsenter, f'--net={NETNS_RUN_DIR}/{self.namespaces[scale]}', '--'] + list(argv)
         group = self.groups.get(scale) if cpu_quota else None
         if group is None:
             return inner

@@ -1,0 +1,174 @@
+"""Which catalogue nodes this scale should run now: the latched layout plus the move orders.
+
+Pure and clock-free: the caller passes its monotonic ``now``. The layout says where each node
+belongs; the move order says when a moving node may start on its new scale and when it must stop
+on its old one:
+
+- start_before_stop: the gaining scale starts the node at once; the losing scale keeps its copy
+  until the gaining scale's agent reports it running and ready (under the generation that moved
+  it, or a newer one), or until ``readiness_timeout_s`` has passed since the move.
+- stop_before_start: the losing scale stops its copy at once; the gaining scale starts the node
+  only when every other live agent has applied the layout's generation and reports no live copy.
+  An agent silent for longer than ``agent_timeout_s`` no longer counts.
+
+So two copies of a node overlap at most ``readiness_timeout_s`` plus the stop graces
+(start_before_stop) and never (stop_before_start) while the agents hear each other.
+"""
+
+from dataclasses import dataclass
+from typing import Dict, Iterable, List, Mapping, Optional, Set, Tuple
+
+from ..model import types as t
+from ..protocol import AgentState, Layout
+
+LIVE = ('starting', 'running', 'stopping')
+NO_GENERATION = -1
+
+
+@dataclass(frozen=True)
+class Peer:
+    """The last report of another scale's agent, stamped with the receiver's clock."""
+
+    scale: str
+    generation: int
+    heard: float
+    nodes: Mapping[str, Tuple[str, bool]]     # node -> (state, ready)
+
+
+@dataclass(frozen=True)
+class LayoutVerdict:
+    applied: bool
+    warnings: Tuple[str, ...]
+
+
+class Reconciler:
+    def __init__(self, deployment: t.Deployment, scale: str, catalogue: Iterable[str],
+                 readiness_timeout_s: float, agent_timeout_s: float):
+        self.deployment = deployment
+        self.scale = scale
+        self.catalogue = tuple(catalogue)
+        self.readiness_timeout_s = readiness_timeout_s
+        self.agent_timeout_s = agent_timeout_s
+        self.generation = NO_GENERATION
+        self.assignments: Dict[str, str] = {}
+        self._moved_at: Dict[str, float] = {}
+        self._moved_gen: Dict[str, int] = {}
+        self.peers: Dict[str, Peer] = {}
+        self._released: Set[str] = set()      # handed over to their new scale: never wanted back
+        self.waiting: Dict[str, str] = {}     # node -> why its start or stop is held back
+
+    @property
+    def has_layout(self) -> bool:
+        return self.generation != NO_GENERATION
+
+    # --- inputs ---------------------------------------------------------------------------
+    def apply_layout(self, layout: Layout, now: float) -> LayoutVerdict:
+        """Take a decoded layout; ignore it whole if it is for another deployment or stale."""
+        d = self.deployment
+        if layout.deployment != d.name:
+            return LayoutVerdict(False, (f'layout generation {layout.generation} is for '
+                                         f'deployment {layout.deployment!r:.60}, not '
+                                         f'{d.name!r}; ignored',))
+        if layout.generation <= self.generation:
+            return LayoutVerdict(False, (f'layout generation {layout.generation} is not newer '
+                                         f'than the applied {self.generation}; ignored',))
+        warnings: List[str] = []
+        nodes = set(d.node_names)
+        scales = set(d.scale_names)
+        accepted: Dict[str, str] = {}
+        for node, scale in sorted(layout.assignments.items()):
+            where = f'layout generation {layout.generation}: {node!r:.60}'
+            if node not in nodes:
+                warnings.append(f'{where}: unknown node; entry ignored')
+            elif scale not in scales:
+                warnings.append(f'{where}: unknown scale {scale!r:.60}; entry ignored')
+            elif not d.node(node).managed:
+                warnings.append(f'{where}: not a managed node; entry ignored')
+            elif scale not in d.allowed_scales(node):
+                warnings.append(f'{where}: may not run on {scale!r}; entry ignored')
+            else:
+                accepted[node] = scale
+        missing = [n for n in self.catalogue if n not in accepted]
+        if missing:
+            warnings.append(f'layout generation {layout.generation} does not place '
+                            f'{", ".join(missing)}; keeping them as they are')
+        for node, scale in accepted.items():
+            if self.assignments.get(node) != scale:
+                self._moved_at[node] = now
+                self._moved_gen[node] = layout.generation
+                self._released.discard(node)
+            self.assignments[node] = scale
+        self.generation = layout.generation
+        return LayoutVerdict(True, tuple(warnings))
+
+    def peer_state(self, state: AgentState, now: float) -> Optional[str]:
+        """Record another agent's report; a warning when it cannot be one of our peers."""
+        if state.scale == self.scale:
+            return None   # our own report, or a second agent on this scale (the lock stops it)
+        if state.scale not in self.deployment.scale_names:
+            return f'agent state from unknown scale {state.scale!r:.60}; ignored'
+        self.peers[state.scale] = Peer(
+            scale=state.scale, generation=state.generation, heard=now,
+            nodes={n: (r.state, r.ready) for n, r in state.nodes.items()})
+        return None
+
+    def _fresh(self, now: float) -> List[Peer]:
+        return [p for p in self.peers.values() if now - p.heard <= self.agent_timeout_s]
+
+    def copies_elsewhere(self, node: str, now: float) -> int:
+        """How many other live agents report a live copy of ``node``."""
+        return sum(1 for p in self._fresh(now) if p.nodes.get(node, ('', False))[0] in LIVE)
+
+    # --- the decision of what runs here ---------------------------------------------------
+    def desired(self, now: float, active: Iterable[str]) -> Set[str]:
+        """Catalogue nodes that should have a live process here now."""
+        active = set(active)
+        want: Set[str] = set()
+        self.waiting = {}
+        for node in self.catalogue:
+            target = self.assignments.get(node)
+            here = node in active
+            if target is None:
+                if here:
+                    want.add(node)   # no layout places it: leave it as it is (fail-static)
+                continue
+            order = self.deployment.node(node).move_order
+            if target == self.scale:
+                if here or order != t.STOP_BEFORE_START:
+                    want.add(node)
+                    continue
+                holder = self._held_elsewhere(node, now)
+                if holder:
+                    self.waiting[node] = holder
+                else:
+                    want.add(node)
+            elif here and order == t.START_BEFORE_STOP and node not in self._released:
+                waited = now - self._moved_at.get(node, now)
+                if self._ready_on(target, node, now) or waited >= self.readiness_timeout_s:
+                    # Once let go it stays let go, whatever the new copy reports afterwards.
+                    self._released.add(node)
+                else:
+                    want.add(node)
+                    self.waiting[node] = (f'kept until it is running and ready on {target} '
+                                          f'(waited {waited:.1f} of '
+                                          f'{self.readiness_timeout_s:g} s)')
+        return want
+
+    def _held_elsewhere(self, node: str, now: float) -> str:
+        for p in sorted(self._fresh(now), key=lambda p: p.scale):
+            state = p.nodes.get(node, ('stopped', False))[0]
+            if state in LIVE:
+                return f'waiting for {p.scale} to stop it (there: {state})'
+            if p.generation < self.generation:
+                return (f'waiting for {p.scale} to apply generation {self.generation} '
+                        f'(it has {p.generation})')
+        return ''
+
+    def _ready_on(self, scale: str, node: str, now: float) -> bool:
+        peer = self.peers.get(scale)
+        if peer is None or now - peer.heard > self.agent_timeout_s:
+            return False
+        if peer.generation < self._moved_gen.get(node, self.generation):
+            return False
+        state, ready = peer.nodes.get(node, ('stopped', False))
+        return state == 'running' and ready

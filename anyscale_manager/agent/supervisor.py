@@ -1,0 +1,436 @@
+"""Process supervision on one scale: start, stop, restart and adopt the catalogue's nodes.
+
+No ROS and no decisions here: the caller says which nodes it wants running (``set_wanted``) and
+drives the supervisor with ``step(now, visible)``, passing its monotonic clock and a predicate
+telling whether a catalogue entry's node is visible in the ROS graph. Each node runs in a
+session and process group of its own (its pid is the group id), with the catalogue's explicit
+environment, its output appended to a log file of its own. Stopping sends SIGINT to the whole
+group, then SIGTERM after ``sigint_grace_s``, then SIGKILL after ``sigterm_grace_s``; a node that
+dies unasked is reported with its exit reason, whatever is left of its group is killed, and it
+is restarted after a backoff that doubles up to ``restart_backoff_max_s``. A state file records
+what runs, so that a restarted agent adopts its nodes (pid, process start time and a per-start
+token must all match) instead of starting them twice.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import uuid
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Iterable, List, Mapping, Optional, Tuple
+
+from . import procs
+from .catalogue import ENV_INSTANCE, Entry
+from ..model.types import AgentSettings
+
+STATE_VERSION = 1
+LOG_ROTATE_BYTES = 10 * 1024 * 1024
+ACTIVE = ('starting', 'running', 'stopping')
+
+
+@dataclass(frozen=True)
+class Report:
+    """What the supervisor knows of one node (``since`` on the caller's monotonic clock)."""
+
+    state: str
+    pid: int
+    since: float
+    restarts: int
+    ready: bool
+    exit_reason: str
+
+
+@dataclass
+class _Proc:
+    entry: Entry
+    state: str = 'stopped'
+    wanted: bool = False
+    popen: Optional[subprocess.Popen] = None
+    pid: int = 0
+    started: float = 0.0          # process start time (seconds since the epoch, from /proc)
+    instance: str = ''
+    since: float = 0.0
+    restarts: int = 0
+    ready: bool = False
+    exit_reason: str = ''
+    ready_deadline: float = 0.0
+    running_since: float = 0.0
+    backoff_s: float = 0.0
+    restart_at: float = 0.0
+    stop_phase: int = 0           # 0 SIGINT sent, 1 SIGTERM sent, 2 SIGKILL sent
+    stop_deadline: float = 0.0
+    strays: Tuple[int, ...] = ()  # descendants that may have left the session
+    log_path: str = ''
+    adopted: bool = False
+    failed_spawns: int = 0
+    history: List[str] = field(default_factory=list)
+
+
+class Supervisor:
+    """Runs the catalogue's nodes on one scale; see the module docstring."""
+
+    def __init__(self, catalogue: Mapping[str, Entry], settings: AgentSettings, log_dir: str,
+                 state_path: str = '', identity: Optional[Mapping[str, str]] = None):
+        self.settings = settings
+        self.log_dir = log_dir
+        self.state_path = state_path
+        self.identity = dict(identity or {})      # deployment and scale, written to the state
+        self._procs: Dict[str, _Proc] = {n: _Proc(entry=e) for n, e in catalogue.items()}
+        self._ghosts: Dict[str, _Proc] = {}       # adopted, not in the catalogue: being stopped
+        self.events: List[Tuple[str, str]] = []   # (level, text), drained by the caller
+        self._dirty = False
+
+    # --- queries --------------------------------------------------------------------------
+    @property
+    def names(self) -> Tuple[str, ...]:
+        return tuple(self._procs)
+
+    def reports(self) -> Dict[str, Report]:
+        return {n: Report(p.state, p.pid if p.state in ACTIVE else 0, p.since, p.restarts,
+                          p.ready, p.exit_reason) for n, p in self._procs.items()}
+
+    def state(self, name: str) -> str:
+        return self._procs[name].state
+
+    def active(self) -> Tuple[str, ...]:
+        """Nodes with a live process here (starting, running or stopping)."""
+        return tuple(n for n, p in self._procs.items() if p.state in ACTIVE)
+
+    def pids(self) -> Dict[str, int]:
+        return {n: p.pid for n, p in self._procs.items() if p.state in ACTIVE and p.pid}
+
+    def wanted(self) -> Tuple[str, ...]:
+        return tuple(n for n, p in self._procs.items() if p.wanted)
+
+    def all_stopped(self) -> bool:
+        return not self._ghosts and all(p.state not in ACTIVE for p in self._procs.values())
+
+    def log_path(self, name: str) -> str:
+        return os.path.join(self.log_dir, f'{name}.log')
+
+    # --- commands -------------------------------------------------------------------------
+    def set_wanted(self, names: Iterable[str], now: float) -> None:
+        """Start the named nodes and stop every other; names outside the catalogue are refused."""
+        wanted = set(names)
+        unknown = wanted - set(self._procs)
+        if unknown:
+            raise KeyError(f'not in the catalogue: {", ".join(sorted(unknown))}')
+        for name, p in self._procs.items():
+            if name in wanted and not p.wanted:
+                p.wanted = True
+                p.backoff_s = self.settings.restart_backoff_s
+                if p.state in ('stopped', 'failed', 'backoff'):
+                    self._spawn(p, now)
+            elif name not in wanted and p.wanted:
+                p.wanted = False
+                self._begin_stop(p, now)
+
+    def start(self, name: str, now: float) -> None:
+        self.set_wanted(set(self.wanted()) | {name}, now)
+
+    def stop(self, name: str, now: float) -> None:
+        self.set_wanted(set(self.wanted()) - {name}, now)
+
+    def stop_all(self, now: float) -> None:
+        self.set_wanted((), now)
+
+    def kill_all(self, now: float) -> None:
+        """Skip the graces: SIGKILL every group now (a second shutdown request)."""
+        self.set_wanted((), now)
+        for p in list(self._procs.values()) + list(self._ghosts.values()):
+            if p.state == 'stopping' and p.stop_phase < 2:
+                p.stop_phase = 2
+                p.stop_deadline = now
+                procs.signal_session(p.pid, signal.SIGKILL, p.strays)
+
+    # --- the loop -------------------------------------------------------------------------
+    def step(self, now: float, visible: Callable[[Entry], bool] = lambda entry: False) -> bool:
+        """Advance every node's state machine; True when a report changed."""
+        before = self.reports()
+        for p in self._procs.values():
+            self._step_one(p, now, visible)
+        for name, p in list(self._ghosts.items()):
+            self._step_stopping(p, now)
+            if p.state != 'stopping':
+                del self._ghosts[name]
+                self._dirty = True
+        changed = self.reports() != before
+        if changed or self._dirty:
+            self._dirty = False
+            self.save()
+        return changed
+
+    def _step_one(self, p: _Proc, now: float, visible: Callable[[Entry], bool]) -> None:
+        if p.state in ('starting', 'running'):
+            code, gone = self._leader_exit(p)
+            if gone:
+                self._crashed(p, now, code)
+                return
+            seen = bool(visible(p.entry))
+            if p.state == 'starting':
+                if seen:
+                    self._set(p, 'running', now, ready=True, reason='')
+                    p.running_since = now
+                elif now >= p.ready_deadline:
+                    self._set(p, 'running', now, ready=False,
+                              reason=f'not visible in the ROS graph as {p.entry.ros_name!r} '
+                                     f'within {self.settings.readiness_timeout_s:g} s')
+                    p.running_since = now
+                    self._event('warn', f'{p.entry.name}: {p.exit_reason}')
+            else:
+                # Readiness latches for the life of the process: a graph view that blinks while
+                # another copy leaves must not make a handed-over node look lost.
+                if seen and not p.ready:
+                    p.ready = True
+                    p.exit_reason = ''
+                if now - p.running_since >= self.settings.restart_backoff_max_s:
+                    p.backoff_s = self.settings.restart_backoff_s
+        elif p.state == 'stopping':
+            self._step_stopping(p, now)
+        elif p.state in ('backoff', 'failed'):
+            if p.wanted and now >= p.restart_at:
+                p.restarts += 1
+                self._spawn(p, now)
+
+    def _step_stopping(self, p: _Proc, now: float) -> None:
+        code, gone = self._leader_exit(p)
+        if not gone:
+            p.strays = tuple(set(p.strays) | set(procs.descendants(p.pid)))
+        members = procs.session_members(p.pid) if p.pid else []
+        strays = [s for s in p.strays if procs.create_time(s) is not None]
+        if gone and not members and not strays:
+            reason = 'stopped' if code is None else f'stopped ({procs.describe_exit(code)})'
+            if p.stop_phase >= 1:
+                reason += f' after {("SIGTERM", "SIGKILL")[min(p.stop_phase, 2) - 1]}'
+            self._set(p, 'stopped', now, ready=False, reason=reason)
+            p.pid = 0
+            p.popen = None
+            self._dirty = True
+            if p.wanted:            # wanted again while it was stopping
+                self._spawn(p, now)
+            return
+        if now < p.stop_deadline:
+            return
+        if p.stop_phase == 0:
+            p.stop_phase = 1
+            p.stop_deadline = now + self.settings.sigterm_grace_s
+            self._event('warn', f'{p.entry.name}: still running {self.settings.sigint_grace_s:g}'
+                                ' s after SIGINT, sending SIGTERM')
+            procs.signal_session(p.pid, signal.SIGTERM, p.strays)
+        else:
+            if p.stop_phase == 1:
+                self._event('warn', f'{p.entry.name}: still running '
+                                    f'{self.settings.sigterm_grace_s:g} s after SIGTERM, '
+                                    'sending SIGKILL')
+            p.stop_phase = 2
+            p.stop_deadline = now + 1.0
+            procs.signal_session(p.pid, signal.SIGKILL, p.strays)
+
+    # --- transitions ----------------------------------------------------------------------
+    def _set(self, p: _Proc, state: str, now: float, ready: bool, reason: str) -> None:
+        if state != p.state:
+            p.since = now
+        p.state = state
+        p.ready = ready
+        p.exit_reason = reason
+
+    def _event(self, level: str, text: str) -> None:
+        self.events.append((level, text))
+
+    def _open_log(self, p: _Proc):
+        os.makedirs(self.log_dir, exist_ok=True)
+        path = self.log_path(p.entry.name)
+        try:
+            if os.path.getsize(path) > LOG_ROTATE_BYTES:
+                os.replace(path, path + '.1')
+        except OSError:
+            pass
+        p.log_path = path
+        return open(path, 'ab', buffering=0)
+
+    def _spawn(self, p: _Proc, now: float) -> None:
+        entry = p.entry
+        if not entry.startable:
+            self._set(p, 'failed', now, ready=False, reason=entry.problem or 'no argv')
+            p.restart_at = now + self.settings.restart_backoff_max_s
+            self._event('error', f'{entry.name}: cannot start: {p.exit_reason}')
+            return
+        p.instance = uuid.uuid4().hex
+        env = dict(entry.env)
+        env[ENV_INSTANCE] = p.instance
+        try:
+            log = self._open_log(p)
+        except OSError as e:
+            self._spawn_failed(p, now, f'cannot open log file {self.log_path(entry.name)}: {e}')
+            return
+        try:
+            log.write(f'--- {entry.name}: starting {" ".join(entry.argv)}\n'.encode())
+            # start_new_session: its own session and process group, away from the agent's
+            # terminal, so a Ctrl-C meant for the agent does not reach it and the group can be
+            # signalled as one.
+            p.popen = subprocess.Popen(list(entry.argv), env=env, stdin=subprocess.DEVNULL,
+                                       stdout=log, stderr=subprocess.STDOUT,
+                                       start_new_session=True, close_fds=True)
+        except OSError as e:
+            self._spawn_failed(p, now, f'cannot start {entry.argv[0]}: {e.strerror or e}')
+            return
+        finally:
+            log.close()
+        p.pid = p.popen.pid
+        p.started = procs.create_time(p.pid) or 0.0
+        p.adopted = False
+        p.strays = ()
+        p.failed_spawns = 0
+        p.ready_deadline = now + self.settings.readiness_timeout_s
+        self._set(p, 'starting', now, ready=False, reason='')
+        self._event('info', f'{entry.name}: started pid {p.pid} (log {p.log_path})')
+        # Recorded at once: an agent killed right now must still find it when it comes back.
+        self.save()
+
+    def _spawn_failed(self, p: _Proc, now: float, reason: str) -> None:
+        p.failed_spawns += 1
+        p.popen = None
+        p.pid = 0
+        self._set(p, 'failed', now, ready=False, reason=reason)
+        p.restart_at = now + self._next_backoff(p)
+        self._event('error', f'{p.entry.name}: {reason}')
+
+    def _next_backoff(self, p: _Proc) -> float:
+        delay = max(p.backoff_s, 0.0)
+        low = self.settings.restart_backoff_s
+        p.backoff_s = min(max(delay * 2, low), self.settings.restart_backoff_max_s)
+        return delay
+
+    def _leader_exit(self, p: _Proc) -> Tuple[Optional[int], bool]:
+        """(return code or None, whether the node's leader process is gone)."""
+        if p.popen is not None:
+            code = p.popen.poll()
+            return code, code is not None
+        if not p.pid:
+            return None, True
+        return None, not procs.alive(p.pid, p.started)
+
+    def _crashed(self, p: _Proc, now: float, code: Optional[int]) -> None:
+        reason = procs.describe_exit(code)
+        if p.adopted and code is None:
+            reason = 'exited (adopted process, exit status unknown)'
+        # Whatever the node left behind goes with it: no orphans.
+        left = procs.signal_session(p.pid, signal.SIGKILL, p.strays)
+        if left:
+            reason += f'; killed {left} leftover process{"es" if left > 1 else ""}'
+        p.popen = None
+        delay = self._next_backoff(p)
+        self._set(p, 'backoff', now, ready=False, reason=reason)
+        p.restart_at = now + delay
+        p.pid = 0
+        self._event('error', f'{p.entry.name}: crashed: {reason}; restarting in {delay:g} s '
+                             f'(restart {p.restarts + 1})')
+        self._dirty = True
+        if not p.wanted:
+            self._set(p, 'stopped', now, ready=False, reason=reason)
+
+    def _begin_stop(self, p: _Proc, now: float) -> None:
+        if p.state in ('backoff', 'failed'):
+            self._set(p, 'stopped', now, ready=False, reason=p.exit_reason)
+            return
+        if p.state not in ('starting', 'running'):
+            return
+        p.strays = procs.descendants(p.pid)
+        self._set(p, 'stopping', now, ready=False, reason='')
+        p.stop_phase = 0
+        p.stop_deadline = now + self.settings.sigint_grace_s
+        procs.signal_session(p.pid, signal.SIGINT, p.strays)
+        self._event('info', f'{p.entry.name}: stopping pid {p.pid} (SIGINT)')
+
+    # --- the state file -------------------------------------------------------------------
+    def save(self) -> None:
+        """Record every live node so that a restarted agent can adopt it."""
+        if not self.state_path:
+            return
+        nodes = {}
+        for name, p in list(self._procs.items()) + list(self._ghosts.items()):
+            if p.state in ACTIVE and p.pid:
+                nodes[name] = {'pid': p.pid, 'started': p.started, 'instance': p.instance,
+                               'argv': list(p.entry.argv), 'restarts': p.restarts,
+                               'stopping': p.state == 'stopping'}
+        data = dict(self.identity, version=STATE_VERSION, agent_pid=os.getpid(), nodes=nodes)
+        os.makedirs(os.path.dirname(self.state_path) or '.', exist_ok=True)
+        tmp = f'{self.state_path}.{os.getpid()}.tmp'
+        with open(tmp, 'w', encoding='utf-8') as f:
+            json.dump(data, f, indent=1, sort_keys=True)
+        os.replace(tmp, self.state_path)
+
+    def adopt(self, now: float, wall_now: float) -> List[str]:
+        """Take over the nodes a previous agent recorded; return what was done, in words.
+
+        A recorded process is ours only if its pid, its start time and the per-start token in its
+        environment all match: a reused pid is never signalled. An adopted node whose argv no
+        longer matches the catalogue, or that is no longer in it, is stopped.
+        """
+        notes: List[str] = []
+        if not self.state_path or not os.path.exists(self.state_path):
+            return notes
+        try:
+            with open(self.state_path, encoding='utf-8') as f:
+                data = json.load(f)
+            nodes = data['nodes']
+            if data.get('version') != STATE_VERSION or not isinstance(nodes, dict):
+                raise ValueError('unknown version')
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            notes.append(f'state file {self.state_path} unreadable ({e}); adopting nothing')
+            return notes
+        for k in ('deployment', 'scale'):
+            if k in self.identity and data.get(k) != self.identity[k]:
+                notes.append(f'state file {self.state_path} is for {k} {data.get(k)!r}, not '
+                             f'{self.identity[k]!r}; adopting nothing')
+                return notes
+        for name, rec in nodes.items():
+            try:
+                pid, started, instance = int(rec['pid']), float(rec['started']), \
+                    str(rec['instance'])
+                argv = tuple(str(a) for a in rec['argv'])
+            except (KeyError, TypeError, ValueError):
+                notes.append(f'{name}: malformed state record; ignored')
+                continue
+            if pid <= 1 or not procs.alive(pid, started):
+                notes.append(f'{name}: recorded pid {pid} is gone')
+                continue
+            if procs.environ_value(pid, ENV_INSTANCE) != instance:
+                notes.append(f'{name}: pid {pid} is another process now (token differs); '
+                             'left alone')
+                continue
+            p = self._procs.get(name)
+            if p is None:
+                # Ours, but no longer in the catalogue: stop it, never restart it.
+                ghost = _Proc(entry=Entry(name=name, argv=argv))
+                self._take(ghost, pid, started, instance, now, wall_now, rec)
+                self._begin_stop(ghost, now)
+                self._ghosts[name] = ghost
+                notes.append(f'{name}: pid {pid} is not in the catalogue; stopping it')
+                continue
+            self._take(p, pid, started, instance, now, wall_now, rec)
+            if argv != p.entry.argv or rec.get('stopping'):
+                p.wanted = False
+                self._begin_stop(p, now)
+                notes.append(f'{name}: adopted pid {pid} runs an outdated command or was being '
+                             'stopped; stopping it')
+            else:
+                p.wanted = True
+                notes.append(f'{name}: adopted pid {pid}')
+        self._dirty = True
+        return notes
+
+    def _take(self, p: _Proc, pid: int, started: float, instance: str, now: float,
+              wall_now: float, rec: Mapping) -> None:
+        p.pid = pid
+        p.started = started
+        p.instance = instance
+        p.popen = None
+        p.adopted = True
+        p.restarts = int(rec.get('restarts', 0)) if str(rec.get('restarts', 0)).isdigit() else 0
+        p.backoff_s = self.settings.restart_backoff_s
+        p.ready_deadline = now + self.settings.readiness_timeout_s
+        self._set(p, 'starting', now, ready=False, reason='')
+        # Report the process's own start time on the caller's clock.
+        p.since = now - max(0.0, wall_now - started)

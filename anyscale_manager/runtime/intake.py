@@ -1,0 +1,160 @@
+"""The decider's book of what it has heard: agent reports and monitor readings, by receive time.
+
+Pure (no ROS): the decider node feeds it decoded protocol messages with its own clock and asks
+for an ``Observations`` snapshot each period. Freshness is judged by the receive time, never by
+the sender's stamp. Messages that name things the deployment does not know are refused with a
+``ValueError`` saying what and where; parts of a message that name unknown nodes or connections
+are skipped.
+"""
+
+import math
+from dataclasses import dataclass
+from typing import Dict, FrozenSet, Mapping, Optional, Tuple
+
+from ..model.types import DeciderSettings, Deployment, frozen_map
+from ..protocol import AgentState, ConnectionStatus, LinkStatus, ScaleStatus
+from .observations import ConnectionObs, LinkObs, Observations, ScaleObs
+
+_RANK = {'running': 2, 'starting': 1}
+
+
+@dataclass(frozen=True)
+class AgentSeen:
+    state: AgentState
+    received: float
+
+
+class ObservationBook:
+    """Latest message per source, with the time it was received."""
+
+    def __init__(self, deployment: Deployment, settings: DeciderSettings, started: float):
+        self.deployment = deployment
+        self.settings = settings
+        self.started = started
+        self.agents: Dict[str, AgentSeen] = {}
+        self.scales: Dict[str, ScaleObs] = {}
+        self.links: Dict[str, LinkObs] = {}
+        self.readings: Dict[Tuple[str, str], ConnectionObs] = {}   # (scale, connection)
+        self.ignored: Dict[str, int] = {}                           # what was skipped, counted
+
+    # --- intake -------------------------------------------------------------------------------
+    def _scale(self, name: str, where: str) -> None:
+        if name not in self.deployment.scale_names:
+            raise ValueError(f'{where}: unknown scale {name!r:.60}')
+
+    def _skip(self, what: str) -> None:
+        self.ignored[what] = self.ignored.get(what, 0) + 1
+
+    def agent_state(self, msg: AgentState, now: float) -> None:
+        self._scale(msg.scale, 'agent_state.scale')
+        for name in msg.nodes:
+            if name not in self.deployment.node_names:
+                self._skip(f'agent_state from {msg.scale}: unknown node {name[:60]}')
+        self.agents[msg.scale] = AgentSeen(msg, now)
+
+    def scale_status(self, msg: ScaleStatus, now: float) -> None:
+        self._scale(msg.scale, 'scale_status.scale')
+        if msg.cpu_total < 0:
+            raise ValueError(f'scale_status.cpu_total: negative ({msg.cpu_total})')
+        known = set(self.deployment.node_names)
+        by_node = {n: v for n, v in msg.cpu_by_node.items() if n in known and v >= 0}
+        self.scales[msg.scale] = ScaleObs(cpu_total=msg.cpu_total, stamp=now,
+                                          cpu_by_node=frozen_map(by_node))
+
+    def link_status(self, msg: LinkStatus, now: float) -> None:
+        master = self.deployment.master.name
+        if msg.master != master:
+            raise ValueError(f'link_status.master: {msg.master!r:.60} is not the master '
+                             f'scale {master!r}')
+        self._scale(msg.remote, 'link_status.remote')
+        if msg.remote == master:
+            raise ValueError('link_status.remote: the master scale itself')
+        available = msg.bandwidth_available_kbps
+        if available is not None and available < 0:
+            raise ValueError(f'link_status.bandwidth_available_kbps: negative ({available})')
+        self.links[msg.remote] = LinkObs(up=msg.up, stamp=now, available_kbps=available,
+                                         used_kbps=max(0.0, msg.bandwidth_used_kbps),
+                                         rtt_ms=msg.rtt_ms)
+
+    def connection_status(self, msg: ConnectionStatus, now: float) -> None:
+        self._scale(msg.scale, 'connection_status.scale')
+        known = {c.name for c in self.deployment.connections}
+        for name, r in msg.connections.items():
+            if name not in known:
+                self._skip(f'connection_status from {msg.scale}: unknown connection {name[:60]}')
+                continue
+            if r.rate_hz < 0 or r.below_for_s < 0:
+                self._skip(f'connection_status from {msg.scale}: negative reading for {name}')
+                continue
+            self.readings[(msg.scale, name)] = ConnectionObs(
+                rate_hz=r.rate_hz, stamp=now, below_for_s=r.below_for_s,
+                bytes_per_s=max(0.0, r.bytes_per_s))
+
+    # --- views --------------------------------------------------------------------------------
+    def agent_fresh(self, scale: str, now: float) -> bool:
+        seen = self.agents.get(scale)
+        return seen is not None and now - seen.received <= self.settings.agent_timeout_s
+
+    def lost_scales(self, now: float) -> FrozenSet[str]:
+        """Scales whose agent has been silent for agent_timeout_s (or never spoke in that time)."""
+        timeout = self.settings.agent_timeout_s
+        lost = set()
+        for s in self.deployment.scale_names:
+            seen = self.agents.get(s)
+            last = seen.received if seen is not None else self.started
+            if now - last > timeout:
+                lost.add(s)
+        return frozenset(lost)
+
+    def all_agents_heard(self) -> bool:
+        return all(s in self.agents for s in self.deployment.scale_names)
+
+    @property
+    def max_generation(self) -> int:
+        return max((a.state.generation for a in self.agents.values()), default=0)
+
+    def running(self, now: float, desired: Optional[Mapping[str, str]] = None
+                ) -> Dict[str, str]:
+        """node -> scale where it actually runs, from the agents not lost.
+
+        A node reported on two scales (a move in progress) counts where it is 'running' rather
+        than 'starting', then where the layout wants it.
+        """
+        lost = self.lost_scales(now)
+        known = set(self.deployment.node_names)
+        best: Dict[str, Tuple[int, int, str]] = {}
+        for scale, seen in self.agents.items():
+            if scale in lost:
+                continue
+            for name, report in seen.state.running().items():
+                if name not in known:
+                    continue
+                wanted = 1 if desired is not None and desired.get(name) == scale else 0
+                rank = (_RANK.get(report.state, 0), wanted, scale)
+                if name not in best or rank[:2] > best[name][:2]:
+                    best[name] = rank
+        return {n: r[2] for n, r in best.items()}
+
+    def connections(self, running: Mapping[str, str]) -> Dict[str, ConnectionObs]:
+        """One reading per connection: from the scale its subscriber runs on, else the newest."""
+        out: Dict[str, ConnectionObs] = {}
+        for c in self.deployment.connections:
+            home = running.get(c.subscriber)
+            if home is not None and (home, c.name) in self.readings:
+                out[c.name] = self.readings[(home, c.name)]
+                continue
+            newest, stamp = None, -math.inf
+            for (scale, name), reading in self.readings.items():
+                if name == c.name and reading.stamp > stamp:
+                    newest, stamp = reading, reading.stamp
+            if newest is not None:
+                out[c.name] = newest
+        return out
+
+    def snapshot(self, now: float, desired: Optional[Mapping[str, str]] = None
+                 ) -> Observations:
+        running = self.running(now, desired)
+        return Observations(now=now, running=frozen_map(running),
+                            scales=frozen_map(self.scales), links=frozen_map(self.links),
+                            connections=frozen_map(self.connections(running)),
+                            lost_scales=self.lost_scales(now))

@@ -1,0 +1,400 @@
+"""The dynamic migration policy: the ICAR 2015 paper's Algorithm 1, plus what a real system needs.
+
+Each ``step(obs)`` is one turn of the paper's loop, taken once per decider period:
+
+- if a constraint is violated (bandwidth required > available, a link down or silent, a
+  connection below freq_min for longer than its Δ, a remote scale over its CPU), migrate back to
+  the master the nodes of the migrated list that cause it, and keep migrating back while some
+  link's required bandwidth exceeds what it has (the paper's do ... while);
+- otherwise sort the migratable nodes on the master by CPU usage and the remote scales by power,
+  and migrate the first node not migrated back within the hysteresis time T to the first scale
+  that can host it (allowed there, CPU headroom, link up with the bandwidth available).
+
+Additions a live system needs (documented in docs/decider.md): a grace period after each move
+during which the moved node's connections are not judged; at most one move out per step, and
+none while an earlier move is not yet running or still in its grace period; a move the agents do
+not apply in time is undone; nodes of a lost scale are relocated; ``migration: false`` never
+moves out (the paper's no-migration baseline). Every decision carries its reason.
+
+The policy decides the desired layout; it judges by what actually runs (``obs.running``).
+"""
+
+import math
+from dataclasses import replace
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+
+from ..model.types import DeciderSettings, Deployment, frozen_map
+from .constraints import (CPU, FREQUENCY, LINK_DOWN, ConstraintReport, DeltaTracker, evaluate,
+                          link_capacity, node_cpu, required_kbps, scale_cpu)
+from .layout import adopt, default_scale, master_layout
+from .observations import MIGRATE, MIGRATE_BACK, RELOCATE, Decision, Observations
+
+
+class MigrationPolicy:
+    """Algorithm 1 with its state: the migrated list, migrate-back and move times, pending moves.
+
+    Time comes only from ``obs.now``. The same object runs in the live decider, the simulator
+    and the unit tests.
+    """
+
+    def __init__(self, deployment: Deployment, settings: Optional[DeciderSettings] = None):
+        self.deployment = deployment
+        self.settings = settings or deployment.decider
+        self.master = deployment.master.name
+        self.desired: Dict[str, str] = {}
+        self.migrated: List[Tuple[str, str]] = []      # (node, scale), in migration order
+        self.last_back: Dict[str, float] = {}          # node -> time of its last migrate-back
+        self.last_move: Dict[str, float] = {}          # node -> time of its last move (grace)
+        self.pending: Dict[str, Tuple[str, float]] = {}  # node -> (scale, when asked)
+        self.last_move_out = -math.inf
+        self.started: Optional[float] = None
+        self.last_report: Optional[ConstraintReport] = None
+        self.below_for: Mapping[str, float] = frozen_map()
+        self.notes: Tuple[str, ...] = ()               # why nothing (more) moved this step
+        self.history: List[Tuple[float, Decision]] = []
+        self._delta = DeltaTracker(deployment)
+        self._seeded = False
+
+    # --- configuration ----------------------------------------------------------------------
+    def update_settings(self, settings: DeciderSettings) -> None:
+        """New thresholds (changed at run time); state is kept."""
+        self.settings = settings
+
+    def reset(self, layout: Mapping[str, str], now: float,
+              running: Optional[Mapping[str, str]] = None) -> None:
+        """Start from a given layout (the first layout the decider published).
+
+        Nodes it places off the master enter the migrated list (in deployment order); they and
+        the nodes it places elsewhere than they run (pending) get a grace period from ``now``,
+        and nothing moves out before one grace period has passed.
+        """
+        self.desired = {n: s for n, s in layout.items() if n in self.deployment.node_names}
+        for n in self.deployment.node_names:
+            if n not in self.desired and self.deployment.node(n).managed:
+                self.desired[n] = default_scale(self.deployment, n)
+        self.migrated = [(n, s) for n, s in self.desired.items()
+                         if s != self.master and self.master in self.deployment.allowed_scales(n)]
+        self.pending = {n: (s, now) for n, s in self.desired.items()
+                        if running is not None and running.get(n) != s}
+        # Nodes placed off the master, or (re)started by this layout, get their grace period;
+        # the first move out waits one grace period after the layout, so that it is judged on
+        # measurements of the system as it now runs.
+        self.last_move = {n: now for n, s in self.desired.items()
+                          if s != self.master or n in self.pending}
+        self.last_move_out = now
+        self._seeded = True
+        if self.started is None:
+            self.started = now
+
+    # --- views ----------------------------------------------------------------------------
+    @property
+    def layout(self) -> Mapping[str, str]:
+        """The desired layout (node -> scale) for every managed node."""
+        return frozen_map(self.desired)
+
+    @property
+    def grace_until(self) -> Mapping[str, float]:
+        return frozen_map({n: t + self.settings.grace_s for n, t in self.last_move.items()})
+
+    @property
+    def pending_timeout_s(self) -> float:
+        """How long the agents get to apply a move before it is undone."""
+        return self.deployment.agent.readiness_timeout_s + self.settings.agent_timeout_s
+
+    # --- the loop ---------------------------------------------------------------------------
+    def step(self, obs: Observations) -> List[Decision]:
+        """One turn of Algorithm 1 at ``obs.now``; returns the moves to apply now."""
+        now = obs.now
+        if self.started is None:
+            self.started = now
+        running = self._running(obs)
+        if not self._seeded:
+            layout, _ = adopt(self.deployment, master_layout(self.deployment), running)
+            self.reset(layout, now, running)
+        notes: List[str] = []
+        decisions: List[Decision] = []
+        decisions += self._settle_pending(running, now, notes)
+
+        self.below_for = self._delta.update(obs, self.settings)
+        report = evaluate(self.deployment, self.settings, obs, self.grace_until,
+                          below_for=self.below_for, since=self.started)
+        self.last_report = report
+
+        decisions += self._relocate_lost(obs, running, report, notes, decisions)
+        back, actionable = self._migrate_back(obs, running, report, decisions)
+        decisions += back
+        if not actionable and not decisions:
+            decisions += self._migrate_out(obs, running, report, notes)
+        for d in decisions:
+            self._apply(d, now)
+        self.notes = tuple(notes)
+        return decisions
+
+    # --- pieces -----------------------------------------------------------------------------
+    def _running(self, obs: Observations) -> Dict[str, str]:
+        names, scales = set(self.deployment.node_names), set(self.deployment.scale_names)
+        return {n: s for n, s in obs.running.items() if n in names and s in scales}
+
+    def _in_migrated(self, node: str) -> bool:
+        return any(n == node for n, _ in self.migrated)
+
+    def _settle_pending(self, running: Mapping[str, str], now: float,
+                        notes: List[str]) -> List[Decision]:
+        out = []
+        for node, (scale, asked) in list(self.pending.items()):
+            if running.get(node) == scale:
+                del self.pending[node]
+            elif now - asked > self.pending_timeout_s:
+                del self.pending[node]
+                where = running.get(node, 'nowhere')
+                if scale != self.master and self._in_migrated(node):
+                    out.append(Decision(
+                        MIGRATE_BACK, node, scale, self.master,
+                        f'{node} still not running on {scale} {now - asked:.1f} s after the '
+                        f'move (runs {where}); undoing it'))
+                else:
+                    notes.append(f'{node} not yet running on {scale} {now - asked:.1f} s after '
+                                 f'it was asked (runs {where})')
+        return out
+
+    def _relocate_lost(self, obs: Observations, running: Mapping[str, str],
+                       report: ConstraintReport, notes: List[str],
+                       already: Sequence[Decision]) -> List[Decision]:
+        lost = set(obs.lost_scales) & set(self.deployment.scale_names)
+        if not lost:
+            return []
+        if self.master in lost:
+            notes.append(f'the master scale {self.master} is reported lost: its nodes stay')
+        out: List[Decision] = []
+        moved = {d.node for d in already}
+        extra_cpu: Dict[str, float] = {}
+        for node, scale in list(self.desired.items()):
+            if scale not in lost or scale == self.master or node in moved:
+                continue
+            target = self._relocation_target(obs, node, lost, extra_cpu)
+            if target is None:
+                notes.append(f'cannot relocate {node} from lost scale {scale}: no allowed '
+                             f'scale is available')
+                continue
+            extra_cpu[target] = extra_cpu.get(target, 0.0) + self.deployment.node(node).cpu
+            out.append(Decision(RELOCATE, node, scale, target,
+                                f'scale {scale} lost (its agent is silent); {node} placed '
+                                f'on {target}'))
+        return out
+
+    def _relocation_target(self, obs: Observations, node: str, lost: set,
+                           extra_cpu: Mapping[str, float]) -> Optional[str]:
+        allowed = [s for s in self.deployment.allowed_scales(node) if s not in lost]
+        if not allowed:
+            return None
+        if self.master in allowed:
+            return self.master
+        cpu = self.deployment.node(node).cpu
+        for scale in self._scales_by_power(allowed):
+            used, _ = scale_cpu(self.deployment, self.settings, obs, scale)
+            usable = self.deployment.scale(scale).capacity_cpu * self.settings.cpu_headroom
+            if used + extra_cpu.get(scale, 0.0) + cpu <= usable:
+                return scale
+        return self._scales_by_power(allowed)[0]
+
+    def _scales_by_power(self, names: Sequence[str]) -> List[str]:
+        order = {s.name: i for i, s in enumerate(self.deployment.scales)}
+        scales = [self.deployment.scale(n) for n in names]
+        scales.sort(key=lambda s: (-s.power, -s.gain, order[s.name]))
+        return [s.name for s in scales]
+
+    def _migrate_back(self, obs: Observations, running: Mapping[str, str],
+                      report: ConstraintReport, already: Sequence[Decision]
+                      ) -> Tuple[List[Decision], bool]:
+        """Algorithm 1's violation branch. Returns the moves and whether any was called for."""
+        taken = {d.node for d in already}
+        out: List[Decision] = []
+        actionable = False
+        migrated = [n for n, _ in self.migrated]
+
+        def back(node: str, reason: str) -> None:
+            if node in taken or node not in migrated:
+                return
+            taken.add(node)
+            out.append(Decision(MIGRATE_BACK, node, self.desired.get(node, running.get(node)),
+                                self.master, reason))
+
+        # A link down (or silent) brings back at once everything placed beyond it, running
+        # or still starting there: waiting for the connections' Δ would be too late.
+        for link_name, load in report.links.items():
+            if load.up:
+                continue
+            far = [e for e in load.ends if e != self.master]
+            beyond = [n for n in migrated if self.desired.get(n) in far or running.get(n) in far]
+            if beyond:
+                actionable = True
+                for n in beyond:
+                    back(n, load.reason or f'link {link_name} down')
+        for v in report.of_kind(LINK_DOWN, FREQUENCY):
+            culprits = [n for n in v.nodes if n in migrated]
+            actionable = actionable or bool(culprits)
+            for n in culprits:
+                back(n, v.reason)
+        for v in report.of_kind(CPU):
+            culprits = [n for n in reversed(migrated) if n in v.nodes]
+            if not culprits:
+                continue
+            actionable = True
+            # One node at a time, and not before the CPU freed by the last one leaving this
+            # scale can show in its measurement (the grace period).
+            left = [n for n, (where, _) in self.pending.items() if running.get(n) == v.subject
+                    and where != v.subject]
+            recent = [n for n, t in self.last_move.items() if n not in migrated
+                      and obs.now - t < self.settings.grace_s]
+            if not left and not recent and not any(n in taken for n in culprits):
+                back(culprits[0], v.reason + f'; {culprits[0]} was the last moved there')
+        # do ... while required_BW > network_BW: pick, among the migrated nodes crossing an
+        # overloaded link, the one whose return frees the most bandwidth on it (ties: the most
+        # recently migrated), until every link fits. Moves already asked for count as done.
+        hypothetical = dict(running)
+        for n, (where, _) in self.pending.items():
+            if n in hypothetical:
+                hypothetical[n] = where
+        for n in taken:
+            hypothetical[n] = self.master
+        for _ in range(len(migrated) + 1):
+            over = self._overloaded_links(report, hypothetical)
+            if not over:
+                break
+            link_name, required, usable = over[0]
+            current = required
+            best, best_gain = None, 0.0
+            for n in reversed(migrated):
+                if n in taken or hypothetical.get(n, self.master) == self.master:
+                    continue
+                trial = dict(hypothetical, **{n: self.master})
+                gain = current - required_kbps(self.deployment, trial)[link_name]
+                if gain > best_gain:
+                    best, best_gain = n, gain
+            if best is None:
+                break
+            actionable = True
+            back(best, f'link {link_name}: required {required:.0f} kbit/s > usable '
+                       f'{usable:.0f} kbit/s; {best} frees {best_gain:.0f} kbit/s')
+            hypothetical[best] = self.master
+        return out, actionable
+
+    def _overloaded_links(self, report: ConstraintReport,
+                          running: Mapping[str, str]) -> List[Tuple[str, float, float]]:
+        required = required_kbps(self.deployment, running)
+        out = []
+        for name, load in report.links.items():
+            if load.up and required[name] > load.usable_kbps:
+                out.append((name, required[name], load.usable_kbps))
+        return out
+
+    def _migrate_out(self, obs: Observations, running: Mapping[str, str],
+                     report: ConstraintReport, notes: List[str]) -> List[Decision]:
+        """Algorithm 1's else branch: at most one node (or coresidence group) moves out."""
+        now = obs.now
+        if not self.settings.migration:
+            return []
+        if self.pending:
+            notes.append('waiting for ' + ', '.join(
+                f'{n} to run on {s}' for n, (s, _) in sorted(self.pending.items())))
+            return []
+        if now < self.last_move_out + self.settings.grace_s:
+            notes.append(f'last move out {now - self.last_move_out:.1f} s ago, within the grace '
+                         f'period ({self.settings.grace_s:g} s)')
+            return []
+        units = self._candidate_units(obs, running)
+        remotes = self._scales_by_power([s.name for s in self.deployment.remote_scales])
+        for unit, cpu in units:
+            recent = [n for n in unit
+                      if now - self.last_back.get(n, -math.inf) < self.settings.hysteresis_s]
+            if recent:
+                notes.append(f'{unit[0]}: migrated back {now - self.last_back[recent[0]]:.1f} s '
+                             f'ago, within T = {self.settings.hysteresis_s:g} s')
+                continue
+            for scale in remotes:
+                ok, why = self._can_host(obs, running, report, unit, cpu, scale)
+                if not ok:
+                    notes.append(f'{unit[0]} -> {scale}: {why}')
+                    continue
+                what = unit[0] if len(unit) == 1 else f'{unit[0]} (with {", ".join(unit[1:])})'
+                reason = (f'{what}: CPU {cpu:.0f}, the most CPU-intensive migratable node that '
+                          f'fits, to {scale} (power {self.deployment.scale(scale).power:g}): '
+                          f'{why}')
+                return [Decision(MIGRATE, n, self.master, scale, reason) for n in unit]
+        return []
+
+    def _candidate_units(self, obs: Observations, running: Mapping[str, str]
+                         ) -> List[Tuple[Tuple[str, ...], float]]:
+        """Migratable nodes on the master with their coresidents, by CPU, largest first."""
+        migratable = set(self.deployment.migratable_nodes)
+        seen, units = set(), []
+        for node in self.deployment.migratable_nodes:
+            if node in seen:
+                continue
+            group = self.deployment.coresidence_group(node)
+            seen.update(group)
+            if not all(m in migratable and running.get(m) == self.master
+                       and self.desired.get(m) == self.master for m in group):
+                continue
+            cpu = sum(node_cpu(self.deployment, self.settings, obs, m) for m in group)
+            units.append((tuple(group), cpu))
+        order = {n: i for i, n in enumerate(self.deployment.node_names)}
+        units.sort(key=lambda u: (-u[1], order[u[0][0]]))
+        return units
+
+    def _can_host(self, obs: Observations, running: Mapping[str, str],
+                  report: ConstraintReport, unit: Tuple[str, ...], cpu: float,
+                  scale: str) -> Tuple[bool, str]:
+        d, s = self.deployment, self.settings
+        if scale in obs.lost_scales:
+            return False, 'scale lost'
+        if any(scale not in d.allowed_scales(n) for n in unit):
+            return False, 'not allowed there'
+        link = d.link_between(self.master, scale)
+        if link is None:
+            return False, f'no link from {self.master}'
+        up, observed, available, why = link_capacity(d, s, obs, link, self.started)
+        if not up:
+            return False, why
+        if not observed:
+            return False, f'link {link.name} not observed yet'
+        used, _ = scale_cpu(d, s, obs, scale)
+        usable = d.scale(scale).capacity_cpu * s.cpu_headroom
+        if used + cpu > usable:
+            return False, f'CPU {used:.0f} + {cpu:.0f} > usable {usable:.0f}'
+        trial = dict(running, **{n: scale for n in unit})
+        before, after = required_kbps(d, running), required_kbps(d, trial)
+        detail = []
+        for name, need in after.items():
+            if need <= before[name]:
+                continue
+            load = report.links[name]
+            if not load.up:
+                return False, f'link {name} down'
+            if need > load.usable_kbps:
+                return False, (f'link {name} would need {need:.0f} kbit/s > usable '
+                               f'{load.usable_kbps:.0f}')
+            detail.append(f'link {name} {need:.0f}/{load.usable_kbps:.0f} kbit/s')
+        return True, f'CPU {used:.0f} + {cpu:.0f} <= {usable:.0f}' + \
+            ''.join('; ' + x for x in detail)
+
+    def _apply(self, d: Decision, now: float) -> None:
+        self.desired[d.node] = d.to_scale
+        self.migrated = [(n, s) for n, s in self.migrated if n != d.node]
+        if d.to_scale != self.master and self.master in self.deployment.allowed_scales(d.node):
+            self.migrated.append((d.node, d.to_scale))
+        if d.kind == MIGRATE:
+            self.last_move_out = now
+        else:
+            self.last_back[d.node] = now
+        self.last_move[d.node] = now
+        self.pending[d.node] = (d.to_scale, now)
+        self.history.append((now, d))
+
+
+def with_settings(deployment: Deployment, **changes) -> DeciderSettings:
+    """The deployment's decider settings with some fields changed (validated by the caller)."""
+    return replace(deployment.decider, **changes)
+
+
+__all__ = ['MigrationPolicy', 'with_settings']

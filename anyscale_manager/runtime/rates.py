@@ -1,0 +1,335 @@
+"""Pure statistics of the monitors: rate windows, Δ tracking, heartbeats, bandwidth.
+
+Nothing here reads a clock or touches ROS: every method takes ``now`` (seconds on one monotonic
+clock of the caller's choosing), so the same classes run in the probes, in the simulator and in
+unit tests with a hand-written clock.
+"""
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Deque, Dict, Iterable, Mapping, Optional, Sequence, Tuple
+
+from ..protocol import ERROR, OK, WARN
+
+
+def _positive(value: float, what: str) -> float:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) \
+            or not math.isfinite(value) or value <= 0:
+        raise ValueError(f'{what} must be a positive number, got {value!r}')
+    return float(value)
+
+
+class RateWindow:
+    """Message rate and bytes per second of one topic over a time window.
+
+    Arrivals older than ``window_s`` are forgotten, except that the last two arrivals are always
+    kept so that a topic slower than the window (0.5 Hz in a 2 s window) still reads its rate
+    instead of flickering between 0 and a guess. The rate is the least-squares slope of arrival
+    count against arrival time over the kept arrivals: exact for a periodic publisher (a count
+    over the window would be off by up to one message) and, unlike ``(n - 1) / span``, hardly
+    moved by a receiver stall that stamps a batch late at an edge of the window. Once the silence
+    since the last arrival grows longer than the mean interval (plus ``stall_allowance_s``, so
+    that a receiver busy for a moment does not read as a slower topic), the open gap counts as
+    an interval in progress, ``n / (span + gap)``, so the rate decays smoothly; it reads 0 once
+    nothing arrived for
+    ``max(window_s, 2 x the last interval)``: a fast topic that stops reads 0 within one window,
+    a slow one is declared stopped after missing about two of its own periods.
+    """
+
+    def __init__(self, window_s: float, stall_allowance_s: float = 0.1):
+        self.window_s = _positive(window_s, 'window_s')
+        if not 0.0 <= stall_allowance_s < self.window_s:
+            raise ValueError(f'stall_allowance_s must be in [0, window_s), '
+                             f'got {stall_allowance_s!r}')
+        self.stall_allowance_s = stall_allowance_s
+        self._times: Deque[float] = deque()
+        self._sizes: Deque[int] = deque()
+        self._bytes = 0
+        self.count = 0            # every arrival ever recorded
+        self.total_bytes = 0
+
+    def add(self, now: float, nbytes: int = 0) -> None:
+        """Record one arrival of ``nbytes`` at ``now`` (a clock going backwards is clamped)."""
+        if self._times and now < self._times[-1]:
+            now = self._times[-1]
+        nbytes = max(0, int(nbytes))
+        self._times.append(now)
+        self._sizes.append(nbytes)
+        self._bytes += nbytes
+        self.count += 1
+        self.total_bytes += nbytes
+        self._trim(now)
+
+    def _trim(self, now: float) -> None:
+        horizon = now - self.window_s
+        while len(self._times) > 2 and self._times[0] < horizon:
+            self._times.popleft()
+            self._bytes -= self._sizes.popleft()
+
+    def last_arrival(self) -> Optional[float]:
+        return self._times[-1] if self._times else None
+
+    def rate_hz(self, now: float) -> float:
+        self._trim(now)
+        n = len(self._times)
+        if n < 2:
+            return 0.0
+        first, last = self._times[0], self._times[-1]
+        silence = now - last
+        last_interval = last - self._times[-2]
+        if silence > max(self.window_s, 2.0 * last_interval):
+            return 0.0
+        span = last - first
+        if span <= 0.0:
+            # Several arrivals with one stamp: fall back to a count over the window.
+            return n / self.window_s
+        mean_interval = span / (n - 1)
+        gap = max(mean_interval, silence - self.stall_allowance_s)
+        return min(self._slope(), n / (span + gap))
+
+    def _slope(self) -> float:
+        """Least-squares arrivals per second over the kept arrivals.
+
+        Equal to (n - 1) / span for evenly spaced arrivals, but a receiver stall at an edge of
+        the window (a batch of messages stamped late, all at once) moves it by a small fraction
+        of what it moves the end-to-end ratio.
+        """
+        times = self._times
+        n = len(times)
+        if n == 2:
+            return 1.0 / (times[1] - times[0])
+        t0 = times[0]
+        mean_t = sum(t - t0 for t in times) / n
+        mean_k = (n - 1) / 2.0
+        cov = var = 0.0
+        for k, t in enumerate(times):
+            d = t - t0 - mean_t
+            cov += d * (k - mean_k)
+            var += d * d
+        return cov / var if var > 0.0 else (n - 1) / (times[-1] - t0)
+
+    def bytes_per_s(self, now: float) -> float:
+        rate = self.rate_hz(now)
+        if rate <= 0.0:
+            return 0.0
+        return rate * self._bytes / len(self._times)
+
+    def reset(self) -> None:
+        self._times.clear()
+        self._sizes.clear()
+        self._bytes = 0
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One connection's judgement at one instant."""
+
+    rate_hz: float
+    below_for_s: float
+    level: int
+
+
+class ToleranceTracker:
+    """The ICAR Δ rule for one connection.
+
+    ``below_for_s`` is the continuous time the rate has been below ``freq_min_hz``, measured from
+    the first observation below it and reset to 0 by the first observation at or above it. The
+    level is OK at or above freq_min, WARN while below it for less than Δ, and ERROR once it has
+    been below for Δ or longer (so Δ = 0 means ERROR at the first observation below). Without a
+    freq_min (an unmonitored connection) the level is always OK.
+    """
+
+    def __init__(self, freq_min_hz: Optional[float], tolerance_s: Optional[float]):
+        if freq_min_hz is not None and (not math.isfinite(freq_min_hz) or freq_min_hz < 0):
+            raise ValueError(f'freq_min_hz must be >= 0, got {freq_min_hz!r}')
+        if tolerance_s is not None and (not math.isfinite(tolerance_s) or tolerance_s < 0):
+            raise ValueError(f'tolerance_s must be >= 0, got {tolerance_s!r}')
+        self.freq_min_hz = freq_min_hz
+        self.tolerance_s = tolerance_s
+        self._below_since: Optional[float] = None
+
+    def update(self, now: float, rate_hz: float) -> Verdict:
+        if self.freq_min_hz is None or rate_hz >= self.freq_min_hz:
+            self._below_since = None
+            return Verdict(rate_hz, 0.0, OK)
+        if self._below_since is None or now < self._below_since:
+            self._below_since = now
+        below = now - self._below_since
+        tolerance = self.tolerance_s if self.tolerance_s is not None else math.inf
+        return Verdict(rate_hz, below, ERROR if below >= tolerance else WARN)
+
+    def reset(self) -> None:
+        self._below_since = None
+
+
+class HeartbeatTracker:
+    """Round-trip time, loss and up/down of one link from numbered heartbeats.
+
+    Down follows BFD's detection rule: the link is down once no echo has arrived for
+    ``misses_down`` heartbeat periods, which is ``misses_down`` beats in a row unanswered; it is
+    up again at the first valid echo. Before any echo it is down (nothing proves it works). A
+    beat counts as lost when its echo has not come back within ``misses_down`` periods; loss is
+    the fraction lost among the last ``loss_window`` beats whose fate is known. Echoes of unknown
+    or forgotten sequence numbers are ignored; the round-trip time is computed from our own send
+    record, never from a value carried by the echo.
+    """
+
+    def __init__(self, period_s: float, misses_down: int, loss_window: int = 40):
+        self.period_s = _positive(period_s, 'period_s')
+        if not isinstance(misses_down, int) or misses_down < 1:
+            raise ValueError(f'misses_down must be an integer >= 1, got {misses_down!r}')
+        if loss_window < 1:
+            raise ValueError(f'loss_window must be >= 1, got {loss_window!r}')
+        self.misses_down = misses_down
+        self.loss_window = loss_window
+        self._sent: Dict[int, float] = {}          # seq -> send time, pending beats
+        self._fates: Deque[bool] = deque(maxlen=loss_window)   # True = answered
+        self._rtts: Deque[float] = deque(maxlen=loss_window)
+        self._next_seq = 0
+        self.last_echo: Optional[float] = None
+        self.last_rtt_s: Optional[float] = None
+
+    @property
+    def timeout_s(self) -> float:
+        return self.misses_down * self.period_s
+
+    def next_beat(self, now: float) -> int:
+        """Register a beat sent at ``now`` and return its sequence number."""
+        seq = self._next_seq
+        self._next_seq += 1
+        self._sent[seq] = now
+        self._expire(now)
+        return seq
+
+    def echo(self, now: float, seq: int) -> Optional[float]:
+        """Register the echo of ``seq``; return its round-trip time, or None if not ours."""
+        sent = self._sent.pop(seq, None) if isinstance(seq, int) else None
+        if sent is None or now < sent:
+            return None
+        rtt = now - sent
+        self._fates.append(True)
+        self._rtts.append(rtt)
+        self.last_rtt_s = rtt
+        self.last_echo = now if self.last_echo is None else max(self.last_echo, now)
+        return rtt
+
+    def _expire(self, now: float) -> None:
+        deadline = now - self.timeout_s
+        for seq in [s for s, t in self._sent.items() if t < deadline]:
+            del self._sent[seq]
+            self._fates.append(False)
+
+    def up(self, now: float) -> bool:
+        return self.last_echo is not None and now - self.last_echo <= self.timeout_s
+
+    def loss(self, now: float) -> float:
+        self._expire(now)
+        if not self._fates:
+            return 0.0
+        return sum(1 for f in self._fates if not f) / len(self._fates)
+
+    def rtt_s(self) -> Optional[float]:
+        """Median round-trip time of the recent answered beats (robust to one late echo)."""
+        if not self._rtts:
+            return None
+        ordered = sorted(self._rtts)
+        mid = len(ordered) // 2
+        return ordered[mid] if len(ordered) % 2 else 0.5 * (ordered[mid - 1] + ordered[mid])
+
+
+def steady_throughput_bps(samples: Sequence[Tuple[float, int]],
+                          skip_fraction: float = 0.25) -> Optional[float]:
+    """Bytes per second of a bulk transfer from (time, cumulative bytes) receiver samples.
+
+    The first ``skip_fraction`` of the transfer's duration is left out: a token bucket lets its
+    burst through at line rate and TCP is still in slow start there, both of which overstate a
+    shaped link. Returns None when the samples are too few to say anything.
+    """
+    if not 0.0 <= skip_fraction < 1.0:
+        raise ValueError(f'skip_fraction must be in [0, 1), got {skip_fraction!r}')
+    if len(samples) < 2:
+        return None
+    t0, t1 = samples[0][0], samples[-1][0]
+    if t1 <= t0:
+        return None
+    start = t0 + skip_fraction * (t1 - t0)
+    for t, b in samples:
+        if t >= start:
+            first_t, first_b = t, b
+            break
+    last_t, last_b = samples[-1]
+    if last_t - first_t <= 0.0 or last_b <= first_b:
+        return None
+    return (last_b - first_b) / (last_t - first_t)
+
+
+class BandwidthEstimate:
+    """The last active measurement of a link's capacity, its age, and when to measure again.
+
+    A probe is due when ``interval_s`` has passed since the last attempt, the link is up, and the
+    traffic already crossing it is below ``busy_fraction`` of what it is believed to carry (the
+    last estimate, else the nominal bandwidth): never probe a link that is already near full.
+    The capacity is the probe's throughput plus the traffic measured crossing the link while it
+    ran, since a bulk TCP flow only gets what the (unyielding, UDP) ROS traffic leaves it.
+    """
+
+    def __init__(self, interval_s: float, nominal_kbps: float, busy_fraction: float = 0.75):
+        self.interval_s = _positive(interval_s, 'interval_s')
+        self.nominal_kbps = _positive(nominal_kbps, 'nominal_kbps')
+        if not 0.0 < busy_fraction <= 1.0:
+            raise ValueError(f'busy_fraction must be in (0, 1], got {busy_fraction!r}')
+        self.busy_fraction = busy_fraction
+        self.available_kbps: Optional[float] = None
+        self.measured_at: Optional[float] = None
+        self.last_attempt: Optional[float] = None
+        self.failures = 0
+        self.last_error = ''
+
+    def due(self, now: float, link_up: bool, used_kbps: float) -> bool:
+        if not link_up:
+            return False
+        if self.last_attempt is not None and now - self.last_attempt < self.interval_s:
+            return False
+        reference = self.available_kbps if self.available_kbps is not None \
+            else self.nominal_kbps
+        return used_kbps < self.busy_fraction * reference
+
+    def started(self, now: float) -> None:
+        self.last_attempt = now
+
+    def record(self, now: float, probe_kbps: float,
+               used_kbps: float = 0.0) -> Optional[float]:
+        if not math.isfinite(probe_kbps) or probe_kbps <= 0:
+            return self.failed(now, f'unusable throughput {probe_kbps!r}')
+        self.available_kbps = probe_kbps + max(0.0, used_kbps)
+        self.measured_at = now
+        self.failures = 0
+        self.last_error = ''
+        return self.available_kbps
+
+    def failed(self, now: float, reason: str) -> Optional[float]:
+        """Note a failed probe; the previous estimate (if any) stands and keeps ageing."""
+        self.failures += 1
+        self.last_error = reason
+        return self.available_kbps
+
+    def age_s(self, now: float) -> Optional[float]:
+        return None if self.measured_at is None else max(0.0, now - self.measured_at)
+
+
+def crossing_connections(connections: Iterable[Tuple[str, str, str]],
+                         running: Mapping[str, str], a: str, b: str) -> Tuple[str, ...]:
+    """Names of the connections (name, publisher, subscriber) whose ends run on a and b."""
+    ends = {a, b}
+    out = []
+    for name, pub, sub in connections:
+        where = {running.get(pub), running.get(sub)}
+        if where == ends and a != b:
+            out.append(name)
+    return tuple(out)
+
+
+def used_kbps(bytes_per_s: Mapping[str, float], names: Iterable[str]) -> float:
+    """kbit/s carried by the named connections, from their measured bytes per second."""
+    return sum(max(0.0, bytes_per_s.get(n, 0.0)) for n in names) * 8.0 / 1000.0

@@ -1,0 +1,485 @@
+"""The test-bed harness: the whole system on one machine, started and torn down as one thing.
+
+``Testbed`` builds the network (``netns.Network``: robot and laptop namespaces, a shaped link,
+CPU quotas in the paper's power ratio), starts the decider and one agent per scale exactly as a
+person would (``--ros-args --params-file DEPLOYMENT -p scale:=...``, with per-run state and log
+folders), and an observer node in the robot's namespace whose output fills a ``Record``. The
+link is cut, restored and throttled from here, agents and the decider can be killed and started
+again, and ``stop()`` (also from ``__exit__`` and on errors) stops everything gracefully, then
+kills whatever is left, removes the namespaces and cgroups, and says what it had to clean.
+
+Without the rights to build namespaces the harness runs everything on loopback and emulates the
+link: a cut freezes (SIGSTOP) the laptop agent and every process it started, a restore thaws
+them; a throttle cannot be emulated there and is refused with the reason.
+"""
+
+import ctypes
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import psutil
+
+from ..model.loader import load_deployment
+from ..model.types import Deployment
+from ..nodes.workload import REFERENCE_CORE
+from . import netns
+from .record import Record
+
+NETNS, LOOPBACK = 'netns', 'loopback'
+PR_SET_CHILD_SUBREAPER = 36
+
+
+class HarnessError(RuntimeError):
+    """The test-bed could not be started or driven; the message says which step and why."""
+
+
+def _become_subreaper() -> bool:
+    """Orphans of our children (nodes of a killed agent) re-parent to us, so we can reap them."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+def _free_tcp_port() -> int:
+    import socket
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class Proc:
+    name: str
+    scale: str
+    argv: List[str]
+    popen: subprocess.Popen
+    log_path: str
+    started: float
+
+
+@dataclass
+class Options:
+    deployment_path: str
+    domain_id: int
+    mode: str = 'auto'                       # auto | netns | loopback
+    rate_kbps: float = netns.DEFAULT_RATE_KBPS
+    reference_core: float = REFERENCE_CORE   # one robot core, in cores of this machine
+    cpu_quota: bool = True
+    run_dir: str = ''                        # '' = a fresh temporary folder, removed at stop
+    keep_run_dir: bool = False
+    decider_parameters: Mapping[str, str] = field(default_factory=dict)
+    python: str = sys.executable
+
+
+class Testbed:
+    def __init__(self, options: Options):
+        self.options = options
+        self.deployment: Deployment = load_deployment(options.deployment_path)
+        names = self.deployment.scale_names
+        if len(names) != 2 or self.deployment.master.name != 'robot' or 'laptop' not in names:
+            raise HarnessError(f'{options.deployment_path}: the test-bed needs exactly the '
+                               f'scales robot (master) and laptop, got {", ".join(names)}')
+        if options.mode not in ('auto', NETNS, LOOPBACK):
+            raise HarnessError(f'unknown mode {options.mode!r}')
+        self.mode = options.mode
+        self.mode_reason = ''
+        self.network: Optional[netns.Network] = None
+        self.procs: Dict[str, Proc] = {}
+        self.record = Record(self.deployment)
+        self.lock = threading.Lock()
+        self.t0 = time.monotonic()
+        self._observer: Optional[Proc] = None
+        self._reader: Optional[threading.Thread] = None
+        self._frozen: List[int] = []
+        self._link_up = True
+        self._rate_kbps = options.rate_kbps
+        self._own_run_dir = not options.run_dir
+        self.run_dir = options.run_dir or tempfile.mkdtemp(prefix='anyscale-testbed-')
+        self.cleanup_notes: List[str] = []
+        self.cpu_cores = {s.name: s.capacity_cpu / 100.0 * options.reference_core
+                          for s in self.deployment.scales}
+        self._probe_port = 0
+
+    # --- life cycle ---------------------------------------------------------------------------
+    def start(self, ready_timeout_s: float = 90.0) -> 'Testbed':
+        try:
+            self._start(ready_timeout_s)
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _start(self, ready_timeout_s: float) -> None:
+        _become_subreaper()
+        if self.mode in ('auto', NETNS):
+            ok, why = netns.available()
+            if ok:
+                self.mode, self.mode_reason = NETNS, why
+            elif self.mode == NETNS:
+                raise HarnessError(f'network namespaces not available: {why}')
+            else:
+                self.mode = LOOPBACK
+                self.mode_reason = (f'no network namespaces ({why}): running on loopback with '
+                                    'the link emulated (a cut freezes the laptop\'s processes; '
+                                    'no bandwidth shaping, no CPU quotas)')
+        else:
+            self.mode_reason = 'loopback asked for: the link is emulated'
+        os.makedirs(os.path.join(self.run_dir, 'logs'), exist_ok=True)
+        if self.mode == NETNS:
+            netns.remove_stale()
+            cores = self.cpu_cores if self.options.cpu_quota else {}
+            self.network = netns.Network(rate_kbps=self.options.rate_kbps,
+                                         cpu_cores=cores).setup()
+        else:
+            self._probe_port = _free_tcp_port()
+        self.t0 = time.monotonic()
+        self.record.link_set(self.t0, True, self._rate_kbps)
+        self._start_observer()
+        self.start_agent('robot')
+        self.start_agent('laptop')
+        self.start_decider()
+        managed = [n.name for n in self.deployment.nodes if n.managed]
+        self.wait_for(lambda r: all(r.where(n) for n in managed), ready_timeout_s,
+                      'every managed node running')
+
+    def stop(self) -> List[str]:
+        """Stop everything; return what had to be force-cleaned (empty on a clean stop)."""
+        notes: List[str] = []
+        self._thaw()
+        for name in ('decider', 'agent_laptop', 'agent_robot'):
+            proc = self.procs.get(name)
+            if proc and proc.popen.poll() is None:
+                _signal_group(proc.popen.pid, signal.SIGINT)
+        settings = self.deployment.agent
+        grace = settings.sigint_grace_s + settings.sigterm_grace_s + 8.0
+        for name in ('decider', 'agent_laptop', 'agent_robot'):
+            proc = self.procs.get(name)
+            if proc is None:
+                continue
+            try:
+                proc.popen.wait(timeout=grace)
+            except subprocess.TimeoutExpired:
+                notes.append(f'{name} did not stop within {grace:.0f} s after SIGINT; killed')
+                _signal_group(proc.popen.pid, signal.SIGKILL)
+                proc.popen.wait()
+        if self._observer is not None:
+            _signal_group(self._observer.popen.pid, signal.SIGINT)
+            try:
+                self._observer.popen.wait(timeout=5.0)
+            except subprocess.TimeoutExpired:
+                _signal_group(self._observer.popen.pid, signal.SIGKILL)
+                self._observer.popen.wait()
+        if self._reader is not None:
+            self._reader.join(timeout=5.0)
+        leftovers = self._descendants()
+        if leftovers:
+            notes.append('processes left behind and killed: ' + ', '.join(
+                f'{p.pid} ({_cmdline(p)})' for p in leftovers))
+            for p in leftovers:
+                _kill(p.pid, signal.SIGKILL)
+            psutil.wait_procs(leftovers, timeout=5.0)
+        if self.network is not None:
+            stray = self.network.leftover_pids()
+            if stray:
+                notes.append(f'processes left in the namespaces/cgroups: {stray}')
+            notes.extend(self.network.teardown())
+            self.network = None
+        _reap()
+        if self._own_run_dir and not self.options.keep_run_dir:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
+        self.cleanup_notes.extend(notes)
+        return notes
+
+    def __enter__(self) -> 'Testbed':
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # --- processes ----------------------------------------------------------------------------
+    def _env(self, scale: str) -> Dict[str, str]:
+        keep = ('PATH', 'HOME', 'LANG', 'LC_ALL', 'PYTHONPATH', 'AMENT_PREFIX_PATH',
+                'LD_LIBRARY_PATH', 'RMW_IMPLEMENTATION', 'VIRTUAL_ENV')
+        env = {k: v for k, v in os.environ.items() if k in keep}
+        env['PYTHONUNBUFFERED'] = '1'
+        env['ROS_DOMAIN_ID'] = str(self.options.domain_id)
+        env['ROS_LOG_DIR'] = os.path.join(self.run_dir, 'ros_log')
+        env.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+        if self.mode == NETNS:
+            other = 'laptop' if scale == 'robot' else 'robot'
+            # DDS stays on the namespace pair: multicast and the peer's address, UDP only
+            # (shared memory would reach across namespaces and bypass the link).
+            env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SUBNET'
+            env['ROS_STATIC_PEERS'] = self.network.addresses[other]
+            env['FASTDDS_BUILTIN_TRANSPORTS'] = 'UDPv4'
+        else:
+            env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+        return env
+
+    def _deployment_args(self) -> List[str]:
+        args = ['--ros-args', '--params-file', self.options.deployment_path]
+        if self.mode == NETNS:
+            for scale, ip in self.network.addresses.items():
+                args += ['-p', f'scales.{scale}.host:={ip}']
+        else:
+            for scale in self.deployment.scale_names:
+                args += ['-p', f'scales.{scale}.host:=127.0.0.1']
+            args += ['-p', f'monitoring.bandwidth_probe_port:={self._probe_port}']
+        args += ['-p', f'agent.state_dir:={os.path.join(self.run_dir, "state")}',
+                 '-p', f'agent.log_dir:={os.path.join(self.run_dir, "nodes")}']
+        return args
+
+    def _spawn(self, name: str, scale: str, argv: Sequence[str], quota: bool = True,
+               stdout=None) -> Proc:
+        log_path = os.path.join(self.run_dir, 'logs', f'{name}.log')
+        log = open(log_path, 'ab')
+        env = self._env(scale)
+        try:
+            if self.network is not None:
+                popen = self.network.popen(scale, argv, env, cpu_quota=quota,
+                                           stdout=stdout or log, stderr=log)
+            else:
+                popen = subprocess.Popen(list(argv), env=env, stdout=stdout or log, stderr=log,
+                                         start_new_session=True)
+        finally:
+            log.close()
+        proc = Proc(name, scale, list(argv), popen, log_path, time.monotonic())
+        self.procs[name] = proc
+        return proc
+
+    def _start_observer(self) -> None:
+        topics = sorted({c.topic for c in self.deployment.connections})
+        argv = [self.options.python, '-m', 'anyscale_manager.testbed.observer']
+        for topic in topics:
+            argv += ['--topic', topic]
+        self._observer = self._spawn('observer', 'robot', argv, quota=False,
+                                     stdout=subprocess.PIPE)
+        self.procs.pop('observer')
+        stream = self._observer.popen.stdout
+
+        def read() -> None:
+            for raw in iter(stream.readline, b''):
+                with self.lock:
+                    self.record.ingest_line(raw.decode('utf-8', 'replace'))
+        self._reader = threading.Thread(target=read, name='observer-reader', daemon=True)
+        self._reader.start()
+        self.wait_for(lambda r: r.observer_ready is not None, 30.0, 'the observer to start')
+
+    def start_agent(self, scale: str) -> Proc:
+        argv = [self.options.python, '-m', 'anyscale_manager.nodes.agent']
+        argv += self._deployment_args() + ['-p', f'scale:={scale}']
+        proc = self._spawn(f'agent_{scale}', scale, argv)
+        self.mark(f'agent {scale} started (pid {proc.popen.pid})')
+        return proc
+
+    def start_decider(self) -> Proc:
+        argv = [self.options.python, '-m', 'anyscale_manager.nodes.decider']
+        argv += self._deployment_args()
+        for name, value in sorted(self.options.decider_parameters.items()):
+            argv += ['-p', f'{name}:={value}']
+        proc = self._spawn('decider', 'robot', argv)
+        self.mark(f'decider started (pid {proc.popen.pid})')
+        return proc
+
+    def kill(self, name: str, sig: int = signal.SIGKILL, timeout_s: float = 10.0) -> int:
+        """Signal one of our processes (decider, agent_robot, agent_laptop) and wait for it."""
+        proc = self.procs.get(name)
+        if proc is None or proc.popen.poll() is not None:
+            raise HarnessError(f'{name} is not running')
+        # Only the process itself: an agent's nodes are in their own sessions and live on.
+        _kill(proc.popen.pid, sig)
+        self.mark(f'{name} sent {signal.Signals(sig).name}')
+        try:
+            return proc.popen.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            raise HarnessError(f'{name} (pid {proc.popen.pid}) still runs {timeout_s:g} s '
+                               f'after {signal.Signals(sig).name}') from None
+
+    def running(self, name: str) -> bool:
+        proc = self.procs.get(name)
+        return proc is not None and proc.popen.poll() is None
+
+    def _descendants(self) -> List[psutil.Process]:
+        try:
+            return psutil.Process().children(recursive=True)
+        except psutil.Error:
+            return []
+
+    # --- the link -----------------------------------------------------------------------------
+    def cut(self) -> None:
+        now = time.monotonic()
+        if self.network is not None:
+            self.network.cut()
+        else:
+            self._freeze()
+        self._link_up = False
+        with self.lock:
+            self.record.link_set(now, False, self._rate_kbps)
+        self.mark('link cut')
+
+    def restore(self) -> None:
+        now = time.monotonic()
+        if self.network is not None:
+            self.network.restore()
+        else:
+            self._thaw()
+        self._link_up = True
+        with self.lock:
+            self.record.link_set(now, True, self._rate_kbps)
+        self.mark('link restored')
+
+    def throttle(self, rate_kbps: float) -> None:
+        if self.network is None:
+            raise HarnessError('cannot throttle on loopback: bandwidth shaping needs network '
+                               'namespaces (root)')
+        now = time.monotonic()
+        self.network.throttle(rate_kbps)
+        self._rate_kbps = float(rate_kbps)
+        with self.lock:
+            self.record.link_set(now, self._link_up, self._rate_kbps)
+        self.mark(f'link shaped to {rate_kbps:g} kbit/s')
+
+    @property
+    def link(self) -> Tuple[bool, float]:
+        return self._link_up, self._rate_kbps
+
+    def _laptop_pids(self) -> List[int]:
+        proc = self.procs.get('agent_laptop')
+        if proc is None or proc.popen.poll() is not None:
+            return []
+        try:
+            root = psutil.Process(proc.popen.pid)
+            return [root.pid] + [c.pid for c in root.children(recursive=True)]
+        except psutil.Error:
+            return []
+
+    def _freeze(self) -> None:
+        pids = self._laptop_pids()
+        for pid in pids:
+            _kill(pid, signal.SIGSTOP)
+        self._frozen = pids
+
+    def _thaw(self) -> None:
+        for pid in self._frozen:
+            _kill(pid, signal.SIGCONT)
+        self._frozen = []
+
+    # --- observing ----------------------------------------------------------------------------
+    def mark(self, text: str) -> None:
+        with self.lock:
+            self.record.mark(time.monotonic(), text)
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def wait_for(self, predicate: Callable[[Record], bool], timeout_s: float,
+                 what: str) -> float:
+        """Poll predicate(record) until true; return the monotonic time it became true."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self.lock:
+                if predicate(self.record):
+                    return time.monotonic()
+            for name, proc in list(self.procs.items()):
+                code = proc.popen.poll()
+                if code is not None and name in ('agent_robot', 'decider') \
+                        and not getattr(proc, 'expected_exit', False):
+                    raise HarnessError(f'{name} exited with {code} while waiting for {what}; '
+                                       f'log {proc.log_path}:\n{tail(proc.log_path)}')
+            if time.monotonic() > deadline:
+                raise HarnessError(f'timed out after {timeout_s:g} s waiting for {what}; '
+                                   f'{self.describe()}')
+            time.sleep(0.1)
+
+    def sleep(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            time.sleep(min(0.1, max(0.0, end - time.monotonic())))
+
+    def describe(self) -> str:
+        with self.lock:
+            r = self.record
+            placement = r.placement()
+            layout = r.layout_at()
+            return (f'placement {dict(sorted(placement.items()))}; layout '
+                    f'{layout.generation if layout else None} '
+                    f'{dict(sorted(layout.assignments.items())) if layout else {}}; '
+                    f'last events {[(e.kind, e.node, e.reason[:80]) for _, e in r.events[-4:]]}')
+
+    def cpu_seconds(self) -> Dict[str, float]:
+        """CPU seconds used so far by the decider, each agent (without its nodes), each scale."""
+        out: Dict[str, float] = {}
+        for name, proc in self.procs.items():
+            try:
+                leader = _python_leader(proc.popen.pid)
+                t = leader.cpu_times()
+                out[name] = t.user + t.system
+            except psutil.Error:
+                continue
+        if self.network is not None:
+            for scale in self.deployment.scale_names:
+                used = self.network.cpu_usage_s(scale)
+                if used is not None:
+                    out[f'scale_{scale}'] = used
+        return out
+
+
+def _python_leader(pid: int) -> psutil.Process:
+    """The process doing the work: our wrappers (sh, ip netns exec) exec into it, same pid."""
+    return psutil.Process(pid)
+
+
+def _cmdline(p: psutil.Process) -> str:
+    try:
+        return ' '.join(p.cmdline())[:100]
+    except psutil.Error:
+        return '?'
+
+
+def _kill(pid: int, sig: int) -> None:
+    try:
+        os.kill(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def _signal_group(pid: int, sig: int) -> None:
+    try:
+        os.killpg(pid, sig)
+    except (ProcessLookupError, PermissionError):
+        _kill(pid, sig)
+
+
+def _reap() -> None:
+    """Collect exit statuses of orphans that re-parented to us (we are their subreaper)."""
+    while True:
+        try:
+            pid, _ = os.waitpid(-1, os.WNOHANG)
+        except ChildProcessError:
+            return
+        if pid == 0:
+            return
+
+
+def tail(path: str, lines: int = 15) -> str:
+    try:
+        with open(path, 'rb') as f:
+            f.seek(0, os.SEEK_END)
+            f.seek(max(0, f.tell() - 4000))
+            text = f.read().decode('utf-8', 'replace')
+    except OSError:
+        return '(no log)'
+    return '\n'.join(text.splitlines()[-lines:])
+
+
+__all__ = ['HarnessError', 'LOOPBACK', 'NETNS', 'Options', 'Proc', 'Testbed', 'tail']

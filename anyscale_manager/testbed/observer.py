@@ -1,0 +1,100 @@
+"""The harness's eyes: an rclpy node that prints what it sees as JSON lines on stdout.
+
+    python -m anyscale_manager.testbed.observer [--topic /amcl_pose ...]
+
+Started by the harness inside the robot's namespace (next to the decider), outside any CPU
+quota. It subscribes to every project topic and, raw, to the given data topics, and writes one
+JSON object per line: ``{"t": <monotonic>, "topic": ..., "data": <the String's JSON text>}`` for
+project messages and ``{"t": ..., "arrivals": {topic: [monotonic, ...]}}`` every 0.2 s for the
+data topics. CLOCK_MONOTONIC is the same in every network namespace, so the harness can put
+these times next to its own (link cuts, kills). It parses nothing: judging is the harness's job.
+"""
+
+import argparse
+import json
+import sys
+import time
+from typing import Dict, List, Optional
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.utilities import remove_ros_args
+from std_msgs.msg import String, UInt8MultiArray
+
+from .. import protocol as p
+
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
+                         reliability=ReliabilityPolicy.BEST_EFFORT,
+                         durability=DurabilityPolicy.VOLATILE)
+PROJECT_TOPICS = {
+    p.TOPIC_LAYOUT: LATCHED, p.TOPIC_AGENT_STATE: LATCHED, p.TOPIC_EVENTS: RELIABLE,
+    p.TOPIC_SCALE_STATUS: RELIABLE, p.TOPIC_LINK_STATUS: RELIABLE,
+    p.TOPIC_CONNECTION_STATUS: RELIABLE, p.TOPIC_OBJECTIVE: RELIABLE,
+}
+FLUSH_S = 0.2
+
+
+class Observer(Node):
+    def __init__(self, data_topics: List[str], out=sys.stdout):
+        super().__init__('anyscale_testbed_observer')
+        self._out = out
+        self._arrivals: Dict[str, List[float]] = {t: [] for t in data_topics}
+        for topic, qos in PROJECT_TOPICS.items():
+            self.create_subscription(String, topic, self._project(topic), qos)
+        for topic in data_topics:
+            self.create_subscription(UInt8MultiArray, topic, self._data(topic), BEST_EFFORT,
+                                     raw=True)
+        self.create_timer(FLUSH_S, self._flush)
+        self._write({'t': time.monotonic(), 'ready': True})
+
+    def _write(self, obj) -> None:
+        self._out.write(json.dumps(obj, separators=(',', ':')) + '\n')
+        self._out.flush()
+
+    def _project(self, topic: str):
+        def callback(msg: String) -> None:
+            self._write({'t': time.monotonic(), 'topic': topic, 'data': msg.data})
+        return callback
+
+    def _data(self, topic: str):
+        def callback(_raw: bytes) -> None:
+            self._arrivals[topic].append(time.monotonic())
+        return callback
+
+    def _flush(self) -> None:
+        batch = {t: a for t, a in self._arrivals.items() if a}
+        if batch:
+            self._write({'t': time.monotonic(), 'arrivals': batch})
+            for topic in batch:
+                self._arrivals[topic] = []
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    argv = sys.argv if args is None else args
+    parser = argparse.ArgumentParser(prog='observer')
+    parser.add_argument('--topic', action='append', default=[])
+    a = parser.parse_args(remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
+    node = None
+    try:
+        node = Observer(a.topic)
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException, BrokenPipeError):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,233 @@
+"""What the harness saw during a run, and the questions the tests and the demo ask of it.
+
+Pure: the record is fed decoded observer lines and the harness's own actions, each stamped with
+one monotonic clock, and answers "where did each node run at time t", "how long was a
+connection below freq_min", "how many moves". No rclpy here.
+"""
+
+import json
+import math
+from bisect import bisect_right
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
+
+from .. import protocol as p
+from ..model.types import Connection, Deployment
+from ..runtime.rates import RateWindow, ToleranceTracker
+
+MIGRATION_KINDS = ('migrate', 'migrate_back')
+
+
+@dataclass
+class Violation:
+    """A connection below freq_min for longer than its Δ."""
+
+    connection: str
+    start: float           # when the rate first went below freq_min
+    end: float             # when it came back (or the end of the judged span)
+    tolerance_s: float
+    source: str            # 'observer' (measured here) or the reporting scale's probe
+
+    @property
+    def excess_s(self) -> float:
+        return (self.end - self.start) - self.tolerance_s
+
+
+@dataclass
+class Record:
+    deployment: Deployment
+    layouts: List[Tuple[float, p.Layout]] = field(default_factory=list)
+    agent_states: Dict[str, List[Tuple[float, p.AgentState]]] = field(default_factory=dict)
+    scale_status: Dict[str, List[Tuple[float, p.ScaleStatus]]] = field(default_factory=dict)
+    link_status: List[Tuple[float, p.LinkStatus]] = field(default_factory=list)
+    readings: Dict[str, List[Tuple[float, str, p.ConnectionReading]]] = \
+        field(default_factory=dict)
+    events: List[Tuple[float, p.Event]] = field(default_factory=list)
+    objectives: List[Tuple[float, p.Objective]] = field(default_factory=list)
+    arrivals: Dict[str, List[float]] = field(default_factory=dict)
+    link_truth: List[Tuple[float, bool, float]] = field(default_factory=list)
+    marks: List[Tuple[float, str]] = field(default_factory=list)
+    problems: List[str] = field(default_factory=list)
+    observer_ready: Optional[float] = None
+
+    # --- intake -------------------------------------------------------------------------------
+    def ingest_line(self, line: str) -> None:
+        """One line of the observer's output; anything malformed is kept as a problem."""
+        try:
+            obj = json.loads(line)
+        except ValueError:
+            if line.strip():
+                self.problems.append(f'observer: not JSON: {line.strip()[:120]}')
+            return
+        if not isinstance(obj, dict) or not isinstance(obj.get('t'), (int, float)):
+            self.problems.append(f'observer: unexpected line: {line.strip()[:120]}')
+            return
+        self.ingest(obj)
+
+    def ingest(self, obj: Mapping) -> None:
+        t = float(obj['t'])
+        if obj.get('ready'):
+            self.observer_ready = t
+            return
+        if 'arrivals' in obj:
+            for topic, times in obj['arrivals'].items():
+                self.arrivals.setdefault(topic, []).extend(float(x) for x in times)
+            return
+        topic, data = obj.get('topic'), obj.get('data')
+        try:
+            self._project(t, topic, data)
+        except p.ProtocolError as e:
+            self.problems.append(str(e))
+
+    def _project(self, t: float, topic: str, data: str) -> None:
+        if topic == p.TOPIC_LAYOUT:
+            self.layouts.append((t, p.Layout.from_json(data, topic)))
+        elif topic == p.TOPIC_AGENT_STATE:
+            state = p.AgentState.from_json(data, topic)
+            self.agent_states.setdefault(state.scale, []).append((t, state))
+        elif topic == p.TOPIC_SCALE_STATUS:
+            status = p.ScaleStatus.from_json(data, topic)
+            self.scale_status.setdefault(status.scale, []).append((t, status))
+        elif topic == p.TOPIC_LINK_STATUS:
+            self.link_status.append((t, p.LinkStatus.from_json(data, topic)))
+        elif topic == p.TOPIC_CONNECTION_STATUS:
+            status = p.ConnectionStatus.from_json(data, topic)
+            for name, reading in status.connections.items():
+                self.readings.setdefault(name, []).append((t, status.scale, reading))
+        elif topic == p.TOPIC_EVENTS:
+            self.events.append((t, p.Event.from_json(data, topic)))
+        elif topic == p.TOPIC_OBJECTIVE:
+            self.objectives.append((t, p.Objective.from_json(data, topic)))
+
+    def link_set(self, t: float, up: bool, rate_kbps: float) -> None:
+        self.link_truth.append((t, up, rate_kbps))
+
+    def mark(self, t: float, text: str) -> None:
+        self.marks.append((t, text))
+
+    # --- where things run ---------------------------------------------------------------------
+    def agent_state_at(self, scale: str, t: Optional[float] = None) -> Optional[p.AgentState]:
+        history = self.agent_states.get(scale, [])
+        if t is None:
+            return history[-1][1] if history else None
+        i = bisect_right([x[0] for x in history], t)
+        return history[i - 1][1] if i else None
+
+    def running_on(self, scale: str, t: Optional[float] = None,
+                   ready_only: bool = False) -> Dict[str, p.NodeReport]:
+        """Nodes the scale's agent last reported (at or before t) as starting or running."""
+        state = self.agent_state_at(scale, t)
+        if state is None:
+            return {}
+        return {n: r for n, r in state.running().items() if r.ready or not ready_only}
+
+    def placement(self, t: Optional[float] = None,
+                  ready_only: bool = True) -> Dict[str, Tuple[str, ...]]:
+        """node -> the scales whose agent reports it running (ready) at time t."""
+        out: Dict[str, List[str]] = {}
+        for scale in self.deployment.scale_names:
+            for node in self.running_on(scale, t, ready_only):
+                out.setdefault(node, []).append(scale)
+        return {n: tuple(s) for n, s in out.items()}
+
+    def where(self, node: str, t: Optional[float] = None) -> Tuple[str, ...]:
+        return self.placement(t).get(node, ())
+
+    def layout_at(self, t: Optional[float] = None) -> Optional[p.Layout]:
+        if t is None:
+            return self.layouts[-1][1] if self.layouts else None
+        i = bisect_right([x[0] for x in self.layouts], t)
+        return self.layouts[i - 1][1] if i else None
+
+    def last_time(self) -> float:
+        times = [h[-1][0] for h in self.agent_states.values() if h]
+        times += [x[-1] for x in self.arrivals.values() if x]
+        if self.layouts:
+            times.append(self.layouts[-1][0])
+        return max(times) if times else 0.0
+
+    # --- decisions ----------------------------------------------------------------------------
+    def moves(self, since: float = -math.inf, until: float = math.inf,
+              node: Optional[str] = None) -> List[Tuple[float, p.Event]]:
+        return [(t, e) for t, e in self.events
+                if e.kind in MIGRATION_KINDS and since <= t <= until
+                and (node is None or e.node == node)]
+
+    def start_counts(self, scale: str) -> Dict[str, Set[int]]:
+        """node -> every pid the scale's agent ever reported for it (to find restarts)."""
+        out: Dict[str, Set[int]] = {}
+        for _, state in self.agent_states.get(scale, []):
+            for node, r in state.nodes.items():
+                if r.state in ('starting', 'running') and r.pid > 0:
+                    out.setdefault(node, set()).add(r.pid)
+        return out
+
+    # --- rates --------------------------------------------------------------------------------
+    def topic_rate(self, topic: str, t: float, window_s: float = 2.0) -> float:
+        """The observer's rate of a topic at time t, as the probes compute it."""
+        times = self.arrivals.get(topic, [])
+        hi = bisect_right(times, t)
+        lo = bisect_right(times, t - window_s, 0, hi)
+        w = RateWindow(window_s)
+        for x in times[max(0, min(lo, hi - 2)):hi]:
+            w.add(x)
+        return w.rate_hz(t)
+
+    def reading_at(self, connection: str, t: Optional[float] = None
+                   ) -> Optional[Tuple[float, str, p.ConnectionReading]]:
+        history = self.readings.get(connection, [])
+        if t is None:
+            return history[-1] if history else None
+        i = bisect_right([x[0] for x in history], t)
+        return history[i - 1] if i else None
+
+    def observed_violations(self, conn: Connection, start: float, end: float,
+                            step_s: float = 0.1, window_s: float = 2.0,
+                            slack_s: float = 0.0) -> List[Violation]:
+        """Spans where the observer's rate of the connection's topic stayed below freq_min for
+        longer than Δ + slack_s, judged with the project's own Δ rule."""
+        if not conn.monitored:
+            return []
+        tracker = ToleranceTracker(conn.freq_min_hz, conn.tolerance_s)
+        out: List[Violation] = []
+        below_start: Optional[float] = None
+        t = start
+        while t <= end + 1e-9:
+            verdict = tracker.update(t, self.topic_rate(conn.topic, t, window_s))
+            if verdict.below_for_s > 0 and below_start is None:
+                below_start = t
+            if verdict.below_for_s == 0 and below_start is not None:
+                if t - below_start > conn.tolerance_s + slack_s:
+                    out.append(Violation(conn.name, below_start, t, conn.tolerance_s,
+                                         'observer'))
+                below_start = None
+            t += step_s
+        if below_start is not None and end - below_start > conn.tolerance_s + slack_s:
+            out.append(Violation(conn.name, below_start, end, conn.tolerance_s, 'observer'))
+        return out
+
+    def reported_violations(self, start: float, end: float,
+                            names: Optional[Sequence[str]] = None) -> List[Violation]:
+        """Spans where a probe reported a connection past its Δ (level ERROR)."""
+        out: List[Violation] = []
+        for name, history in sorted(self.readings.items()):
+            if names is not None and name not in names:
+                continue
+            conn = self.deployment.connection(name)
+            open_at: Optional[Tuple[float, str]] = None
+            for t, scale, r in history:
+                if not start <= t <= end:
+                    continue
+                if r.level == p.ERROR and open_at is None:
+                    open_at = (t - r.below_for_s, scale)
+                elif r.level != p.ERROR and open_at is not None:
+                    out.append(Violation(name, open_at[0], t, conn.tolerance_s or 0.0,
+                                         open_at[1]))
+                    open_at = None
+            if open_at is not None:
+                out.append(Violation(name, open_at[0], end, conn.tolerance_s or 0.0,
+                                     open_at[1]))
+        return out
+
+
+__all__ = ['MIGRATION_KINDS', 'Record', 'Violation']

@@ -1,0 +1,454 @@
+"""The agent's pure core with real processes: catalogue, supervisor, adoption, move orders."""
+
+import json
+import os
+import signal
+import sys
+import time
+
+import psutil
+import pytest
+
+from anyscale_manager import protocol
+from anyscale_manager.agent import procs
+from anyscale_manager.agent.catalogue import (base_environment, build_catalogue, ENV_INSTANCE,
+                                              ENV_NODE, ENV_SCALE, Entry, format_parameter)
+from anyscale_manager.agent.reconcile import Reconciler
+from anyscale_manager.agent.supervisor import Supervisor
+from anyscale_manager.model import types as t
+from anyscale_manager.model.loader import load_mapping
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+FIXTURES = os.path.join(HERE, 'fixtures')
+FAST = t.AgentSettings(sigint_grace_s=0.3, sigterm_grace_s=0.3, readiness_timeout_s=0.5,
+                       restart_backoff_s=0.2, restart_backoff_max_s=1.0)
+
+
+def wait_for(cond, timeout=10.0, step=None, period=0.02):
+    """Poll ``cond`` (after ``step``) until true or the deadline; return its last value."""
+    end = time.monotonic() + timeout
+    while True:
+        if step is not None:
+            step()
+        value = cond()
+        if value or time.monotonic() > end:
+            return value
+        time.sleep(period)
+
+
+def gone(pid):
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+def py_entry(name, code, env=None):
+    base = base_environment(os.environ)
+    base.update(env or {})
+    base[ENV_NODE] = name
+    return Entry(name=name, argv=(sys.executable, '-c', code), env=base, ros_name=name)
+
+
+SLEEPER = 'import time\nwhile True: time.sleep(1)'
+
+
+@pytest.fixture
+def make_sup(tmp_path):
+    made = []
+
+    def make(entries, settings=FAST, state=True):
+        sup = Supervisor({e.name: e for e in entries}, settings, str(tmp_path / 'log'),
+                         state_path=str(tmp_path / 'state.json') if state else '',
+                         identity={'deployment': 'd', 'scale': 's'})
+        made.append(sup)
+        return sup
+
+    yield make
+    for sup in made:   # nothing a test started outlives it
+        sup.kill_all(time.monotonic())
+        wait_for(sup.all_stopped, 10.0, step=lambda s=sup: s.step(time.monotonic()))
+
+
+def drive(sup, cond, timeout=10.0, visible=lambda e: False):
+    return wait_for(cond, timeout, step=lambda: sup.step(time.monotonic(), visible))
+
+
+# --- catalogue ----------------------------------------------------------------------------
+
+def deployment_dict(nodes, names=None):
+    return {'/**': {'ros__parameters': {
+        'deployment': {'name': 'unit'},
+        'scales': {'names': ['a', 'b'],
+                   'a': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100.0},
+                   'b': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100.0}},
+        'nodes': dict({'names': names or list(nodes)}, **nodes),
+    }}}
+
+
+def test_catalogue_builds_argv_env_and_filters_by_scale():
+    d = load_mapping(deployment_dict({
+        'cmd': {'launch': {'command': ['sleep', '5'], 'arguments': ['--x'],
+                           'env': {'FOO': 'bar'},
+                           'parameters': {'rate': 2.5, 'label': '5', 'on': True,
+                                          'list': [1, 2]}}, 'cpu': 1.0},
+        'pkg': {'launch': {'package': 'anyscale_manager', 'executable': 'workload',
+                           'ros_name': '/ns/worker'}, 'cpu': 1.0},
+        'only_b': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'residence': ['b']},
+        'manual': {'cpu': 1.0, 'managed': False, 'residence': ['a']},
+        'missing': {'launch': {'package': 'no_such_pkg', 'executable': 'nope'}, 'cpu': 1.0},
+    }))
+    environ = {'PATH': os.environ['PATH'], 'HOME': '/home/x', 'ROS_DOMAIN_ID': '7',
+               'RMW_IMPLEMENTATION': 'rmw_fastrtps_cpp', 'SECRET_TOKEN': 'leak',
+               'BASH_ENV': '/etc/rc'}
+    cat = build_catalogue(d, 'a', environ)
+    assert list(cat) == ['cmd', 'pkg', 'missing']
+    assert set(build_catalogue(d, 'b', environ)) == {'cmd', 'pkg', 'only_b', 'missing'}
+    cmd = cat['cmd']
+    assert os.path.isabs(cmd.argv[0]) and cmd.argv[1:3] == ('5', '--x')
+    tail = cmd.argv[cmd.argv.index('--ros-args'):]
+    assert tail[:3] == ('--ros-args', '-r', '__node:=cmd')
+    assert "label:='5'" in tail and 'rate:=2.5' in tail and 'on:=true' in tail
+    assert 'list:=[1, 2]' in tail
+    assert cmd.env['FOO'] == 'bar' and cmd.env['ROS_DOMAIN_ID'] == '7'
+    assert cmd.env[ENV_NODE] == 'cmd' and cmd.env[ENV_SCALE] == 'a'
+    assert 'SECRET_TOKEN' not in cmd.env and 'BASH_ENV' not in cmd.env
+    # Not in an ament index here: found next to the interpreter (the editable install).
+    pkg = cat['pkg']
+    assert pkg.startable, pkg.problem
+    assert os.path.basename(pkg.argv[0]) == 'workload'
+    assert '__node:=worker' in pkg.argv and '__ns:=/ns' in pkg.argv
+    assert pkg.ros_name == '/ns/worker'
+    assert not cat['missing'].startable and 'no_such_pkg' in cat['missing'].problem
+    with pytest.raises(ValueError, match='unknown scale'):
+        build_catalogue(d, 'zz', environ)
+
+
+def test_catalogue_prefers_the_ament_index(tmp_path):
+    exe = tmp_path / 'lib' / 'demo' / 'run'
+    exe.parent.mkdir(parents=True)
+    exe.write_text('#!/bin/sh\n')
+    exe.chmod(0o755)
+    d = load_mapping(deployment_dict({
+        'n': {'launch': {'package': 'demo', 'executable': 'run'}, 'cpu': 1.0}}))
+    cat = build_catalogue(d, 'a', {'PATH': '/usr/bin'}, ament_prefix=lambda p: str(tmp_path))
+    assert cat['n'].argv[0] == str(exe)
+
+
+@pytest.mark.parametrize('value,text', [
+    (True, 'true'), (3, '3'), (2.5, '2.5'), ('x y', "'x y'"), ("it's", "'it''s'"),
+    ('true', "'true'"), ([1.0, 2.0], '[1.0, 2.0]'), (['a', 'b'], "['a', 'b']")])
+def test_parameter_values_keep_their_type(value, text):
+    assert format_parameter(value) == text
+
+
+@pytest.mark.parametrize('code,words', [
+    (0, 'exited with status 0'), (3, 'exited with status 3'),
+    (-signal.SIGKILL, 'killed by SIGKILL (Killed)'), (-signal.SIGSEGV, 'SIGSEGV')])
+def test_exit_descriptions(code, words):
+    assert words in procs.describe_exit(code)
+
+
+# --- supervisor ---------------------------------------------------------------------------
+
+def test_start_ready_and_stop(make_sup):
+    sup = make_sup([py_entry('n', SLEEPER)])
+    now = time.monotonic()
+    sup.start('n', now)
+    r = sup.reports()['n']
+    assert r.state == 'starting' and r.pid > 0 and not r.ready
+    pid = r.pid
+    assert os.getpgid(pid) == pid and os.getsid(pid) == pid   # its own session and group
+    assert procs.environ_value(pid, ENV_INSTANCE)
+    assert drive(sup, lambda: sup.reports()['n'].ready, visible=lambda e: e.name == 'n')
+    assert sup.reports()['n'].state == 'running'
+    assert sup.pids() == {'n': pid}
+    state = json.load(open(sup.state_path))
+    assert state['nodes']['n']['pid'] == pid
+    sup.stop('n', time.monotonic())
+    assert sup.reports()['n'].state == 'stopping'
+    assert drive(sup, lambda: sup.reports()['n'].state == 'stopped', timeout=5.0)
+    r = sup.reports()['n']
+    assert r.pid == 0 and 'SIGINT' in r.exit_reason and 'SIGTERM' not in r.exit_reason
+    assert gone(pid)
+    assert json.load(open(sup.state_path))['nodes'] == {}
+    log = open(sup.log_path('n')).read()
+    assert 'starting' in log
+
+
+def test_readiness_times_out_without_the_graph(make_sup):
+    sup = make_sup([py_entry('n', SLEEPER)])
+    sup.start('n', time.monotonic())
+    assert drive(sup, lambda: sup.reports()['n'].state == 'running', timeout=5.0)
+    r = sup.reports()['n']
+    assert not r.ready and 'not visible in the ROS graph' in r.exit_reason
+
+
+def test_ignoring_sigint_and_sigterm_ends_in_sigkill(make_sup):
+    stubborn = os.path.join(FIXTURES, 'agent_stubborn.py')
+    e = py_entry('stubborn', '')
+    e = Entry(name='stubborn', argv=(sys.executable, stubborn), env=e.env, ros_name='stubborn')
+    sup = make_sup([e])
+    sup.start('stubborn', time.monotonic())
+    log = sup.log_path('stubborn')
+    assert wait_for(lambda: os.path.exists(log) and 'ignoring' in open(log).read(), 10.0)
+    pid = sup.pids()['stubborn']
+    t0 = time.monotonic()
+    sup.stop('stubborn', t0)
+    assert drive(sup, lambda: sup.reports()['stubborn'].state == 'stopped', timeout=10.0)
+    elapsed = time.monotonic() - t0
+    assert elapsed >= FAST.sigint_grace_s + FAST.sigterm_grace_s
+    assert 'SIGKILL' in sup.reports()['stubborn'].exit_reason
+    texts = ' '.join(text for _, text in sup.events)
+    assert 'sending SIGTERM' in texts and 'sending SIGKILL' in texts
+    assert gone(pid) and not procs.session_members(pid)
+
+
+def read_pids(path):
+    assert wait_for(lambda: os.path.exists(path), 10.0), 'forker never wrote its pids'
+    return [int(x) for x in open(path).read().split()]
+
+
+@pytest.mark.parametrize('how', ['stop', 'crash'])
+def test_grandchildren_do_not_survive(make_sup, tmp_path, how):
+    pids_file = str(tmp_path / 'pids')
+    base = py_entry('forker', '')
+    e = Entry(name='forker', argv=(sys.executable, os.path.join(FIXTURES, 'agent_forker.py'),
+                                   pids_file), env=base.env, ros_name='forker')
+    sup = make_sup([e])
+    sup.start('forker', time.monotonic())
+    parent, grandchild = read_pids(pids_file)
+    assert psutil.Process(grandchild).ppid() == parent
+    if how == 'stop':
+        sup.stop('forker', time.monotonic())
+        assert drive(sup, lambda: sup.reports()['forker'].state == 'stopped')
+    else:
+        os.kill(parent, signal.SIGKILL)
+        assert drive(sup, lambda: sup.reports()['forker'].state in ('backoff', 'starting')
+                     and sup.reports()['forker'].pid != parent)
+        assert 'SIGKILL' in sup.reports()['forker'].exit_reason or \
+            sup.reports()['forker'].restarts == 1
+    assert wait_for(lambda: gone(grandchild), 5.0)
+    assert gone(parent)
+
+
+def test_crash_is_reported_and_restarted_with_backoff(make_sup):
+    sup = make_sup([py_entry('n', SLEEPER)])
+    sup.start('n', time.monotonic())
+    first = sup.pids()['n']
+    os.kill(first, signal.SIGKILL)
+    assert drive(sup, lambda: sup.reports()['n'].state == 'backoff')
+    r = sup.reports()['n']
+    assert r.exit_reason.startswith('killed by SIGKILL (Killed)') and r.pid == 0
+    assert any('crashed' in text for _, text in sup.events)
+    assert drive(sup, lambda: sup.reports()['n'].state == 'starting', timeout=5.0)
+    r = sup.reports()['n']
+    assert r.restarts == 1 and r.pid not in (0, first)
+
+
+def test_backoff_doubles_up_to_the_maximum(make_sup):
+    settings = t.AgentSettings(sigint_grace_s=0.2, sigterm_grace_s=0.2, readiness_timeout_s=5.0,
+                               restart_backoff_s=0.1, restart_backoff_max_s=0.4)
+    sup = make_sup([py_entry('n', 'raise SystemExit(3)')], settings=settings)
+    sup.start('n', time.monotonic())
+    starts = []
+
+    def step():
+        sup.step(time.monotonic())
+        r = sup.reports()['n']
+        if r.state == 'starting' and (not starts or starts[-1][1] != r.restarts):
+            starts.append((time.monotonic(), r.restarts))
+
+    assert wait_for(lambda: len(starts) >= 5, 15.0, step=step)
+    gaps = [b[0] - a[0] for a, b in zip(starts, starts[1:])]
+    # 0.1, 0.2, 0.4, 0.4 s of backoff plus the time the process takes to exit.
+    assert gaps[1] >= 0.2 and gaps[2] >= 0.4 and gaps[3] >= 0.4
+    assert sup.reports()['n'].exit_reason == 'exited with status 3' or \
+        sup.reports()['n'].state == 'starting'
+
+
+def test_unstartable_entry_fails_without_spawning(make_sup):
+    sup = make_sup([Entry(name='n', argv=(), problem='executable not found')])
+    sup.start('n', time.monotonic())
+    r = sup.reports()['n']
+    assert r.state == 'failed' and r.exit_reason == 'executable not found' and r.pid == 0
+    with pytest.raises(KeyError, match='not in the catalogue'):
+        sup.start('intruder', time.monotonic())
+
+
+def test_adoption_after_a_restart(make_sup):
+    e = py_entry('n', SLEEPER)
+    first = make_sup([e])
+    first.start('n', time.monotonic())
+    pid = first.pids()['n']
+    # The first supervisor disappears without stopping anything (the agent was killed).
+    second = make_sup([e])
+    notes = second.adopt(time.monotonic(), time.time())
+    assert notes == [f'n: adopted pid {pid}']
+    assert second.pids() == {'n': pid} and second.wanted() == ('n',)
+    assert second.reports()['n'].state == 'starting'
+    assert drive(second, lambda: second.reports()['n'].ready, visible=lambda e: True)
+    # The adopted process dies: reported (status unknown, it is not our child) and restarted.
+    os.kill(pid, signal.SIGKILL)
+    assert drive(second, lambda: second.reports()['n'].state in ('backoff', 'starting')
+                 and second.reports()['n'].pid != pid)
+    assert 'adopted' in second.reports()['n'].exit_reason or \
+        second.reports()['n'].restarts == 1
+
+
+def test_adoption_refuses_a_reused_pid(make_sup, tmp_path):
+    e = py_entry('n', SLEEPER)
+    sup = make_sup([e])
+    # A record naming a live process that is not ours: this test's own pid.
+    me = psutil.Process()
+    records = {
+        'n': {'pid': me.pid, 'started': me.create_time(), 'instance': 'x' * 32,
+              'argv': list(e.argv), 'restarts': 0},
+    }
+    with open(sup.state_path, 'w') as f:
+        json.dump({'version': 1, 'deployment': 'd', 'scale': 's', 'nodes': records}, f)
+    notes = sup.adopt(time.monotonic(), time.time())
+    assert 'token differs' in notes[0] and sup.pids() == {}
+    records['n']['started'] = me.create_time() - 100.0   # right pid, wrong start time
+    with open(sup.state_path, 'w') as f:
+        json.dump({'version': 1, 'deployment': 'd', 'scale': 's', 'nodes': records}, f)
+    assert 'gone' in sup.adopt(time.monotonic(), time.time())[0] and sup.pids() == {}
+    with open(sup.state_path, 'w') as f:
+        f.write('{not json')
+    assert 'unreadable' in sup.adopt(time.monotonic(), time.time())[0]
+
+
+def test_adopted_process_no_longer_in_the_catalogue_is_stopped(make_sup):
+    e = py_entry('old', SLEEPER)
+    first = make_sup([e])
+    first.start('old', time.monotonic())
+    pid = first.pids()['old']
+    second = make_sup([py_entry('new', SLEEPER)])
+    notes = second.adopt(time.monotonic(), time.time())
+    assert 'not in the catalogue' in notes[0]
+    assert drive(second, second.all_stopped, timeout=5.0)
+    assert gone(pid)
+    with pytest.raises(KeyError):
+        second.start('old', time.monotonic())
+
+
+# --- move orders (pure, fake clock) -------------------------------------------------------
+
+def move_deployment():
+    return load_mapping(deployment_dict({
+        'sbs': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0},
+        'sbs2': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0,
+                 'move_order': 'stop_before_start'},
+        'pinned': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'residence': ['a']},
+        'manual': {'cpu': 1.0, 'managed': False, 'residence': ['a']},
+    }))
+
+
+def layout(gen, assignments, name='unit'):
+    return protocol.Layout(generation=gen, deployment=name, assignments=assignments,
+                           reason='test', stamp=0.0)
+
+
+def agent_state(scale, gen, nodes):
+    return protocol.AgentState(scale=scale, generation=gen, stamp=0.0, nodes={
+        n: protocol.NodeReport(state=s, pid=1, since=0.0, restarts=0, ready=r, exit_reason='')
+        for n, (s, r) in nodes.items()})
+
+
+def reconciler(scale):
+    d = move_deployment()
+    return Reconciler(d, scale, ('sbs', 'sbs2', 'pinned') if scale == 'a' else ('sbs', 'sbs2'),
+                      readiness_timeout_s=10.0, agent_timeout_s=3.0)
+
+
+def test_nothing_runs_before_a_layout_and_adopted_nodes_stay():
+    r = reconciler('a')
+    assert r.desired(0.0, ()) == set()
+    assert r.desired(0.0, ('sbs',)) == {'sbs'}
+
+
+def test_bad_layouts_change_nothing():
+    r = reconciler('a')
+    assert r.apply_layout(layout(5, {'sbs': 'a', 'sbs2': 'a', 'pinned': 'a'}), 0.0).applied
+    before = dict(r.assignments)
+    v = r.apply_layout(layout(4, {'sbs': 'b'}), 1.0)
+    assert not v.applied and 'not newer' in v.warnings[0]
+    assert not r.apply_layout(layout(5, {'sbs': 'b'}), 1.0).applied
+    v = r.apply_layout(layout(9, {'sbs': 'b'}, name='other'), 1.0)
+    assert not v.applied and 'other' in v.warnings[0]
+    assert r.assignments == before and r.generation == 5
+    v = r.apply_layout(layout(6, {'ghost': 'a', 'sbs': 'mars', 'pinned': 'b', 'manual': 'a',
+                                  'sbs2': 'a'}), 2.0)
+    assert v.applied and r.generation == 6
+    text = ' '.join(v.warnings)
+    assert "'ghost': unknown node" in text and "unknown scale 'mars'" in text
+    assert "may not run on 'b'" in text and 'not a managed node' in text
+    assert r.assignments == before
+
+
+def test_start_before_stop_keeps_the_old_copy_until_the_new_one_is_ready():
+    r = reconciler('a')
+    r.apply_layout(layout(1, {'sbs': 'a', 'sbs2': 'a', 'pinned': 'a'}), 0.0)
+    assert r.desired(0.0, ()) == {'sbs', 'sbs2', 'pinned'}
+    r.apply_layout(layout(2, {'sbs': 'b', 'sbs2': 'a', 'pinned': 'a'}), 10.0)
+    assert 'sbs' in r.desired(10.0, ('sbs', 'sbs2', 'pinned'))
+    r.peer_state(agent_state('b', 2, {'sbs': ('starting', False)}), 11.0)
+    assert 'sbs' in r.desired(11.0, ('sbs', 'sbs2', 'pinned'))
+    assert 'running and ready on b' in r.waiting['sbs']
+    # A report from before the move does not count.
+    r.peer_state(agent_state('b', 1, {'sbs': ('running', True)}), 12.0)
+    assert 'sbs' in r.desired(12.0, ('sbs', 'sbs2', 'pinned'))
+    r.peer_state(agent_state('b', 2, {'sbs': ('running', True)}), 12.5)
+    assert 'sbs' not in r.desired(12.5, ('sbs', 'sbs2', 'pinned'))
+    # Let go for good: a later blink of the new copy does not bring the old one back.
+    r.peer_state(agent_state('b', 2, {'sbs': ('backoff', False)}), 12.6)
+    assert 'sbs' not in r.desired(12.7, ('sbs', 'sbs2', 'pinned'))
+    # A new layout placing it here again does.
+    r.apply_layout(layout(3, {'sbs': 'a'}), 13.0)
+    assert 'sbs' in r.desired(13.0, ('sbs', 'sbs2', 'pinned'))
+    assert r.copies_elsewhere('sbs', 12.5) == 1 and r.copies_elsewhere('sbs', 20.0) == 0
+
+
+def test_start_before_stop_gives_up_waiting_after_the_readiness_timeout():
+    r = reconciler('a')
+    r.apply_layout(layout(1, {'sbs': 'a'}), 0.0)
+    r.apply_layout(layout(2, {'sbs': 'b'}), 5.0)
+    assert r.desired(14.9, ('sbs',)) == {'sbs'}
+    assert r.desired(15.0, ('sbs',)) == set()
+
+
+def test_stop_before_start_waits_for_the_other_copy_to_stop():
+    gain = reconciler('b')
+    gain.apply_layout(layout(1, {'sbs2': 'a'}), 0.0)
+    gain.peer_state(agent_state('a', 1, {'sbs2': ('running', True)}), 0.5)
+    assert gain.desired(1.0, ()) == set()
+    gain.apply_layout(layout(2, {'sbs2': 'b'}), 1.0)
+    assert gain.desired(1.0, ()) == set()
+    assert 'waiting for a to stop it' in gain.waiting['sbs2']
+    gain.peer_state(agent_state('a', 2, {'sbs2': ('stopping', False)}), 1.5)
+    assert gain.desired(1.6, ()) == set()
+    gain.peer_state(agent_state('a', 2, {'sbs2': ('stopped', False)}), 2.0)
+    assert gain.desired(2.0, ()) == {'sbs2'}
+    # The losing side stops at once.
+    lose = reconciler('a')
+    lose.apply_layout(layout(1, {'sbs2': 'a'}), 0.0)
+    lose.apply_layout(layout(2, {'sbs2': 'b'}), 1.0)
+    assert lose.desired(1.0, ('sbs2',)) == set()
+
+
+def test_stop_before_start_waits_for_a_lagging_agent_but_not_a_silent_one():
+    gain = reconciler('b')
+    gain.peer_state(agent_state('a', 1, {'sbs2': ('stopped', False)}), 0.0)
+    gain.apply_layout(layout(2, {'sbs2': 'b'}), 0.5)
+    assert gain.desired(1.0, ()) == set()
+    assert 'apply generation 2' in gain.waiting['sbs2']
+    gain.peer_state(agent_state('a', 1, {'sbs2': ('running', True)}), 1.0)
+    assert gain.desired(3.9, ()) == set()
+    assert gain.desired(4.1, ()) == {'sbs2'}     # silent for more than agent_timeout_s
+
+
+def test_unknown_peers_are_ignored():
+    r = reconciler('a')
+    assert 'unknown scale' in r.peer_state(agent_state('mars', 1, {}), 0.0)
+    assert r.peer_state(agent_state('a', 1, {'sbs': ('running', True)}), 0.0) is None
+    assert r.copies_elsewhere('sbs', 0.0) == 0

@@ -1,0 +1,168 @@
+"""The real decider and the real agents (with their monitors) as processes over real DDS.
+
+Two scales on this machine: the layout is published, applied by the agents, reported back,
+and re-published on change (a move out, then the remote agent's end brings the node home).
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import rclpy
+import yaml
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from anyscale_manager import protocol as p
+
+LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+BIN = os.path.dirname(sys.executable)
+
+
+def write_deployment(tmp_path):
+    def workload(name):
+        # the package's workload node: a real ROS node the agent sees in the graph (readiness)
+        return {'command': [os.path.join(BIN, 'workload'), '--name', name, '--pub',
+                            f'/decider_agent_{os.getpid()}/{name}', '--rate-hz', '2.0']}
+    data = {'/**': {'ros__parameters': {
+        'deployment': {'name': f'decider_agent_{os.getpid()}'},
+        'scales': {'names': ['home', 'away'],
+                   'home': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100000.0,
+                            'cores': 2, 'clock_ghz': 1.0, 'gain': 1.0},
+                   'away': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100000.0,
+                            'cores': 4, 'clock_ghz': 2.0, 'gain': 3.0}},
+        'links': {'names': ['net'],
+                  'net': {'ends': ['home', 'away'], 'bandwidth_kbps': 100000.0,
+                          'medium': 'wired'}},
+        'nodes': {'names': ['worker', 'pinned'],
+                  'worker': {'launch': workload('worker'), 'cpu': 1.0},
+                  'pinned': {'launch': workload('pinned'), 'cpu': 1.0, 'residence': ['home']}},
+        # Both scales are this one machine: each scale monitor reports the whole machine's
+        # load (other tests included) against its capacity, so no headroom is kept.
+        'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 1.0, 'agent_timeout_s': 3.0,
+                    'observation_max_age_s': 3.0, 'hysteresis_s': 60.0},
+        'monitoring': {'heartbeat_rate_hz': 4.0, 'scale_rate_hz': 4.0,
+                       'bandwidth_probe_interval_s': 86400.0,
+                       'bandwidth_probe_port': 40000 + os.getpid() % 20000},
+        'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,
+                  'restart_backoff_s': 0.2, 'restart_backoff_max_s': 2.0,
+                  'heartbeat_rate_hz': 4.0, 'state_dir': str(tmp_path / 'state'),
+                  'log_dir': str(tmp_path / 'log')},
+    }}}
+    path = tmp_path / 'deployment.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+class Proc:
+    def __init__(self, tmp_path, name, argv, env):
+        self.out = tmp_path / f'{name}.out'
+        with open(self.out, 'wb') as f:
+            self.proc = subprocess.Popen(argv, env=env, stdout=f, stderr=subprocess.STDOUT,
+                                         stdin=subprocess.DEVNULL)
+
+    def text(self):
+        return self.out.read_text(errors='replace')
+
+    def stop(self, sig=signal.SIGINT, timeout=20.0):
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5)
+            return None
+
+
+@pytest.fixture
+def listener():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node('decider_agent_listener', context=ctx)
+    seen = {'layouts': [], 'states': {}, 'events': []}
+    node.create_subscription(String, p.TOPIC_LAYOUT,
+                             lambda m: seen['layouts'].append(p.Layout.from_json(m.data)),
+                             LATCHED)
+
+    def state(m):
+        s = p.AgentState.from_json(m.data)
+        seen['states'][s.scale] = s
+    node.create_subscription(String, p.TOPIC_AGENT_STATE, state, LATCHED)
+    node.create_subscription(String, p.TOPIC_EVENTS,
+                             lambda m: seen['events'].append(p.Event.from_json(m.data)), 100)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    yield ex, seen
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
+def wait(ex, cond, timeout, what, procs=()):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+        if cond():
+            return
+        if any(pr.proc.poll() is not None for name, pr in procs if name == 'decider'):
+            break
+    logs = '\n'.join(f'--- {name}\n{pr.text()[-3000:]}' for name, pr in procs)
+    raise AssertionError(f'timed out after {timeout} s waiting for {what}\n{logs}')
+
+
+def runs(seen, scale, node):
+    s = seen['states'].get(scale)
+    r = s.nodes.get(node) if s else None
+    return r is not None and r.state == 'running'
+
+
+def test_layout_applied_reported_back_and_republished(tmp_path, ros_env, listener):
+    ex, seen = listener
+    deployment = write_deployment(tmp_path)
+    procs = []
+    try:
+        for scale in ('home', 'away'):
+            procs.append((f'agent_{scale}', Proc(
+                tmp_path, f'agent_{scale}', [os.path.join(BIN, 'agent'), '--ros-args',
+                                             '--params-file', deployment,
+                                             '-p', f'scale:={scale}'], ros_env)))
+        procs.append(('decider', Proc(
+            tmp_path, 'decider', [os.path.join(BIN, 'decider'), '--ros-args',
+                                  '--params-file', deployment], ros_env)))
+        agents = dict(procs[:2])
+        decider = procs[2][1]
+
+        wait(ex, lambda: seen['layouts'], 40.0, 'the first layout', procs)
+        first = seen['layouts'][0]         # latched: the newest one when we matched
+        assert first.assignments['pinned'] == 'home' and set(first.assignments) == {
+            'worker', 'pinned'}
+        # The decider moves the worker out once the link is observed, and the agents apply it:
+        # the away agent reports it running, the home agent no longer does.
+        wait(ex, lambda: runs(seen, 'away', 'worker') and not runs(seen, 'home', 'worker'),
+             60.0, 'worker running on away', procs)
+        moved = [lay for lay in seen['layouts'] if lay.assignments['worker'] == 'away']
+        assert moved and moved[0].generation >= first.generation
+        assert runs(seen, 'home', 'pinned')
+        wait(ex, lambda: seen['states']['away'].generation >= moved[0].generation, 10.0,
+             'the away agent reporting the new generation', procs)
+
+        # The away agent ends (and stops what it runs): the worker comes home, re-published.
+        agents['agent_away'].stop(signal.SIGINT)
+        wait(ex, lambda: seen['layouts'][-1].assignments['worker'] == 'home', 30.0,
+             'the worker placed home again', procs)
+        assert seen['layouts'][-1].generation > moved[-1].generation
+        wait(ex, lambda: runs(seen, 'home', 'worker'), 30.0, 'worker running home', procs)
+        backs = [e for e in seen['events'] if e.node == 'worker'
+                 and e.kind in ('migrate_back', 'relocate')]
+        assert backs and all(e.reason for e in backs)
+        assert decider.proc.poll() is None
+    finally:
+        codes = {name: pr.stop() for name, pr in reversed(procs)}
+    assert codes['decider'] == 0, procs[2][1].text()[-3000:]

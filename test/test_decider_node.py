@@ -1,0 +1,362 @@
+"""The real decider process over real DDS, driven by a real rclpy test node.
+
+The test node plays the agents and monitors (it publishes AgentState, LinkStatus, ScaleStatus
+and ConnectionStatus as they would) and reads what the decider publishes.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from anyscale_manager import protocol as p
+from anyscale_manager.model.loader import load_deployment
+
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+AGENT_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+FAST = ['-p', 'decider.period_s:=0.2', '-p', 'decider.agent_timeout_s:=3.0',
+        '-p', 'decider.grace_s:=1.0', '-p', 'decider.observation_max_age_s:=1.5']
+
+
+def start_decider(params_file, ros_env, *extra):
+    cmd = [sys.executable, '-m', 'anyscale_manager.nodes.decider', '--ros-args',
+           '--params-file', params_file, *FAST, *extra]
+    return subprocess.Popen(cmd, env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+
+
+def stop(proc, timeout=10.0):
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(5)
+    out = proc.stdout.read() if proc.stdout else ''
+    return proc.returncode, out
+
+
+class FakeWorld(Node):
+    """Agents and monitors as the decider hears them; records what the decider says."""
+
+    def __init__(self, context, deployment):
+        super().__init__('decider_test_world', context=context)
+        self.d = deployment
+        self.layouts, self.events, self.objectives, self.plans, self.diags = [], [], [], [], []
+        self.agent_pub = self.create_publisher(String, p.TOPIC_AGENT_STATE, AGENT_QOS)
+        self.pubs = {t: self.create_publisher(String, t, 10)
+                     for t in (p.TOPIC_LINK_STATUS, p.TOPIC_SCALE_STATUS,
+                               p.TOPIC_CONNECTION_STATUS)}
+        self.create_subscription(String, p.TOPIC_LAYOUT, self._layout, LATCHED)
+        self.create_subscription(String, p.TOPIC_EVENTS, self._event, 100)
+        self.create_subscription(String, p.TOPIC_OBJECTIVE,
+                                 lambda m: self.objectives.append(json.loads(m.data)), 10)
+        self.create_subscription(String, p.TOPIC_PLAN_CHECK,
+                                 lambda m: self.plans.append(json.loads(m.data)), 10)
+        self.create_subscription(DiagnosticArray, p.TOPIC_DIAGNOSTICS, self.diags.append, 10)
+        self.running = {}              # node -> scale, what the fake agents report
+        self.generation = {s: 0 for s in deployment.scale_names}
+        self.link_up = True
+        self.apply_layouts = True
+        self.silent = set()            # scales whose agent says nothing
+        self.extra_readings = {}       # connection -> rate_hz, for unmonitored connections
+
+    def _layout(self, msg):
+        layout = p.Layout.from_json(msg.data)
+        self.layouts.append(layout)
+        if self.apply_layouts:
+            self.running = dict(layout.assignments)
+            for s in self.generation:
+                self.generation[s] = layout.generation
+
+    def _event(self, msg):
+        self.events.append(p.Event.from_json(msg.data))
+
+    def report(self):
+        """One round of agent states and monitor readings."""
+        for scale in self.d.scale_names:
+            if scale in self.silent:
+                continue
+            nodes = {n: p.NodeReport(state='running', pid=100, since=0.0, restarts=0,
+                                     ready=True, exit_reason='')
+                     for n, s in self.running.items() if s == scale}
+            self.agent_pub.publish(String(data=p.AgentState(
+                scale=scale, generation=self.generation[scale], stamp=time.time(),
+                nodes=nodes).to_json()))
+            self.pubs[p.TOPIC_SCALE_STATUS].publish(String(data=p.ScaleStatus(
+                scale=scale, stamp=time.time(), cpu_total=40.0, capacity_cpu=100.0,
+                cpu_by_node={}, mem_percent=10.0, load_1m=0.1).to_json()))
+        master = self.d.master.name
+        for remote in self.d.remote_scales:
+            if self.d.link_between(master, remote.name) is None:
+                continue
+            self.pubs[p.TOPIC_LINK_STATUS].publish(String(data=p.LinkStatus(
+                master=master, remote=remote.name, stamp=time.time(), up=self.link_up,
+                rtt_ms=2.0, loss=0.0, bandwidth_available_kbps=None,
+                bandwidth_available_age_s=None, bandwidth_used_kbps=0.0).to_json()))
+        readings = {c.name: p.ConnectionReading(rate_hz=c.freq_opt_hz, bytes_per_s=100.0,
+                                                below_for_s=0.0, level=0)
+                    for c in self.d.connections if c.monitored}
+        for name, rate in self.extra_readings.items():
+            readings[name] = p.ConnectionReading(rate_hz=rate, bytes_per_s=10.0,
+                                                 below_for_s=0.0, level=0)
+        self.pubs[p.TOPIC_CONNECTION_STATUS].publish(String(data=p.ConnectionStatus(
+            scale=master, stamp=time.time(), connections=readings).to_json()))
+
+
+@pytest.fixture
+def world(request, testbed_path):
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    path = getattr(request, 'param', testbed_path)
+    node = FakeWorld(ctx, load_deployment(path))
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    yield node, ex
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
+def spin_until(ex, node, cond, timeout, report_every=0.2, proc=None):
+    deadline = time.monotonic() + timeout
+    next_report = 0.0
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise AssertionError(f'decider exited with {proc.returncode}')
+        if time.monotonic() >= next_report:
+            node.report()
+            next_report = time.monotonic() + report_every
+        ex.spin_once(timeout_sec=0.05)
+        if cond():
+            return True
+    return False
+
+
+def set_param(ex, node, name, value, type_, field, timeout=10.0):
+    client = node.create_client(SetParameters, '/anyscale_decider/set_parameters')
+    assert spin_until(ex, node, client.service_is_ready, timeout)
+    val = ParameterValue(type=type_)
+    setattr(val, field, value)
+    future = client.call_async(SetParameters.Request(
+        parameters=[ParameterMsg(name=name, value=val)]))
+    assert spin_until(ex, node, future.done, timeout)
+    node.destroy_client(client)
+    return future.result().results[0]
+
+
+def test_layout_latched_adopted_republished_and_robust(world, testbed_path, ros_env):
+    node, ex = world
+    # What already runs: everything on the robot except AMCL, adopted on the laptop; the
+    # agents report generation 7 from an earlier decider.
+    node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
+    node.running['amcl'] = 'laptop'
+    node.generation = {'robot': 7, 'laptop': 7}
+    proc = start_decider(testbed_path, ros_env)
+    try:
+        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc), 'no layout'
+        first = node.layouts[0]
+        assert first.generation > 7
+        assert first.assignments['amcl'] == 'laptop'           # adopted, not restarted
+        assert all(first.assignments[n] == 'robot' for n in first.assignments if n != 'amcl')
+        assert 'decision' not in first.assignments              # not managed by an agent
+
+        # With the link up and measured, AR moves out next: a new generation.
+        assert spin_until(ex, node, lambda: node.layouts[-1].assignments.get('ar') == 'laptop',
+                          20.0, proc=proc), [e.reason for e in node.events]
+        moved = node.layouts[-1]
+        assert moved.generation > first.generation
+        assert spin_until(ex, node, lambda: any(e.kind == 'migrate' and e.node == 'ar'
+                                                and 'wifi' in e.reason for e in node.events),
+                          5.0, proc=proc)
+
+        # A late joiner gets the latest layout (latched).
+        late = []
+        sub = node.create_subscription(String, p.TOPIC_LAYOUT,
+                                       lambda m: late.append(p.Layout.from_json(m.data)),
+                                       LATCHED)
+        assert spin_until(ex, node, lambda: late, 10.0, proc=proc)
+        assert late[-1].generation == node.layouts[-1].generation
+        node.destroy_subscription(sub)
+
+        # Hostile and malformed messages on every topic it reads: logged, ignored.
+        garbage = ['', 'not json', '[]', '{"scale": 5}', 'NaN', '{' * 5000, 'x' * 300000,
+                   json.dumps({'scale': 'moon', 'generation': 1, 'stamp': 0.0, 'nodes': {}}),
+                   json.dumps({'scale': 'robot', 'generation': -1, 'stamp': 1e308,
+                               'nodes': {'amcl': {'state': 'rm -rf', 'pid': 1}}}),
+                   json.dumps({'master': 'laptop', 'remote': 'robot', 'stamp': 0.0,
+                               'up': False, 'rtt_ms': None, 'loss': 0.0,
+                               'bandwidth_available_kbps': -5.0,
+                               'bandwidth_available_age_s': None,
+                               'bandwidth_used_kbps': 0.0})]
+        for text in garbage:
+            node.agent_pub.publish(String(data=text))
+            for pub in node.pubs.values():
+                pub.publish(String(data=text))
+        count = len(node.objectives)
+        assert spin_until(ex, node, lambda: len(node.objectives) > count + 5, 10.0, proc=proc)
+        ignored = [kv.value for a in node.diags[-3:] for s in a.status for kv in s.values
+                   if kv.key == 'messages ignored']
+        assert ignored and int(ignored[-1]) > 0
+        assert node.diags[-1].status[0].level in (bytes([p.OK]), bytes([p.WARN]))
+
+        # Thresholds change at run time, validated.
+        bad = set_param(ex, node, 'decider.hysteresis_s', -1.0, ParameterType.PARAMETER_DOUBLE,
+                        'double_value')
+        assert not bad.successful and 'hysteresis_s' in bad.reason
+        fixed = set_param(ex, node, 'scales.laptop.gain', 9.0, ParameterType.PARAMETER_DOUBLE,
+                          'double_value')
+        assert not fixed.successful
+        good = set_param(ex, node, 'decider.hysteresis_s', 60.0,
+                         ParameterType.PARAMETER_DOUBLE, 'double_value')
+        assert good.successful, good.reason
+
+        # The link goes down: both come back, in a new generation, each with its reason.
+        before = node.layouts[-1].generation
+        node.link_up = False
+        assert spin_until(ex, node, lambda: node.layouts[-1].assignments.get('amcl') == 'robot'
+                          and node.layouts[-1].assignments.get('ar') == 'robot', 10.0,
+                          proc=proc)
+        assert node.layouts[-1].generation > before
+        backs = [e for e in node.events if e.kind == 'migrate_back']
+        assert spin_until(ex, node, lambda: {e.node for e in node.events
+                                             if e.kind == 'migrate_back'} == {'amcl', 'ar'},
+                          5.0, proc=proc)
+        backs = [e for e in node.events if e.kind == 'migrate_back']
+        assert all('wifi' in e.reason for e in backs)
+        assert node.objectives[-1]['integral'] > 0
+        assert node.plans and 'overall_deviation' in node.plans[-1]
+    finally:
+        code, out = stop(proc)
+    assert code == 0, out
+
+
+def test_agent_reporting_a_newer_generation_is_overtaken(world, testbed_path, ros_env):
+    node, ex = world
+    node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
+    proc = start_decider(testbed_path, ros_env, '-p', 'decider.migration:=false')
+    try:
+        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
+        g = node.layouts[-1].generation
+        node.apply_layouts = False
+        node.generation['laptop'] = g + 10
+        assert spin_until(ex, node, lambda: node.layouts[-1].generation > g + 10, 10.0,
+                          proc=proc)
+        assert not [e for e in node.events if e.kind == 'migrate']    # baseline: no moves
+    finally:
+        code, out = stop(proc)
+    assert code == 0, out
+
+
+def test_silent_agent_loses_its_scale(world, testbed_path, ros_env):
+    node, ex = world
+    node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
+    node.running['ar'] = 'laptop'
+    proc = start_decider(testbed_path, ros_env)
+    try:
+        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
+        assert node.layouts[0].assignments['ar'] == 'laptop'
+        node.silent.add('laptop')          # the laptop's agent goes silent
+        assert spin_until(ex, node, lambda: node.layouts[-1].assignments['ar'] == 'robot',
+                          15.0, proc=proc)
+        assert spin_until(ex, node, lambda: any(e.kind == 'relocate' and e.node == 'ar'
+                                                for e in node.events), 5.0, proc=proc)
+    finally:
+        code, out = stop(proc)
+    assert code == 0, out
+
+
+IROS_1 = os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', 'config', 'iros2016',
+                      'instance_1.yaml')
+
+
+@pytest.mark.parametrize('world', [IROS_1], indirect=True)
+def test_first_layout_from_the_problem_1_planner(world, ros_env):
+    node, ex = world
+    from anyscale_manager.planning import solve
+    plan = solve(node.d, problem=1)
+    proc = start_decider(IROS_1, ros_env, '-p', 'decider.initial_layout:=problem1')
+    try:
+        assert spin_until(ex, node, lambda: node.layouts, 60.0, proc=proc)
+        first = node.layouts[0]
+        assert first.assignments == {n: pl.scale for n, pl in plan.layout.items()
+                                     if node.d.node(n).managed}
+        assert 'problem1' in first.reason
+        # Plan against reality (Eq. 10): the tracker planned at 25 Hz is measured at 20 Hz.
+        assert plan.layout['tracker_1'].parameter_value == 25.0
+        node.extra_readings['tracker_1__environment_1'] = 20.0
+        assert spin_until(ex, node, lambda: node.plans and 'tracker_1' in node.plans[-1]['nodes'],
+                          10.0, proc=proc)
+        tracker = node.plans[-1]['nodes']['tracker_1']
+        assert tracker['measured_hz'] == 20.0 and tracker['expected_hz'] == 25.0
+        assert tracker['deviation'] == pytest.approx(-0.2)
+        assert tracker['measured_performance'] == pytest.approx(
+            plan.layout['tracker_1'].performance * 0.8)
+    finally:
+        code, out = stop(proc)
+    assert code == 0, out
+
+
+def test_bad_parameters_file_fails_clearly(tmp_path, testbed_path, ros_env):
+    text = open(testbed_path).read().replace('capacity_cpu: 700.0', 'capacity_cpu: lots')
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text(text)
+    proc = start_decider(str(bad), ros_env)
+    try:
+        proc.wait(30)
+    finally:
+        code, out = stop(proc)
+    assert code == 2
+    assert 'scales.laptop.capacity_cpu' in out
+
+
+def test_status_once_shows_the_live_table(world, testbed_path, ros_env):
+    node, ex = world
+    node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
+    proc = start_decider(testbed_path, ros_env)
+    status = None
+    try:
+        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
+        status = subprocess.Popen(
+            [sys.executable, '-m', 'anyscale_manager.cli', 'status', '--params-file',
+             testbed_path, '--once', '--wait', '8'], env=ros_env, stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE, text=True, start_new_session=True)
+        assert spin_until(ex, node, lambda: status.poll() is not None, 30.0, proc=proc)
+        out, err = status.communicate()
+    finally:
+        if status is not None and status.poll() is None:
+            os.killpg(status.pid, signal.SIGKILL)
+            status.wait(5)
+        code, log = stop(proc)
+    print(out)
+    assert status.returncode == 0, err
+    assert f'layout generation {node.layouts[-1].generation}' in out
+    assert 'laser_amcl' in out and 'wifi' in out and 'up' in out
+    assert 'generation' in out and 'amcl' in out
+    assert code == 0, log
+
+
+def test_status_bad_file_fails_clearly(tmp_path, ros_env):
+    bad = tmp_path / 'nope.yaml'
+    bad.write_text('/**:\n  ros__parameters: {scales: 5}\n')
+    res = subprocess.run([sys.executable, '-m', 'anyscale_manager.cli', 'status',
+                          '--params-file', str(bad), '--once'], env=ros_env,
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and 'scales' in res.stderr

@@ -1,0 +1,380 @@
+"""The monitors' rclpy glue with real nodes, real publishers and real DDS (loopback only)."""
+
+import dataclasses
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from std_msgs.msg import String, UInt8MultiArray
+
+from anyscale_manager import protocol as p
+from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.nodes.monitors import (LATCHED_QOS, STATUS_QOS, LinkMonitor,
+                                             ProbeManager, ProbeServer, ScaleMonitor,
+                                             import_message_class, probe_throughput)
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def deployment(testbed_path):
+    """The ICAR test-bed on loopback, with monitors fast enough for a short test."""
+    d = load_deployment(testbed_path)
+    scales = tuple(dataclasses.replace(s, host='127.0.0.1') for s in d.scales)
+    monitoring = dataclasses.replace(
+        d.monitoring, scale_rate_hz=5.0, heartbeat_rate_hz=10.0, heartbeat_misses_down=3,
+        probe_window_s=1.0, probe_publish_rate_hz=10.0, bandwidth_probe_interval_s=0.5,
+        bandwidth_probe_duration_s=0.2, bandwidth_probe_port=free_port())
+    return dataclasses.replace(d, scales=scales, monitoring=monitoring)
+
+
+@pytest.fixture
+def ros(ros_env):
+    """A fresh context, an executor and a node factory; everything destroyed afterwards."""
+    ctx = rclpy.context.Context()
+    rclpy.init(context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    nodes = []
+
+    def make(name):
+        node = rclpy.create_node(name, context=ctx)
+        executor.add_node(node)
+        nodes.append(node)
+        return node
+
+    yield make, executor
+    for node in nodes:
+        executor.remove_node(node)
+        node.destroy_node()
+    executor.shutdown()
+    rclpy.try_shutdown(context=ctx)
+
+
+def spin_until(executor, condition, timeout_s, what):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+        value = condition()
+        if value:
+            return value
+    pytest.fail(f'timed out after {timeout_s} s waiting for {what}')
+
+
+class Listener:
+    """Keeps the last decoded project message and every diagnostic status, by name."""
+
+    def __init__(self, node, topic, cls, qos=STATUS_QOS):
+        self.cls = cls
+        self.messages = []
+        self.statuses = {}
+        node.create_subscription(String, topic, self._on, qos)
+        node.create_subscription(DiagnosticArray, p.TOPIC_DIAGNOSTICS, self._on_diag, 50)
+
+    def _on(self, msg):
+        self.messages.append(self.cls.from_json(msg.data))
+
+    def _on_diag(self, msg):
+        for s in msg.status:
+            self.statuses.setdefault(s.name, []).append(s)
+
+    def last_status(self, name):
+        found = self.statuses.get(name)
+        return found[-1] if found else None
+
+
+class Publisher:
+    def __init__(self, node, topic, rate_hz, nbytes):
+        self.node = node
+        self.pub = node.create_publisher(UInt8MultiArray, topic, 10)
+        self.msg = UInt8MultiArray(data=bytes(nbytes))
+        self.timer = node.create_timer(1.0 / rate_hz, lambda: self.pub.publish(self.msg))
+
+    def stop(self):
+        self.node.destroy_timer(self.timer)
+
+
+def reading(listener, name):
+    for message in reversed(listener.messages):
+        if name in message.connections:
+            return message.connections[name]
+    return None
+
+
+# --- probes ------------------------------------------------------------------------------------
+
+def test_probe_reads_a_real_publisher_then_judges_its_stop(ros, deployment):
+    make, executor = ros
+    agent = make('agent_probe')
+    listener = Listener(make('listener'), p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus)
+    probes = ProbeManager(agent, deployment, 'laptop')
+    probes.set_connections(['laser_amcl'])
+    laser = Publisher(make('laser'), '/scan', rate_hz=20.0, nbytes=2500)
+
+    def steady():
+        r = reading(listener, 'laser_amcl')
+        return r if r is not None and abs(r.rate_hz - 20.0) < 2.0 else None
+
+    r = spin_until(executor, steady, 15.0, 'a 20 Hz reading of laser_amcl')
+    assert r.level == p.OK and r.below_for_s == 0.0
+    # Raw bytes: the 2500-byte payload plus a few bytes of CDR header and sequence lengths.
+    assert 2500 <= r.bytes_per_s / r.rate_hz <= 2600
+    diag = spin_until(executor, lambda: listener.last_status('anyscale/connection/laser_amcl'),
+                      5.0, 'the probe on /diagnostics')
+    assert diag.hardware_id == '127.0.0.1'
+    assert {kv.key for kv in diag.values} >= {'rate_hz', 'bytes_per_s', 'below_for_s', 'topic'}
+
+    laser.stop()
+    warn = spin_until(executor, lambda: (reading(listener, 'laser_amcl').level == p.WARN
+                                         and reading(listener, 'laser_amcl')),
+                      5.0, 'WARN after the publisher stopped')
+    assert warn.rate_hz < 5.0
+    stopped_at = time.monotonic()
+    error = spin_until(executor, lambda: (reading(listener, 'laser_amcl').level == p.ERROR
+                                          and reading(listener, 'laser_amcl')),
+                       6.0, 'ERROR once below freq_min for longer than Δ = 2 s')
+    assert time.monotonic() - stopped_at >= 1.5
+    assert error.below_for_s >= 2.0
+    zero = spin_until(executor, lambda: reading(listener, 'laser_amcl').rate_hz == 0.0
+                      and reading(listener, 'laser_amcl'), 3.0, 'a stopped topic to read 0')
+    assert zero.bytes_per_s == 0.0
+    status = spin_until(
+        executor, lambda: (listener.last_status('anyscale/connection/laser_amcl').level
+                           == bytes([p.ERROR])
+                           and listener.last_status('anyscale/connection/laser_amcl')),
+        3.0, 'ERROR on /diagnostics')
+    assert 'below freq_min' in status.message
+    probes.destroy()
+
+
+def test_probe_learns_the_type_from_the_graph_and_moves(ros, deployment):
+    make, executor = ros
+    conns = tuple(dataclasses.replace(c, msg_type='') if c.name == 'camera_ar' else c
+                  for c in deployment.connections)
+    deployment = dataclasses.replace(deployment, connections=conns)
+    agent = make('agent_graph')
+    listener = Listener(make('listener'), p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus)
+    probes = ProbeManager(agent, deployment, 'laptop')
+    probes.set_connections(['camera_ar'])
+    # No publisher yet: the probe says what it waits for and reads nothing.
+    waiting = spin_until(
+        executor, lambda: listener.last_status('anyscale/connection/camera_ar'), 5.0,
+        'a diagnostic of the waiting probe')
+    assert 'waiting for a publisher' in waiting.message
+    Publisher(make('camera'), '/image', rate_hz=30.0, nbytes=1000)
+    spin_until(executor, lambda: (reading(listener, 'camera_ar') is not None
+                                  and abs(reading(listener, 'camera_ar').rate_hz - 30.0) < 3.0),
+               15.0, 'camera_ar at 30 Hz once the type is learnt')
+    # The layout changes: the probe is removed; a bad name changes nothing.
+    with pytest.raises(ValueError, match='no connection .nope.'):
+        probes.set_connections(['camera_ar', 'nope'])
+    assert probes.connections == ('camera_ar',)
+    probes.set_connections(['ar_navigation'])
+    assert probes.connections == ('ar_navigation',)
+    listener.messages.clear()
+    last = spin_until(executor, lambda: listener.messages and listener.messages[-1], 3.0,
+                      'a status after the move')
+    assert set(last.connections) == {'ar_navigation'}
+    probes.destroy()
+
+
+def test_unusable_message_type_is_stale_not_zero(ros, deployment):
+    make, executor = ros
+    conns = tuple(dataclasses.replace(c, msg_type='no_such_pkg/msg/Nothing')
+                  if c.name == 'amcl_ekf' else c for c in deployment.connections)
+    deployment = dataclasses.replace(deployment, connections=conns)
+    listener = Listener(make('listener'), p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus)
+    probes = ProbeManager(make('agent_bad'), deployment, 'robot')
+    probes.set_connections(['amcl_ekf', 'odometry_ekf'])
+    s = spin_until(executor, lambda: listener.last_status('anyscale/connection/amcl_ekf'), 5.0,
+                   'the stale probe')
+    assert s.level == bytes([p.STALE]) and 'no_such_pkg' in s.message
+    msg = spin_until(executor, lambda: listener.messages and listener.messages[-1], 3.0,
+                     'a connection status')
+    assert set(msg.connections) == {'odometry_ekf'}
+    probes.destroy()
+
+
+@pytest.mark.parametrize('name', ['', 'std_msgs', 'std_msgs/msg/', '../x/msg/Y',
+                                  'std_msgs/msg/NoSuchType', 'os/msg/path'])
+def test_import_message_class_refuses_bad_names(name):
+    with pytest.raises(ValueError, match='message type'):
+        import_message_class(name)
+
+
+def test_import_message_class():
+    assert import_message_class('std_msgs/msg/String') is String
+    assert import_message_class('std_msgs/UInt8MultiArray') is UInt8MultiArray
+
+
+# --- scale monitor -----------------------------------------------------------------------------
+
+BUSY_PARENT = ('import subprocess, sys, time\n'
+               'child = subprocess.Popen([sys.executable, "-c", "while True: pass"])\n'
+               'print(child.pid, flush=True)\n'
+               'time.sleep(60)\n')
+
+
+def test_scale_monitor_publishes_sane_values_with_children(ros, deployment, python):
+    make, executor = ros
+    parent = subprocess.Popen([python, '-c', BUSY_PARENT], stdout=subprocess.PIPE, text=True)
+    idle = subprocess.Popen([python, '-c', 'import time; time.sleep(60)'])
+    try:
+        child = int(parent.stdout.readline())
+        listener = Listener(make('listener'), p.TOPIC_SCALE_STATUS, p.ScaleStatus)
+        monitor = ScaleMonitor(make('agent_scale'), deployment, 'robot',
+                               lambda: {'busy': parent.pid, 'idle': idle.pid,
+                                        'gone': 999999999})
+        robot = deployment.scale('robot')
+        # Two readings so the busy loop has run over a whole period.
+        spin_until(executor, lambda: len(listener.messages) >= 3, 10.0, 'scale status')
+        s = listener.messages[-1]
+        assert s.scale == 'robot' and s.capacity_cpu == robot.capacity_cpu
+        assert 0.0 < s.cpu_total <= robot.capacity_cpu
+        assert 0.0 < s.mem_percent <= 100.0 and s.load_1m >= 0.0
+        assert 'gone' not in s.cpu_by_node
+        assert 0.0 <= s.cpu_by_node['idle'] < 5.0
+        # The parent sleeps; its child spins. The node's CPU includes the child's: on a busy
+        # shared machine it gets at least a fifth of a core (one core = capacity / cores).
+        one_core = robot.capacity_cpu / psutil_cpus()
+        assert s.cpu_by_node['busy'] >= 0.2 * one_core
+        assert s.cpu_by_node['busy'] <= 1.1 * one_core
+        assert s.cpu_by_node['busy'] <= s.cpu_total + 0.2 * one_core
+        assert child > 0
+        diag = spin_until(executor, lambda: listener.last_status('anyscale/scale/robot'), 3.0,
+                          'the scale diagnostic')
+        assert diag.hardware_id == '127.0.0.1'
+        monitor.destroy()
+    finally:
+        for proc in psutil_tree(parent.pid):
+            proc.kill()
+        parent.wait(timeout=5)
+        idle.kill()
+        idle.wait(timeout=5)
+
+
+def psutil_cpus():
+    import psutil
+    return psutil.cpu_count()
+
+
+def psutil_tree(pid):
+    import psutil
+    try:
+        leader = psutil.Process(pid)
+        return leader.children(recursive=True) + [leader]
+    except psutil.Error:
+        return []
+
+
+def test_scale_monitor_survives_a_failing_pids_callback(ros, deployment):
+    make, executor = ros
+    listener = Listener(make('listener'), p.TOPIC_SCALE_STATUS, p.ScaleStatus)
+
+    def broken():
+        raise RuntimeError('agent bug')
+
+    monitor = ScaleMonitor(make('agent_broken'), deployment, 'laptop', broken)
+    spin_until(executor, lambda: len(listener.messages) >= 2, 10.0, 'scale status')
+    assert listener.messages[-1].cpu_by_node == {}
+    monitor.destroy()
+    with pytest.raises(ValueError, match='no scale'):
+        ScaleMonitor(make('agent_unknown'), deployment, 'mars', dict)
+
+
+# --- link monitor ------------------------------------------------------------------------------
+
+def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment):
+    make, executor = ros
+    listener = Listener(make('listener'), p.TOPIC_LINK_STATUS, p.LinkStatus)
+    master = LinkMonitor(make('agent_robot'), deployment, 'robot')
+    remote = LinkMonitor(make('agent_laptop'), deployment, 'laptop')
+    feeder = make('feeder')
+    # Where nodes run and what the probes measured: laser (robot) -> amcl (laptop) crosses.
+    state_pub = feeder.create_publisher(String, p.TOPIC_AGENT_STATE, LATCHED_QOS)
+    conn_pub = feeder.create_publisher(String, p.TOPIC_CONNECTION_STATUS, STATUS_QOS)
+    echo_pub = feeder.create_publisher(String, p.TOPIC_HEARTBEAT_ECHO, 10)
+    running = p.NodeReport(state='running', pid=1, since=0.0, restarts=0, ready=True,
+                           exit_reason='')
+    for scale, nodes in (('robot', ['laser', 'navigation']), ('laptop', ['amcl'])):
+        state = p.AgentState(scale=scale, generation=1, stamp=0.0,
+                             nodes={n: running for n in nodes})
+        state_pub.publish(String(data=state.to_json()))
+    readings = p.ConnectionStatus(scale='laptop', stamp=0.0, connections={
+        'laser_amcl': p.ConnectionReading(rate_hz=10.0, bytes_per_s=25000.0, below_for_s=0.0,
+                                          level=p.OK),
+        'laser_navigation': p.ConnectionReading(rate_hz=10.0, bytes_per_s=25000.0,
+                                                below_for_s=0.0, level=p.OK)})
+    feeder.create_timer(0.2, lambda: conn_pub.publish(String(data=readings.to_json())))
+    # A hostile echo is ignored without harm.
+    feeder.create_timer(0.3, lambda: echo_pub.publish(String(data='{"scale": 1}')))
+
+    def measured():
+        m = listener.messages[-1] if listener.messages else None
+        ok = m is not None and m.up and m.bandwidth_available_kbps is not None \
+            and m.bandwidth_used_kbps > 0
+        return m if ok else None
+
+    status = spin_until(executor, measured, 20.0, 'an up link with both bandwidths')
+    assert status.master == 'robot' and status.remote == 'laptop'
+    assert status.rtt_ms is not None and 0.0 < status.rtt_ms < 200.0
+    assert status.loss <= 0.2
+    # Only laser_amcl crosses (navigation runs on the robot): 25000 B/s = 200 kbit/s.
+    assert status.bandwidth_used_kbps == pytest.approx(200.0)
+    assert status.bandwidth_available_kbps > 10000.0            # loopback is fast
+    assert 0.0 <= status.bandwidth_available_age_s < 5.0
+    diag = listener.last_status('anyscale/link/wifi')
+    assert diag is not None and diag.hardware_id == '127.0.0.1'
+
+    remote.destroy()                                            # the remote stops answering
+    cut = time.monotonic()
+    spin_until(executor, lambda: listener.messages and not listener.messages[-1].up, 5.0,
+               'the link reported down')
+    period = 1.0 / deployment.monitoring.heartbeat_rate_hz
+    # Down within misses_down periods of the last echo (plus scheduling slack on a busy box).
+    assert time.monotonic() - cut <= deployment.monitoring.heartbeat_misses_down * period + 1.0
+    spin_until(executor, lambda: (listener.last_status('anyscale/link/wifi').level
+                                  == bytes([p.ERROR])), 3.0, 'ERROR on /diagnostics')
+    master.destroy()
+
+
+def test_probe_server_measures_and_refuses_strangers():
+    port = free_port()
+    server = ProbeServer('127.0.0.1', port)
+    try:
+        bps = probe_throughput('127.0.0.1', port, 0.2)
+        assert bps > 1e6
+        with socket.create_connection(('127.0.0.1', port), timeout=3.0) as s:
+            s.sendall(b'GET / HTTP/1.0\r\n\r\n')
+            s.settimeout(3.0)
+            try:
+                assert s.recv(100) == b''                  # dropped without an answer
+            except ConnectionResetError:
+                pass
+        assert probe_throughput('127.0.0.1', port, 0.1) > 0  # and still serving
+    finally:
+        server.close()
+    with pytest.raises(OSError):
+        probe_throughput('127.0.0.1', port, 0.1, timeout_s=1.0)
+
+
+def test_link_monitor_refuses_unknown_scale(ros, deployment):
+    make, _ = ros
+    with pytest.raises(ValueError, match='no scale'):
+        LinkMonitor(make('x'), deployment, 'mars')
+    with pytest.raises(ValueError, match='no scale'):
+        ProbeManager(make('y'), deployment, 'mars')
+
+
+if __name__ == '__main__':
+    sys.exit(pytest.main([__file__, '-v']))

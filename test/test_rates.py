@@ -1,0 +1,381 @@
+"""The monitors' pure statistics, driven by a hand-written clock."""
+
+import math
+import random
+
+import pytest
+
+from anyscale_manager.protocol import ERROR, OK, WARN
+from anyscale_manager.runtime import cpu
+from anyscale_manager.runtime.rates import (BandwidthEstimate, HeartbeatTracker, RateWindow,
+                                            ToleranceTracker, crossing_connections,
+                                            steady_throughput_bps, used_kbps)
+
+
+def feed(window, rate_hz, start, stop, nbytes=100, jitter_s=0.0, seed=1):
+    """Periodic arrivals at rate_hz in [start, stop); returns the last arrival time."""
+    rng = random.Random(seed)
+    period = 1.0 / rate_hz
+    k, t = 0, start
+    last = None
+    while t < stop:
+        last = t + (rng.uniform(-jitter_s, jitter_s) if jitter_s else 0.0)
+        window.add(last, nbytes)
+        k += 1
+        t = start + k * period
+    return last
+
+
+# --- RateWindow --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('rate_hz', [0.5, 1.0, 10.0, 100.0, 1000.0])
+@pytest.mark.parametrize('window_s', [1.0, 2.0, 5.0])
+def test_steady_rate_is_exact(rate_hz, window_s):
+    w = RateWindow(window_s)
+    last = feed(w, rate_hz, 0.0, 20.0, nbytes=250)
+    # Read between arrivals, right after one and just before the next.
+    for now in (last, last + 0.5 / rate_hz, last + 0.99 / rate_hz):
+        assert w.rate_hz(now) == pytest.approx(rate_hz, rel=1e-9)
+        assert w.bytes_per_s(now) == pytest.approx(250 * rate_hz, rel=1e-9)
+
+
+@pytest.mark.parametrize('rate_hz', [1.0, 10.0, 100.0, 1000.0])
+def test_jittered_rate_within_one_percent(rate_hz):
+    w = RateWindow(2.0)
+    # Timer jitter of 2 ms (at most a tenth of the period) on every message.
+    last = feed(w, rate_hz, 0.0, 10.0, jitter_s=min(0.1 / rate_hz, 0.002))
+    assert w.rate_hz(last + 0.2 / rate_hz) == pytest.approx(rate_hz, rel=0.01)
+
+
+@pytest.mark.parametrize('rate_hz', [1.0, 10.0, 100.0, 1000.0])
+@pytest.mark.parametrize('window_s', [1.0, 2.0])
+def test_stopped_topic_reads_zero_within_one_window(rate_hz, window_s):
+    w = RateWindow(window_s)
+    last = feed(w, rate_hz, 0.0, 10.0)
+    previous = w.rate_hz(last)
+    # One window, or two of its own periods for a topic slower than half the window.
+    zero_after = max(window_s, 2.0 / rate_hz)
+    for k in range(1, 101):                           # decays, never rises
+        now = last + zero_after * k / 100.0 + 1e-9
+        r = w.rate_hz(now)
+        assert r <= previous + 1e-9
+        previous = r
+    assert w.rate_hz(last + zero_after - 1e-3) > 0.0
+    assert w.rate_hz(last + zero_after + 1e-6) == 0.0
+    assert w.bytes_per_s(last + zero_after + 1e-6) == 0.0
+
+
+@pytest.mark.parametrize('stall_s', [0.01, 0.03, 0.05])
+def test_receiver_stall_at_the_window_edge_barely_moves_the_rate(stall_s):
+    # 1 kHz; the receiver stalls and then stamps a batch of messages at once, right where the
+    # window begins. End-to-end counting would be off by stall/window; the fit is not.
+    w = RateWindow(2.0)
+    period = 1e-3
+    now = 10.0
+    stall_end = now - 2.0 + 0.002
+    for k in range(int(4.0 / period) + 1):
+        t = now - 4.0 + k * period
+        w.add(stall_end if stall_end - stall_s <= t <= stall_end else t, 100)
+    naive = (len(w._times) - 1) / (w._times[-1] - w._times[0])
+    assert abs(naive - 1000.0) / 1000.0 > 0.4 * stall_s / 2.0
+    assert w.rate_hz(now) == pytest.approx(1000.0, rel=0.15 * stall_s / 2.0)
+
+
+@pytest.mark.parametrize('stall_s', [0.02, 0.05, 0.09])
+def test_receiver_busy_at_reading_time_is_not_a_slower_topic(stall_s):
+    w = RateWindow(2.0)
+    last = feed(w, 1000.0, 0.0, 5.0)
+    assert w.rate_hz(last + stall_s) == pytest.approx(1000.0, rel=1e-6)
+
+
+def test_slow_topic_is_slow_not_dead():
+    w = RateWindow(2.0)
+    last = feed(w, 0.5, 0.0, 30.0, jitter_s=0.05)
+    # Between two messages of a 0.5 Hz topic (2 s apart) the window is empty, yet it reads 0.5.
+    for dt in (0.1, 1.0, 1.9, 2.04):
+        assert w.rate_hz(last + dt) == pytest.approx(0.5, rel=0.06)
+    # Stopped: it decays once the silence is longer than its period, 0 after two periods.
+    assert 0.0 < w.rate_hz(last + 3.0) < 0.45
+    assert w.rate_hz(last + 4.2) == 0.0
+
+
+def test_rate_recovers_after_a_pause():
+    w = RateWindow(2.0)
+    feed(w, 10.0, 0.0, 5.0)
+    last = feed(w, 10.0, 100.0, 103.0)
+    assert w.rate_hz(last) == pytest.approx(10.0, rel=1e-9)
+
+
+def test_fewer_than_two_messages_read_zero():
+    w = RateWindow(2.0)
+    assert w.rate_hz(0.0) == 0.0
+    w.add(1.0, 10)
+    assert w.rate_hz(1.5) == 0.0
+    assert w.bytes_per_s(1.5) == 0.0
+
+
+def test_clock_going_backwards_is_clamped():
+    w = RateWindow(2.0)
+    w.add(5.0)
+    w.add(4.0)         # clamped to 5.0: never a negative span
+    w.add(5.5)
+    assert math.isfinite(w.rate_hz(5.5)) and w.rate_hz(5.5) >= 0.0
+
+
+def test_burst_with_one_stamp_is_finite():
+    w = RateWindow(2.0)
+    for _ in range(5):
+        w.add(1.0, 10)
+    assert w.rate_hz(1.0) == pytest.approx(5 / 2.0)
+
+
+@pytest.mark.parametrize('bad', [0, -1.0, math.inf, math.nan, 'x'])
+def test_window_must_be_positive(bad):
+    with pytest.raises(ValueError, match='window_s'):
+        RateWindow(bad)
+
+
+def test_bytes_per_second_follows_message_size():
+    w = RateWindow(2.0)
+    last = feed(w, 10.0, 0.0, 5.0, nbytes=1000)
+    last = feed(w, 10.0, last + 0.1, last + 5.0, nbytes=3000)
+    assert w.bytes_per_s(last) == pytest.approx(30000.0, rel=1e-9)
+
+
+# --- ToleranceTracker --------------------------------------------------------------------------
+
+@pytest.mark.parametrize('tolerance_s', [0.0, 1.0, 2.0])
+def test_delta_levels(tolerance_s):
+    t = ToleranceTracker(freq_min_hz=5.0, tolerance_s=tolerance_s)
+    assert t.update(0.0, 10.0).level == OK
+    assert t.update(1.0, 5.0).level == OK          # at freq_min is fine
+    v = t.update(2.0, 4.9)
+    assert v.below_for_s == 0.0
+    assert v.level == (ERROR if tolerance_s == 0 else WARN)
+    v = t.update(2.0 + tolerance_s / 2, 0.0)        # even at 0 Hz, still within Δ
+    assert v.below_for_s == pytest.approx(tolerance_s / 2)
+    assert v.level == (ERROR if tolerance_s == 0 else WARN)
+    v = t.update(2.0 + tolerance_s, 1.0)
+    assert v.level == ERROR and v.below_for_s == pytest.approx(tolerance_s)
+    v = t.update(10.0, 6.0)                          # recovery resets
+    assert (v.level, v.below_for_s) == (OK, 0.0)
+    v = t.update(11.0, 1.0)
+    assert v.below_for_s == 0.0                      # counts from the new drop
+
+
+def test_delta_is_continuous_time_below_not_cumulative():
+    t = ToleranceTracker(freq_min_hz=5.0, tolerance_s=2.0)
+    for k in range(20):                              # 1.5 s below, 0.5 s ok, repeatedly
+        base = 2.0 * k
+        t.update(base, 1.0)
+        assert t.update(base + 1.5, 1.0).level == WARN
+        assert t.update(base + 2.0 - 1e-3, 9.0).level == OK
+
+
+def test_unmonitored_connection_is_always_ok():
+    t = ToleranceTracker(None, None)
+    assert t.update(0.0, 0.0) == t.update(100.0, 0.0)
+    assert t.update(100.0, 0.0).level == OK
+
+
+@pytest.mark.parametrize('fmin, tol', [(-1.0, 1.0), (1.0, -0.5), (math.nan, 1.0)])
+def test_tolerance_tracker_rejects_bad_thresholds(fmin, tol):
+    with pytest.raises(ValueError):
+        ToleranceTracker(fmin, tol)
+
+
+def test_window_and_tracker_together_on_a_stopping_topic():
+    w = RateWindow(2.0)
+    t = ToleranceTracker(freq_min_hz=5.0, tolerance_s=2.0)
+    last = feed(w, 10.0, 0.0, 5.0)
+    levels = {}
+    now = 0.0
+    while now < last + 6.0:
+        levels[round(now, 2)] = t.update(now, w.rate_hz(now)).level
+        now += 0.25
+    assert levels[4.0] == OK
+    # The window-averaged rate falls below 5 Hz (half its rate) about half a window after the
+    # stop (observed every 0.25 s), then Δ runs.
+    first_warn = min(k for k, v in levels.items() if v == WARN)
+    first_error = min(k for k, v in levels.items() if v == ERROR)
+    assert last + 0.9 < first_warn <= last + 1.1 + 0.25
+    assert first_error - first_warn == pytest.approx(2.0, abs=0.26)
+
+
+# --- HeartbeatTracker --------------------------------------------------------------------------
+
+@pytest.mark.parametrize('rate_hz, misses', [(4.0, 3), (2.0, 3), (10.0, 5), (1.0, 1)])
+def test_link_goes_down_after_misses_and_up_on_echo(rate_hz, misses):
+    period = 1.0 / rate_hz
+    hb = HeartbeatTracker(period, misses)
+    assert not hb.up(0.0)                              # nothing proves it works yet
+    rtt = 0.01
+    now = 0.0
+    for _ in range(20):
+        seq = hb.next_beat(now)
+        assert hb.echo(now + rtt, seq) == pytest.approx(rtt)
+        now += period
+    assert hb.up(now) and hb.loss(now) == 0.0
+    assert hb.rtt_s() == pytest.approx(rtt)
+    last_echo = now - period + rtt                    # the link is cut right after it
+    down_at = None
+    t = now
+    while down_at is None:
+        hb.next_beat(t)
+        for k in range(8):                            # check 8 times per period
+            probe = t + k * period / 8
+            if not hb.up(probe):
+                down_at = probe
+                break
+        t += period
+    # Down once misses_down periods passed without an echo, not a check earlier.
+    assert hb.up(last_echo + misses * period)
+    assert misses * period < down_at - last_echo <= (misses + 1 / 8) * period + 1e-9
+    # A beat is counted lost once its echo is misses_down periods late.
+    t += misses * period
+    hb.next_beat(t)
+    assert hb.loss(t) > 0.0
+    seq = hb.next_beat(t)
+    hb.echo(t + rtt, seq)
+    assert hb.up(t + rtt)
+
+
+def test_loss_fraction_counts_unanswered_beats():
+    hb = HeartbeatTracker(0.25, 3, loss_window=40)
+    now = 0.0
+    for k in range(40):
+        seq = hb.next_beat(now)
+        if k % 4 != 0:                                # one in four lost
+            hb.echo(now + 0.005, seq)
+        now += 0.25
+    hb.next_beat(now + 1.0)                           # let the last ones expire
+    assert hb.loss(now + 1.0) == pytest.approx(0.25, abs=0.03)
+    assert hb.up(now)                                 # scattered loss is not a down link
+
+
+def test_foreign_and_late_echoes_are_ignored():
+    hb = HeartbeatTracker(0.25, 3)
+    seq = hb.next_beat(0.0)
+    assert hb.echo(0.01, 999) is None
+    assert hb.echo(0.01, 'x') is None
+    assert not hb.up(0.02)
+    for k in range(1, 6):
+        hb.next_beat(0.25 * k)
+    assert hb.echo(1.3, seq) is None                   # expired: counted lost, proves nothing
+    assert not hb.up(1.3)
+    assert hb.echo(-5.0, hb.next_beat(1.5)) is None     # an echo before its beat is nonsense
+
+
+@pytest.mark.parametrize('period, misses', [(0, 3), (0.25, 0), (0.25, 1.5)])
+def test_heartbeat_tracker_rejects_bad_settings(period, misses):
+    with pytest.raises(ValueError):
+        HeartbeatTracker(period, misses)
+
+
+def test_rtt_is_median_of_recent():
+    hb = HeartbeatTracker(0.25, 3)
+    for k, rtt in enumerate([0.01, 0.01, 0.5, 0.01, 0.02]):
+        seq = hb.next_beat(k * 0.25)
+        hb.echo(k * 0.25 + rtt, seq)
+    assert hb.rtt_s() == pytest.approx(0.01)
+
+
+# --- bandwidth -----------------------------------------------------------------------------
+
+def test_steady_throughput_skips_the_bucket_burst():
+    rate = 625000.0                                    # 5 Mbit/s
+    samples = [(0.0, 0), (0.001, 32000)]               # a 32 kB token bucket at line rate
+    t, b = 0.001, 32000
+    while t < 0.5:
+        t += 0.01
+        b += int(rate * 0.01)
+        samples.append((t, b))
+    naive = samples[-1][1] / samples[-1][0]
+    assert naive > 1.1 * rate
+    assert steady_throughput_bps(samples) == pytest.approx(rate, rel=0.01)
+
+
+@pytest.mark.parametrize('samples', [[], [(0.0, 0)], [(1.0, 0), (1.0, 100)],
+                                     [(0.0, 0), (1.0, 0)]])
+def test_steady_throughput_needs_data(samples):
+    assert steady_throughput_bps(samples) is None
+
+
+def test_bandwidth_probe_schedule():
+    est = BandwidthEstimate(interval_s=30.0, nominal_kbps=54000.0, busy_fraction=0.75)
+    assert est.age_s(0.0) is None and est.available_kbps is None
+    assert not est.due(0.0, link_up=False, used_kbps=0.0)
+    assert not est.due(0.0, link_up=True, used_kbps=45000.0)     # near full: never probe
+    assert est.due(0.0, link_up=True, used_kbps=1000.0)
+    est.started(0.0)
+    assert not est.due(10.0, True, 0.0)
+    assert est.record(0.6, 19000.0, used_kbps=1000.0) == pytest.approx(20000.0)
+    assert est.age_s(10.6) == pytest.approx(10.0)
+    assert not est.due(29.0, True, 0.0)
+    assert est.due(30.0, True, 1000.0)
+    assert not est.due(30.0, True, 16000.0)            # 80% of the measured 20000
+    est.started(30.0)
+    assert est.failed(31.0, 'refused') == pytest.approx(20000.0)   # the old one stands
+    assert est.age_s(40.6) == pytest.approx(40.0) and est.last_error == 'refused'
+    assert est.record(61.0, math.nan) == pytest.approx(20000.0) and est.failures == 2
+
+
+def test_used_bandwidth_counts_only_crossing_connections():
+    conns = [('a_b', 'a', 'b'), ('a_c', 'a', 'c'), ('b_a', 'b', 'a'), ('x_y', 'x', 'y')]
+    running = {'a': 'robot', 'b': 'laptop', 'c': 'robot'}
+    names = crossing_connections(conns, running, 'robot', 'laptop')
+    assert names == ('a_b', 'b_a')
+    assert used_kbps({'a_b': 1000.0, 'b_a': 250.0, 'a_c': 1e6}, names) == pytest.approx(10.0)
+    assert crossing_connections(conns, running, 'robot', 'robot') == ()
+
+
+# --- cpu normalisation ---------------------------------------------------------------------
+
+@pytest.mark.parametrize('capacity, cores, busy, expected', [
+    (200.0, 2, 1.0, 100.0),      # one robot core fully busy = 100 reference percent
+    (700.0, 4, 1.0, 175.0),      # one laptop core is worth 1.75 robot cores
+    (700.0, 4, 4.0, 700.0),      # a full laptop reads its capacity
+    (200.0, 0.57, 0.57, 200.0),  # a cgroup quota of 0.57 CPUs, fully used
+    (100.0, 1, -0.1, 0.0),
+])
+def test_reference_percent(capacity, cores, busy, expected):
+    assert cpu.reference_percent(busy, capacity, cores) == pytest.approx(expected)
+
+
+def test_effective_cores_and_quota_parsing():
+    assert cpu.effective_cores(4) == 4.0
+    assert cpu.effective_cores(4, 1.5) == 1.5
+    assert cpu.effective_cores(2, 8.0) == 2.0
+    assert cpu.quota_cores_v1('-1\n', '100000\n') is None
+    assert cpu.quota_cores_v1('50000\n', '100000\n') == 0.5
+    assert cpu.quota_cores_v1('garbage', '100000') is None
+    assert cpu.quota_cores_v2('max 100000\n') is None
+    assert cpu.quota_cores_v2('150000 100000\n') == 1.5
+    groups = cpu.parse_proc_cgroup('4:memory:/x\n2:cpu,cpuacct:/robot\n0::/u\n')
+    assert groups['cpu'] == groups['cpuacct'] == '/robot' and groups[''] == '/u'
+    with pytest.raises(ValueError):
+        cpu.effective_cores(0)
+
+
+def test_cpu_counter_primes_then_rates():
+    c = cpu.CpuCounter()
+    assert c.update(0.0, 100.0) is None                # psutil's meaningless first 0.0, avoided
+    assert c.update(0.5, 100.75) == pytest.approx(1.5)  # above one core is fine
+    assert c.update(0.5, 101.0) is None                # no time passed
+    assert c.update(1.0, 50.0) is None                 # reset counter primes again
+    assert c.update(2.0, 50.5) == pytest.approx(0.5)
+
+
+def test_process_group_cpu_sums_children_and_tolerates_churn():
+    g = cpu.ProcessGroupCpu()
+    assert g.update(0.0, {'amcl': {10: 1.0, 11: 2.0}}) == {}
+    out = g.update(1.0, {'amcl': {10: 1.5, 11: 2.25}, 'ar': {20: 5.0}})
+    assert out == {'amcl': pytest.approx(0.75)}         # ar is new: primed only
+    out = g.update(2.0, {'amcl': {10: 2.0, 12: 9.0}, 'ar': {20: 5.5}})
+    assert out == {'amcl': pytest.approx(0.5), 'ar': pytest.approx(0.5)}
+    out = g.update(3.0, {'amcl': {10: 0.1, 12: 9.5}, 'ar': {20: 5.5}})  # pid 10 reused
+    assert out == {'amcl': pytest.approx(0.5), 'ar': pytest.approx(0.0)}
+    out = g.update(4.0, {'amcl': {}, 'ar': {20: 6.0}})                   # amcl is gone
+    assert out == {'ar': pytest.approx(0.5)}
+    g.update(5.0, {'ar': {20: 6.5}, 'gone': {}})
+    assert g.update(6.0, {'ar': {20: 7.0}, 'gone': {}}) == {'ar': pytest.approx(0.5)}

@@ -1,0 +1,338 @@
+"""Constraint evaluation, the Δ timer, the cost function, plan against reality, first layout."""
+
+import types
+from dataclasses import replace
+
+import pytest
+
+from anyscale_manager import protocol as p
+from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.runtime import layout as layout_mod
+from anyscale_manager.runtime.constraints import (BANDWIDTH, CPU, FREQUENCY, LINK_DOWN, STALE,
+                                                  DeltaTracker, evaluate, required_kbps)
+from anyscale_manager.runtime.cost import CostIntegrator, perf_map
+from anyscale_manager.runtime.intake import ObservationBook
+from anyscale_manager.runtime.layout import (LayoutError, adopt, check_layout, initial_layout,
+                                             master_layout)
+from anyscale_manager.runtime.observations import (ConnectionObs, LinkObs, Observations,
+                                                   ScaleObs)
+from anyscale_manager.runtime.plan_check import check_plan, expectations
+
+
+@pytest.fixture(scope='module')
+def d():
+    from conftest import TESTBED
+    return load_deployment(TESTBED)
+
+
+def fresh_obs(d, now=10.0, running=None, link=None, conns=None, scales=None, lost=frozenset()):
+    running = master_layout(d) if running is None else running
+    if link is None:
+        link = LinkObs(up=True, stamp=now)
+    if conns is None:
+        conns = {c.name: ConnectionObs(rate_hz=c.freq_opt_hz, stamp=now)
+                 for c in d.connections if c.monitored}
+    if scales is None:
+        scales = {s: ScaleObs(cpu_total=sum(d.node(n).cpu for n, w in running.items()
+                                            if w == s), stamp=now) for s in d.scale_names}
+    links = {} if link is False else {'laptop': link}
+    return Observations(now=now, running=running, scales=scales, links=links,
+                        connections=conns, lost_scales=lost)
+
+
+# --- constraints ---------------------------------------------------------------------------------
+
+def test_all_on_master_holds(d):
+    report = evaluate(d, d.decider, fresh_obs(d))
+    assert report.ok and report.bandwidth_ok and report.frequency_ok and report.cpu_ok
+    assert report.links['wifi'].required_kbps == 0
+
+
+def test_required_against_available_bandwidth_per_link(d):
+    running = dict(master_layout(d), amcl='laptop', ar='laptop')
+    assert required_kbps(d, running) == {'wifi': pytest.approx(200 + 6 + 6000 + 62)}
+    report = evaluate(d, d.decider, fresh_obs(d, running=running,
+                                              link=LinkObs(up=True, stamp=10.0,
+                                                           available_kbps=5000.0)))
+    load = report.links['wifi']
+    assert load.available_kbps == 5000.0
+    assert load.usable_kbps == pytest.approx(5000.0 * d.decider.bandwidth_margin)
+    assert load.required_kbps == pytest.approx(6268)
+    assert not load.ok and not report.bandwidth_ok
+    (v,) = report.of_kind(BANDWIDTH)
+    assert v.subject == 'wifi' and set(v.nodes) == {'amcl', 'ar'} and 'kbit/s' in v.reason
+    # not measured: the nominal bandwidth
+    report = evaluate(d, d.decider, fresh_obs(d, running=running))
+    assert report.links['wifi'].available_kbps == 54000.0 and report.bandwidth_ok
+
+
+@pytest.mark.parametrize('link, word', [(LinkObs(up=False, stamp=10.0), 'reported down'),
+                                        (LinkObs(up=True, stamp=7.5), 'silent for 2.5 s'),
+                                        (False, 'never reported')])
+def test_down_silent_or_missing_link_is_down(d, link, word):
+    running = dict(master_layout(d), amcl='laptop')
+    report = evaluate(d, d.decider, fresh_obs(d, running=running, link=link))
+    (v,) = report.of_kind(LINK_DOWN)
+    assert v.nodes == ('amcl',)
+    assert word in v.reason
+    assert not report.links['wifi'].up and not report.bandwidth_ok
+
+
+def test_missing_link_within_max_age_of_start_is_not_yet_down(d):
+    running = dict(master_layout(d), amcl='laptop')
+    obs = fresh_obs(d, running=running, link=False)
+    assert evaluate(d, d.decider, obs, since=9.0).bandwidth_ok
+    assert not evaluate(d, d.decider, obs, since=5.0).bandwidth_ok
+
+
+def test_down_link_with_nothing_beyond_is_no_violation(d):
+    report = evaluate(d, d.decider, fresh_obs(d, link=LinkObs(up=False, stamp=10.0)))
+    assert report.ok and not report.links['wifi'].up
+
+
+def test_frequency_violation_needs_more_than_delta(d):
+    running = dict(master_layout(d), amcl='laptop')
+    conns = {c.name: ConnectionObs(rate_hz=c.freq_opt_hz, stamp=10.0) for c in d.connections}
+    conns['laser_amcl'] = ConnectionObs(rate_hz=1.0, stamp=10.0, below_for_s=1.9)
+    report = evaluate(d, d.decider, fresh_obs(d, running=running, conns=conns))
+    assert report.frequency_ok
+    assert report.connections['laser_amcl'].below_for_s == pytest.approx(1.9)
+    conns['laser_amcl'] = ConnectionObs(rate_hz=1.0, stamp=10.0, below_for_s=2.1)
+    report = evaluate(d, d.decider, fresh_obs(d, running=running, conns=conns))
+    (v,) = report.of_kind(FREQUENCY)
+    assert v.subject == 'laser_amcl' and v.nodes == ('amcl',)
+    # not judged during the node's grace period
+    report = evaluate(d, d.decider, fresh_obs(d, running=running, conns=conns),
+                      grace_until={'amcl': 11.0})
+    assert report.frequency_ok and not report.connections['laser_amcl'].judged
+
+
+def test_stale_reading_counts_as_zero_and_is_reported(d):
+    conns = {c.name: ConnectionObs(rate_hz=c.freq_opt_hz, stamp=10.0) for c in d.connections}
+    conns['amcl_ekf'] = ConnectionObs(rate_hz=5.0, stamp=6.5)       # 3.5 s old, max age 2
+    report = evaluate(d, d.decider, fresh_obs(d, conns=conns))
+    check = report.connections['amcl_ekf']
+    assert check.rate_hz is None
+    assert check.below_for_s == pytest.approx(10.0 - (6.5 + 2.0))
+    assert [v.subject for v in report.of_kind(STALE)] == ['amcl_ekf']
+    conns['amcl_ekf'] = ConnectionObs(rate_hz=5.0, stamp=5.0)       # missing for 3 s > Δ 2
+    report = evaluate(d, d.decider, fresh_obs(d, conns=conns))
+    assert [v.subject for v in report.of_kind(FREQUENCY)] == ['amcl_ekf']
+    assert report.of_kind(FREQUENCY)[0].nodes == ()                  # both ends on the master
+
+
+def test_cpu_over_headroom(d):
+    running = dict(master_layout(d), amcl='laptop')
+    scales = {'robot': ScaleObs(cpu_total=100.0, stamp=10.0),
+              'laptop': ScaleObs(cpu_total=640.0, stamp=10.0)}
+    report = evaluate(d, d.decider, fresh_obs(d, running=running, scales=scales))
+    (v,) = report.of_kind(CPU)
+    assert v.subject == 'laptop' and v.nodes == ('amcl',)
+    assert report.scales['laptop'].usable_cpu == pytest.approx(630.0)
+    # a stale report falls back to the nominal CPU of what runs there, and says so
+    scales['laptop'] = ScaleObs(cpu_total=640.0, stamp=1.0)
+    report = evaluate(d, d.decider, fresh_obs(d, running=running, scales=scales))
+    assert report.cpu_ok and report.scales['laptop'].cpu_used == 50.0
+    assert [v.subject for v in report.of_kind(STALE)] == ['laptop']
+
+
+def test_delta_tracker_from_observation_times(d):
+    settings = d.decider
+    tracker = DeltaTracker(d)
+    base = {c.name: ConnectionObs(rate_hz=c.freq_opt_hz, stamp=0.0) for c in d.connections}
+
+    def at(now, **readings):
+        conns = dict(base)
+        for k, v in readings.items():
+            conns[k] = v
+        for k in conns:
+            if k not in readings:
+                conns[k] = replace(conns[k], stamp=now)
+        return tracker.update(Observations(now=now, running={}, connections=conns), settings)
+
+    assert at(0.0)['laser_amcl'] == 0.0
+    # below, with the probe saying it has been below for 0.4 s already: the earlier start wins
+    below = at(1.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=1.0, below_for_s=0.4))
+    assert below['laser_amcl'] == pytest.approx(0.4)
+    below = at(2.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=2.0, below_for_s=0.1))
+    assert below['laser_amcl'] == pytest.approx(1.4)
+    # the reading stops arriving: the timer keeps running
+    below = at(5.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=2.0, below_for_s=0.1))
+    assert below['laser_amcl'] == pytest.approx(4.4)
+    # recovered
+    assert at(6.0)['laser_amcl'] == 0.0
+    # an OK reading going stale: 0 Hz from the moment it became missing
+    stale = ConnectionObs(rate_hz=10.0, stamp=6.0)
+    assert at(7.0, laser_amcl=stale)['laser_amcl'] == 0.0
+    assert at(9.5, laser_amcl=stale)['laser_amcl'] == pytest.approx(9.5 - 8.0)
+
+
+def test_delta_tracker_never_reported(d):
+    tracker = DeltaTracker(d)
+    assert tracker.update(Observations(now=100.0, running={}), d.decider)['camera_ar'] == 0.0
+    below = tracker.update(Observations(now=103.0, running={}), d.decider)
+    assert below['camera_ar'] == pytest.approx(103.0 - 100.0 - d.decider.observation_max_age_s)
+
+
+# --- cost ---------------------------------------------------------------------------------------
+
+def test_perf_map_is_eq_1(d):
+    running = master_layout(d)
+    nominal = sum(n.cpu for n in d.nodes if n.managed)
+    assert perf_map(d, running) == pytest.approx(nominal * 1.0)
+    running['amcl'] = 'laptop'
+    assert perf_map(d, running) == pytest.approx(nominal - 50 + 50 * 3.5)
+    assert perf_map(d, running, {'amcl': 20.0}) == pytest.approx(nominal - 50 + 20 * 3.5)
+    assert perf_map(d, {'ghost': 'robot', 'amcl': 'moon'}) == 0.0
+
+
+def test_cost_integrator_is_eq_2(d):
+    cost = CostIntegrator(d)
+    home = master_layout(d)
+    out = dict(home, amcl='laptop')
+    p0, i0 = cost.update(0.0, home)
+    assert i0 == 0.0
+    _, i1 = cost.update(10.0, out)             # home held for 10 s
+    assert i1 == pytest.approx(10 * p0)
+    p2, i2 = cost.update(15.0, out)            # out held for 5 s
+    assert i2 == pytest.approx(10 * p0 + 5 * p2)
+    assert cost.elapsed_s == 15.0
+    assert cost.update(14.0, home)[1] == pytest.approx(i2)   # time does not run backwards
+    assert cost.mean == pytest.approx(i2 / 15.0)
+
+
+# --- plan against reality ----------------------------------------------------------------------
+
+def test_plan_check_eq_10(d):
+    placements = {'amcl': types.SimpleNamespace(scale='laptop', cpu=50.0, performance=80.0)}
+    exp = expectations(d, placements)
+    assert exp['amcl'].expected_hz == 5.0 and exp['amcl'].expected_performance == 80.0
+    conns = {c.name: ConnectionObs(rate_hz=c.freq_opt_hz, stamp=10.0) for c in d.connections}
+    conns['amcl_ekf'] = ConnectionObs(rate_hz=4.0, stamp=10.0)
+    obs = fresh_obs(d, running=dict(master_layout(d), amcl='laptop'), conns=conns)
+    report = check_plan(d, exp, obs)
+    a = report.nodes['amcl']
+    assert a.measured_performance == pytest.approx(80.0 * 4.0 / 5.0)
+    assert a.deviation == pytest.approx(-0.2)
+    assert report.overall_deviation == pytest.approx(-0.2)    # only amcl has a performance
+    assert not report.overloaded and not report.warnings
+
+
+def test_plan_check_flags_an_overloaded_scale(d):
+    scales = {'robot': ScaleObs(cpu_total=195.0, stamp=10.0),
+              'laptop': ScaleObs(cpu_total=10.0, stamp=10.0)}
+    conns = {c.name: ConnectionObs(rate_hz=c.freq_min_hz, stamp=10.0) for c in d.connections}
+    report = check_plan(d, expectations(d), fresh_obs(d, scales=scales, conns=conns))
+    assert set(report.overloaded) == {'robot'}
+    assert 'plan does not hold' in report.warnings[0] and 'amcl' in report.warnings[0]
+    assert report.overall_deviation < 0
+
+
+# --- first layout -------------------------------------------------------------------------------
+
+def test_master_layout_pins_everything_home(d):
+    lay = initial_layout(d)
+    assert set(lay) == {n.name for n in d.nodes if n.managed}
+    assert set(lay.values()) == {'robot'}
+
+
+def test_explicit_layout_and_its_errors(d):
+    settings = replace(d.decider, initial_layout='explicit', layout={'amcl': 'laptop'})
+    assert initial_layout(d, settings)['amcl'] == 'laptop'
+    bad = replace(settings, layout={'laser': 'laptop'})
+    with pytest.raises(LayoutError, match='laser may not run on laptop'):
+        initial_layout(d, bad)
+    with pytest.raises(LayoutError, match='not a managed node'):
+        initial_layout(d, replace(settings, layout={'ghost': 'laptop'}))
+
+
+def test_planner_layout_errors_are_clear(d, monkeypatch):
+    settings = replace(d.decider, initial_layout='problem1')
+    planning = __import__('anyscale_manager.planning', fromlist=['x'])
+    # A stand-in planner (named as such): the planner itself is tested in its own suite.
+    infeasible = types.SimpleNamespace(feasible=False, layout={}, violations=['no room'])
+    monkeypatch.setattr(planning, 'solve', lambda dep, problem: infeasible, raising=False)
+    with pytest.raises(LayoutError, match='no feasible plan.*no room'):
+        initial_layout(d, settings)
+    placement = types.SimpleNamespace(scale='laptop', cpu=50.0, performance=1.0,
+                                      parameter_value=None)
+    ok = types.SimpleNamespace(feasible=True, layout={'amcl': placement}, violations=[])
+    monkeypatch.setattr(planning, 'solve', lambda dep, problem: ok, raising=False)
+    lay, placements = layout_mod.initial_plan(d, settings)
+    assert lay['amcl'] == 'laptop' and placements['amcl'] is placement
+    monkeypatch.delattr(planning, 'solve')
+    with pytest.raises(LayoutError, match='planner is not available'):
+        initial_layout(d, settings)
+
+
+def test_adopt_keeps_what_runs_where_allowed(d):
+    planned = master_layout(d)
+    lay, notes = adopt(d, planned, {'amcl': 'laptop', 'laser': 'laptop', 'ekf': 'robot'})
+    assert lay['amcl'] == 'laptop' and lay['laser'] == 'robot'
+    assert any('adopted amcl' in n for n in notes)
+    assert any('laser runs on laptop' in n for n in notes)
+    assert not check_layout(d, lay)
+
+
+# --- intake -------------------------------------------------------------------------------------
+
+def agent(scale, gen=0, **nodes):
+    return p.AgentState(scale=scale, generation=gen, stamp=0.0, nodes={
+        n: p.NodeReport(state=s, pid=1, since=0.0, restarts=0, ready=s == 'running',
+                        exit_reason='') for n, s in nodes.items()})
+
+
+def test_book_running_lost_and_refusals(d):
+    book = ObservationBook(d, d.decider, started=0.0)
+    book.agent_state(agent('robot', 3, laser='running', amcl='running', ghost='running'), 1.0)
+    book.agent_state(agent('laptop', 5, amcl='starting', ar='running'), 1.0)
+    assert book.running(2.0) == {'laser': 'robot', 'amcl': 'robot', 'ar': 'laptop'}
+    assert book.max_generation == 5 and book.all_agents_heard()
+    timeout = d.decider.agent_timeout_s
+    book.agent_state(agent('robot', 3, laser='running'), 1.0 + timeout)
+    assert book.lost_scales(2.0 + timeout) == {'laptop'}
+    assert 'ar' not in book.running(2.0 + timeout)
+    with pytest.raises(ValueError, match='unknown scale'):
+        book.agent_state(agent('moon'), 1.0)
+    with pytest.raises(ValueError, match='not the master'):
+        book.link_status(p.LinkStatus(master='laptop', remote='robot', stamp=0.0, up=True,
+                                      rtt_ms=None, loss=0.0, bandwidth_available_kbps=None,
+                                      bandwidth_available_age_s=None,
+                                      bandwidth_used_kbps=0.0), 1.0)
+    assert any('ghost' in k for k in book.ignored)
+
+
+def test_book_prefers_the_subscribers_probe(d):
+    book = ObservationBook(d, d.decider, started=0.0)
+    reading = p.ConnectionReading(rate_hz=0.0, bytes_per_s=0.0, below_for_s=1.0, level=1)
+    good = p.ConnectionReading(rate_hz=10.0, bytes_per_s=100.0, below_for_s=0.0, level=0)
+    book.connection_status(p.ConnectionStatus(scale='laptop', stamp=0.0,
+                                              connections={'laser_amcl': good}), 1.0)
+    book.connection_status(p.ConnectionStatus(scale='robot', stamp=0.0,
+                                              connections={'laser_amcl': reading,
+                                                           'nope': reading}), 2.0)
+    assert book.connections({'amcl': 'laptop'})['laser_amcl'].rate_hz == 10.0
+    assert book.connections({'amcl': 'robot'})['laser_amcl'].rate_hz == 0.0
+    obs = book.snapshot(2.5, {'amcl': 'laptop'})
+    assert obs.now == 2.5 and obs.connections['laser_amcl'].stamp == 2.0   # receive time
+
+
+def test_status_render_without_ros(d):
+    from anyscale_manager.nodes.status import StatusBook, render
+    book = StatusBook(d)
+    book.take(p.TOPIC_LAYOUT, p.Layout(generation=4, deployment=d.name,
+                                       assignments=dict(master_layout(d), amcl='laptop'),
+                                       reason='x', stamp=0.0).to_json(), 10.0)
+    book.take(p.TOPIC_AGENT_STATE, agent('robot', 4, laser='running', amcl='running').to_json(),
+              10.0)
+    reading = p.ConnectionReading(rate_hz=0.5, bytes_per_s=0.0, below_for_s=0.6, level=1)
+    book.take(p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus(
+        scale='robot', stamp=0.0, connections={'camera_ar': reading}).to_json(), 10.0)
+    book.take(p.TOPIC_LINK_STATUS, 'garbage', 10.0)
+    text = render(book, 11.0)
+    assert 'layout generation 4' in text
+    assert 'camera_ar' in text and '0.6 / 1' in text and 'below, within Δ' in text
+    assert 'amcl' in text and '(moving)' in text          # wanted on laptop, runs on robot
+    assert '1 malformed message(s) ignored' in text
+    assert 'not heard' in text                            # the laptop's agent
+    assert 'STALE' in render(book, 20.0)
