@@ -24,6 +24,7 @@ import json
 import os
 import random
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -131,7 +132,7 @@ def main() -> int:
                         '--robot', addr['robot'], '--laptop', addr['laptop'],
                         '--interval', str(args.interval)]
                 procs.append(net.popen(scale, argv, dict(env, ROS_STATIC_PEERS=addr[other]),
-                                       cpu_quota=False, stdout=__import__('subprocess').PIPE,
+                                       cpu_quota=False, stdout=subprocess.PIPE,
                                        text=True))
             reader = Reader(procs[-1].stdout)
             heartbeat_hz, misses = float(reader.first_line[1]), int(reader.first_line[2])

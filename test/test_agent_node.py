@@ -25,13 +25,16 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
-def write_deployment(tmp_path, name='agent_test'):
-    chatter = f'/agent_test_{os.getpid()}_{tmp_path.name[-12:]}'.replace('-', '_')
+def write_deployment(tmp_path, run_id, name='agent_test'):
+    chatter = f'/agent_test_{run_id}'
+    env = {'AGENT_TEST_RUN': run_id}
 
-    def talker(topic, **extra):
+    def talker(topic, ros_name, **extra):
+        # Node names of this test only: a leftover of another run must not look ready.
         return dict({'launch': {'command': [sys.executable,
                                             os.path.join(FIXTURES, 'agent_talker.py')],
-                                'parameters': {'topic': topic, 'rate_hz': 10.0}},
+                                'parameters': {'topic': topic, 'rate_hz': 10.0},
+                                'ros_name': f'{ros_name}_{run_id}', 'env': env},
                      'cpu': 1.0}, **extra)
 
     data = {'/**': {'ros__parameters': {
@@ -41,14 +44,16 @@ def write_deployment(tmp_path, name='agent_test'):
                    'b': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 200.0}},
         'nodes': {
             'names': ['talker', 'talker2', 'stubborn', 'forker'],
-            'talker': talker(chatter + '/sbs'),
-            'talker2': talker(chatter + '/stop_first', move_order='stop_before_start'),
+            'talker': talker(chatter + '/sbs', 'talker'),
+            'talker2': talker(chatter + '/stop_first', 'talker2',
+                              move_order='stop_before_start'),
             'stubborn': {'launch': {'command': [sys.executable,
-                                                os.path.join(FIXTURES, 'agent_stubborn.py')]},
+                                                os.path.join(FIXTURES, 'agent_stubborn.py')],
+                                    'env': env},
                          'cpu': 1.0},
             'forker': {'launch': {'command': [sys.executable,
                                               os.path.join(FIXTURES, 'agent_forker.py'),
-                                              str(tmp_path / 'forker_pids')]},
+                                              str(tmp_path / 'forker_pids')], 'env': env},
                        'cpu': 1.0},
         },
         'decider': {'agent_timeout_s': 3.0},
@@ -150,9 +155,23 @@ class Harness:
         rclpy.try_shutdown(context=self.ctx)
 
 
+def run_processes(run_id):
+    """Live processes started for one test run (found by the run's environment marker)."""
+    out = []
+    for p in psutil.process_iter(['pid', 'status']):
+        try:
+            if p.info['status'] != psutil.STATUS_ZOMBIE and \
+                    p.environ().get('AGENT_TEST_RUN') == run_id:
+                out.append(p)
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+    return out
+
+
 @pytest.fixture
 def setup(tmp_path, ros_env):
-    deployment, chatter = write_deployment(tmp_path)
+    run_id = f'{os.getpid()}_{time.monotonic_ns() % 10 ** 9}'
+    deployment, chatter = write_deployment(tmp_path, run_id)
     harness = Harness('agent_test', chatter)
     agents = []
 
@@ -161,11 +180,16 @@ def setup(tmp_path, ros_env):
         agents.append(a)
         return a
 
-    yield harness, agent, deployment
+    yield harness, agent, deployment, run_id
     for a in agents:
         if a.proc.poll() is None:
             a.stop(signal.SIGTERM)
     harness.close()
+    # A failed test may have killed an agent on purpose: leave no node of this run behind.
+    leftovers = run_processes(run_id)
+    for p in leftovers:
+        p.kill()
+    assert not leftovers, f'processes outlived their agents: {leftovers}'
 
 
 def gone(pid):
@@ -173,19 +197,6 @@ def gone(pid):
         return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
     except psutil.NoSuchProcess:
         return True
-
-
-def copies(node, marker):
-    """Live processes an agent started as ``node`` whose command line contains ``marker``."""
-    out = []
-    for p in psutil.process_iter(['pid', 'cmdline']):
-        try:
-            if marker in ' '.join(p.info['cmdline'] or ()) and \
-                    p.environ().get('ANYSCALE_AGENT_NODE') == node:
-                out.append(p.pid)
-        except (psutil.NoSuchProcess, psutil.AccessDenied):
-            continue
-    return out
 
 
 def first_time(history, scale, node, states, after=0.0):
@@ -197,7 +208,7 @@ def first_time(history, scale, node, states, after=0.0):
 
 
 def test_bad_arguments_exit_non_zero_and_start_nothing(tmp_path, ros_env, setup):
-    _, agent, deployment = setup
+    _, agent, deployment, _ = setup
     a = agent('nowhere')
     assert a.proc.wait(30) == 2
     assert "scale 'nowhere' is not a scale of deployment 'agent_test'" in a.text()
@@ -214,7 +225,7 @@ def test_bad_arguments_exit_non_zero_and_start_nothing(tmp_path, ros_env, setup)
 
 
 def test_start_move_stop_and_hostile_layouts(setup):
-    h, agent, _ = setup
+    h, agent, _, _ = setup
     a, b = agent('a'), agent('b')
     h.publish(1, {'talker': 'a', 'talker2': 'a'})
     h.wait(lambda: h.running('a', 'talker') and h.running('a', 'talker2')
@@ -277,7 +288,7 @@ def test_start_move_stop_and_hostile_layouts(setup):
 
 
 def test_crash_restart_adoption_and_shutdown(tmp_path, setup):
-    h, agent, _ = setup
+    h, agent, _, run_id = setup
     a = agent('a')
     h.publish(1, {'talker': 'a', 'stubborn': 'a', 'forker': 'a'})
     h.wait(lambda: h.running('a', 'talker') and h.state_is('a', 'stubborn', 'starting')
@@ -303,7 +314,9 @@ def test_crash_restart_adoption_and_shutdown(tmp_path, setup):
            and h.running('a', 'talker') and h.states['a'].generation == 1,
            what='the restarted agent adopting its nodes')
     assert {n: h.report('a', n).pid for n in pids} == pids
-    assert copies('talker', FIXTURES) == [pids['talker']]     # no second copy
+    # No second copy of anything: exactly the adopted processes and the grandchild.
+    assert sorted(p.pid for p in run_processes(run_id)) == sorted(list(pids.values())
+                                                                   + [grandchild])
     assert os.path.getsize(tmp_path / 'log' / 'agent_test' / 'a' / 'stubborn.log') > 0
 
     t0 = time.monotonic()

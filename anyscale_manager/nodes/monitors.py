@@ -567,7 +567,8 @@ class ProbeServer:
                     self._receive(conn)
                 except OSError as e:
                     if self._logger is not None:
-                        self._logger.warning(f'throughput probe: {e}')
+                        self._logger.warning(f'throughput probe: {e}',
+                                             throttle_duration_sec=60.0)
 
     def _receive(self, conn: socket.socket) -> None:
         conn.settimeout(2.0)

@@ -34,7 +34,7 @@ SCALES = ('robot', 'laptop')
 NAME_PREFIX = 'asm'
 DEFAULT_RATE_KBPS = 54000.0
 DEFAULT_SUBNET = '10.77.0.'        # .1 = robot, .2 = laptop, /30
-CFS_PERIOD_US = 100000
+CFS_PERIOD_US = 10000      # a short period: a throttled scale stalls for ms, not 100 ms
 NETNS_RUN_DIR = '/var/run/netns'
 _NAME_RE = re.compile(r'^%s-(\d+)-(\d+)-(\w+)$' % NAME_PREFIX)
 _counter = itertools.count(1)
