@@ -1,4 +1,4 @@
-"""Offline planners: regression, the feasibility checker, the solvers and `anyscale-manager plan`."""
+"""Offline planners: regression, feasibility checker, solvers and `anyscale-manager plan`."""
 
 import json
 import math
@@ -15,7 +15,7 @@ from anyscale_manager.model.types import (Connection, Deployment, Launch, Link, 
                                           Settings)
 from anyscale_manager.planning import Instance, Regression, check_layout, fit_profile, solve
 from anyscale_manager.planning.generate import generate_deployment
-from anyscale_manager.planning.instance import _own_scales
+from anyscale_manager.planning.instance import own_scales_of_all
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 IROS = os.path.join(REPO, 'config', 'iros2016')
@@ -305,7 +305,7 @@ def test_the_testbed_plans_with_every_node_fixed():
 
 def test_instance_residence_matches_the_model():
     for d in (load_deployment(TESTBED), instance(6), generate_deployment(60, 6, seed=3)):
-        own = _own_scales(d)
+        own = own_scales_of_all(d)
         inst = Instance(d)
         for n in d.nodes:
             assert own[n.name] == set(d.own_scales(n.name))

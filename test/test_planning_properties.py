@@ -77,8 +77,8 @@ def brute_force(d: Deployment, problem: int, mode: str):
                 s.name: math.inf for s in d.scales})):
             continue      # placement-only constraints fail whatever the settings
         for choice in itertools.product(*(range(len(o)) for o in inst.options)):
-            cpu = {n: inst.options[i][k].cpu for i, (n, k) in enumerate(zip(d.node_names,
-                                                                             choice))}
+            cpu = {n: inst.options[i][k].cpu
+                   for i, (n, k) in enumerate(zip(d.node_names, choice))}
             if problem == 1:
                 if check_layout(d, layout, cpu):
                     continue

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import Deployment
-from .instance import Instance
+from .instance import Instance, own_scales_of_all
 
 TOLERANCE = 1e-6
 
@@ -53,9 +53,12 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str],
     d = deployment
     out: List[Violation] = []
     scales = set(d.scale_names)
+    node_names = set(d.node_names)
+    own_scales = own_scales_of_all(d)
+    links = {frozenset(link.ends): link for link in d.links}
     cpu = dict(cpu or {})
     for name in layout:
-        if name not in d.node_names:
+        if name not in node_names:
             out.append(Violation('placement', name, f'{name!r} is not a node of the deployment'))
     for n in d.nodes:
         scale = layout.get(n.name)
@@ -65,8 +68,8 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str],
             out.append(Violation('placement', n.name,
                                  f'node {n.name} is placed on unknown scale {scale!r}'))
         else:
-            own = d.own_scales(n.name)
-            if scale not in own:
+            if scale not in own_scales[n.name]:
+                own = tuple(s for s in d.scale_names if s in own_scales[n.name])
                 out.append(Violation('residence', n.name, f'node {n.name} is on {scale} but '
                                      + _residence_reason(d, n.name, own)))
         share = cpu.get(n.name, n.cpu)
@@ -103,7 +106,7 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str],
         a, b = layout.get(c.publisher), layout.get(c.subscriber)
         if a not in scales or b not in scales or a == b:
             continue
-        link = d.link_between(a, b)
+        link = links.get(frozenset((a, b)))
         if link is None:
             out.append(Violation('no_link', c.name,
                                  f'connection {c.name} ({c.publisher} on {a} -> {c.subscriber} '

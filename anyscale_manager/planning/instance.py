@@ -54,7 +54,7 @@ def _node_options(node, problem: int, settings: str
     return tuple(Option(c, float(p)) for c, p in zip(cpus, perf)), profile
 
 
-def _own_scales(d: Deployment) -> Dict[str, set]:
+def own_scales_of_all(d: Deployment) -> Dict[str, set]:
     """``Deployment.own_scales`` for every node at once (the same rules, computed in one
     pass: the model's per-node form rescans every connection for each node)."""
     critical = set(d.critical_nodes)
@@ -126,7 +126,7 @@ class Instance:
             units.append(tuple(members))
         self.units: Tuple[Tuple[int, ...], ...] = tuple(units)
         self.unit_of: Tuple[int, ...] = tuple(unit_of)
-        own = _own_scales(d)
+        own = own_scales_of_all(d)
         allowed_units = []
         for members in self.units:
             allowed = set(self.scales)

@@ -79,10 +79,11 @@ def _plan(inst: Instance, solver: str, placement: Sequence[int], choice: Sequenc
         scale_load[p.scale] += p.cpu
     link_load = dict.fromkeys(inst.link_names, 0.0)
     for c in d.connections:
-        a, b = layout[c.publisher].scale, layout[c.subscriber].scale
-        link = d.link_between(a, b) if a != b else None
-        if link is not None:
-            link_load[link.name] += c.bandwidth_kbps
+        a, b = inst.scale_index[layout[c.publisher].scale], \
+            inst.scale_index[layout[c.subscriber].scale]
+        li = inst.link_of[a][b] if a != b else -1
+        if li >= 0:
+            link_load[inst.link_names[li]] += c.bandwidth_kbps
     return Plan(problem=inst.problem, solver=solver,
                 objective=inst.objective(placement, choice), layout=frozen_map(layout),
                 server_capacity=frozen_map(capacity), optimal=optimal and not violations,
@@ -141,8 +142,10 @@ def solve(deployment: Deployment, problem: int = 1, solver: str = 'greedy',
         r = solve_exact(inst, time_limit_s)
         elapsed = clock() - start
         if r.placement is None:
-            found = () if r.infeasible else (f'the exact solver stopped ({r.status}) before '
-                                              f'finding a feasible layout',)
+            found: Tuple[str, ...] = ()
+            if not r.infeasible:
+                found = (f'the exact solver stopped ({r.status}) before finding a feasible '
+                         f'layout',)
             return _infeasible(inst, solver, elapsed, found, r.status, r.infeasible)
         return _plan(inst, solver, r.placement, r.choice, elapsed, r.optimal, r.gap, r.status)
     if problem == 1:

@@ -123,8 +123,8 @@ class Regression:
             return f'{a:.5g} ln {var} {"+" if b >= 0 else "-"} {abs(b):.5g}'
         terms = []
         for power, c in zip(range(self.degree, -1, -1), self.coef_):
-            term = f'{abs(c):.5g}' + (f' {var}' if power == 1 else
-                                       f' {var}^{power}' if power > 1 else '')
+            suffix = f' {var}' if power == 1 else f' {var}^{power}' if power > 1 else ''
+            term = f'{abs(c):.5g}{suffix}'
             sign = '-' if c < 0 else '+'
             terms.append((sign, term))
         text = ('-' if terms[0][0] == '-' else '') + terms[0][1]

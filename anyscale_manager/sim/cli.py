@@ -44,6 +44,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='coverage holes per lap and link, drawn uniformly (default 1 3)')
     parser.add_argument('--migration-delay', type=float, default=PathModel.migration_delay_s,
                         metavar='S', help='seconds a moved node needs to start (default 2)')
+    parser.add_argument('--hysteresis', type=float, metavar='S',
+                        help="override the decider's hysteresis T in seconds (default: each "
+                             "deployment's own, 20 s for the test-bed)")
     parser.add_argument('--testbed', metavar='FILE',
                         help='the test-bed deployment file (default: the installed '
                              'icar2015_testbed.yaml)')
@@ -89,6 +92,9 @@ def run(args) -> int:
             raise ValueError(f'--runs must be >= 1, got {args.runs}')
         if args.seed < 0:
             raise ValueError(f'--seed must be >= 0, got {args.seed}')
+        if args.hysteresis is not None and not 0 <= args.hysteresis <= 86400:
+            raise ValueError(f'--hysteresis must be in [0, 86400] s, got {args.hysteresis:g}')
+        overrides = {} if args.hysteresis is None else {'hysteresis_s': args.hysteresis}
         path = _path_model(args)
         systems = [build_system(n, m, k, args.seed, args.testbed)
                    for n, m, k in parse_systems(args.systems)]
@@ -100,12 +106,12 @@ def run(args) -> int:
         def progress(s):
             print(f'  {s.policy}: {s.label} done', file=sys.stderr, flush=True)
     exp = run_experiment(systems, args.runs, args.seed, args.policy, path,
-                         oracle=not args.no_oracle, progress=progress)
+                         oracle=not args.no_oracle, progress=progress, overrides=overrides)
     other = None
     if args.compare:
         name = PLANNER if args.policy == HEURISTIC else HEURISTIC
         other = run_experiment(systems, args.runs, args.seed, name, path,
-                               oracle=not args.no_oracle, progress=progress)
+                               oracle=not args.no_oracle, progress=progress, overrides=overrides)
     try:
         files = report.write_csv([exp] + ([other] if other else []), args.out)
         files.append(report.write_figure(exp, args.out, other))

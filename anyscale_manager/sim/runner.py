@@ -31,9 +31,13 @@ POLICIES = (HEURISTIC, PLANNER)
 ORACLE_KBPS_STEP = 100.0   # the oracle sees available bandwidth rounded down to this
 
 
-def make_policy(name: str, system: SimSystem, migration: bool = True):
-    """The real runtime policy (``heuristic``) or the planner-backed one, fresh for one lap."""
-    settings = replace(system.deployment.decider, migration=migration)
+def make_policy(name: str, system: SimSystem, migration: bool = True,
+                overrides: Optional[Mapping[str, object]] = None):
+    """The real runtime policy (``heuristic``) or the planner-backed one, fresh for one lap.
+
+    ``overrides`` changes decider settings (e.g. ``hysteresis_s``) for a sensitivity study.
+    """
+    settings = replace(system.deployment.decider, migration=migration, **dict(overrides or {}))
     if name == HEURISTIC:
         return MigrationPolicy(system.deployment, settings)
     if name == PLANNER:
@@ -158,6 +162,7 @@ class Experiment:
     systems: Tuple[SystemResult, ...]
     wall_s: float = 0.0
     simulated_s: float = 0.0
+    overrides: Tuple[Tuple[str, object], ...] = ()
 
     @property
     def average_improvement_pct(self) -> float:
@@ -186,6 +191,7 @@ class Experiment:
             'average_oracle_improvement_pct': self.average_oracle_improvement_pct,
             'average_gap_to_oracle_pct': self.average_gap_to_oracle_pct,
             'model': asdict(self.path),
+            'decider_overrides': dict(self.overrides),
             'simulated_s': self.simulated_s,
             'wall_s': self.wall_s,
         }
@@ -211,7 +217,8 @@ def _pct(t: float, base: float) -> float:
 
 
 def run_system(system: SimSystem, runs: int, seed: int, policy: str = HEURISTIC,
-               path: PathModel = PathModel(), oracle: bool = True) -> Tuple[SystemResult, float]:
+               path: PathModel = PathModel(), oracle: bool = True,
+               overrides: Optional[Mapping[str, object]] = None) -> Tuple[SystemResult, float]:
     """All runs of one system; returns its result and the simulated seconds it took."""
     if runs < 1:
         raise ValueError(f'runs must be >= 1, got {runs}')
@@ -224,12 +231,12 @@ def run_system(system: SimSystem, runs: int, seed: int, policy: str = HEURISTIC,
         raise RuntimeError(f'{system.label}: the no-migration lap did not finish')
     simulated += base.time_s
     best = drive(system, best_case_schedules(path, remotes, peak_kbps(system, path)), path,
-                 make_policy(policy, system))
+                 make_policy(policy, system, overrides=overrides))
     simulated += best.time_s if best.finished else 0.0
     records = []
     for r in range(runs):
         schedules = run_schedules(system, path, seed, r)
-        lap = drive(system, schedules, path, make_policy(policy, system))
+        lap = drive(system, schedules, path, make_policy(policy, system, overrides=overrides))
         simulated += lap.time_s if lap.finished else 0.0
         if oracle:
             bound = oracle_lap(system, schedules, path)
@@ -258,14 +265,16 @@ def run_system(system: SimSystem, runs: int, seed: int, policy: str = HEURISTIC,
 
 def run_experiment(systems: Sequence[SimSystem], runs: int = 10, seed: int = 0,
                    policy: str = HEURISTIC, path: PathModel = PathModel(), oracle: bool = True,
-                   progress: Optional[Callable[[SystemResult], None]] = None) -> Experiment:
+                   progress: Optional[Callable[[SystemResult], None]] = None,
+                   overrides: Optional[Mapping[str, object]] = None) -> Experiment:
     start = time.perf_counter()
     results, simulated = [], 0.0
     for system in systems:
-        result, sim_s = run_system(system, runs, seed, policy, path, oracle)
+        result, sim_s = run_system(system, runs, seed, policy, path, oracle, overrides)
         simulated += sim_s
         results.append(result)
         if progress is not None:
             progress(result)
     return Experiment(policy=policy, runs=runs, seed=seed, path=path, systems=tuple(results),
-                      wall_s=time.perf_counter() - start, simulated_s=simulated)
+                      wall_s=time.perf_counter() - start, simulated_s=simulated,
+                      overrides=tuple(sorted(dict(overrides or {}).items())))
