@@ -76,8 +76,9 @@ def iros_table(repeat, settings):
 def scale_table(repeat, sizes):
     print('\n### Generated deployments (planning.generate.generate_deployment, seed 0)\n')
     print('| nodes | computers | connections | P1 greedy s | P1 paper-greedy s | P1 gain over '
-          'paper % | P2 greedy s | P2 paper-greedy s | P2 saving over paper % |')
-    print('|---|---|---|---|---|---|---|---|---|')
+          'paper % | P1 local search | P2 greedy s | P2 paper-greedy s | P2 saving over '
+          'paper % | P2 local search |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
     for n, c in sizes:
         d = generate_deployment(n, c, seed=0)
         cells = []
@@ -85,11 +86,12 @@ def scale_table(repeat, sizes):
             g, tg = best_of(repeat, lambda: solve(d, problem, 'greedy'))
             p, tp = best_of(repeat, lambda: solve(d, problem, 'paper-greedy'))
             if not (g.feasible and p.feasible):
-                cells += [f'{tg:.3f}', f'{tp:.3f}', 'infeasible']
+                cells += [f'{tg:.3f}', f'{tp:.3f}', 'infeasible', '-']
                 continue
             change = (100 * (g.objective - p.objective) / p.objective if problem == 1 else
                       100 * (p.objective - g.objective) / p.objective)
-            cells += [f'{tg:.3f}', f'{tp:.3f}', f'{change:.2f}']
+            done = 'converged' if g.status == 'local optimum' else 'time budget'
+            cells += [f'{tg:.3f}', f'{tp:.3f}', f'{change:.2f}', done]
         print(f'| {n} | {c} | {len(d.connections)} | ' + ' | '.join(cells) + ' |')
 
 

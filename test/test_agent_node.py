@@ -34,7 +34,7 @@ def write_deployment(tmp_path, run_id, name='agent_test'):
         return dict({'launch': {'command': [sys.executable,
                                             os.path.join(FIXTURES, 'agent_talker.py')],
                                 'parameters': {'topic': topic, 'rate_hz': 10.0},
-                                'ros_name': f'{ros_name}_{run_id}', 'env': env},
+                                'ros_name': f'{ros_name}_{run_id}', 'env': dict(env)},
                      'cpu': 1.0}, **extra)
 
     data = {'/**': {'ros__parameters': {
@@ -49,11 +49,12 @@ def write_deployment(tmp_path, run_id, name='agent_test'):
                               move_order='stop_before_start'),
             'stubborn': {'launch': {'command': [sys.executable,
                                                 os.path.join(FIXTURES, 'agent_stubborn.py')],
-                                    'env': env},
+                                    'env': dict(env)},
                          'cpu': 1.0},
             'forker': {'launch': {'command': [sys.executable,
                                               os.path.join(FIXTURES, 'agent_forker.py'),
-                                              str(tmp_path / 'forker_pids')], 'env': env},
+                                              str(tmp_path / 'forker_pids')],
+                                  'env': dict(env)},
                        'cpu': 1.0},
         },
         'decider': {'agent_timeout_s': 3.0},
@@ -315,8 +316,8 @@ def test_crash_restart_adoption_and_shutdown(tmp_path, setup):
            what='the restarted agent adopting its nodes')
     assert {n: h.report('a', n).pid for n in pids} == pids
     # No second copy of anything: exactly the adopted processes and the grandchild.
-    assert sorted(p.pid for p in run_processes(run_id)) == sorted(list(pids.values())
-                                                                   + [grandchild])
+    expected = sorted(list(pids.values()) + [grandchild])
+    assert sorted(p.pid for p in run_processes(run_id)) == expected
     assert os.path.getsize(tmp_path / 'log' / 'agent_test' / 'a' / 'stubborn.log') > 0
 
     t0 = time.monotonic()

@@ -342,20 +342,30 @@ def main(args: Optional[List[str]] = None) -> int:
     if not SCALE_RE.match(scale):
         print(f'agent: scale {scale!r} is not a valid scale name', file=sys.stderr)
         return 2
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as e:   # rcl refuses the arguments or the parameters file
+        print(f'agent: cannot start on scale {scale!r}: {e}', file=sys.stderr)
+        return 2
     node = None
+    early = []
+
+    def on_signal(signum, frame):
+        if node is None:
+            early.append(signum)   # the node reports before main() gets here: remember it
+        else:
+            node.request_shutdown()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
     try:
         try:
             node = AgentNode(scale)
         except (DeploymentError, AgentError, ValueError) as e:
             print(f'agent: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
             return 2
-
-        def on_signal(signum, frame):
+        for _ in early[:2]:
             node.request_shutdown()
-
-        signal.signal(signal.SIGINT, on_signal)
-        signal.signal(signal.SIGTERM, on_signal)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         while rclpy.ok() and not node.finished:

@@ -192,9 +192,11 @@ def _targets(inst: Instance, loads: Loads, u: int, s: int) -> List[int]:
     return [t for t in allowed if t in near or t in roomy]
 
 
-def improve_problem1(inst: Instance, loads: Loads, clock: Clock, deadline: float) -> Loads:
+def improve_problem1(inst: Instance, loads: Loads, clock: Clock, deadline: float
+                     ) -> Tuple[Loads, bool]:
     """Local search: re-upgrade every scale exactly, then move and swap units while the total
-    weighted performance rises, each candidate re-checked for links and CPU."""
+    weighted performance rises, each candidate re-checked for links and CPU. Returns the loads
+    and whether a local optimum was reached (False: the deadline came first)."""
     values = _ScaleValues(inst)
     members = [frozenset(m) for m in loads.members]
 
@@ -216,7 +218,7 @@ def improve_problem1(inst: Instance, loads: Loads, clock: Clock, deadline: float
         apply(s, result)
         current.append(result[0])
     if not inst.configurable:
-        return loads
+        return loads, True
     swaps = len(inst.units) <= ALL_SWAPS_UP_TO
     improved = True
     while improved and clock() < deadline:
@@ -266,7 +268,7 @@ def improve_problem1(inst: Instance, loads: Loads, clock: Clock, deadline: float
             members[s], members[t] = new_s, new_t
             current[s], current[t] = vs[0], vt[0]
             improved = True
-    return loads
+    return loads, not improved
 
 
 def _links_allow(loads: Loads, moves: Sequence[Tuple[int, int]]) -> bool:
@@ -327,14 +329,15 @@ def paper_problem2(inst: Instance) -> Outcome:
     return Outcome(loads)
 
 
-def improve_problem2(inst: Instance, loads: Loads, clock: Clock, deadline: float) -> Loads:
+def improve_problem2(inst: Instance, loads: Loads, clock: Clock, deadline: float
+                     ) -> Tuple[Loads, bool]:
     """Local search that moves CPU from growable servers onto fixed computers: single moves,
     swaps, and an exact refill (subset sum) of each fixed computer, every change re-checked."""
     fixed = [s for s in range(len(inst.scales)) if not inst.growable[s]]
     if not fixed or not any(inst.growable):
-        return loads
+        return loads, True
     cpu = [loads.unit_cpu(u) for u in range(len(inst.units))]
-    q = min(inst.quantum, _grid_of(cpu))
+    q = _grid_of(cpu)
 
     def growable_for(u: int) -> List[int]:
         return [s for s in inst.unit_allowed[u] if inst.growable[s]]
@@ -372,7 +375,7 @@ def improve_problem2(inst: Instance, loads: Loads, clock: Clock, deadline: float
                 if loads.try_moves([(u, f)]):
                     improved = True
                     break
-    return loads
+    return loads, not improved
 
 
 def _try_with_growable(loads: Loads, moves, leaving, growable_for) -> bool:

@@ -155,11 +155,10 @@ def solve(deployment: Deployment, problem: int = 1, solver: str = 'greedy',
     if outcome.loads is None:
         return _infeasible(inst, solver, clock() - start, outcome.reason, 'no layout', False)
     loads = outcome.loads
+    status = 'greedy'
     if solver == 'greedy':
         deadline = start + min(time_limit_s, IMPROVE_BUDGET_S)
-        if problem == 1:
-            loads = improve_problem1(inst, loads, clock, deadline)
-        else:
-            loads = improve_problem2(inst, loads, clock, deadline)
-    return _plan(inst, solver, loads.placement(), loads.choice, clock() - start,
-                 status='local optimum' if solver == 'greedy' else 'greedy')
+        improve = improve_problem1 if problem == 1 else improve_problem2
+        loads, converged = improve(inst, loads, clock, deadline)
+        status = 'local optimum' if converged else 'local search stopped at its time budget'
+    return _plan(inst, solver, loads.placement(), loads.choice, clock() - start, status=status)
