@@ -171,7 +171,9 @@ def test_start_ready_and_stop(make_sup):
     assert sup.reports()['n'].state == 'stopping'
     assert drive(sup, lambda: sup.reports()['n'].state == 'stopped', timeout=15.0)
     r = sup.reports()['n']
-    assert r.pid == 0 and 'SIGINT' in r.exit_reason and 'SIGTERM' not in r.exit_reason
+    # SIGINT alone ended it (during interpreter start-up Python exits with status 1 instead).
+    assert r.pid == 0 and r.exit_reason.startswith('stopped (')
+    assert 'after SIG' not in r.exit_reason
     assert gone(pid)
     assert json.load(open(sup.state_path))['nodes'] == {}
     log = open(sup.log_path('n')).read()

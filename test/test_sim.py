@@ -145,7 +145,8 @@ def test_world_observations_follow_the_link(testbed):
     assert world.speed_mps() == pytest.approx(0.2)          # within Δ: dead reckoning
     for _ in range(5):                                      # 2.5 s > Δ = 2 s
         world.advance(0.5)
-    assert world.speed_mps() == 0.0 and world.s == pytest.approx(0.5)   # 2 s at 0.2 m/s, then stopped
+    # 2 s at 0.2 m/s, then stopped
+    assert world.speed_mps() == 0.0 and world.s == pytest.approx(0.5)
     assert world.observe().connections['amcl_ekf'].below_for_s == pytest.approx(2.5)
     # the laptop's agent is silent beyond agent_timeout_s: the scale is lost
     assert 'laptop' in world.observe().lost_scales

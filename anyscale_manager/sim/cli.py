@@ -23,8 +23,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--seed', type=int, default=0, metavar='S',
                         help='base seed: same seed, same results (default 0)')
     parser.add_argument('--out', default='simulation', metavar='DIR',
-                        help='directory for fig7.png, fig7.csv and runs.csv (default ./simulation)')
-    parser.add_argument('--json', action='store_true', help='print one JSON object instead of a table')
+                        help='directory for fig7.png, fig7.csv and runs.csv '
+                             '(default ./simulation)')
+    parser.add_argument('--json', action='store_true',
+                        help='print one JSON object instead of a table')
     parser.add_argument('--policy', choices=POLICIES, default=HEURISTIC,
                         help='heuristic: the runtime policy (Algorithm 1); planner: the '
                              'planner-backed policy (default heuristic)')
@@ -101,10 +103,11 @@ def run(args) -> int:
     except (ValueError, OSError, DeploymentError) as e:
         print(f'anyscale-manager simulate: {e}', file=sys.stderr)
         return 2
-    progress = None
-    if not args.json:
-        def progress(s):
+
+    def progress(s) -> None:
+        if not args.json:
             print(f'  {s.policy}: {s.label} done', file=sys.stderr, flush=True)
+
     exp = run_experiment(systems, args.runs, args.seed, args.policy, path,
                          oracle=not args.no_oracle, progress=progress, overrides=overrides)
     other = None
@@ -133,4 +136,3 @@ def run(args) -> int:
         print(f'simulated {simulated:.0f} s of robot time in {wall:.1f} s of wall time '
               f'({rate:.0f} simulated s per wall s)')
     return 0
-

@@ -102,12 +102,13 @@ def write_figure(exp: Experiment, directory: str, other: Optional[Experiment] = 
     series = [(f'{exp.policy} (link 45-65 %)', [s.improvement_pct for s in exp.systems],
                [s.improvement_std_pct for s in exp.systems], '#4c72b0')]
     if other is not None:
-        series.append((f'{other.policy} (link 45-65 %)', [s.improvement_pct for s in other.systems],
+        series.append((f'{other.policy} (link 45-65 %)',
+                       [s.improvement_pct for s in other.systems],
                        [s.improvement_std_pct for s in other.systems], '#55a868'))
     series.append((f'{exp.policy}, best case (link always up)',
                    [s.best_case_improvement_pct for s in exp.systems], None, '#c44e52'))
     width = 0.8 / len(series)
-    fig, ax = plt.subplots(figsize=(11, 4.8))
+    fig, ax = plt.subplots(figsize=(11, 5.6))
     for i, (name, values, err, colour) in enumerate(series):
         offs = [xi - 0.4 + width * (i + 0.5) for xi in x]
         ax.bar(offs, values, width, yerr=err, label=name, color=colour, capsize=2)
@@ -125,10 +126,13 @@ def write_figure(exp: Experiment, directory: str, other: Optional[Experiment] = 
     ax.set_xticklabels(labels, fontsize=8)
     ax.set_ylabel('path time saved vs no migration (%)')
     ax.set_ylim(0, 60)
-    ax.set_title(f'Fig. 7 reproduced: {exp.runs} run(s) per system, seed {exp.seed}, '
-                 f'average {exp.average_improvement_pct:.1f} %, best case '
-                 f'{exp.best_case_improvement_pct:.1f} %', fontsize=10)
-    ax.legend(fontsize=7, loc='upper left', ncol=2)
+    title = (f'Fig. 7 reproduced: {exp.runs} run(s) per system, seed {exp.seed}; {exp.policy} '
+             f'average {exp.average_improvement_pct:.1f} %')
+    if other is not None:
+        title += f', {other.policy} average {other.average_improvement_pct:.1f} %'
+    title += f'; best case {exp.best_case_improvement_pct:.1f} %'
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7, loc='upper center', bbox_to_anchor=(0.5, -0.16), ncol=4)
     ax.grid(axis='y', alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)

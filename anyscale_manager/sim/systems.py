@@ -1,6 +1,7 @@
 """The systems of the paper's Fig. 7: N processing nodes, M migratable, K scales.
 
-* 6N x 2M is the ICAR test-bed itself, read from its deployment file (config/icar2015_testbed.yaml).
+* 6N x 2M is the ICAR test-bed itself, read from its deployment file
+  (config/icar2015_testbed.yaml).
 * 12N x 6M and 18N x 9M are generated from it: the same robot, sensors and critical core
   (odometry, EKF, navigation, decision), more critical nodes fed with Delta = 0, and M
   migratable nodes alternating between the test-bed's two kinds: localisers like AMCL (laser in,
