@@ -309,6 +309,7 @@ def test_simulate_table(tmp_path):
     (['--systems', '6x3x2'], 'N >= M + 4'),
     (['--testbed', '/nonexistent/testbed.yaml'], 'testbed.yaml'),
     (['--availability', '0.7', '0.5'], 'availability'),
+    (['--hysteresis', '-1'], '--hysteresis must be in'),
 ])
 def test_simulate_bad_input(tmp_path, args, message):
     proc = _simulate(args, tmp_path)

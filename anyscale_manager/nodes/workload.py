@@ -30,7 +30,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import UInt8MultiArray
 
-REFERENCE_CORE = 0.2      # one reference (robot) core as a fraction of one core of this machine
+REFERENCE_CORE = 0.25     # one reference (robot) core as a fraction of one core of this machine
 MAX_BYTES = 16 * 1024 * 1024
 
 

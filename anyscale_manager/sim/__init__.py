@@ -1,1 +1,1 @@
-"""sim."""
+"""The simulated world that drives the same runtime core as the live decider, without ROS."""

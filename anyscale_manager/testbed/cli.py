@@ -1,0 +1,224 @@
+"""``anyscale-manager demo``: the ICAR 2015 test-bed with a link outage schedule, on one machine.
+
+Builds the test-bed (network namespaces, a shaped link, CPU quotas; or loopback with the link
+emulated when there are no rights), runs the default deployment, drives the link through a
+schedule modelled on the paper's run while it shows a live status table, then writes the
+timeline figure, the event log and a summary, prints where they are, and tears everything down.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+from typing import List, Optional
+
+from ..model.loader import DeploymentError, load_deployment
+from . import schedule as sched
+
+CONFIG_NAME = 'icar2015_testbed.yaml'
+
+
+def default_config() -> Optional[str]:
+    """The installed share/anyscale_manager/config file, else the source tree's config/."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        path = os.path.join(get_package_share_directory('anyscale_manager'), 'config',
+                            CONFIG_NAME)
+        if os.path.isfile(path):
+            return path
+    except (ImportError, LookupError, OSError, ValueError):
+        pass
+    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    path = os.path.join(here, 'config', CONFIG_NAME)
+    return path if os.path.isfile(path) else None
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument('--duration', type=float, default=60.0, metavar='SECONDS',
+                        help='length of the scheduled run once every node runs (default 60)')
+    parser.add_argument('--out', default='', metavar='FOLDER',
+                        help='where to write timeline.png, events.jsonl/txt and summary.json '
+                             '(default ./anyscale_demo_<time>)')
+    parser.add_argument('--config', default='', metavar='DEPLOYMENT.yaml',
+                        help=f'deployment to run (default: the packaged {CONFIG_NAME})')
+    parser.add_argument('--schedule', default='', metavar='STEPS',
+                        help='link schedule instead of the paper-like default, e.g. '
+                             '"20:cut,35:restore,40:throttle=4000" (seconds after start)')
+    parser.add_argument('--mode', choices=('auto', 'netns', 'loopback'), default='auto',
+                        help='netns needs root; auto falls back to loopback and says so')
+    parser.add_argument('--no-migration', action='store_true',
+                        help='run the same schedule with decider.migration false (baseline)')
+    parser.add_argument('--domain-id', type=int, default=None,
+                        help='ROS_DOMAIN_ID for the run (default: $ROS_DOMAIN_ID or 0)')
+    parser.add_argument('--refresh', type=float, default=1.0, metavar='SECONDS',
+                        help='status table refresh period (default 1)')
+
+
+def _fail(message: str) -> int:
+    print(f'anyscale-manager demo: {message}', file=sys.stderr)
+    return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    from .harness import HarnessError, Options, Testbed
+    from .report import draw_timeline, status_table, write_event_log
+
+    if not args.duration > 0 or args.duration > 24 * 3600:
+        return _fail(f'--duration must be between 0 and 86400 s, got {args.duration:g}')
+    if not args.refresh > 0:
+        return _fail('--refresh must be > 0')
+    config = args.config or default_config()
+    if not config:
+        return _fail(f'cannot find {CONFIG_NAME} (not installed, not in a source tree); '
+                     'pass --config')
+    try:
+        load_deployment(config)
+    except DeploymentError as e:
+        return _fail(str(e))
+    try:
+        steps = sched.parse(args.schedule) if args.schedule else \
+            sched.paper_schedule(args.duration)
+    except ValueError as e:
+        return _fail(f'--schedule: {e}')
+    domain = args.domain_id
+    if domain is None:
+        try:
+            domain = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
+        except ValueError:
+            return _fail(f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]!r} is not a number')
+    if not 0 <= domain <= 232:
+        return _fail(f'domain id {domain} out of range 0..232')
+    out = os.path.abspath(args.out or f'anyscale_demo_{time.strftime("%Y%m%d_%H%M%S")}')
+    try:
+        os.makedirs(out, exist_ok=True)
+    except OSError as e:
+        return _fail(f'cannot create {out}: {e.strerror}')
+
+    parameters = {'decider.migration': 'false'} if args.no_migration else {}
+    options = Options(config, domain, mode=args.mode, decider_parameters=parameters,
+                      run_dir=os.path.join(out, 'run'), keep_run_dir=True)
+    try:
+        testbed = Testbed(options)
+    except (HarnessError, DeploymentError) as e:
+        return _fail(str(e))
+    tty = sys.stdout.isatty()
+    print(f'anyscale-manager demo: {config}')
+    if any(s.action == 'throttle' for s in steps) and args.mode == 'loopback':
+        print('note: throttle steps are skipped on loopback (no bandwidth shaping there)')
+    print('starting the test-bed (every node starts on the robot) ...', flush=True)
+    code = 0
+    t0 = t1 = time.monotonic()
+    try:
+        testbed.start()
+        print(f'mode: {testbed.mode}: {testbed.mode_reason}')
+        if testbed.mode == 'netns':
+            c = testbed.cpu_cores
+            print(f'CPU quotas: robot {c["robot"]:.2f} cores, laptop {c["laptop"]:.2f} cores of '
+                  f'this machine (one reference core = {options.reference_core:g} core); '
+                  f'link {options.rate_kbps / 1000:g} Mbit/s')
+        print('schedule: ' + ', '.join(str(s) for s in steps) +
+              f' (link up {sched.up_fraction(steps, args.duration):.0%} of the run)', flush=True)
+        t0 = time.monotonic()
+        testbed.mark('schedule started')
+        pending = list(steps)
+        next_show = t0
+        last_plain = -1e9
+        while True:
+            now = time.monotonic()
+            while pending and now - t0 >= pending[0].at_s:
+                step = pending.pop(0)
+                _apply(testbed, step)
+            if now - t0 >= args.duration:
+                break
+            if now >= next_show:
+                with testbed.lock:
+                    table = status_table(testbed.record, now, t0, testbed.mode)
+                if tty:
+                    sys.stdout.write('\x1b[H\x1b[2J' + table + '\n')
+                    sys.stdout.flush()
+                elif now - last_plain >= 5.0:
+                    print(table + '\n', flush=True)
+                    last_plain = now
+                next_show = now + args.refresh
+            time.sleep(0.05)
+        t1 = time.monotonic()
+        testbed.mark('schedule ended')
+    except HarnessError as e:
+        print(f'anyscale-manager demo: {e}', file=sys.stderr)
+        code = 1
+    except KeyboardInterrupt:
+        print('\ninterrupted: tearing down', file=sys.stderr)
+        code = 130
+        t1 = time.monotonic()
+    finally:
+        print('stopping every node and tearing the test-bed down ...', flush=True)
+        notes = testbed.stop()
+    for note in notes:
+        print(f'teardown: {note}', file=sys.stderr)
+
+    record = testbed.record
+    files = []
+    if t1 > t0:
+        title = (f'ICAR 2015 test-bed, {testbed.mode}, '
+                 f'{"migration disabled" if args.no_migration else "migration on"}')
+        files.append(draw_timeline(record, os.path.join(out, 'timeline.png'), t0, t1, title))
+    files.extend(write_event_log(record, out, t0))
+    summary = _summary(testbed, t0, t1, steps, args, notes)
+    summary_path = os.path.join(out, 'summary.json')
+    with open(summary_path, 'w') as f:
+        json.dump(summary, f, indent=2, sort_keys=True)
+    files.append(summary_path)
+    print('')
+    print(f'moves: {summary["moves"]}; time per layout: ' + ', '.join(
+        f'{k} {v:.0%}' for k, v in summary['placement_shares'].items()))
+    if summary['objective_integral'] is not None:
+        print(f'time-integrated performance (decider objective): '
+              f'{summary["objective_integral"]:.1f}')
+    print(f'connections past their Δ (probe reports): {summary["violations"]}')
+    print('written:')
+    for path in files:
+        print(f'  {path}')
+    print(f'  node and process logs: {os.path.join(out, "run")}')
+    if notes:
+        code = code or 1
+    return code
+
+
+def _apply(testbed, step: sched.Step) -> None:
+    from .harness import HarnessError
+    try:
+        if step.action == 'cut':
+            testbed.cut()
+        elif step.action == 'restore':
+            testbed.restore()
+        else:
+            testbed.throttle(step.rate_kbps)
+    except HarnessError as e:
+        testbed.mark(f'{step} skipped: {e}')
+
+
+def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> dict:
+    from .report import placement_shares
+    record = testbed.record
+    with testbed.lock:
+        objective = [o for t, o in record.objectives if t0 <= t <= t1]
+        violations = record.reported_violations(t0, t1)
+        return {
+            'mode': testbed.mode, 'mode_reason': testbed.mode_reason,
+            'duration_s': round(t1 - t0, 2), 'schedule': [str(s) for s in steps],
+            'link_up_fraction': round(sched.up_fraction(steps, args.duration), 3),
+            'migration': not args.no_migration,
+            'moves': len(record.moves(t0, t1)),
+            'placement_shares': {k: round(v, 3) for k, v in
+                                 placement_shares(record, t0, t1).items()},
+            'objective_integral': (objective[-1].integral - objective[0].integral
+                                   if len(objective) > 1 else None),
+            'violations': len(violations),
+            'violation_details': [
+                {'connection': v.connection, 'start_s': round(v.start - t0, 2),
+                 'end_s': round(v.end - t0, 2), 'tolerance_s': v.tolerance_s,
+                 'reported_by': v.source} for v in violations],
+            'teardown_notes': notes,
+            'observer_problems': record.problems[:20],
+        }
