@@ -1,6 +1,7 @@
 """Frozen dataclasses describing one deployment: scales, links, nodes, connections, settings."""
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from types import MappingProxyType
 from typing import Mapping, Optional, Tuple
 
@@ -190,52 +191,65 @@ class Deployment:
     agent: AgentSettings = AgentSettings()
     description: str = ''
 
-    # --- look-ups -------------------------------------------------------------------------
+    # --- look-ups (indexes built once: a Deployment never changes) --------------------------
+    # cached_property writes straight into the instance dict, which a frozen dataclass allows.
+    @cached_property
+    def _index(self) -> Mapping[str, Mapping[str, object]]:
+        return frozen_map({
+            'scale': frozen_map({s.name: s for s in self.scales}),
+            'node': frozen_map({n.name: n for n in self.nodes}),
+            'connection': frozen_map({c.name: c for c in self.connections}),
+            'link': frozen_map({frozenset(link.ends): link for link in self.links}),
+        })
+
+    def _lookup(self, kind: str, key) -> object:
+        try:
+            return self._index[kind][key]
+        except KeyError:
+            raise KeyError(f'unknown {kind} {key!r}') from None
+
     def scale(self, name: str) -> Scale:
-        for s in self.scales:
-            if s.name == name:
-                return s
-        raise KeyError(f'unknown scale {name!r}')
+        return self._lookup('scale', name)
 
     def node(self, name: str) -> Node:
-        for n in self.nodes:
-            if n.name == name:
-                return n
-        raise KeyError(f'unknown node {name!r}')
+        return self._lookup('node', name)
 
     def connection(self, name: str) -> Connection:
-        for c in self.connections:
-            if c.name == name:
-                return c
-        raise KeyError(f'unknown connection {name!r}')
+        return self._lookup('connection', name)
 
-    @property
+    @cached_property
     def scale_names(self) -> Tuple[str, ...]:
         return tuple(s.name for s in self.scales)
 
-    @property
+    @cached_property
     def node_names(self) -> Tuple[str, ...]:
         return tuple(n.name for n in self.nodes)
 
-    @property
+    @cached_property
     def master(self) -> Scale:
         return next(s for s in self.scales if s.is_master)
 
-    @property
+    @cached_property
     def remote_scales(self) -> Tuple[Scale, ...]:
         return tuple(s for s in self.scales if not s.is_master)
 
     def link_between(self, a: str, b: str) -> Optional[Link]:
-        for link in self.links:
-            if link.joins(a, b):
-                return link
-        return None
+        return self._index['link'].get(frozenset((a, b))) if a != b else None
 
     def connections_of(self, node: str) -> Tuple[Connection, ...]:
-        return tuple(c for c in self.connections if node in (c.publisher, c.subscriber))
+        return self._connections_of.get(node, ())
+
+    @cached_property
+    def _connections_of(self) -> Mapping[str, Tuple[Connection, ...]]:
+        out = {}
+        for c in self.connections:
+            out.setdefault(c.publisher, []).append(c)
+            if c.subscriber != c.publisher:
+                out.setdefault(c.subscriber, []).append(c)
+        return frozen_map({k: tuple(v) for k, v in out.items()})
 
     # --- derived sets (the ICAR paper's static analysis) ------------------------------------
-    @property
+    @cached_property
     def critical_nodes(self) -> Tuple[str, ...]:
         """Nodes in at least one connection whose tolerance is 0: pinned to the master."""
         names = set()
@@ -244,7 +258,7 @@ class Deployment:
                 names.update((c.publisher, c.subscriber))
         return tuple(n.name for n in self.nodes if n.name in names)
 
-    @property
+    @cached_property
     def data_providers(self) -> Tuple[str, ...]:
         """Nodes that publish into the graph but subscribe to nothing: sensor drivers and the like."""
         publishers = {c.publisher for c in self.connections}
@@ -254,6 +268,12 @@ class Deployment:
 
     def coresidence_group(self, node: str) -> Tuple[str, ...]:
         """The node and every node it must share a scale with (symmetric, transitive)."""
+        groups = self.__dict__.setdefault('_groups', {})
+        if node not in groups:
+            groups[node] = self._coresidence_group(node)
+        return groups[node]
+
+    def _coresidence_group(self, node: str) -> Tuple[str, ...]:
         links = {n.name: set(n.coresidence) for n in self.nodes}
         for n in self.nodes:
             for other in n.coresidence:
@@ -280,12 +300,22 @@ class Deployment:
 
     def allowed_scales(self, node: str) -> Tuple[str, ...]:
         """Scales a node may run on, its coresidence group's constraints included."""
-        allowed = set(self.scale_names)
-        for member in self.coresidence_group(node):
-            allowed &= set(self.own_scales(member))
-        return tuple(s for s in self.scale_names if s in allowed)
+        try:
+            return self._allowed[node]
+        except KeyError:
+            raise KeyError(f'unknown node {node!r}') from None
 
-    @property
+    @cached_property
+    def _allowed(self) -> Mapping[str, Tuple[str, ...]]:
+        out = {}
+        for n in self.nodes:
+            allowed = set(self.scale_names)
+            for member in self.coresidence_group(n.name):
+                allowed &= set(self.own_scales(member))
+            out[n.name] = tuple(s for s in self.scale_names if s in allowed)
+        return frozen_map(out)
+
+    @cached_property
     def migratable_nodes(self) -> Tuple[str, ...]:
         """Nodes the runtime may move between the master and remote scales."""
         master = self.master.name

@@ -24,7 +24,6 @@ import numpy as np
 import yaml
 
 from ..model.loader import load_mapping
-from .memo import memoize
 from .model import SimSystem, profiles_from_deployment
 
 FIG7_TYPES = ((6, 2), (12, 6), (18, 9))
@@ -192,7 +191,7 @@ def build_system(n: int, m: int, k: int, seed: int = 0,
     if len(processing) != n or len(deployment.migratable_nodes) != m:
         raise ValueError(f'{label}: built {len(processing)} processing nodes and '
                          f'{len(deployment.migratable_nodes)} migratable, expected {n} and {m}')
-    return SimSystem(label=label, n=n, m=m, k=k, deployment=memoize(deployment),
+    return SimSystem(label=label, n=n, m=m, k=k, deployment=deployment,
                      profiles=profiles_from_deployment(deployment, speed))
 
 
