@@ -106,8 +106,12 @@ def run(args) -> int:
         print(f'--time-limit must be a positive number of seconds, got {args.time_limit}',
               file=sys.stderr)
         return 2
-    plan = solve(d, problem=args.problem, solver=args.solver, settings=args.settings,
-                 time_limit_s=args.time_limit)
+    try:
+        plan = solve(d, problem=args.problem, solver=args.solver, settings=args.settings,
+                     time_limit_s=args.time_limit)
+    except ImportError as e:
+        print(f'anyscale-manager plan: {e}', file=sys.stderr)
+        return 2
     if args.json:
         print(json.dumps(plan_to_dict(d, plan), indent=2))
     if not plan.feasible:

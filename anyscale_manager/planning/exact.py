@@ -27,7 +27,10 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Tuple
 
-import highspy
+try:
+    import highspy
+except ImportError:  # optional on a plain ROS install: only the exact solver needs it
+    highspy = None
 import numpy as np
 
 from .instance import Instance
@@ -77,7 +80,7 @@ class _Model:
         self.row_lower.append(low)
         self.row_upper.append(high)
 
-    def lp(self, maximise: bool, offset: float) -> highspy.HighsLp:
+    def lp(self, maximise: bool, offset: float) -> 'highspy.HighsLp':
         lp = highspy.HighsLp()
         lp.num_col_ = len(self.cost)
         lp.num_row_ = len(self.row_lower)
@@ -489,6 +492,8 @@ def _build_configurations(m: _Model, inst: Instance, classes: List[List[int]]
 
 
 def solve_exact(inst: Instance, time_limit_s: float) -> ExactResult:
+    if highspy is None:
+        raise ImportError('the exact solver needs HiGHS: pip install highspy')
     if any(not a for a in inst.unit_allowed):
         return ExactResult(None, None, False, True, None, 'a node has no allowed scale')
     m = _Model()

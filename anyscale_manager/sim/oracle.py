@@ -20,7 +20,10 @@ import math
 from dataclasses import dataclass
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
-import highspy
+try:
+    import highspy
+except ImportError:  # optional: the branch-and-bound oracle needs nothing
+    highspy = None
 
 from ..model.types import Deployment
 from .model import NodeProfile, node_rate, quality
@@ -48,6 +51,8 @@ class Assignment:
                  bandwidth_margin: Optional[float] = None, method: str = BRANCH_AND_BOUND):
         if method not in METHODS:
             raise ValueError(f'unknown method {method!r}: expected one of {", ".join(METHODS)}')
+        if method == MILP and highspy is None:
+            raise ImportError('the MILP oracle needs HiGHS: pip install highspy')
         d = deployment
         self.method = method
         self.deployment = d
