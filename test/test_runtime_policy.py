@@ -11,6 +11,8 @@ policy decided and when.
   its readings stop arriving (they go stale).
 - A throttled link delivers a crossing connection at ``available / required`` of its rate.
 - A decision takes effect ``apply_s`` after it is made (an agent starting the node).
+- A scale monitor reports every period while its scale is reachable; ``scale_silent`` pauses
+  it (the decider keeps its last, ageing, report), as does a cut link.
 """
 
 from dataclasses import replace
@@ -42,6 +44,7 @@ class BedTrace:
         self.t = 0.0
         self.link_schedule: List[Tuple[float, bool, Optional[float]]] = [(-1e9, True, None)]
         self.link_silent: List[Tuple[float, float]] = []     # (from, to) no link reports
+        self.scale_silent: List[Tuple[str, float, float]] = []   # (scale, from, to) no reports
         self.rate_factor: Dict[str, Callable[[float], float]] = {}   # connection -> f(t)
         self.cpu_extra: Dict[str, Callable[[float], float]] = {}     # scale -> f(t)
         self.lost: Callable[[float], frozenset] = lambda t: frozenset()
@@ -51,6 +54,7 @@ class BedTrace:
         self.below_at: Dict[float, Dict[str, float]] = {}     # decision time -> Δ timers
         self._last_link: Optional[LinkObs] = None
         self._last_reading: Dict[str, ConnectionObs] = {}
+        self._last_scale: Dict[str, ScaleObs] = {}
         self._below_since: Dict[str, float] = {}
         self._down_since: Optional[float] = None
 
@@ -119,15 +123,17 @@ class BedTrace:
                 continue                     # the reading cannot reach the decider
             below = t - self._below_since[c.name] if c.name in self._below_since else 0.0
             self._last_reading[c.name] = ConnectionObs(rate_hz=rate, stamp=t, below_for_s=below)
-        scales = {}
         for s in self.d.scale_names:
             if s != self.master and not truly_up:
                 continue
+            if any(x == s and a <= t < b for x, a, b in self.scale_silent):
+                continue
             cpu = sum(self.d.node(n).cpu for n, w in self.running.items() if w == s)
             cpu += self.cpu_extra.get(s, lambda _t: 0.0)(t)
-            scales[s] = ScaleObs(cpu_total=cpu, stamp=t)
-        return Observations(now=t, running=dict(self.running), scales=scales, links=links,
-                            connections=dict(self._last_reading), lost_scales=self.lost(t))
+            self._last_scale[s] = ScaleObs(cpu_total=cpu, stamp=t)
+        return Observations(now=t, running=dict(self.running), scales=dict(self._last_scale),
+                            links=links, connections=dict(self._last_reading),
+                            lost_scales=self.lost(t))
 
     def run(self, until: float) -> List[Tuple[float, Decision]]:
         new = []
@@ -173,11 +179,13 @@ def test_link_up_amcl_moves_first_then_ar(testbed):
     bed = BedTrace(testbed)
     bed.run(20.0)
     outs = bed.moves(MIGRATE)
-    assert outs[0][0] >= testbed.decider.grace_s       # the first layout's grace first
+    assert outs[0][0] == 0.0          # link and both CPUs observed: no fixed wait at the start
     assert [d.node for _, d in outs] == ['amcl', 'ar']
     assert all(d.to_scale == 'laptop' and d.from_scale == 'robot' for _, d in outs)
-    # one move out at a time: AR only after AMCL runs there and its grace period is over
-    assert outs[1][0] - outs[0][0] >= testbed.decider.grace_s
+    # one move out at a time: AR only after AMCL runs there and the laptop's CPU was measured
+    # after that (the next period's reading)
+    amcl_there = next(t for t, n, s in bed.applied if n == 'amcl' and s == 'laptop')
+    assert outs[1][0] >= amcl_there + bed.period_s - 1e-9
     assert 'most CPU-intensive' in outs[0][1].reason and 'wifi' in outs[1][1].reason
     assert not bed.moves(MIGRATE_BACK)
     assert bed.policy.migrated == [('amcl', 'laptop'), ('ar', 'laptop')]
@@ -304,7 +312,7 @@ def test_master_cpu_overload_is_reported_but_not_blocking(testbed):
     report = bed.policy.last_report
     assert not report.cpu_ok
     assert report.of_kind('cpu')[0].subject == 'robot' and not report.of_kind('cpu')[0].nodes
-    assert [d.node for _, d in bed.moves(MIGRATE)] == ['amcl']
+    assert [d.node for _, d in bed.moves(MIGRATE)] == ['amcl', 'ar']
 
 
 def test_no_room_on_the_remote_cpu_means_no_move(testbed):
@@ -367,9 +375,12 @@ def test_adopts_what_runs_instead_of_moving_it(testbed):
     running = dict(master_layout(testbed), amcl='laptop')
     bed = BedTrace(testbed, running=running)
     bed.run(0.0)
-    assert not bed.log
+    assert not [d for _, d in bed.log if d.node == 'amcl']      # AMCL is not restarted
     assert bed.policy.layout['amcl'] == 'laptop'
-    assert bed.policy.migrated == [('amcl', 'laptop')]
+    assert bed.policy.migrated[0] == ('amcl', 'laptop')
+    # what runs is what the readings measure: AR may follow at once, judged with AMCL there
+    assert [d.node for _, d in bed.log] == ['ar']
+    assert 'CPU 50 + ' in bed.log[0][1].reason
 
 
 def test_every_decision_has_a_reason(testbed):
@@ -383,7 +394,107 @@ def test_every_decision_has_a_reason(testbed):
 
 def test_settings_change_at_run_time_takes_effect(testbed):
     bed = BedTrace(testbed)
-    bed.run(testbed.decider.grace_s + 1.0)
+    bed.run(0.0)
     bed.policy.update_settings(replace(bed.settings, migration=False))
     bed.run(30.0)
     assert [d.node for _, d in bed.moves(MIGRATE)] == ['amcl']
+
+
+# --- when a move out may follow: observations, not a fixed delay ------------------------------
+
+def test_next_move_out_one_period_after_the_first_settles(testbed):
+    """A fresh laptop reading after AMCL runs there: AR follows one period later, not grace_s."""
+    bed = BedTrace(testbed)
+    bed.run(10.0)
+    (t_amcl, _), (t_ar, ar) = bed.moves(MIGRATE)
+    amcl_there = next(t for t, n, s in bed.applied if n == 'amcl' and s == 'laptop')
+    assert t_amcl == 0.0 and amcl_there == t_amcl + bed.apply_s
+    assert t_ar == pytest.approx(amcl_there + bed.period_s)
+    assert t_ar - t_amcl < testbed.decider.grace_s
+    assert 'CPU 50 + 33' in ar.reason          # judged with AMCL's load on the laptop
+
+
+def test_next_move_out_waits_for_a_cpu_reading_taken_after_the_move(testbed):
+    """The laptop's monitor pauses around AMCL's arrival: AR waits for its next reading."""
+    bed = BedTrace(testbed)
+    bed.scale_silent.append(('laptop', 0.75, 3.25))    # last reading 0.5, next one 3.5
+    bed.run(2.5)
+    assert [d.node for _, d in bed.moves(MIGRATE)] == ['amcl']
+    assert bed.running['amcl'] == 'laptop'
+    # a fresh reading (at most 2 s old), but taken before AMCL started there: wait
+    assert any('not measured since amcl started there' in n for n in bed.policy.notes), \
+        bed.policy.notes
+    bed.run(3.0)
+    assert [d.node for _, d in bed.moves(MIGRATE)] == ['amcl']
+    assert any('no fresh CPU report from laptop' in n for n in bed.policy.notes)
+    bed.run(10.0)
+    (t_ar, _), = bed.moves(MIGRATE, 'ar')
+    assert t_ar == 3.5                              # the first reading after the pause
+
+
+def test_first_move_waits_for_link_and_cpu_observations_not_a_grace_period(testbed):
+    bed = BedTrace(testbed)
+    bed.link_silent.append((0.0, 1.0))              # the link monitor's first report at 1.0
+    bed.scale_silent.append(('laptop', 0.0, 1.5))   # the laptop's first CPU report at 1.5
+    bed.run(0.5)
+    assert not bed.log
+    assert any('waiting' in n and 'not observed' in n for n in bed.policy.notes)
+    bed.run(1.0)
+    assert not bed.log
+    assert any('no CPU report from laptop yet' in n for n in bed.policy.notes)
+    bed.run(5.0)
+    assert bed.moves(MIGRATE)[0][0] == 1.5 and bed.moves(MIGRATE)[0][1].node == 'amcl'
+
+
+def test_first_move_waits_for_the_masters_cpu_at_most_the_observation_age(testbed):
+    early = BedTrace(testbed)
+    early.scale_silent.append(('robot', 0.0, 1.0))
+    early.run(5.0)
+    assert early.moves(MIGRATE)[0][0] == 1.0
+    never = BedTrace(testbed)
+    never.scale_silent.append(('robot', 0.0, 1e9))
+    never.run(5.0)
+    max_age = testbed.decider.observation_max_age_s
+    first = never.moves(MIGRATE)[0][0]
+    assert max_age < first <= max_age + never.period_s    # then ranked by nominal CPU
+
+
+def test_a_scale_whose_cpu_is_never_reported_hosts_nothing(testbed):
+    bed = BedTrace(testbed)
+    bed.scale_silent.append(('laptop', 0.0, 1e9))
+    bed.run(10.0)
+    assert not bed.log
+    assert any('no fresh CPU report from laptop (last never' in n for n in bed.policy.notes)
+
+
+def _all_observed(d, now, scales=None, running=None):
+    running = running or master_layout(d)
+    scales = d.scale_names if scales is None else scales
+    cpu = {s: sum(d.node(n).cpu for n, w in running.items() if w == s) for s in scales}
+    return Observations(
+        now=now, running=running,
+        scales={s: ScaleObs(cpu_total=cpu[s], stamp=now) for s in scales},
+        links={r.name: LinkObs(up=True, stamp=now) for r in d.remote_scales},
+        connections={c.name: ConnectionObs(rate_hz=c.freq_opt_hz or c.freq_min_hz, stamp=now)
+                     for c in d.connections if c.monitored})
+
+
+def test_waiting_for_the_best_scale_does_not_fall_through_to_a_lesser_one():
+    """Two remote scales: a move out waits for the more powerful one's readings rather than
+    choosing the other on a partial view; also after a node moved there."""
+    from anyscale_manager.sim.systems import build_system
+    d = build_system(6, 2, 3).deployment          # robot, laptop, workstation (most powerful)
+    policy = MigrationPolicy(d)
+    assert not policy.step(_all_observed(d, 0.0, scales=['robot', 'laptop']))
+    assert any('amcl -> workstation: waiting: no CPU report' in n for n in policy.notes)
+    (out,) = policy.step(_all_observed(d, 0.5))
+    assert (out.node, out.to_scale) == ('amcl', 'workstation')
+    # AMCL runs on the workstation from 1.5; the workstation's reading is still the one of 1.0
+    running = dict(master_layout(d), amcl='workstation')
+    seen = _all_observed(d, 1.5, running=running)
+    stale_ws = dict(seen.scales, workstation=ScaleObs(cpu_total=0.0, stamp=1.0))
+    assert not policy.step(replace(seen, scales=stale_ws))
+    assert any('ar -> workstation: waiting: CPU of workstation not measured since amcl' in n
+               for n in policy.notes), policy.notes
+    (ar,) = policy.step(_all_observed(d, 2.0, running=running))
+    assert (ar.node, ar.to_scale) == ('ar', 'workstation')

@@ -12,7 +12,9 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import UInt8MultiArray
 
-from anyscale_manager.nodes.workload import OutputGate, burn_cpu, parse_spec, workload_qos
+from anyscale_manager.nodes.workload import (OutputGate, burn_cpu, parse_spec, publisher_qos,
+                                              subscriber_qos)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 
 # --- pure parts ---------------------------------------------------------------------------------
@@ -109,10 +111,15 @@ def _stop(proc, timeout=10.0):
     return proc.returncode
 
 
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 class Counter:
     """Arrival times and sizes per topic, from a node in its own context."""
 
-    def __init__(self, topics):
+    def __init__(self, topics, latched=False):
         self.ctx = Context()
         rclpy.init(context=self.ctx)
         self.node = rclpy.create_node('workload_test_counter', context=self.ctx)
@@ -121,8 +128,8 @@ class Counter:
         self.arrivals = {t: [] for t in topics}
         self.sizes = {t: set() for t in topics}
         for topic in topics:
-            self.node.create_subscription(UInt8MultiArray, topic, self._callback(topic),
-                                          workload_qos())
+            qos = LATCHED if latched else subscriber_qos()
+            self.node.create_subscription(UInt8MultiArray, topic, self._callback(topic), qos)
 
     def _callback(self, topic):
         def cb(msg):
@@ -197,12 +204,22 @@ def test_processing_stops_when_its_input_stops(python, ros_env):
         assert _stop(amcl) == 0
 
 
+def test_publisher_qos_by_kind():
+    sensor = parse_spec(['--name', 'camera', '--pub', '/image'])
+    once = parse_spec(['--name', 'map_server', '--pub', '/map', '--once'])
+    proc = parse_spec(['--name', 'ekf', '--sub', '/odom', '--pub', '/pose'])
+    assert publisher_qos(sensor).reliability == ReliabilityPolicy.BEST_EFFORT
+    assert publisher_qos(once).durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert publisher_qos(proc).reliability == ReliabilityPolicy.RELIABLE
+    assert subscriber_qos().reliability == ReliabilityPolicy.BEST_EFFORT
+
+
 def test_once_publisher_is_latched_for_late_subscribers(python, ros_env):
     map_server = _start(python, ros_env, '--name', 'map_server', '--pub', '/wl_map', '--once',
                         '--bytes', '40000')
     try:
         time.sleep(0)   # the subscriber below may well start after the only message was sent
-        counter = Counter(['/wl_map'])
+        counter = Counter(['/wl_map'], latched=True)
         try:
             assert counter.spin_until(lambda: counter.arrivals['/wl_map'], 30.0)
             counter.spin_until(lambda: False, 1.0)

@@ -18,6 +18,7 @@ slower computer.
 """
 
 import argparse
+import signal
 import sys
 import time
 from dataclasses import dataclass
@@ -172,18 +173,38 @@ def main(args: Optional[List[str]] = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        # A supervisor may repeat its SIGINT while we clean up: finish the cleanup anyway.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
     return 0
 
 
-def workload_qos() -> QoSProfile:
-    # Reliable + transient-local, depth 1: a node that starts late (a migrated AMCL) still gets
-    # the map and the newest sample, and a slow or unreachable reader never blocks a writer.
+def publisher_qos(spec: WorkloadSpec) -> QoSProfile:
+    """Sensors stream best effort (a lost image is not worth resending over a busy link, as
+    with sensor-data QoS); a --once message is latched (reliable, transient local) and the
+    outputs of processing nodes are reliable. Depth 1: a slow or unreachable reader never
+    blocks a writer."""
+    if spec.once:
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    if spec.is_sensor:
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                          reliability=ReliabilityPolicy.BEST_EFFORT,
+                          durability=DurabilityPolicy.VOLATILE)
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                       reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def subscriber_qos() -> QoSProfile:
+    """Best effort and volatile match every publisher above; only the driving input matters
+    for a workload's outputs, so a latched message missed by a late joiner costs nothing."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                      reliability=ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.VOLATILE)
 
 
 class WorkloadNode(Node):
@@ -198,13 +219,18 @@ class WorkloadNode(Node):
         self.outputs = 0
         self.inputs = {topic: 0 for topic in spec.subs}
         self.checksum = 0
-        self._pubs = [self.create_publisher(UInt8MultiArray, t, workload_qos())
+        self._pubs = [self.create_publisher(UInt8MultiArray, t, publisher_qos(spec))
                       for t in spec.pubs]
         self._gate = OutputGate(spec.rate_hz)
         self._pending = False
         for topic in spec.subs:
             self.create_subscription(UInt8MultiArray, topic, self._make_callback(topic),
-                                     workload_qos(), raw=True)
+                                     subscriber_qos(), raw=True)
+        self._first_output_logged = False
+        self.get_logger().info(
+            f'up: publishing {", ".join(spec.pubs) or "nothing"}'
+            + (f', driven by {spec.subs[0]}' if spec.subs else '')
+            + (f', {spec.work_ms:g} ms of reference CPU work per output' if spec.work_ms else ''))
         if spec.once:
             self._publish()
         elif spec.is_sensor:
@@ -235,6 +261,9 @@ class WorkloadNode(Node):
         for pub in self._pubs:
             pub.publish(self._msg)
         self.outputs += 1
+        if not self._first_output_logged:
+            self._first_output_logged = True
+            self.get_logger().info('first output published')
 
 
 if __name__ == '__main__':

@@ -12,9 +12,11 @@ Each ``step(obs)`` is one turn of the paper's loop, taken once per decider perio
 
 Additions a live system needs (documented in docs/decider.md): a grace period after each move
 during which the moved node's connections are not judged; at most one move out per step, and
-none while an earlier move is not yet running or still in its grace period; a move the agents do
-not apply in time is undone; nodes of a lost scale are relocated; ``migration: false`` never
-moves out (the paper's no-migration baseline). Every decision carries its reason.
+none while an earlier move is not yet running, nor before the scales it weighs have been
+observed (link and CPU; a scale a node moved to: CPU measured after that node started there);
+a move the agents do not apply in time is undone; nodes of a lost scale are relocated;
+``migration: false`` never moves out (the paper's no-migration baseline). Every decision
+carries its reason.
 
 The policy decides the desired layout; it judges by what actually runs (``obs.running``).
 """
@@ -25,7 +27,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
 from .constraints import (CPU, FREQUENCY, LINK_DOWN, ConstraintReport, DeltaTracker, evaluate,
-                          link_capacity, node_cpu, required_kbps, scale_cpu)
+                          is_fresh, link_capacity, node_cpu, required_kbps, scale_cpu)
 from .layout import adopt, default_scale, master_layout
 from .observations import MIGRATE, MIGRATE_BACK, RELOCATE, Decision, Observations
 
@@ -46,6 +48,8 @@ class MigrationPolicy:
         self.last_back: Dict[str, float] = {}          # node -> time of its last migrate-back
         self.last_move: Dict[str, float] = {}          # node -> time of its last move (grace)
         self.pending: Dict[str, Tuple[str, float]] = {}  # node -> (scale, when asked)
+        # scale -> (when the last move there settled, the node that moved)
+        self.arrived: Dict[str, Tuple[float, str]] = {}
         self.last_move_out = -math.inf
         self.started: Optional[float] = None
         self.last_report: Optional[ConstraintReport] = None
@@ -65,8 +69,9 @@ class MigrationPolicy:
         """Start from a given layout (the first layout the decider published).
 
         Nodes it places off the master enter the migrated list (in deployment order); they and
-        the nodes it places elsewhere than they run (pending) get a grace period from ``now``,
-        and nothing moves out before one grace period has passed.
+        the nodes it places elsewhere than they run (pending) get a grace period from ``now``.
+        Nothing moves out while a pending node is not yet running where it is placed, nor
+        before its scale's CPU has been measured after it started there.
         """
         self.desired = {n: s for n, s in layout.items() if n in self.deployment.node_names}
         for n in self.deployment.node_names:
@@ -76,12 +81,11 @@ class MigrationPolicy:
                          if s != self.master and self.master in self.deployment.allowed_scales(n)]
         self.pending = {n: (s, now) for n, s in self.desired.items()
                         if running is not None and running.get(n) != s}
-        # Nodes placed off the master, or (re)started by this layout, get their grace period;
-        # the first move out waits one grace period after the layout, so that it is judged on
-        # measurements of the system as it now runs.
+        # Nodes placed off the master, or (re)started by this layout, get their grace period (on
+        # the judging of their connections only). The first move out is held by the pending
+        # moves and by the observations it needs (``_migrate_out``), not by a fixed delay.
         self.last_move = {n: now for n, s in self.desired.items()
                           if s != self.master or n in self.pending}
-        self.last_move_out = now
         self._seeded = True
         if self.started is None:
             self.started = now
@@ -144,6 +148,8 @@ class MigrationPolicy:
         for node, (scale, asked) in list(self.pending.items()):
             if running.get(node) == scale:
                 del self.pending[node]
+                # From now on a CPU reading of that scale can include the node's load.
+                self.arrived[scale] = (now, node)
             elif now - asked > self.pending_timeout_s:
                 del self.pending[node]
                 where = running.get(node, 'nowhere')
@@ -298,9 +304,12 @@ class MigrationPolicy:
             notes.append('waiting for ' + ', '.join(
                 f'{n} to run on {s}' for n, (s, _) in sorted(self.pending.items())))
             return []
-        if now < self.last_move_out + self.settings.grace_s:
-            notes.append(f'last move out {now - self.last_move_out:.1f} s ago, within the grace '
-                         f'period ({self.settings.grace_s:g} s)')
+        max_age = self.settings.observation_max_age_s
+        if self.master not in obs.scales and now - self.started <= max_age:
+            # The nodes are ranked by their measured CPU: give the master's scale monitor the
+            # same start-up allowance as every other observation (after it, nominal CPU).
+            notes.append(f'waiting for a first CPU report from {self.master} (nodes are ranked '
+                         f'by measured CPU)')
             return []
         units = self._candidate_units(obs, running)
         remotes = self._scales_by_power([s.name for s in self.deployment.remote_scales])
@@ -313,6 +322,11 @@ class MigrationPolicy:
                 continue
             for scale in remotes:
                 ok, why = self._can_host(obs, running, report, unit, cpu, scale)
+                if ok is None:
+                    # Not a no: not known yet. Picking another scale or node now would be a
+                    # choice made on a partial view, so the move out waits for the observation.
+                    notes.append(f'{unit[0]} -> {scale}: waiting: {why}')
+                    return []
                 if not ok:
                     notes.append(f'{unit[0]} -> {scale}: {why}')
                     continue
@@ -344,7 +358,10 @@ class MigrationPolicy:
 
     def _can_host(self, obs: Observations, running: Mapping[str, str],
                   report: ConstraintReport, unit: Tuple[str, ...], cpu: float,
-                  scale: str) -> Tuple[bool, str]:
+                  scale: str) -> Tuple[Optional[bool], str]:
+        """(True | False | None, why): None when it cannot be told yet (the link or the CPU of
+        the scale not observed since the start, or its CPU not measured since the last node
+        moved there started running)."""
         d, s = self.deployment, self.settings
         if scale in obs.lost_scales:
             return False, 'scale lost'
@@ -357,7 +374,10 @@ class MigrationPolicy:
         if not up:
             return False, why
         if not observed:
-            return False, f'link {link.name} not observed yet'
+            return None, f'link {link.name} not observed yet'
+        seen, why = self._cpu_seen(obs, scale)
+        if not seen:
+            return seen, why
         used, _ = scale_cpu(d, s, obs, scale)
         usable = d.scale(scale).capacity_cpu * s.cpu_headroom
         if used + cpu > usable:
@@ -377,6 +397,27 @@ class MigrationPolicy:
             detail.append(f'link {name} {need:.0f}/{load.usable_kbps:.0f} kbit/s')
         return True, f'CPU {used:.0f} + {cpu:.0f} <= {usable:.0f}' + \
             ''.join('; ' + x for x in detail)
+
+    def _cpu_seen(self, obs: Observations, scale: str) -> Tuple[Optional[bool], str]:
+        """Whether the scale's CPU measurement can be trusted to host one more node.
+
+        True: a fresh report, received after the last node moved there started running (so it
+        includes that node's load). None (wait): no report yet within ``observation_max_age_s``
+        of the start, or none since the last node started there. False: its reports stopped.
+        """
+        so = obs.scales.get(scale)
+        max_age = self.settings.observation_max_age_s
+        if so is None or not is_fresh(so.stamp, obs.now, self.settings):
+            if so is None and obs.now - self.started <= max_age:
+                return None, f'no CPU report from {scale} yet'
+            last = 'never' if so is None else f'{obs.now - so.stamp:.1f} s ago'
+            return False, (f'no fresh CPU report from {scale} (last {last}, max age '
+                           f'{max_age:g} s)')
+        arrived = self.arrived.get(scale)
+        if arrived is not None and so.stamp <= arrived[0]:
+            return None, (f'CPU of {scale} not measured since {arrived[1]} started there '
+                          f'({obs.now - arrived[0]:.1f} s ago)')
+        return True, ''
 
     def _apply(self, d: Decision, now: float) -> None:
         self.desired[d.node] = d.to_scale

@@ -147,10 +147,23 @@ class Testbed:
         self._start_observer()
         self.start_agent('robot')
         self.start_agent('laptop')
+        robot_group = self.network.groups.get('robot') if self.network else None
+        if robot_group is not None:
+            # Boot: ten Python nodes starting at once would keep an Atom-sized robot saturated
+            # for many seconds and starve the monitors. The agents read their quota when they
+            # start; once they have, the robot gets the whole machine until every node runs,
+            # then its quota back. Nothing is measured before that.
+            self.wait_for(lambda r: all(s in r.scale_status for s in ('robot', 'laptop')),
+                          30.0, 'the scale monitors of both agents')
+            robot_group.set_cores(float(psutil.cpu_count() or 1))
+            self.mark('boot: robot CPU quota lifted while the nodes start')
         self.start_decider()
         managed = [n.name for n in self.deployment.nodes if n.managed]
         self.wait_for(lambda r: all(r.where(n) for n in managed), ready_timeout_s,
                       'every managed node running')
+        if robot_group is not None:
+            robot_group.set_cores(self.cpu_cores['robot'])
+            self.mark(f'robot CPU quota {self.cpu_cores["robot"]:.2f} cores')
 
     def stop(self) -> List[str]:
         """Stop everything; return what had to be force-cleaned (empty on a clean stop)."""

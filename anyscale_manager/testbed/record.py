@@ -106,27 +106,39 @@ class Record:
         self.marks.append((t, text))
 
     # --- where things run ---------------------------------------------------------------------
-    def agent_state_at(self, scale: str, t: Optional[float] = None) -> Optional[p.AgentState]:
+    def agent_state_at(self, scale: str, t: Optional[float] = None,
+                       max_age_s: float = math.inf) -> Optional[p.AgentState]:
+        """The scale's agent's last report received at or before t, if at most max_age_s old."""
         history = self.agent_states.get(scale, [])
         if t is None:
-            return history[-1][1] if history else None
+            t = history[-1][0] if history else 0.0
         i = bisect_right([x[0] for x in history], t)
-        return history[i - 1][1] if i else None
+        if not i or t - history[i - 1][0] > max_age_s:
+            return None
+        return history[i - 1][1]
 
-    def running_on(self, scale: str, t: Optional[float] = None,
-                   ready_only: bool = False) -> Dict[str, p.NodeReport]:
-        """Nodes the scale's agent last reported (at or before t) as starting or running."""
-        state = self.agent_state_at(scale, t)
+    def running_on(self, scale: str, t: Optional[float] = None, ready_only: bool = False,
+                   max_age_s: Optional[float] = None) -> Dict[str, p.NodeReport]:
+        """Nodes the scale's agent reported (at or before t) as starting or running.
+
+        A report older than max_age_s (default: the decider's agent timeout) says nothing:
+        behind a cut link nobody here knows what runs over there.
+        """
+        if max_age_s is None:
+            max_age_s = self.deployment.decider.agent_timeout_s
+        state = self.agent_state_at(scale, t, max_age_s)
         if state is None:
             return {}
         return {n: r for n, r in state.running().items() if r.ready or not ready_only}
 
-    def placement(self, t: Optional[float] = None,
-                  ready_only: bool = True) -> Dict[str, Tuple[str, ...]]:
+    def placement(self, t: Optional[float] = None, ready_only: bool = True,
+                  max_age_s: Optional[float] = None) -> Dict[str, Tuple[str, ...]]:
         """node -> the scales whose agent reports it running (ready) at time t."""
+        if t is None:
+            t = self.last_time()
         out: Dict[str, List[str]] = {}
         for scale in self.deployment.scale_names:
-            for node in self.running_on(scale, t, ready_only):
+            for node in self.running_on(scale, t, ready_only, max_age_s):
                 out.setdefault(node, []).append(scale)
         return {n: tuple(s) for n, s in out.items()}
 
@@ -207,27 +219,41 @@ class Record:
         return out
 
     def reported_violations(self, start: float, end: float,
-                            names: Optional[Sequence[str]] = None) -> List[Violation]:
-        """Spans where a probe reported a connection past its Δ (level ERROR)."""
+                            names: Optional[Sequence[str]] = None,
+                            gap_s: float = 2.0) -> List[Violation]:
+        """Spans where a probe reported a connection past its Δ (level ERROR).
+
+        A span runs from the moment the connection went below freq_min (the reading's time minus
+        its below_for_s) to the first reading of that probe that is no longer ERROR; a probe
+        that stops reporting (its subscriber moved away, the link to it was cut) closes its
+        span at its last ERROR reading.
+        """
         out: List[Violation] = []
         for name, history in sorted(self.readings.items()):
             if names is not None and name not in names:
                 continue
             conn = self.deployment.connection(name)
-            open_at: Optional[Tuple[float, str]] = None
+            tolerance = conn.tolerance_s or 0.0
+            by_scale: Dict[str, List[Tuple[float, p.ConnectionReading]]] = {}
             for t, scale, r in history:
-                if not start <= t <= end:
-                    continue
-                if r.level == p.ERROR and open_at is None:
-                    open_at = (t - r.below_for_s, scale)
-                elif r.level != p.ERROR and open_at is not None:
-                    out.append(Violation(name, open_at[0], t, conn.tolerance_s or 0.0,
-                                         open_at[1]))
-                    open_at = None
-            if open_at is not None:
-                out.append(Violation(name, open_at[0], end, conn.tolerance_s or 0.0,
-                                     open_at[1]))
-        return out
-
+                if start <= t <= end:
+                    by_scale.setdefault(scale, []).append((t, r))
+            for scale, series in sorted(by_scale.items()):
+                open_at: Optional[float] = None
+                last_error = 0.0
+                for t, r in series:
+                    if open_at is not None and t - last_error > gap_s:
+                        out.append(Violation(name, open_at, last_error, tolerance, scale))
+                        open_at = None
+                    if r.level == p.ERROR:
+                        if open_at is None:
+                            open_at = t - r.below_for_s
+                        last_error = t
+                    elif open_at is not None:
+                        out.append(Violation(name, open_at, t, tolerance, scale))
+                        open_at = None
+                if open_at is not None:
+                    out.append(Violation(name, open_at, last_error, tolerance, scale))
+        return sorted(out, key=lambda v: v.start)
 
 __all__ = ['MIGRATION_KINDS', 'Record', 'Violation']
