@@ -8,11 +8,11 @@ from typing import List, Optional
 # name -> (module with add_arguments(parser) and run(args) -> int, one-line help)
 SUBCOMMANDS = {
     'validate': ('anyscale_manager.model.cli', 'check deployment files and summarise them'),
-    'plan': ('anyscale_manager.planning.cli', 'choose node settings and the first layout '
-                                               '(IROS 2016 Problems 1 and 2)'),
+    'plan': ('anyscale_manager.planning.cli',
+             'choose node settings and the first layout (IROS 2016 Problems 1 and 2)'),
     'simulate': ('anyscale_manager.sim.cli', 'reproduce the ICAR 2015 evaluation in simulation'),
-    'demo': ('anyscale_manager.testbed.cli', 'run the ICAR 2015 test-bed with a link outage '
-                                              'schedule and draw its timeline'),
+    'demo': ('anyscale_manager.testbed.cli',
+             'run the ICAR 2015 test-bed with a link outage schedule and draw its timeline'),
     'status': ('anyscale_manager.nodes.status', 'show the live state of a running deployment'),
 }
 

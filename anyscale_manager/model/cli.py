@@ -16,8 +16,8 @@ def _fmt(x) -> str:
 
 
 def summary(d: Deployment) -> str:
-    lines = [f'{d.source}: deployment {d.name!r}' + (f' ({d.description})' if d.description
-                                                       else '')]
+    about = f' ({d.description})' if d.description else ''
+    lines = [f'{d.source}: deployment {d.name!r}{about}']
     lines.append(f'  scales ({len(d.scales)}):')
     for s in d.scales:
         lines.append(f'    {s.name:<14} {s.role:<6} {s.kind:<6} capacity {s.capacity_cpu:g} '

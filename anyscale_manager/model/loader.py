@@ -189,8 +189,8 @@ class _Section:
         out = {}
         for k, x in v.items():
             if isinstance(x, (dict, type(None))) or (isinstance(x, list) and not x):
-                self.ctx.error(f'{self.sub(key)}.{k}', f'expected a scalar or a non-empty list, '
-                                                      f'got {_describe(x)}')
+                self.ctx.error(f'{self.sub(key)}.{k}',
+                               f'expected a scalar or a non-empty list, got {_describe(x)}')
             else:
                 out[str(k)] = x
         return t.frozen_map(out)

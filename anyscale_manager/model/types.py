@@ -260,7 +260,7 @@ class Deployment:
 
     @cached_property
     def data_providers(self) -> Tuple[str, ...]:
-        """Nodes that publish into the graph but subscribe to nothing: sensor drivers and the like."""
+        """Nodes that publish into the graph but subscribe to nothing (sensor drivers...)."""
         publishers = {c.publisher for c in self.connections}
         subscribers = {c.subscriber for c in self.connections}
         return tuple(n.name for n in self.nodes
