@@ -2,6 +2,7 @@
 
 import argparse
 import importlib
+import os
 import sys
 from typing import List, Optional
 
@@ -44,6 +45,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         return int(importlib.import_module(args._module).run(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader went away (e.g. `| head`): not an error of ours.
+        sys.stdout = open(os.devnull, 'w')
+        return 0
 
 
 if __name__ == '__main__':

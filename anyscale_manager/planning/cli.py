@@ -1,11 +1,15 @@
 """anyscale-manager plan FILE: choose node settings and the first layout (IROS 2016 P1/P2)."""
 
+import copy
 import json
 import math
+import os
 import sys
 from typing import Any, Dict
 
-from ..model.loader import DeploymentError, load_deployment
+import yaml
+
+from ..model.loader import DeploymentError, load_deployment, load_mapping
 from ..model.types import Deployment
 from .instance import SETTINGS
 from .plan import SOLVERS, Plan, solve
@@ -24,6 +28,11 @@ def add_arguments(parser) -> None:
     parser.add_argument('--json', action='store_true', help='print one JSON object')
     parser.add_argument('--time-limit', type=float, default=10.0, metavar='S',
                         help='time limit in seconds (exact solver; local search)')
+    parser.add_argument('--write', metavar='OUT', default=None,
+                        help='write a copy of FILE configured by the plan: each configurable '
+                             "node's chosen parameter value in launch.parameters (named by "
+                             'settings.parameter) and the layout as decider.layout with '
+                             'initial_layout explicit, for the agents and the decider to run')
 
 
 def _num(x: float) -> str:
@@ -51,6 +60,46 @@ def plan_to_dict(d: Deployment, plan: Plan) -> Dict[str, Any]:
         'link_load': dict(plan.link_load),
         'violations': list(plan.violations),
     }
+
+
+def _parameter_value(d: Deployment, node: str, value: float) -> Any:
+    """The value as the node's parameter type: an integer when every profiled value is one."""
+    settings = d.node(node).settings
+    if settings and settings.values and all(float(v).is_integer() for v in settings.values):
+        return int(round(value))
+    return float(value)
+
+
+def configured(source: Dict[str, Any], d: Deployment, plan: Plan) -> Dict[str, Any]:
+    """A copy of the deployment file's data with the plan's settings and layout written in."""
+    out = copy.deepcopy(source)
+    params = out['/**']['ros__parameters']
+    for name, placement in plan.layout.items():
+        if not placement.parameter or placement.parameter_value is None:
+            continue
+        node = params['nodes'][name]
+        launch = node.setdefault('launch', {})
+        launch.setdefault('parameters', {})[placement.parameter] = _parameter_value(
+            d, name, placement.parameter_value)
+    decider = params.setdefault('decider', {})
+    decider['initial_layout'] = 'explicit'
+    managed = {n.name for n in d.nodes if n.managed}
+    decider['layout'] = {n: p.scale for n, p in plan.layout.items() if n in managed}
+    return out
+
+
+def write_configured(path: str, out_path: str, d: Deployment, plan: Plan) -> None:
+    """Write the configured deployment and check it loads; raises DeploymentError or OSError."""
+    with open(path, encoding='utf-8') as f:
+        source = yaml.safe_load(f)
+    data = configured(source, d, plan)
+    load_mapping(data, out_path)   # never write a file the agents would refuse
+    tmp = f'{out_path}.tmp'
+    with open(tmp, 'w', encoding='utf-8') as f:
+        f.write(f'# {os.path.basename(path)} configured by anyscale-manager plan '
+                f'--problem {plan.problem} --solver {plan.solver} --settings {plan.settings}\n')
+        yaml.safe_dump(data, f, sort_keys=False, default_flow_style=None, width=99)
+    os.replace(tmp, out_path)
 
 
 def render(d: Deployment, plan: Plan) -> str:
@@ -122,4 +171,11 @@ def run(args) -> int:
         return 1
     if not args.json:
         print(render(d, plan))
+    if args.write:
+        try:
+            write_configured(args.file, args.write, d, plan)
+        except (OSError, DeploymentError) as e:
+            print(f'anyscale-manager plan: cannot write {args.write}: {e}', file=sys.stderr)
+            return 2
+        print(f'configured deployment written to {args.write}', file=sys.stderr)
     return 0
