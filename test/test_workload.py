@@ -65,18 +65,30 @@ def test_output_gate_caps_the_rate(input_hz, jitter_s, cap_hz, expected_hz):
     for i in range(int(input_hz * 20)):
         now = i / input_hz + (jitter_s if i % 2 else -jitter_s)
         if gate.ready(now):
-            gate.produced(now)
+            gate.started(now)
             outputs += 1
     assert outputs / 20.0 == pytest.approx(expected_hz, rel=0.06)
 
 
-def test_output_gate_restarts_after_a_pause():
+def test_output_gate_does_not_burst_after_a_pause():
     gate = OutputGate(5.0)
-    gate.produced(0.0)
+    gate.started(0.0)
     assert not gate.ready(0.05)
     assert gate.ready(10.0)
-    gate.produced(10.0)     # a long pause does not leave a burst of catch-up outputs behind
+    gate.started(10.0)      # a long pause does not leave a burst of catch-up outputs behind
     assert not gate.ready(10.05)
+    assert gate.ready(10.2)
+
+
+def test_output_gate_lets_a_cpu_bound_node_run_back_to_back():
+    gate = OutputGate(5.0)     # 0.2 s period, but each output takes 0.3 s of work
+    now, outputs = 0.0, 0
+    while now < 30.0:
+        assert gate.ready(now)
+        gate.started(now)
+        now += 0.3
+        outputs += 1
+    assert outputs / 30.0 == pytest.approx(1 / 0.3, rel=0.02)
 
 
 def test_burn_cpu_uses_the_cpu_time_asked_for():

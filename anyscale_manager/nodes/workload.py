@@ -31,7 +31,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import UInt8MultiArray
 
-REFERENCE_CORE = 0.25     # one reference (robot) core as a fraction of one core of this machine
+REFERENCE_CORE = 0.3      # one reference (robot) core as a fraction of one core of this machine
 MAX_BYTES = 16 * 1024 * 1024
 
 
@@ -142,10 +142,13 @@ def burn_cpu(cpu_s: float, clock: Callable[[], float] = time.thread_time) -> int
 
 
 class OutputGate:
-    """Decides when a processing node may produce its next output, capped at ``rate_hz``.
+    """Decides when a processing node may start its next output, capped at ``rate_hz``.
 
-    Scheduled outputs are due every 1/rate; an input up to 40% of a period early counts as on
-    time, so a 10 Hz input under a 5 Hz cap gives 5 Hz and not 3.3 Hz when arrivals jitter.
+    Outputs are due every 1/rate; an input up to 40% of a period early counts as on time, so a
+    10 Hz input under a 5 Hz cap gives 5 Hz and not 3.3 Hz when arrivals jitter. The next
+    output is due one period after the later of the previous due time and this output's start,
+    so a node whose work takes longer than a period starts the next output as soon as it is
+    done (CPU-bound), and one that paused does not catch up with a burst.
     """
 
     def __init__(self, rate_hz: float):
@@ -155,11 +158,11 @@ class OutputGate:
     def ready(self, now: float) -> bool:
         return self.next_due is None or now >= self.next_due - 0.4 * self.period_s
 
-    def produced(self, now: float) -> None:
-        if self.next_due is None or now - self.next_due > self.period_s:
-            self.next_due = now + self.period_s     # too late to catch up: restart the schedule
+    def started(self, now: float) -> None:
+        if self.next_due is None:
+            self.next_due = now + self.period_s
         else:
-            self.next_due += self.period_s
+            self.next_due = max(self.next_due, now) + self.period_s
 
 
 def main(args: Optional[List[str]] = None) -> int:
@@ -253,8 +256,8 @@ class WorkloadNode(Node):
         if not self._pending or not self._gate.ready(self._now()):
             return
         self._pending = False
+        self._gate.started(self._now())
         self.checksum ^= burn_cpu(self.spec.cpu_s_per_output)
-        self._gate.produced(self._now())
         self._publish()
 
     def _publish(self) -> None:

@@ -96,8 +96,10 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f'cannot create {out}: {e.strerror}')
 
     parameters = {'decider.migration': 'false'} if args.no_migration else {}
+    # Boot with the link cut so every node starts on the robot; the schedule opens the link.
     options = Options(config, domain, mode=args.mode, decider_parameters=parameters,
-                      run_dir=os.path.join(out, 'run'), keep_run_dir=True)
+                      run_dir=os.path.join(out, 'run'), keep_run_dir=True,
+                      link_up_at_start=False)
     try:
         testbed = Testbed(options)
     except (HarnessError, DeploymentError) as e:
@@ -106,7 +108,8 @@ def run(args: argparse.Namespace) -> int:
     print(f'anyscale-manager demo: {config}')
     if any(s.action == 'throttle' for s in steps) and args.mode == 'loopback':
         print('note: throttle steps are skipped on loopback (no bandwidth shaping there)')
-    print('starting the test-bed (every node starts on the robot) ...', flush=True)
+    print('starting the test-bed (link down until every node runs on the robot) ...',
+          flush=True)
     code = 0
     t0 = t1 = time.monotonic()
     try:
@@ -121,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
               f' (link up {sched.up_fraction(steps, args.duration):.0%} of the run)', flush=True)
         t0 = time.monotonic()
         testbed.mark('schedule started')
+        testbed.restore()
         pending = list(steps)
         next_show = t0
         last_plain = -1e9

@@ -78,6 +78,7 @@ class Options:
     run_dir: str = ''                        # '' = a fresh temporary folder, removed at stop
     keep_run_dir: bool = False
     decider_parameters: Mapping[str, str] = field(default_factory=dict)
+    link_up_at_start: bool = True            # False: boot with the link cut (all on the robot)
     python: str = sys.executable
 
 
@@ -144,17 +145,21 @@ class Testbed:
             self._probe_port = _free_tcp_port()
         self.t0 = time.monotonic()
         self.record.link_set(self.t0, True, self._rate_kbps)
+        if not self.options.link_up_at_start and self.network is not None:
+            self.cut()
         self._start_observer()
         self.start_agent('robot')
         self.start_agent('laptop')
+        if not self.options.link_up_at_start and self.network is None:
+            self.cut()
         robot_group = self.network.groups.get('robot') if self.network else None
         if robot_group is not None:
             # Boot: ten Python nodes starting at once would keep an Atom-sized robot saturated
             # for many seconds and starve the monitors. The agents read their quota when they
             # start; once they have, the robot gets the whole machine until every node runs,
             # then its quota back. Nothing is measured before that.
-            self.wait_for(lambda r: all(s in r.scale_status for s in ('robot', 'laptop')),
-                          30.0, 'the scale monitors of both agents')
+            self.wait_for(lambda r: 'robot' in r.scale_status, 30.0,
+                          'the robot agent\'s scale monitor')
             robot_group.set_cores(float(psutil.cpu_count() or 1))
             self.mark('boot: robot CPU quota lifted while the nodes start')
         self.start_decider()
