@@ -360,3 +360,26 @@ def test_status_bad_file_fails_clearly(tmp_path, ros_env):
                           '--params-file', str(bad), '--once'], env=ros_env,
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and 'scales' in res.stderr
+
+
+def test_a_link_going_down_is_decided_at_once_not_at_the_next_period(world, testbed_path,
+                                                                     ros_env):
+    node, ex = world
+    node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
+    node.running.update(amcl='laptop', ar='laptop')
+    proc = start_decider(testbed_path, ros_env)
+    try:
+        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc), 'no layout'
+        assert node.layouts[-1].assignments['amcl'] == 'laptop'
+        # A period far longer than the test: only the link-down itself can trigger a turn.
+        slow = set_param(ex, node, 'decider.period_s', 300.0, ParameterType.PARAMETER_DOUBLE,
+                         'double_value')
+        assert slow.successful, slow.reason
+        node.link_up = False
+        assert spin_until(ex, node, lambda: node.layouts[-1].assignments.get('amcl') == 'robot',
+                          20.0, proc=proc), [e.reason for e in node.events]
+        assert spin_until(ex, node, lambda: any(e.kind == 'migrate_back' and e.node == 'amcl'
+                                                for e in node.events), 5.0, proc=proc)
+    finally:
+        code, out = stop(proc)
+    assert code == 0, out

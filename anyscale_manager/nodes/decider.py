@@ -122,6 +122,8 @@ class DeciderNode(Node):
         self._active: Set[Tuple[str, str]] = set()    # (kind, subject) violations announced
         self._said: Set[str] = set()                  # warnings and notes announced
         self._rejected = 0
+        self._links_up: Dict[str, bool] = {}     # remote scale -> last reported up
+        self._link_lost = False
         self._decisions = 0
         self.host = socket.gethostname()
 
@@ -245,7 +247,19 @@ class DeciderNode(Node):
         self._intake(msg, p.ScaleStatus, p.TOPIC_SCALE_STATUS, self.book.scale_status)
 
     def _on_link_status(self, msg: String) -> None:
-        self._intake(msg, p.LinkStatus, p.TOPIC_LINK_STATUS, self.book.link_status)
+        self._intake(msg, p.LinkStatus, p.TOPIC_LINK_STATUS, self._link_status)
+        if self._link_lost:
+            # A link just went down: the nodes beyond it must come back before their
+            # connections' tolerance runs out, so decide now rather than at the next period.
+            self._link_lost = False
+            self._tick()
+
+    def _link_status(self, status: p.LinkStatus, now: float) -> None:
+        self.book.link_status(status, now)
+        was_up = self._links_up.get(status.remote, False)
+        self._links_up[status.remote] = status.up
+        if was_up and not status.up and self.layout is not None:
+            self._link_lost = True
 
     def _on_connection_status(self, msg: String) -> None:
         self._intake(msg, p.ConnectionStatus, p.TOPIC_CONNECTION_STATUS,
