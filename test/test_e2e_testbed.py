@@ -81,7 +81,7 @@ def test_1_link_up_amcl_moves_first_then_ar_and_amcl_ekf_reaches_its_optimal_rat
         events = [(round(t - bed.t0, 1), e.kind, e.node, e.reason[:60]) for t, e in
                   bed.record.events if e.kind not in ('note', 'warning')]
     assert 'amcl' in firsts and 'ar' in firsts, f'no migrate events: {events}'
-    assert firsts['amcl'] < firsts['ar'], f'AR moved before AMCL: {firsts}'
+    assert firsts['amcl'] < firsts['ar'], f'AR moved before AMCL: {events}'
     # AMCL -> EKF at the robot (the observer sits there): the optimal 5 Hz, with slack.
     t = bed.wait_for(lambda r: r.topic_rate('/amcl_pose', bed.now(), 3.0) >= 4.3, 20.0,
                      'amcl_ekf near its optimal 5 Hz')
@@ -97,7 +97,7 @@ def test_1_link_up_amcl_moves_first_then_ar_and_amcl_ekf_reaches_its_optimal_rat
 def test_2_throttled_below_ar_need_ar_comes_back_amcl_stays(bed):
     wait_both_on_laptop(bed)
     t_throttle = bed.now()
-    bed.throttle(3000.0)          # AR's images need 6 Mbit/s; AMCL's 0.2 Mbit/s still fit
+    bed.throttle(5000.0)          # AR's images need 6 Mbit/s; AMCL's 0.2 Mbit/s still fit
     try:
         bed.wait_for(on(bed, 'ar', ROBOT), 30.0, 'ar back on the robot after the throttle')
         t_back = bed.now()
@@ -120,9 +120,16 @@ def _pids(record):
     return out
 
 
+def healthy(tb):
+    """AMCL -> EKF and AR -> Navigation near their optimal rates at the robot."""
+    return lambda r: (r.topic_rate('/amcl_pose', tb.now()) >= 4.0
+                      and r.topic_rate('/markers', tb.now()) >= 10.0)
+
+
 def test_3_decider_killed_and_restarted_restarts_or_duplicates_nothing(bed):
-    bed.wait_for(on(bed, 'amcl', LAPTOP), 60.0, 'amcl on the laptop')
-    # A quiet moment: no move for 3 s, so nothing legitimately changes during the restart.
+    # Both migratable nodes out and a quiet moment (no move for 3 s): nothing is left that the
+    # policy would legitimately move while the decider is away.
+    wait_both_on_laptop(bed, timeout_s=90.0)
     bed.wait_for(lambda r: not r.moves(since=bed.now() - 3.0) and
                  all(len(v) == 1 for v in _pids(r).values()), 30.0, 'a quiet layout')
     with bed.lock:
@@ -137,7 +144,8 @@ def test_3_decider_killed_and_restarted_restarts_or_duplicates_nothing(bed):
     with bed.lock:
         after = _pids(bed.record)
         new = bed.record.layout_at()
-        moves = bed.record.moves(since=bed.procs['decider'].started)
+        moves = [(e.kind, e.node, e.reason) for _, e in
+                 bed.record.moves(since=bed.procs['decider'].started)]
     assert new.generation > generation
     assert moves == [], f'the new decider moved nodes: {moves}'
     assert after == before, f'running nodes changed across the decider restart:\n{before}\n{after}'
@@ -175,7 +183,7 @@ def _alive(pid):
 
 def test_5_link_cut_every_migrated_node_back_before_its_delta_runs_out(bed):
     wait_both_on_laptop(bed, timeout_s=90.0)
-    bed.sleep(3.0)      # both settled and measured on the laptop
+    bed.wait_for(healthy(bed), 30.0, 'amcl_ekf and ar_navigation healthy before the cut')
     t_cut = bed.now()
     bed.cut()
     try:
@@ -227,6 +235,8 @@ def test_6_flapping_link_moves_are_bounded_by_the_hysteresis(bed):
             later = [t for t in outs if t > tb_]
             assert not later or later[0] - tb_ >= HYSTERESIS_S - 0.6, \
                 f'{node} moved out {later[0] - tb_:.1f} s after coming back (T = {HYSTERESIS_S})'
-        assert len(outs) <= 1 + span / HYSTERESIS_S, f'{node}: {len(outs)} moves out in {span:.0f} s'
+        assert len(outs) <= 1 + span / HYSTERESIS_S, \
+            f'{node}: {len(outs)} moves out in {span:.0f} s'
     print(f'{flaps} flaps in {span:.0f} s: {len(moves)} moves ({by_node})')
-    assert len(moves) < 2 * flaps
+    # Without the hysteresis every flap could move both nodes out and back.
+    assert len(moves) < 2 * len(bed.deployment.migratable_nodes) * flaps

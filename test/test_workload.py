@@ -178,8 +178,9 @@ def test_sensor_and_processing_chain_rates_follow_input_cap_and_cpu(python, ros_
                    '/wl_heavy', '--rate-hz', '30', '--bytes', '256', '--work-ms', '1000')
     counter = Counter(['/wl_image', '/wl_light', '/wl_heavy'])
     try:
-        assert counter.spin_until(lambda: all(len(a) > 5 for a in counter.arrivals.values()),
-                                  30.0), f'no traffic: { {k: len(v) for k, v in counter.arrivals.items()} }'
+        counts = counter.arrivals.values()
+        assert counter.spin_until(lambda: all(len(a) > 5 for a in counts), 30.0), \
+            f'no traffic: { {k: len(v) for k, v in counter.arrivals.items()} }'
         counter.spin_until(lambda: False, 4.0)
         image_hz = counter.rate('/wl_image', 4.0)
         light_hz = counter.rate('/wl_light', 4.0)

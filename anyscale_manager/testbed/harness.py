@@ -212,7 +212,7 @@ class Testbed:
                 notes.append(f'processes left in the namespaces/cgroups: {stray}')
             notes.extend(self.network.teardown())
             self.network = None
-        _reap()
+        _reap(exclude={p.popen.pid for p in self.procs.values()})
         if self._own_run_dir and not self.options.keep_run_dir:
             shutil.rmtree(self.run_dir, ignore_errors=True)
         self.cleanup_notes.extend(notes)
@@ -328,10 +328,23 @@ class Testbed:
         return proc is not None and proc.popen.poll() is None
 
     def _descendants(self) -> List[psutil.Process]:
+        """Live descendants (orphans of killed agents included: we are their subreaper)."""
+        ours = {p.popen.pid for p in self.procs.values()}
+        if self._observer is not None:
+            ours.add(self._observer.popen.pid)
+        _reap(exclude=ours)
+        live = []
         try:
-            return psutil.Process().children(recursive=True)
+            children = psutil.Process().children(recursive=True)
         except psutil.Error:
             return []
+        for child in children:
+            try:
+                if child.status() != psutil.STATUS_ZOMBIE:
+                    live.append(child)
+            except psutil.Error:
+                continue
+        return live
 
     # --- the link -----------------------------------------------------------------------------
     def cut(self) -> None:
@@ -478,15 +491,21 @@ def _signal_group(pid: int, sig: int) -> None:
         _kill(pid, sig)
 
 
-def _reap() -> None:
-    """Collect exit statuses of orphans that re-parented to us (we are their subreaper)."""
-    while True:
+def _reap(exclude=frozenset()) -> None:
+    """Collect exit statuses of orphans that re-parented to us (we are their subreaper); our
+    own Popen children (``exclude``) are left to their Popen objects."""
+    try:
+        children = psutil.Process().children()
+    except psutil.Error:
+        return
+    for child in children:
+        if child.pid in exclude:
+            continue
         try:
-            pid, _ = os.waitpid(-1, os.WNOHANG)
-        except ChildProcessError:
-            return
-        if pid == 0:
-            return
+            if child.status() == psutil.STATUS_ZOMBIE:
+                os.waitpid(child.pid, os.WNOHANG)
+        except (psutil.Error, ChildProcessError):
+            continue
 
 
 def tail(path: str, lines: int = 15) -> str:

@@ -267,12 +267,13 @@ class LinkState:
 
 
 def tbf_arguments(rate_kbps: float) -> List[str]:
-    """tbf parameters for a rate: a 10 ms bucket (at least two full frames), 50 ms of queue."""
+    """tbf parameters for a rate: a 10 ms bucket (at least two full frames), 100 ms of queue
+    (a WiFi driver's queue is of that order)."""
     if not rate_kbps > 0:
         raise ValueError(f'link rate must be > 0 kbit/s, got {rate_kbps!r}')
     burst = max(3200, int(rate_kbps * 1000 / 8 * 0.010))
     return ['tbf', 'rate', f'{int(round(rate_kbps))}kbit', 'burst', str(burst),
-            'latency', '50ms']
+            'latency', '100ms']
 
 
 class Network:

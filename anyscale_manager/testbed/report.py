@@ -6,7 +6,7 @@ Pure functions of a ``Record`` (and matplotlib with the Agg backend for the figu
 import json
 import math
 import os
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Tuple
 
 from .. import protocol as p
 from ..model.types import Deployment

@@ -55,7 +55,7 @@ def parse(text: str) -> Tuple[Step, ...]:
 
 
 def paper_schedule(duration_s: float, full_kbps: float = 54000.0,
-                   throttle_kbps: float = 4000.0) -> Tuple[Step, ...]:
+                   throttle_kbps: float = 5000.0) -> Tuple[Step, ...]:
     """An outage pattern modelled on the ICAR run: the link is usable for about half the time.
 
     Up at full rate, then throttled below AR's 6 Mbit/s (AR must come back, AMCL may stay), then

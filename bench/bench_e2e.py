@@ -1,0 +1,217 @@
+#!/usr/bin/env python3
+"""End-to-end figures on the ICAR test-bed (needs root for namespaces, tc and cgroups).
+
+    sudo python bench/bench_e2e.py [--cuts 10] [--duration 60] [--domain-id 45] [--out FILE]
+
+1. Reaction: the link is cut while AMCL and AR run on the laptop; the time until both run
+   (ready) on the robot again, p50/p95 over ``--cuts`` cuts, and the Δ violations during each
+   (probes on the robot reporting a connection past its tolerance, and the harness's own
+   measurement of AMCL -> EKF and AR -> Navigation at the robot).
+2. The paper's headline: the same link schedule (paper_schedule) with migration and with
+   ``decider.migration false``, one after the other in this run; the decider's time-integrated
+   performance, AMCL's mean output rate at the robot and where AMCL and AR ran.
+3. CPU used by the decider and by each agent (their own processes, not their nodes) during the
+   migration run, in % of one core of this machine and in reference-core percent.
+
+Part 1 runs with the decider's hysteresis T set by ``--hysteresis`` (8 s by default instead of the
+deployment's 20 s) so that ten cuts take minutes, not ten; part 2 uses the deployment unchanged.
+"""
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+from anyscale_manager.testbed import harness, netns
+from anyscale_manager.testbed import schedule as sched
+from anyscale_manager.testbed.report import placement_shares
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'icar2015_testbed.yaml')
+
+
+def percentile(values, q):
+    values = sorted(values)
+    if not values:
+        return float('nan')
+    k = (len(values) - 1) * q
+    lo, hi = int(k), min(int(k) + 1, len(values) - 1)
+    return values[lo] + (values[hi] - values[lo]) * (k - lo)
+
+
+def on(node, scale):
+    return lambda r: r.where(node) == (scale,)
+
+
+def reaction(args):
+    options = harness.Options(args.config, args.domain_id, mode='netns',
+                              decider_parameters={'decider.hysteresis_s': str(args.hysteresis)},
+                              link_up_at_start=False)
+    tb = harness.Testbed(options).start()
+    d = tb.deployment
+    migratable = set(d.migratable_nodes)
+    conns = [c for c in d.connections if c.publisher in migratable or c.subscriber in migratable]
+    window = d.monitoring.probe_window_s
+    results = []
+    try:
+        tb.restore()
+        for i in range(args.cuts):
+            tb.restore()
+            tb.wait_for(on('amcl', 'laptop'), 90.0, 'amcl on the laptop')
+            tb.wait_for(on('ar', 'laptop'), 90.0, 'ar on the laptop')
+            # Both connections healthy at the robot before the cut, so what follows is the cut's.
+            tb.wait_for(lambda r: (r.topic_rate('/amcl_pose', tb.now()) >= 4.0 and
+                                   r.topic_rate('/markers', tb.now()) >= 10.0), 30.0,
+                        'amcl_ekf and ar_navigation healthy')
+            t_cut = tb.now()
+            tb.cut()
+            tb.wait_for(lambda r: r.where('amcl') == ('robot',) and r.where('ar') == ('robot',),
+                        30.0, 'amcl and ar on the robot')
+            t_back = tb.now()
+            tb.sleep(max(c.tolerance_s or 0 for c in conns) + window + 1.0)
+            end = tb.now()
+            with tb.lock:
+                r = tb.record
+                observed = [v for c in conns if c.subscriber not in migratable
+                            for v in r.observed_violations(c, t_cut, end, window_s=window)]
+                reported = [v for v in r.reported_violations(t_cut, end, [c.name for c in conns])
+                            if v.source == 'robot']
+            row = {'cut': i + 1, 'back_s': round(t_back - t_cut, 3),
+                   'observed_violations': [(v.connection, round(v.end - v.start, 2))
+                                           for v in observed],
+                   'reported_violations': [(v.connection, round(v.end - v.start, 2))
+                                           for v in reported]}
+            print(f'cut {i + 1}: back on the robot after {row["back_s"]:.2f} s; violations '
+                  f'observed {row["observed_violations"]} reported {row["reported_violations"]}',
+                  flush=True)
+            results.append(row)
+    finally:
+        notes = tb.stop()
+    backs = [r['back_s'] for r in results]
+    return {'cuts': results, 'p50_s': percentile(backs, 0.5), 'p95_s': percentile(backs, 0.95),
+            'max_s': max(backs) if backs else None,
+            'cuts_with_violations': sum(1 for r in results
+                                        if r['observed_violations'] or r['reported_violations']),
+            'violations': sum(len(r['observed_violations']) + len(r['reported_violations'])
+                              for r in results),
+            'hysteresis_s': args.hysteresis, 'teardown_notes': notes}
+
+
+# The paper's robot drove at 0.4 m/s only while AMCL ran on the laptop, 0.2 m/s otherwise.
+SPEED_AMCL_REMOTE, SPEED_AMCL_ROBOT = 0.4, 0.2
+
+
+def mean_speed(shares):
+    """Mean driving speed from the time shares of the Fig. 5 layouts."""
+    remote = sum(v for k, v in shares.items() if k in ('only AMCL on the laptop',
+                                                       'AMCL and AR on the laptop'))
+    return SPEED_AMCL_REMOTE * remote + SPEED_AMCL_ROBOT * (1.0 - remote)
+
+
+def scheduled_run(args, migration):
+    parameters = {} if migration else {'decider.migration': 'false'}
+    options = harness.Options(args.config, args.domain_id, mode='netns',
+                              decider_parameters=parameters, link_up_at_start=False)
+    steps = sched.paper_schedule(args.duration)
+    tb = harness.Testbed(options).start()
+    try:
+        cpu0 = tb.cpu_seconds()
+        t0 = tb.now()
+        tb.restore()
+        pending = list(steps)
+        while tb.now() - t0 < args.duration:
+            while pending and tb.now() - t0 >= pending[0].at_s:
+                step = pending.pop(0)
+                if step.action == 'cut':
+                    tb.cut()
+                elif step.action == 'restore':
+                    tb.restore()
+                else:
+                    tb.throttle(step.rate_kbps)
+            time.sleep(0.05)
+        t1 = tb.now()
+        cpu1 = tb.cpu_seconds()
+        with tb.lock:
+            r = tb.record
+            objective = [o for t, o in r.objectives if t0 <= t <= t1]
+            amcl = [t for t in r.arrivals.get('/amcl_pose', []) if t0 <= t <= t1]
+            shares = placement_shares(r, t0, t1)
+            moves = len(r.moves(t0, t1))
+    finally:
+        notes = tb.stop()
+    wall = t1 - t0
+    ref = tb.options.reference_core
+    cpu = {name: {'percent_of_one_core': round(100.0 * (cpu1[name] - cpu0[name]) / wall, 2),
+                  'reference_core_percent': round(100.0 * (cpu1[name] - cpu0[name]) / wall / ref,
+                                                  1)}
+           for name in cpu1 if name in cpu0}
+    return {'migration': migration, 'duration_s': round(wall, 2),
+            'schedule': [str(s) for s in steps],
+            'link_up_fraction': sched.up_fraction(steps, args.duration),
+            'objective_integral': (objective[-1].integral - objective[0].integral
+                                   if len(objective) > 1 else None),
+            'mean_perf_map': (statistics.fmean(o.perf_map for o in objective)
+                              if objective else None),
+            'amcl_mean_rate_hz': len(amcl) / wall, 'moves': moves,
+            'placement_shares': shares, 'cpu': cpu, 'teardown_notes': notes}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--config', default=CONFIG)
+    parser.add_argument('--cuts', type=int, default=10)
+    parser.add_argument('--duration', type=float, default=60.0)
+    parser.add_argument('--hysteresis', type=float, default=8.0)
+    parser.add_argument('--domain-id', type=int,
+                        default=int(os.environ.get('ROS_DOMAIN_ID', '0') or 0))
+    parser.add_argument('--skip-reaction', action='store_true')
+    parser.add_argument('--skip-headline', action='store_true')
+    parser.add_argument('--out', default='')
+    args = parser.parse_args()
+    ok, why = netns.available()
+    if not ok:
+        print(f'bench_e2e: needs the test-bed: {why}', file=sys.stderr)
+        return 2
+    out = {'reference_core': harness.REFERENCE_CORE, 'machine_cores': os.cpu_count()}
+    if not args.skip_reaction:
+        out['reaction'] = reaction(args)
+        r = out['reaction']
+        print(f'\nreaction to a link cut over {len(r["cuts"])} cuts: p50 {r["p50_s"]:.2f} s, '
+              f'p95 {r["p95_s"]:.2f} s, max {r["max_s"]:.2f} s; Δ violations: '
+              f'{r["violations"]} (in {r["cuts_with_violations"]} cuts)', flush=True)
+    if not args.skip_headline:
+        on_ = scheduled_run(args, True)
+        off = scheduled_run(args, False)
+        out['headline'] = {'with_migration': on_, 'without_migration': off}
+        gain = None
+        if on_['objective_integral'] and off['objective_integral']:
+            gain = on_['objective_integral'] / off['objective_integral'] - 1.0
+        out['headline']['objective_gain'] = gain
+        print(f'\nsame schedule ({on_["link_up_fraction"]:.0%} link up, {args.duration:g} s):')
+        for run in (on_, off):
+            label = 'with migration   ' if run['migration'] else 'without migration'
+            print(f'  {label}: objective integral {run["objective_integral"]:.1f}, mean '
+                  f'Perf_map {run["mean_perf_map"]:.3f}, AMCL at the robot '
+                  f'{run["amcl_mean_rate_hz"]:.2f} Hz, {run["moves"]} moves')
+        if gain is not None:
+            print(f'  time-integrated performance (decider objective) with migration: '
+                  f'{gain:+.1%}')
+        v_on, v_off = mean_speed(on_['placement_shares']), mean_speed(off['placement_shares'])
+        out['headline']['path_time_reduction'] = 1.0 - v_off / v_on
+        print(f'  path time at the paper\'s speeds (0.4 m/s with AMCL on the laptop, else 0.2): '
+              f'{1.0 - v_off / v_on:.0%} shorter with migration (paper: 28 %)')
+        print('CPU during the migration run (own process, not its nodes):')
+        for name, v in sorted(on_['cpu'].items()):
+            print(f'  {name:14} {v["percent_of_one_core"]:6.2f} % of one core '
+                  f'({v["reference_core_percent"]:.1f} reference-core %)')
+    if args.out:
+        with open(args.out, 'w') as f:
+            json.dump(out, f, indent=2, sort_keys=True, default=str)
+        print(f'written: {args.out}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,304 @@
+"""Test-bed pieces: link schedules, the run record and its reports, the demo's checks, and the
+network namespaces with their shaped link and CPU quotas (those skip, saying why, without root).
+"""
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from anyscale_manager import protocol as p
+from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.testbed import netns
+from anyscale_manager.testbed import schedule as sched
+from anyscale_manager.testbed.record import Record
+from anyscale_manager.testbed.report import (category, draw_timeline, event_log, spans,
+                                             status_table, write_event_log)
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TESTBED = os.path.join(REPO, 'config', 'icar2015_testbed.yaml')
+NETNS_OK, NETNS_WHY = netns.available()
+
+
+# --- schedules ----------------------------------------------------------------------------------
+
+def test_paper_schedule_keeps_the_link_up_about_half_the_run():
+    steps = sched.paper_schedule(60.0)
+    assert 0.45 <= sched.up_fraction(steps, 60.0) <= 0.65
+    assert [s.action for s in steps].count('cut') == 2
+    throttle = next(s for s in steps if s.action == 'throttle')
+    assert throttle.rate_kbps < 6000      # below AR's need
+    assert all(0 <= s.at_s <= 60 for s in steps)
+
+
+@pytest.mark.parametrize('text, message', [
+    ('10:explode', 'unknown action'),
+    ('10:throttle', 'throttle needs a rate'),
+    ('10:cut=5', 'only throttle takes a rate'),
+    ('-1:cut', '>= 0'),
+    ('cut', 'SECONDS:ACTION'),
+    ('x:cut', 'not a number'),
+])
+def test_bad_schedules_are_refused_with_the_item_named(text, message):
+    with pytest.raises(ValueError, match=message):
+        sched.parse(text)
+
+
+def test_schedule_parse_sorts_and_round_trips():
+    steps = sched.parse('30:restore, 10:cut,20:throttle=4000')
+    assert [str(s) for s in steps] == ['10:cut', '20:throttle=4000', '30:restore']
+    assert sched.up_fraction(steps, 40.0) == pytest.approx(0.5)
+
+
+# --- the record ---------------------------------------------------------------------------------
+
+def _state(scale, nodes, gen=1):
+    return p.AgentState(scale=scale, generation=gen, stamp=0.0, nodes={
+        n: p.NodeReport(state='running', pid=100 + i, since=0.0, restarts=0, ready=True,
+                        exit_reason='') for i, n in enumerate(nodes)})
+
+
+def _line(t, topic, message):
+    return json.dumps({'t': t, 'topic': topic, 'data': message.to_json()})
+
+
+@pytest.fixture
+def record():
+    return Record(load_deployment(TESTBED))
+
+
+def test_record_placement_follows_agent_reports_and_forgets_stale_ones(record):
+    record.ingest_line(_line(1.0, p.TOPIC_AGENT_STATE, _state('robot', ['laser', 'amcl', 'ar'])))
+    record.ingest_line(_line(5.0, p.TOPIC_AGENT_STATE, _state('robot', ['laser', 'ar'])))
+    record.ingest_line(_line(5.0, p.TOPIC_AGENT_STATE, _state('laptop', ['amcl'])))
+    assert record.where('amcl', 2.0) == ('robot',)
+    assert record.where('amcl', 6.0) == ('laptop',)
+    assert category(record, 6.0)[0] == 'only AMCL on the laptop'
+    assert category(record, 2.0)[0] == 'AMCL and AR on the robot'
+    # No laptop report for longer than the agent timeout: nothing is known to run there.
+    assert record.where('amcl', 5.0 + record.deployment.decider.agent_timeout_s + 1) == ()
+
+
+def test_record_keeps_malformed_observer_lines_as_problems(record):
+    record.ingest_line('not json at all')
+    record.ingest_line(json.dumps({'t': 1.0, 'topic': p.TOPIC_LAYOUT, 'data': '{"x": 1}'}))
+    record.ingest_line(json.dumps([1, 2]))
+    assert len(record.problems) == 3
+    assert record.layouts == []
+
+
+def test_observed_violations_use_the_delta_rule(record):
+    conn = record.deployment.connection('amcl_ekf')      # freq_min 2 Hz, Δ 2 s
+    times = [i * 0.2 for i in range(50)]                  # 5 Hz until t = 9.8
+    times += [14.0 + i * 0.2 for i in range(50)]          # silent 9.8 .. 14.0, then 5 Hz
+    record.arrivals['/amcl_pose'] = times
+    found = record.observed_violations(conn, 0.0, 24.0)
+    assert len(found) == 1
+    v = found[0]
+    assert 9.8 < v.start < 12.0 and 14.0 <= v.end < 14.6
+    assert v.excess_s > 0
+    # A short gap (1 s) is within Δ: no violation.
+    record.arrivals['/amcl_pose'] = [i * 0.2 for i in range(50)] + \
+        [10.8 + i * 0.2 for i in range(50)]
+    assert record.observed_violations(conn, 0.0, 20.0) == []
+
+
+def test_reported_violations_close_when_the_probe_goes_quiet_or_recovers(record):
+    def reading(level, below):
+        return p.ConnectionReading(rate_hz=0.0, bytes_per_s=0.0, below_for_s=below, level=level)
+    for t, scale, level, below in [(10.0, 'laptop', p.ERROR, 2.5), (10.5, 'laptop', p.ERROR, 3.0),
+                                   (30.0, 'laptop', p.ERROR, 23.0),      # after a long silence
+                                   (11.0, 'robot', p.ERROR, 1.2), (11.5, 'robot', p.OK, 0.0)]:
+        record.readings.setdefault('camera_ar', []).append((t, scale, reading(level, below)))
+    record.readings['camera_ar'].sort(key=lambda x: x[0])
+    found = record.reported_violations(0.0, 40.0)
+    spans_ = sorted((v.source, v.start, v.end) for v in found)
+    assert ('robot', 9.8, 11.5) == (spans_[-1][0], round(spans_[-1][1], 2), spans_[-1][2])
+    laptop = [v for v in found if v.source == 'laptop']
+    assert sorted(round(v.end, 1) for v in laptop) == [10.5, 30.0]
+
+
+# --- reports ------------------------------------------------------------------------------------
+
+def _busy_record(record):
+    record.link_set(0.0, True, 54000.0)
+    record.link_set(10.0, False, 54000.0)
+    for t in range(0, 20):
+        robot = ['laser', 'camera', 'ar'] + (['amcl'] if t >= 10 else [])
+        record.ingest_line(_line(t, p.TOPIC_AGENT_STATE, _state('robot', robot)))
+        if t < 10:
+            record.ingest_line(_line(t, p.TOPIC_AGENT_STATE, _state('laptop', ['amcl'])))
+        status = p.ConnectionStatus(scale='robot', stamp=0.0, connections={
+            'amcl_ekf': p.ConnectionReading(rate_hz=5.0 if t < 10 else 2.5, bytes_per_s=1.0,
+                                            below_for_s=0.0, level=p.OK)})
+        record.ingest_line(_line(t + 0.1, p.TOPIC_CONNECTION_STATUS, status))
+    record.ingest_line(_line(10.5, p.TOPIC_EVENTS, p.Event(
+        stamp=0.0, kind='migrate_back', node='amcl', from_scale='laptop', to_scale='robot',
+        reason='link down', generation=3)))
+    record.mark(10.0, 'link cut')
+    return record
+
+
+def test_spans_follow_the_paper_colours(record):
+    _busy_record(record)
+    labels = [label for _, _, label, _ in spans(record, 0.0, 19.0)]
+    assert labels[0] == 'only AMCL on the laptop'
+    assert labels[-1] == 'AMCL and AR on the robot'
+
+
+def test_status_table_shows_link_scales_connections_and_placement(record):
+    _busy_record(record)
+    text = status_table(record, 15.0, 0.0, 'netns')
+    assert 'CUT' in text and 'robot' in text and 'amcl_ekf' in text
+    assert 'AMCL: robot' in text
+    assert 'migrate_back amcl' in text
+
+
+def test_timeline_png_and_event_log_are_written(record, tmp_path):
+    _busy_record(record)
+    png = draw_timeline(record, str(tmp_path / 'timeline.png'), 0.0, 19.0, 'test')
+    with open(png, 'rb') as f:
+        assert f.read(8) == b'\x89PNG\r\n\x1a\n'
+    jsonl, text = write_event_log(record, str(tmp_path), 0.0)
+    rows = [json.loads(line) for line in open(jsonl)]
+    assert [r['kind'] for r in rows] == ['action', 'migrate_back']
+    assert 'migrate_back amcl laptop -> robot' in open(text).read()
+    assert event_log(record, 0.0) == rows
+
+
+# --- the demo command's checks (no test-bed started) --------------------------------------------
+
+@pytest.mark.parametrize('args, message', [
+    (['--duration', '0'], '--duration'),
+    (['--schedule', '5:fly'], 'unknown action'),
+    (['--config', '/nonexistent/deployment.yaml'], 'cannot read'),
+    (['--domain-id', '999'], 'out of range'),
+])
+def test_demo_refuses_bad_input_before_starting_anything(args, message, tmp_path, python,
+                                                         ros_env):
+    out = subprocess.run([python, '-m', 'anyscale_manager.cli', 'demo', '--out',
+                          str(tmp_path / 'out')] + args, env=ros_env, capture_output=True,
+                         text=True, timeout=60)
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert message in out.stderr
+
+
+def test_demo_finds_the_packaged_deployment():
+    from anyscale_manager.testbed.cli import default_config
+    path = default_config()
+    assert path and os.path.basename(path) == 'icar2015_testbed.yaml'
+    load_deployment(path)
+
+
+# --- namespaces, link and quotas (root only) ----------------------------------------------------
+
+def test_available_says_why_not_in_plain_words():
+    ok, why = netns.available()
+    assert isinstance(ok, bool) and why
+    if os.geteuid() != 0:
+        assert not ok and 'root' in why
+
+
+def test_tbf_arguments_and_refusals():
+    args = netns.tbf_arguments(54000)
+    assert args[:3] == ['tbf', 'rate', '54000kbit']
+    with pytest.raises(ValueError):
+        netns.tbf_arguments(0)
+
+
+needs_netns = pytest.mark.skipif(not NETNS_OK, reason=f'no namespaces here: {NETNS_WHY}')
+
+TCP_SINK = '''
+import socket, threading
+s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+s.bind(("0.0.0.0", 5301)); s.listen(4)
+def drain(c):
+    while c.recv(65536):
+        pass
+while True:
+    c, _ = s.accept(); threading.Thread(target=drain, args=(c,), daemon=True).start()
+'''
+TCP_SEND = '''
+import socket, struct, sys, time
+s = socket.create_connection((sys.argv[1], 5301), timeout=float(sys.argv[2]))
+s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 65536)
+b = b"x" * 8192; t = time.time(); n = 0
+while time.time() - t < 1.5:
+    n += s.send(b)
+print(n * 8 / 1000 / (time.time() - t))
+# Reset instead of a graceful close: no orphaned send buffer keeps the link busy afterwards.
+s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+s.close()
+'''
+
+
+def _throughput_kbps(net, connect_timeout_s=5.0):
+    out = net.run('robot', [sys.executable, '-c', TCP_SEND, net.addresses['laptop'],
+                            str(connect_timeout_s)], timeout=20)
+    return float(out.strip())
+
+
+@needs_netns
+def test_network_shapes_cuts_throttles_and_leaves_nothing_behind():
+    env = {'PATH': os.environ.get('PATH', '/usr/bin:/bin')}
+    net = netns.Network(rate_kbps=20000, cpu_cores={'robot': 0.25, 'laptop': 0.9})
+    with net:
+        names = set(net.namespaces.values())
+        assert names <= set(netns.list_namespaces())
+        sink = net.popen('laptop', [sys.executable, '-c', TCP_SINK], env)
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                rate = _throughput_kbps(net, 1.0)
+                break
+            except netns.TestbedError:
+                assert time.monotonic() < deadline, 'the sink never came up'
+                time.sleep(0.2)
+        assert 12000 <= rate <= 26000, rate
+        net.throttle(4000)
+        assert 2000 <= _throughput_kbps(net) <= 6000
+        net.cut()
+        assert 'blackhole' in net.qdisc('robot') and 'blackhole' in net.qdisc('laptop')
+        with pytest.raises(netns.TestbedError):
+            _throughput_kbps(net, 1.0)
+        net.restore()
+        assert 'tbf' in net.qdisc('laptop')
+        assert 2000 <= _throughput_kbps(net) <= 6000      # the throttle survives the cut
+        # The CPU quota: a busy loop in the robot's group gets about 0.25 of a core.
+        busy = 'import time\nt = time.time()\nwhile time.time() - t < 2: pass'
+        spin = net.popen('robot', [sys.executable, '-c', busy], env)
+        used0, t0 = net.cpu_usage_s('robot'), time.monotonic()
+        spin.wait(timeout=20)
+        cores = (net.cpu_usage_s('robot') - used0) / (time.monotonic() - t0)
+        assert 0.15 <= cores <= 0.32, cores
+        assert sink.poll() is None
+        groups = [g.path for g in net.groups.values()]
+    assert sink.wait(timeout=10) is not None          # teardown killed what was left inside
+    assert not names & set(netns.list_namespaces())
+    assert not any(os.path.exists(g) for g in groups)
+
+
+@needs_netns
+def test_network_teardown_runs_on_an_exception():
+    net = netns.Network()
+    with pytest.raises(RuntimeError):
+        with net:
+            names = set(net.namespaces.values())
+            raise RuntimeError('boom')
+    assert not names & set(netns.list_namespaces())
+
+
+@needs_netns
+def test_remove_stale_cleans_what_a_dead_run_left():
+    dead = 4194304 + 7      # above pid_max: no live process can have it
+    tag = f'{netns.NAME_PREFIX}-{dead}-1'
+    net = netns.Network(tag=tag, cpu_cores={'robot': 0.5}).setup()
+    try:
+        removed = netns.remove_stale()
+        assert f'{tag}-robot' in removed and f'{tag}-laptop' in removed
+        assert not any(n.startswith(tag) for n in netns.list_namespaces())
+    finally:
+        net.teardown()
