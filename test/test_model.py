@@ -129,6 +129,8 @@ def mutate(fn):
      'nodes.ar.coresidence', 'no scale satisfies'),
     (lambda p: p['nodes']['camera'].update(migratable=True), 'nodes.camera.migratable',
      'no second scale'),
+    (lambda p: p['nodes']['ekf'].update(standby=True), 'nodes.ekf.standby',
+     'only for a migratable node'),
     (lambda p: p['nodes']['names'].append('ghost'), 'nodes.ghost', 'has no section'),
     (lambda p: p['nodes'].update(stray={'cpu': 1.0}), 'nodes.stray', 'not listed'),
     (lambda p: p['nodes']['names'].append('bad name'), 'nodes.names', 'not a valid name'),

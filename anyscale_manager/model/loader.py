@@ -352,6 +352,7 @@ def _read_node(name: str, sec: _Section) -> t.Node:
         managed=sec.boolean('managed', True),
         move_order=sec.string('move_order', t.START_BEFORE_STOP,
                               choices=(t.START_BEFORE_STOP, t.STOP_BEFORE_START)),
+        standby=sec.boolean('standby', False),
         settings=settings,
     )
     if node.cpu is MISSING:
@@ -448,6 +449,9 @@ def _derived_checks(ctx: _Context, d: t.Deployment) -> None:
             ctx.error(f'nodes.{n.name}.coresidence',
                       f'no scale satisfies the residence of every node that must share a scale '
                       f'with it ({", ".join(group)})')
+        if n.standby and n.name not in d.migratable_nodes:
+            ctx.error(f'nodes.{n.name}.standby', 'a standby copy is kept only for a migratable '
+                                                 'node, and this node cannot migrate')
         if n.migratable is True and n.name not in d.migratable_nodes and n.name not in critical:
             ctx.error(f'nodes.{n.name}.migratable',
                       'declared migratable, but its residence, coresidence or launch leaves it '

@@ -114,6 +114,7 @@ class Node:
     migratable: Optional[bool] = None  # None = derive; False = never move it
     managed: bool = True              # False: the agent does not start it (e.g. the decider)
     move_order: str = START_BEFORE_STOP
+    standby: bool = False             # keep a frozen copy on the master while it runs remotely
     settings: Optional[Settings] = None
 
     @property
