@@ -262,7 +262,7 @@ def main():
     except ImportError:
         monitors = 'without monitors (module absent)'
     print(f'machine: {os.cpu_count()} CPUs; ROS_DOMAIN_ID={args.domain_id}; agent {monitors}')
-    with tempfile.TemporaryDirectory(prefix="bench_agent_") as tmp:
+    with tempfile.TemporaryDirectory(prefix='bench_agent_') as tmp:
         moves = bench_moves(tmp, args.moves)
         for node, label in (('sbs', 'start_before_stop'), ('sbs2', 'stop_before_start')):
             for s, what in zip(moves[node], ('first message from the new copy',

@@ -200,7 +200,7 @@ def main():
                   f'{gain:+.1%}')
         v_on, v_off = mean_speed(on_['placement_shares']), mean_speed(off['placement_shares'])
         out['headline']['path_time_reduction'] = 1.0 - v_off / v_on
-        print(f'  path time at the paper\'s speeds (0.4 m/s with AMCL on the laptop, else 0.2): '
+        print(f"  path time at the paper's speeds (0.4 m/s with AMCL on the laptop, else 0.2): "
               f'{1.0 - v_off / v_on:.0%} shorter with migration (paper: 28 %)')
         print('CPU during the migration run (own process, not its nodes):')
         for name, v in sorted(on_['cpu'].items()):

@@ -357,7 +357,7 @@ def test_plan_command_json(capsys):
     assert set(data['layout']['model_1']) >= {'scale', 'cpu', 'performance', 'parameter_value'}
 
 
-INFEASIBLE = """
+INFEASIBLE = '''
 /**:
   ros__parameters:
     deployment: {name: overloaded}
@@ -377,7 +377,7 @@ INFEASIBLE = """
     connections:
       names: [plan]
       plan: {topic: /plan, publisher: planner, subscriber: driver, bandwidth_kbps: 10.0}
-"""
+'''
 
 
 def run_cli(*args):

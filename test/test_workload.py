@@ -13,7 +13,7 @@ from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import UInt8MultiArray
 
 from anyscale_manager.nodes.workload import (OutputGate, burn_cpu, parse_spec, publisher_qos,
-                                              subscriber_qos)
+                                             subscriber_qos)
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 

@@ -131,7 +131,7 @@ class Testbed:
             else:
                 self.mode = LOOPBACK
                 self.mode_reason = (f'no network namespaces ({why}): running on loopback with '
-                                    'the link emulated (a cut freezes the laptop\'s processes; '
+                                    "the link emulated (a cut freezes the laptop's processes; "
                                     'no bandwidth shaping, no CPU quotas)')
         else:
             self.mode_reason = 'loopback asked for: the link is emulated'
@@ -159,7 +159,7 @@ class Testbed:
             # start; once they have, the robot gets the whole machine until every node runs,
             # then its quota back. Nothing is measured before that.
             self.wait_for(lambda r: 'robot' in r.scale_status, 30.0,
-                          'the robot agent\'s scale monitor')
+                          "the robot agent's scale monitor")
             robot_group.set_cores(float(psutil.cpu_count() or 1))
             self.mark('boot: robot CPU quota lifted while the nodes start')
         self.start_decider()

@@ -256,4 +256,5 @@ class Record:
                     out.append(Violation(name, open_at, last_error, tolerance, scale))
         return sorted(out, key=lambda v: v.start)
 
+
 __all__ = ['MIGRATION_KINDS', 'Record', 'Violation']

@@ -91,8 +91,8 @@ def status_table(record: Record, now: float, t0: float, mode: str) -> str:
     lines.append('')
     lines.append(f'AMCL: {location(record, "amcl", now) or "-":7} AR: '
                  f'{location(record, "ar", now) or "-":7} ({label})')
-    recent = [e for _, e in record.events if e.kind in ('migrate', 'migrate_back', 'scale_lost',
-                                                         'adopt')][-3:]
+    kinds = ('migrate', 'migrate_back', 'scale_lost', 'adopt')
+    recent = [e for _, e in record.events if e.kind in kinds][-3:]
     for e in recent:
         lines.append(f'  {e.kind} {e.node} {e.from_scale} -> {e.to_scale}: {e.reason[:90]}')
     return '\n'.join(lines)
