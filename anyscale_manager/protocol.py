@@ -30,7 +30,8 @@ MAX_PAYLOAD_BYTES = 1 << 20
 # Diagnostic levels as plain ints (DiagnosticStatus.level is bytes in Python).
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
-NODE_STATES = ('starting', 'running', 'stopping', 'stopped', 'crashed', 'backoff', 'failed')
+NODE_STATES = ('starting', 'running', 'stopping', 'stopped', 'crashed', 'backoff', 'failed',
+               'standby')
 
 
 class ProtocolError(ValueError):

@@ -456,3 +456,136 @@ def test_unknown_peers_are_ignored():
     assert 'unknown scale' in r.peer_state(agent_state('mars', 1, {}), 0.0)
     assert r.peer_state(agent_state('a', 1, {'sbs': ('running', True)}), 0.0) is None
     assert r.copies_elsewhere('sbs', 0.0) == 0
+
+
+# --- warm standby ---------------------------------------------------------------------------
+
+# A node with a child: both print a tick every 20 ms, so a frozen group stops ticking.
+TICKER = ('import subprocess, sys, time\n'
+          'kid = subprocess.Popen([sys.executable, "-c", "import time\\nwhile True: '
+          'time.sleep(0.02)"])\n'
+          'print(kid.pid, flush=True)\n'
+          'while True:\n'
+          '    time.sleep(0.02)\n')
+
+
+def stat_state(pid):
+    st = procs._stat(pid)
+    return st[0] if st else ''
+
+
+def group_states(pid):
+    return {stat_state(m) for m in procs.session_members(pid)}
+
+
+def test_standby_freezes_thaws_and_stops_the_whole_group(make_sup):
+    sup = make_sup([py_entry('n', TICKER)])
+    sup.start('n', time.monotonic())
+    pid = sup.pids()['n']
+    assert drive(sup, lambda: sup.reports()['n'].ready and len(procs.session_members(pid)) == 2,
+                 visible=lambda e: True)
+    # Moved away with park: frozen, not stopped; not live, not in pids().
+    sup.set_wanted((), time.monotonic(), park={'n'})
+    r = sup.reports()['n']
+    assert (r.state, r.pid, r.ready) == ('standby', pid, False)
+    assert wait_for(lambda: group_states(pid) == {'T'}), group_states(pid)
+    assert sup.pids() == {} and sup.active() == () and sup.standby() == ('n',)
+    assert not sup.all_stopped()
+    sup.step(time.monotonic())
+    assert sup.reports()['n'].state == 'standby'    # stays frozen while parked
+    with open(sup.state_path) as f:
+        rec = json.load(f)['nodes']['n']
+    assert rec['standby'] is True and rec['pid'] == pid and rec['ready'] is True
+    # Wanted again: the same process resumes, ready at once (it was ready before).
+    sup.set_wanted({'n'}, time.monotonic(), park={'n'})
+    r = sup.reports()['n']
+    assert (r.state, r.pid, r.ready) == ('running', pid, True)
+    assert wait_for(lambda: 'T' not in group_states(pid)), group_states(pid)
+    assert sup.pids() == {'n': pid}
+    # Frozen again, then no longer parked: thawed and stopped by SIGINT (no SIGTERM needed).
+    sup.set_wanted((), time.monotonic(), park={'n'})
+    assert wait_for(lambda: group_states(pid) == {'T'})
+    sup.set_wanted((), time.monotonic())
+    assert sup.reports()['n'].state == 'stopping'
+    assert drive(sup, lambda: sup.reports()['n'].state == 'stopped')
+    # The leader got the SIGINT (a frozen process gets none but SIGKILL and SIGCONT).
+    assert 'killed by SIGINT' in sup.reports()['n'].exit_reason
+    assert gone(pid) and not procs.session_members(pid)
+
+
+def test_standby_copy_that_dies_is_handled_like_any_exit(make_sup):
+    sup = make_sup([py_entry('n', SLEEPER)])
+    sup.start('n', time.monotonic())
+    pid = sup.pids()['n']
+    assert drive(sup, lambda: sup.reports()['n'].ready, visible=lambda e: True)
+    sup.set_wanted((), time.monotonic(), park={'n'})
+    os.kill(pid, signal.SIGKILL)
+    assert drive(sup, lambda: sup.reports()['n'].state == 'stopped')
+    assert 'SIGKILL' in sup.reports()['n'].exit_reason
+    # Not wanted: not restarted.
+    time.sleep(FAST.restart_backoff_s * 2)
+    sup.step(time.monotonic())
+    assert sup.reports()['n'].state == 'stopped' and sup.pids() == {}
+
+
+def test_stop_all_thaws_and_stops_a_frozen_copy(make_sup):
+    sup = make_sup([py_entry('n', SLEEPER)])
+    sup.start('n', time.monotonic())
+    pid = sup.pids()['n']
+    sup.set_wanted((), time.monotonic(), park={'n'})
+    assert wait_for(lambda: stat_state(pid) == 'T')
+    sup.stop_all(time.monotonic())
+    assert drive(sup, sup.all_stopped)
+    assert 'SIGINT' in sup.reports()['n'].exit_reason and gone(pid)
+
+
+def test_a_frozen_copy_is_adopted_frozen(make_sup):
+    e = py_entry('n', TICKER)
+    first = make_sup([e])
+    first.start('n', time.monotonic())
+    pid = first.pids()['n']
+    assert drive(first, lambda: first.reports()['n'].ready, visible=lambda e: True)
+    first.set_wanted((), time.monotonic(), park={'n'})
+    assert wait_for(lambda: group_states(pid) == {'T'})
+    # The agent dies; someone thaws the group meanwhile: the successor freezes it again.
+    procs.signal_session(pid, signal.SIGCONT)
+    second = make_sup([e])
+    notes = second.adopt(time.monotonic(), time.time())
+    assert notes == [f'n: adopted pid {pid} (standby, frozen)']
+    assert second.reports()['n'].state == 'standby' and second.pids() == {}
+    assert wait_for(lambda: group_states(pid) == {'T'})
+    second.set_wanted((), time.monotonic(), park={'n'})
+    second.step(time.monotonic())
+    assert second.reports()['n'].state == 'standby'
+    second.set_wanted({'n'}, time.monotonic(), park={'n'})
+    r = second.reports()['n']
+    assert (r.state, r.pid, r.ready) == ('running', pid, True)
+    assert wait_for(lambda: 'T' not in group_states(pid))
+
+
+def test_standby_copies_count_as_present_instances_for_a_while():
+    d = load_mapping(deployment_dict({
+        'sb': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'standby': True},
+    }))
+    r = Reconciler(d, 'b', ['sb'], readiness_timeout_s=5.0, agent_timeout_s=3.0,
+                   standby_in_graph_s=25.0)
+
+    def report(state, since):
+        return protocol.AgentState(scale='a', generation=1, stamp=1000.0, nodes={
+            'sb': protocol.NodeReport(state=state, pid=7, since=since, restarts=0,
+                                      ready=False, exit_reason='')})
+    r.peer_state(report('standby', 990.0), 0.0)       # frozen 10 s ago
+    assert r.copies_elsewhere('sb', 0.0) == 1 and r.copies_elsewhere('sb', 2.0) == 1
+    r.peer_state(report('standby', 970.0), 0.0)       # frozen 30 s ago: its lease is over
+    assert r.copies_elsewhere('sb', 0.0) == 0
+    r.peer_state(report('stopped', 0.0), 0.0)
+    assert r.copies_elsewhere('sb', 0.0) == 0
+    # Parked on the master only while the layout places it elsewhere (or nowhere).
+    m = Reconciler(d, 'a', ['sb'], readiness_timeout_s=5.0, agent_timeout_s=3.0)
+    assert m.parked(['sb']) == {'sb'}
+    m.apply_layout(protocol.Layout(generation=1, deployment='unit', assignments={'sb': 'a'},
+                                   reason='', stamp=0.0), 0.0)
+    assert m.parked(['sb']) == set()
+    m.apply_layout(protocol.Layout(generation=2, deployment='unit', assignments={'sb': 'b'},
+                                   reason='', stamp=0.0), 1.0)
+    assert m.parked(['sb']) == {'sb'}

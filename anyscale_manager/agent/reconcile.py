@@ -22,7 +22,11 @@ from ..model import types as t
 from ..protocol import AgentState, Layout
 
 LIVE = ('starting', 'running', 'stopping')
+STANDBY = 'standby'
 NO_GENERATION = -1
+# A frozen copy stays in the others' ROS graph until its DDS participant lease runs out (Fast
+# DDS: 20 s); with slack, it counts as a present instance that long after it was frozen.
+STANDBY_IN_GRAPH_S = 25.0
 
 
 @dataclass(frozen=True)
@@ -33,6 +37,7 @@ class Peer:
     generation: int
     heard: float
     nodes: Mapping[str, Tuple[str, bool]]     # node -> (state, ready)
+    frozen_for: Optional[Mapping[str, float]] = None   # standby node -> s frozen, when heard
 
 
 @dataclass(frozen=True)
@@ -43,12 +48,14 @@ class LayoutVerdict:
 
 class Reconciler:
     def __init__(self, deployment: t.Deployment, scale: str, catalogue: Iterable[str],
-                 readiness_timeout_s: float, agent_timeout_s: float):
+                 readiness_timeout_s: float, agent_timeout_s: float,
+                 standby_in_graph_s: float = STANDBY_IN_GRAPH_S):
         self.deployment = deployment
         self.scale = scale
         self.catalogue = tuple(catalogue)
         self.readiness_timeout_s = readiness_timeout_s
         self.agent_timeout_s = agent_timeout_s
+        self.standby_in_graph_s = standby_in_graph_s
         self.generation = NO_GENERATION
         self.assignments: Dict[str, str] = {}
         self._moved_at: Dict[str, float] = {}
@@ -109,15 +116,34 @@ class Reconciler:
             return f'agent state from unknown scale {state.scale!r:.60}; ignored'
         self.peers[state.scale] = Peer(
             scale=state.scale, generation=state.generation, heard=now,
-            nodes={n: (r.state, r.ready) for n, r in state.nodes.items()})
+            nodes={n: (r.state, r.ready) for n, r in state.nodes.items()},
+            frozen_for={n: max(0.0, state.stamp - r.since) for n, r in state.nodes.items()
+                        if r.state == STANDBY})
         return None
 
     def _fresh(self, now: float) -> List[Peer]:
         return [p for p in self.peers.values() if now - p.heard <= self.agent_timeout_s]
 
     def copies_elsewhere(self, node: str, now: float) -> int:
-        """How many other live agents report a live copy of ``node``."""
-        return sum(1 for p in self._fresh(now) if p.nodes.get(node, ('', False))[0] in LIVE)
+        """How many instances of ``node`` other live agents account for in the ROS graph.
+
+        A live copy counts; so does a frozen (standby) copy while it may still be in the graph
+        (``standby_in_graph_s`` after it was frozen), so that it is not taken for ours.
+        """
+        count = 0
+        for p in self._fresh(now):
+            state = p.nodes.get(node, ('', False))[0]
+            if state in LIVE:
+                count += 1
+            elif state == STANDBY:
+                frozen = (p.frozen_for or {}).get(node, 0.0) + (now - p.heard)
+                count += frozen < self.standby_in_graph_s
+        return count
+
+    def parked(self, standby_nodes: Iterable[str]) -> Set[str]:
+        """Which of these nodes to keep frozen rather than stop: those not placed here."""
+        return {n for n in standby_nodes if n in self.catalogue
+                and self.assignments.get(n) != self.scale}
 
     # --- the decision of what runs here ---------------------------------------------------
     def desired(self, now: float, active: Iterable[str]) -> Set[str]:

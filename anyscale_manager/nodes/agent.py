@@ -123,6 +123,9 @@ class AgentNode(Node):
         self.reconciler = Reconciler(d, scale, self.catalogue,
                                      readiness_timeout_s=self.settings.readiness_timeout_s,
                                      agent_timeout_s=d.decider.agent_timeout_s)
+        # Warm standby is the master's: a node moved away is frozen there instead of stopped.
+        self._standby_nodes = tuple(
+            n for n in self.catalogue if d.node(n).standby) if scale == d.master.name else ()
         self._wall_offset = time.time() - time.monotonic()
         for note in self.supervisor.adopt(time.monotonic(), time.time()):
             self.get_logger().info(f'adoption: {note}')
@@ -237,7 +240,7 @@ class AgentNode(Node):
             sup.stop_all(now)
         else:
             want = self.reconciler.desired(now, sup.active())
-            sup.set_wanted(want, now)
+            sup.set_wanted(want, now, park=self.reconciler.parked(self._standby_nodes))
             waiting = self.reconciler.waiting
             for node, why in waiting.items():
                 if self._last_waiting.get(node) != why.split(' (')[0]:
