@@ -67,8 +67,10 @@ def reaction(args):
                         'amcl_ekf and ar_navigation healthy')
             t_cut = tb.now()
             tb.cut()
-            tb.wait_for(lambda r: r.where('amcl') == ('robot',) and r.where('ar') == ('robot',),
-                        30.0, 'amcl and ar on the robot')
+            # Back = the robot's agent reports both running and ready on the robot. (The cut-off
+            # laptop's copies cannot be told to stop; its reports only age out.)
+            tb.wait_for(lambda r: {'amcl', 'ar'} <= set(r.running_on('robot', ready_only=True)),
+                        30.0, 'amcl and ar running on the robot')
             t_back = tb.now()
             tb.sleep(max(c.tolerance_s or 0 for c in conns) + window + 1.0)
             end = tb.now()

@@ -28,8 +28,8 @@ TESTBED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 @pytest.fixture(scope='module')
 def bed():
     options = harness.Options(TESTBED, int(os.environ['ROS_DOMAIN_ID']), mode='netns',
-                      decider_parameters={'decider.hysteresis_s': str(HYSTERESIS_S)},
-                      link_up_at_start=False)
+                              decider_parameters={'decider.hysteresis_s': str(HYSTERESIS_S)},
+                              link_up_at_start=False)
     tb = harness.Testbed(options).start()
     try:
         yield tb

@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='coverage holes per lap and link, drawn uniformly (default 1 3)')
     parser.add_argument('--migration-delay', type=float, default=PathModel.migration_delay_s,
                         metavar='S', help='seconds a moved node needs to start (default 2)')
+    parser.add_argument('--standby-resume', type=float, default=PathModel.standby_resume_s,
+                        metavar='S', help='seconds a standby node needs to serve again when it '
+                                          'comes back to the master (default 0.3)')
     parser.add_argument('--hysteresis', type=float, metavar='S',
                         help="override the decider's hysteresis T in seconds (default: each "
                              "deployment's own, 20 s for the test-bed)")
@@ -70,7 +73,8 @@ def parse_systems(text: Optional[str]) -> List[Tuple[int, int, int]]:
 def _path_model(args) -> PathModel:
     return replace(PathModel(), links=args.links, availability_low=args.availability[0],
                    availability_high=args.availability[1], outages_min=args.outages[0],
-                   outages_max=args.outages[1], migration_delay_s=args.migration_delay)
+                   outages_max=args.outages[1], migration_delay_s=args.migration_delay,
+                   standby_resume_s=args.standby_resume)
 
 
 def _finite(x):

@@ -41,6 +41,10 @@ class PathModel:
     throughput_fraction: float = 0.45     # WiFi goodput / nominal (802.11g: ~24 of 54 Mbit/s)
     edge_ramp_m: float = 5.0              # goodput ramps from 0 at a hole's edge to its peak
     migration_delay_s: float = 2.0        # a moved node's new instance needs this to start
+    # A node with `standby: true` that comes back to the master is thawed, not started
+    # (bench/bench_standby.py: the first message 2-3 ms after a short freeze, a median of about
+    # 0.25 s after a 30 s freeze, when DDS has to rediscover the thawed participant).
+    standby_resume_s: float = 0.3
     links: str = INDEPENDENT              # independent: one coverage pattern per remote scale
 
     def __post_init__(self):
@@ -54,6 +58,7 @@ class PathModel:
             (0 < self.throughput_fraction <= 1, 'throughput_fraction must be in (0, 1]'),
             (self.edge_ramp_m >= 0, 'edge_ramp_m must be >= 0'),
             (self.migration_delay_s >= 0, 'migration_delay_s must be >= 0'),
+            (self.standby_resume_s >= 0, 'standby_resume_s must be >= 0'),
             (self.links in LINK_MODES, f'links must be one of {", ".join(LINK_MODES)}'),
         )
         for ok, message in checks:
