@@ -20,6 +20,23 @@ BASE_ENV_PREFIXES = ('ROS_', 'RMW_', 'RCUTILS_', 'FASTRTPS_', 'FASTDDS_', 'CYCLO
 ENV_NODE = 'ANYSCALE_AGENT_NODE'          # marks a child: which catalogue entry it is
 ENV_SCALE = 'ANYSCALE_AGENT_SCALE'        # and which scale's agent started it
 ENV_INSTANCE = 'ANYSCALE_AGENT_INSTANCE'  # a per-start token, checked when adopting
+FASTDDS_PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+# A frozen standby copy sends no DDS announcements; peers drop a participant whose lease runs
+# out (Fast DDS: 20 s) and need up to seconds to rediscover it when it is thawed. The master's
+# standby copies therefore announce a lease longer than any freeze.
+STANDBY_LEASE_S = 24 * 3600
+
+
+def standby_profile_xml(lease_s: int = STANDBY_LEASE_S) -> str:
+    """A Fast DDS profile whose participants announce a lease of ``lease_s`` seconds."""
+    return ('<?xml version="1.0" encoding="UTF-8"?>\n'
+            '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
+            '  <participant profile_name="anyscale_standby" is_default_profile="true">\n'
+            '    <rtps><builtin><discovery_config>\n'
+            f'      <leaseDuration><sec>{int(lease_s)}</sec></leaseDuration>\n'
+            '    </discovery_config></builtin></rtps>\n'
+            '  </participant>\n'
+            '</profiles>\n')
 
 
 @dataclass(frozen=True)
@@ -149,9 +166,13 @@ def ros_full_name(node: t.Node) -> str:
 
 def build_catalogue(deployment: t.Deployment, scale: str,
                     environ: Optional[Mapping[str, str]] = None,
-                    ament_prefix: Callable[[str], Optional[str]] = _ament_prefix
-                    ) -> Dict[str, Entry]:
-    """Every managed, startable node that may run on ``scale``, in deployment order."""
+                    ament_prefix: Callable[[str], Optional[str]] = _ament_prefix,
+                    standby_profile: str = '') -> Dict[str, Entry]:
+    """Every managed, startable node that may run on ``scale``, in deployment order.
+
+    ``standby_profile``: a Fast DDS profile file (standby_profile_xml) given to the master's
+    standby nodes, unless their environment already names a profile of its own.
+    """
     if scale not in deployment.scale_names:
         raise ValueError(f'{deployment.source}: unknown scale {scale!r} (scales: '
                          f'{", ".join(deployment.scale_names)})')
@@ -167,6 +188,10 @@ def build_catalogue(deployment: t.Deployment, scale: str,
         env.update({str(k): str(v) for k, v in node.launch.env.items()})
         env[ENV_NODE] = node.name
         env[ENV_SCALE] = scale
+        if standby_profile and node.standby and scale == deployment.master.name \
+                and not any(v in env for v in FASTDDS_PROFILE_VARS):
+            for var in FASTDDS_PROFILE_VARS:   # Fast DDS 2 reads the first, 3 the second
+                env[var] = standby_profile
         argv, problem = build_argv(node, env.get('PATH', os.defpath), ament_prefix)
         out[node.name] = Entry(name=node.name, argv=argv, env=t.frozen_map(env),
                                ros_name=ros_full_name(node), move_order=node.move_order,

@@ -27,7 +27,7 @@ from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 
 from .. import protocol
-from ..agent.catalogue import build_catalogue, Entry
+from ..agent.catalogue import build_catalogue, Entry, standby_profile_xml
 from ..agent.reconcile import Reconciler
 from ..agent.supervisor import Supervisor
 from ..model.loader import DeploymentError, load_from_parameters
@@ -113,7 +113,12 @@ class AgentNode(Node):
         stem = os.path.join(state_dir, f'agent_{d.name}_{scale}')
         self._take_lock(stem + '.lock')
 
-        self.catalogue: Dict[str, Entry] = build_catalogue(d, scale)
+        profile = ''
+        if scale == d.master.name and any(d.node(n).standby for n in d.migratable_nodes):
+            profile = stem + '_standby_fastdds.xml'
+            with open(profile, 'w', encoding='utf-8') as f:
+                f.write(standby_profile_xml())
+        self.catalogue: Dict[str, Entry] = build_catalogue(d, scale, standby_profile=profile)
         for entry in self.catalogue.values():
             if entry.problem:
                 self.get_logger().error(f'{entry.name}: {entry.problem}')
