@@ -35,7 +35,7 @@ from ..model.loader import DeploymentError, load_from_parameters
 try:
     from . import monitors as _monitors
     _MONITORS_MISSING = ''
-except ImportError as exc:   # built in its own issue; the agent works without it
+except ImportError as exc:   # a broken install: the agent still supervises without monitors
     _monitors = None
     _MONITORS_MISSING = str(exc)
 
