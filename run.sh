@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # One entry point for people and CI:
 #   ./run.sh demo [ARGS...]   set up .venv when needed, then run the demo
-#   ./run.sh test [ARGS...]   set up .venv when needed, then run the test suite
+#   ./run.sh test [ARGS...]   set up .venv when needed, then run the test suite (or ARGS,
+#                             e.g. one test file; the end-to-end test-bed runs with
+#                             ANYSCALE_E2E=1 as root)
 #   ./run.sh env              only set up .venv
 # Set-up is idempotent: a stamp of requirements.txt, setup.py and package.xml skips pip when
 # nothing changed, so a second run spends only seconds on it.
@@ -36,6 +38,8 @@ setup_env
 case "$cmd" in
   env) ;;
   demo) exec "$venv/bin/anyscale-manager" demo "$@" ;;
-  test) exec "$venv/bin/python" -m pytest -q test "$@" ;;
+  # -rs prints the reason of every skipped test.
+  test) if [ $# -gt 0 ]; then exec "$venv/bin/python" -m pytest -q -rs "$@"
+        else exec "$venv/bin/python" -m pytest -q -rs test; fi ;;
   *) echo "usage: ./run.sh demo|test|env [ARGS...]" >&2; exit 2 ;;
 esac

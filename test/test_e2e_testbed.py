@@ -16,7 +16,15 @@ from anyscale_manager.testbed import harness
 
 HYSTERESIS_S = 8.0
 OK, WHY = netns.available()
-pytestmark = pytest.mark.skipif(not OK, reason=f'no test-bed here: {WHY}')
+# Opt-in: about two minutes of real namespaces, quotas and a shaped link whose timings
+# (Δ of 1-2 s) a loaded shared machine can disturb. Run them with ANYSCALE_E2E=1 as root.
+OPTED_IN = os.environ.get('ANYSCALE_E2E') == '1'
+pytestmark = [
+    pytest.mark.skipif(not OPTED_IN, reason='end-to-end test-bed tests are opt-in: run '
+                                            '`sudo env ANYSCALE_E2E=1 ./run.sh test '
+                                            'test/test_e2e_testbed.py` (about 2 minutes)'),
+    pytest.mark.skipif(not OK, reason=f'no test-bed here: {WHY}'),
+]
 
 ROBOT, LAPTOP = 'robot', 'laptop'
 
