@@ -22,10 +22,11 @@ from typing import Any, Dict, List, Optional, Sequence
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 
+from . import qos
 from .. import protocol
 from ..agent.catalogue import build_catalogue, Entry, standby_profile_xml
 from ..agent.reconcile import Reconciler
@@ -48,8 +49,7 @@ class AgentError(RuntimeError):
 
 
 def latched_qos() -> QoSProfile:
-    return QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return qos.LATCHED
 
 
 def scale_from_args(args: Sequence[str]) -> Optional[str]:

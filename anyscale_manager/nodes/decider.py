@@ -19,10 +19,9 @@ from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                       qos_profile_sensor_data)
 from std_msgs.msg import String
 
+from . import qos
 from .. import protocol as p
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.types import INITIAL_LAYOUTS, DeciderSettings, Deployment
@@ -35,18 +34,10 @@ from ..runtime.policy import MigrationPolicy
 
 NODE_NAME = 'anyscale_decider'
 
-LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                     reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
-AGENT_STATE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
-                             reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-EVENTS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
-MONITOR_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
-                         reliability=qos_profile_sensor_data.reliability,
-                         durability=DurabilityPolicy.VOLATILE)
+LATCHED = qos.LATCHED
+AGENT_STATE_QOS = qos.LATCHED_READER
+EVENTS_QOS = qos.EVENTS
+MONITOR_QOS = qos.MONITOR_READER
 
 # decider.* parameters a person may change while it runs: description and check.
 DESCRIPTIONS = {

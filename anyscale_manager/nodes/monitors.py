@@ -22,9 +22,9 @@ from typing import Callable, Dict, Iterable, List, Mapping, Optional, Set, Tuple
 import psutil
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from . import qos
 from .. import protocol as p
 from ..model.types import Connection, Deployment
 from ..runtime import cpu as cpu_math
@@ -32,23 +32,10 @@ from ..runtime.rates import (BandwidthEstimate, HeartbeatTracker, RateWindow,
                              ToleranceTracker, crossing_connections, steady_throughput_bps,
                              used_kbps)
 
-# Probes: best effort reaches reliable and best-effort publishers alike; volatile reaches both
-# durabilities. The depth absorbs an executor hiccup on a 1 kHz topic without a drop.
-PROBE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                       reliability=ReliabilityPolicy.BEST_EFFORT,
-                       durability=DurabilityPolicy.VOLATILE)
-# Periodic status topics: reliable so a decider misses no reading; any subscriber matches.
-STATUS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                        reliability=ReliabilityPolicy.RELIABLE,
-                        durability=DurabilityPolicy.VOLATILE)
-# Heartbeats must be best effort: a reliable writer would retransmit and hide the loss.
-HEARTBEAT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                           reliability=ReliabilityPolicy.BEST_EFFORT,
-                           durability=DurabilityPolicy.VOLATILE)
-# Agent states are latched (one per agent): a late joiner gets each agent's last one.
-LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+PROBE_QOS = qos.PROBE
+STATUS_QOS = qos.STATUS
+HEARTBEAT_QOS = qos.HEARTBEAT
+LATCHED_QOS = qos.LATCHED_READER
 DIAGNOSTICS_QOS = STATUS_QOS
 
 PROBE_MAGIC = b'ASBWPRB1'            # 8 bytes, then the requested duration in ms (uint32)

@@ -197,13 +197,9 @@ def run(args: argparse.Namespace) -> int:
         return 2
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
-                           qos_profile_sensor_data)
     from std_msgs.msg import String
 
-    latched = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    sensor = QoSProfile(depth=20, reliability=qos_profile_sensor_data.reliability)
+    from .qos import LATCHED_READER as latched, MONITOR_READER as sensor
     book = StatusBook(deployment)
     ctx = rclpy.Context()
     rclpy.init(context=ctx)

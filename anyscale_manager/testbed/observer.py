@@ -19,21 +19,15 @@ from typing import Dict, List, Optional
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String, UInt8MultiArray
 
 from .. import protocol as p
+from ..nodes import qos
 
-LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=20,
-                     reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
-RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                      reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE)
-BEST_EFFORT = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=50,
-                         reliability=ReliabilityPolicy.BEST_EFFORT,
-                         durability=DurabilityPolicy.VOLATILE)
+LATCHED = qos.LATCHED_READER
+RELIABLE = qos.EVENTS
+BEST_EFFORT = qos.PROBE
 PROJECT_TOPICS = {
     p.TOPIC_LAYOUT: LATCHED, p.TOPIC_AGENT_STATE: LATCHED, p.TOPIC_EVENTS: RELIABLE,
     p.TOPIC_SCALE_STATUS: RELIABLE, p.TOPIC_LINK_STATUS: RELIABLE,
@@ -47,8 +41,8 @@ class Observer(Node):
         super().__init__('anyscale_testbed_observer')
         self._out = out
         self._arrivals: Dict[str, List[float]] = {t: [] for t in data_topics}
-        for topic, qos in PROJECT_TOPICS.items():
-            self.create_subscription(String, topic, self._project(topic), qos)
+        for topic, profile in PROJECT_TOPICS.items():
+            self.create_subscription(String, topic, self._project(topic), profile)
         for topic in data_topics:
             self.create_subscription(UInt8MultiArray, topic, self._data(topic), BEST_EFFORT,
                                      raw=True)

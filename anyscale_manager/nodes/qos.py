@@ -1,0 +1,28 @@
+"""QoS of the project's topics, in one place so publishers and subscribers cannot drift apart."""
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+
+def _profile(depth: int, reliable: bool, latched: bool = False) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=(ReliabilityPolicy.RELIABLE if reliable
+                                   else ReliabilityPolicy.BEST_EFFORT),
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                  else DurabilityPolicy.VOLATILE))
+
+
+# Latched state (the layout; each agent's state): a late joiner gets the last value.
+LATCHED = _profile(1, reliable=True, latched=True)
+# Reading a latched topic with several writers (one state per agent): room for each.
+LATCHED_READER = _profile(20, reliable=True, latched=True)
+# Periodic status topics: reliable so a decider misses no reading; any subscriber matches.
+STATUS = _profile(10, reliable=True)
+# Decisions and other logs a listener should not miss in a burst.
+EVENTS = _profile(100, reliable=True)
+# Heartbeats must be best effort: a reliable writer would retransmit and hide the loss.
+HEARTBEAT = _profile(10, reliable=False)
+# Reading monitors: best effort matches reliable and best-effort publishers alike.
+MONITOR_READER = _profile(20, reliable=False)
+# Probes: best effort and volatile reach every publisher; the depth absorbs an executor
+# hiccup on a 1 kHz topic without a drop.
+PROBE = _profile(50, reliable=False)
