@@ -228,6 +228,12 @@ def test_layout_latched_adopted_republished_and_robust(world, testbed_path, ros_
         good = set_param(ex, node, 'decider.hysteresis_s', 60.0,
                          ParameterType.PARAMETER_DOUBLE, 'double_value')
         assert good.successful, good.reason
+        scope = set_param(ex, node, 'decider.hysteresis_scope', 'link',
+                          ParameterType.PARAMETER_STRING, 'string_value')
+        assert not scope.successful and 'hysteresis_scope' in scope.reason
+        scope = set_param(ex, node, 'decider.hysteresis_scope', 'node',
+                          ParameterType.PARAMETER_STRING, 'string_value')
+        assert scope.successful, scope.reason
 
         # The link goes down: both come back, in a new generation, each with its reason.
         before = node.layouts[-1].generation

@@ -88,8 +88,19 @@ def test_1_link_up_amcl_moves_first_then_ar_and_amcl_ekf_reaches_its_optimal_rat
                 firsts.setdefault(e.node, t)
         events = [(round(t - bed.t0, 1), e.kind, e.node, e.reason[:60]) for t, e in
                   bed.record.events if e.kind not in ('note', 'warning')]
-    assert 'amcl' in firsts and 'ar' in firsts, f'no migrate events: {events}'
-    assert firsts['amcl'] < firsts['ar'], f'AR moved before AMCL: {events}'
+        # What the decider said while deciding, and what the scales measured: on a failure
+        # this says why the order came out as it did.
+        said = [(round(t - bed.t0, 1), e.kind, e.reason[:160]) for t, e in bed.record.events
+                if e.kind in ('note', 'warning') and t >= t_up - 2.0][:12]
+        cpu = [(round(t - bed.t0, 1), {n: round(v) for n, v in s.cpu_by_node.items()
+                                       if n in ('amcl', 'ar')})
+               for t, s in bed.record.scale_status.get(ROBOT, []) if t_up - 3.0 <= t <= t_amcl]
+        states = [(round(t - bed.t0, 1), {n: r.state for n, r in a.nodes.items()
+                                          if n in ('amcl', 'ar')})
+                  for t, a in bed.record.agent_states.get(ROBOT, []) if t_up - 3.0 <= t <= t_amcl]
+    why = f'events {events}\nnotes {said}\nrobot CPU {cpu}\nrobot agent {states}'
+    assert 'amcl' in firsts and 'ar' in firsts, f'no migrate events: {why}'
+    assert firsts['amcl'] < firsts['ar'], f'AR moved before AMCL: {why}'
     # AMCL -> EKF at the robot (the observer sits there): the optimal 5 Hz, with slack.
     t = bed.wait_for(lambda r: r.topic_rate('/amcl_pose', bed.now(), 3.0) >= 4.3, 20.0,
                      'amcl_ekf near its optimal 5 Hz')

@@ -141,6 +141,8 @@ def mutate(fn):
     (lambda p: p['decider'].update(cpu_headroom=1.5), 'decider.cpu_headroom', 'out of range'),
     (lambda p: p['decider'].update(initial_layout='random'), 'decider.initial_layout',
      'expected one of'),
+    (lambda p: p['decider'].update(hysteresis_scope='link'), 'decider.hysteresis_scope',
+     'expected one of'),
     (lambda p: p['decider'].update(layout={'navigation': 'laptop'}), 'decider.layout.navigation',
      'may not run on'),
     (lambda p: p['monitoring'].update(heartbeat_misses_down=0),

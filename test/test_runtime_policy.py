@@ -498,3 +498,46 @@ def test_waiting_for_the_best_scale_does_not_fall_through_to_a_lesser_one():
                for n in policy.notes), policy.notes
     (ar,) = policy.step(_all_observed(d, 2.0, running=running))
     assert (ar.node, ar.to_scale) == ('ar', 'workstation')
+
+
+@pytest.mark.parametrize('scope', ['scale', 'node'])
+def test_hysteresis_scope_after_a_link_drop(scope):
+    """AMCL comes back from the workstation when its link drops. Scope 'scale' (default): it
+    may go to the laptop, whose link is up, at once, but not back to the workstation within T.
+    Scope 'node' (the paper's literal rule): it stays on the robot for T."""
+    from anyscale_manager.sim.systems import build_system
+    d = build_system(6, 2, 3).deployment
+    settings = replace(d.decider, hysteresis_scope=scope)
+    policy = MigrationPolicy(d, settings)
+    home = dict(master_layout(d))
+    moves, notes = [], []
+
+    def turn(now, ws_up=True):
+        obs = _all_observed(d, now, running=home)
+        if not ws_up:
+            obs = replace(obs, links=dict(obs.links, workstation=LinkObs(up=False, stamp=now)))
+        for dec in policy.step(obs):
+            moves.append((now, dec.kind, dec.node, dec.to_scale))
+            home[dec.node] = dec.to_scale      # the agents apply it before the next turn
+        notes.extend(policy.notes)
+
+    for now in (0.0, 0.5, 1.0, 1.5):          # AR follows once AMCL's load is measured
+        turn(now)
+    assert [m[2:] for m in moves] == [('amcl', 'workstation'), ('ar', 'workstation')]
+    T = settings.hysteresis_s
+    now = 3.0
+    while now < 3.0 + T - 1.0:
+        turn(now, ws_up=False)
+        now += 0.5
+    assert [m[1:3] for m in moves if m[0] == 3.0] == [(MIGRATE_BACK, 'amcl'),
+                                                      (MIGRATE_BACK, 'ar')]
+    later = [m for m in moves if m[0] > 3.0]
+    assert not [m for m in later if m[3] == 'workstation'], later
+    if scope == 'scale':
+        assert later and later[0][1:] == (MIGRATE, 'amcl', 'laptop'), later
+        assert later[0][0] <= 3.0 + 1.0
+        assert any('amcl -> workstation: amcl migrated back from workstation' in n
+                   for n in notes), notes
+    else:
+        assert later == []
+        assert any('amcl: amcl migrated back from workstation' in n for n in notes), notes

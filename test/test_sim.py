@@ -262,10 +262,23 @@ def test_best_case_beats_typical(n, m, k):
 
 
 def test_planner_closes_the_gap(testbed3):
-    heuristic, _ = run_system(testbed3, 3, 0, HEURISTIC, PATH)
+    # Against Algorithm 1 as the paper writes it (T bars any move out of a node migrated back).
+    literal = {'hysteresis_scope': 'node'}
+    heuristic, _ = run_system(testbed3, 3, 0, HEURISTIC, PATH, overrides=literal)
     planner, _ = run_system(testbed3, 3, 0, PLANNER, PATH)
     assert planner.gap_to_oracle_pct < heuristic.gap_to_oracle_pct
     assert planner.improvement_pct > heuristic.improvement_pct
+
+
+def test_hysteresis_per_scale_lets_a_node_use_another_scale(testbed3):
+    """With three scales, T barring only the scale a node came back from (the default) gets
+    closer to the oracle than the literal rule, which keeps the node home for T."""
+    literal, _ = run_system(testbed3, 3, 0, HEURISTIC, PATH,
+                            overrides={'hysteresis_scope': 'node'})
+    per_scale, _ = run_system(testbed3, 3, 0, HEURISTIC, PATH)
+    assert testbed3.deployment.decider.hysteresis_scope == 'scale'
+    assert per_scale.improvement_pct > literal.improvement_pct
+    assert per_scale.gap_to_oracle_pct < literal.gap_to_oracle_pct
 
 
 # --- the command ------------------------------------------------------------------------------

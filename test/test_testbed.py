@@ -121,6 +121,30 @@ def test_reported_violations_close_when_the_probe_goes_quiet_or_recovers(record)
     assert sorted(round(v.end, 1) for v in laptop) == [10.5, 30.0]
 
 
+def test_serving_only_drops_the_reports_of_a_cut_off_copy(record):
+    """AMCL ran on the laptop until the cut at 10 s; the layout put it back on the robot at
+    10.8 s. The laptop's copy, cut off, reported laser_amcl past Δ (its input starved) once the
+    link returned: it served nobody, so only the robot's own report counts."""
+    def layout(t, where, gen):
+        assignments = {n: 'robot' for n in ('laser', 'amcl', 'ar')}
+        assignments['amcl'] = where
+        record.layouts.append((t, p.Layout(generation=gen, deployment='icar2015_testbed',
+                                           assignments=assignments, reason='test', stamp=t)))
+    layout(0.0, 'laptop', 1)
+    layout(10.8, 'robot', 2)
+
+    def reading(level, below):
+        return p.ConnectionReading(rate_hz=0.0, bytes_per_s=0.0, below_for_s=below, level=level)
+    record.readings['laser_amcl'] = [(25.0, 'laptop', reading(p.ERROR, 15.0)),
+                                     (25.5, 'laptop', reading(p.ERROR, 15.5))]
+    record.readings['amcl_ekf'] = [(13.5, 'robot', reading(p.ERROR, 3.5)),
+                                   (14.0, 'robot', reading(p.OK, 0.0))]
+    every = record.reported_violations(0.0, 40.0)
+    assert sorted(v.source for v in every) == ['laptop', 'robot']
+    serving = record.reported_violations(0.0, 40.0, serving_only=True)
+    assert [(v.connection, v.source) for v in serving] == [('amcl_ekf', 'robot')]
+
+
 # --- reports ------------------------------------------------------------------------------------
 
 def _busy_record(record):

@@ -501,6 +501,7 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
         'bandwidth_margin': dict(low=0, high=1, low_open=True),
         'observation_max_age_s': dict(low=0, high=3600, low_open=True),
         'hysteresis_s': dict(low=0, high=86400),
+        'hysteresis_scope': dict(choices=t.HYSTERESIS_SCOPES),
         'grace_s': dict(low=0, high=3600),
         'agent_timeout_s': dict(low=0, high=3600, low_open=True),
         'initial_layout': dict(choices=t.INITIAL_LAYOUTS),

@@ -15,6 +15,7 @@ START_BEFORE_STOP = 'start_before_stop'
 STOP_BEFORE_START = 'stop_before_start'
 REGRESSION_FORMS = ('linear', 'log', 'poly2', 'poly3', 'quadratic')
 INITIAL_LAYOUTS = ('master', 'problem1', 'problem2', 'explicit')
+HYSTERESIS_SCOPES = ('scale', 'node')
 
 
 def frozen_map(mapping: Optional[Mapping] = None) -> Mapping:
@@ -148,6 +149,7 @@ class DeciderSettings:
     bandwidth_margin: float = 0.9         # usable fraction of a link's available bandwidth
     observation_max_age_s: float = 3.0    # older observations count as missing
     hysteresis_s: float = 20.0            # the paper's T
+    hysteresis_scope: str = 'scale'       # 'scale': T bars the scale it came back from; 'node'
     grace_s: float = 5.0                  # after a move, its connections are not judged
     agent_timeout_s: float = 5.0          # a silent agent's scale is lost
     migration: bool = True                # False: keep the first layout (the baseline)

@@ -24,7 +24,7 @@ from std_msgs.msg import String
 from . import qos
 from .. import protocol as p
 from ..model.loader import DeploymentError, load_from_parameters
-from ..model.types import INITIAL_LAYOUTS, DeciderSettings, Deployment
+from ..model.types import HYSTERESIS_SCOPES, INITIAL_LAYOUTS, DeciderSettings, Deployment
 from ..runtime.constraints import ConstraintReport
 from ..runtime.cost import CostIntegrator
 from ..runtime.intake import ObservationBook
@@ -46,6 +46,7 @@ DESCRIPTIONS = {
     'bandwidth_margin': 'usable fraction of the available bandwidth of a link, in (0, 1]',
     'observation_max_age_s': 'older observations count as missing; a silent link is down (> 0)',
     'hysteresis_s': 'T: a node migrated back is not moved out again for this long (>= 0)',
+    'hysteresis_scope': 'scale: T bars only the scale a node came back from | node: any scale',
     'grace_s': 'after a move, the connections of the moved node are not judged (>= 0)',
     'agent_timeout_s': 'an agent silent this long loses its scale; its nodes move (> 0)',
     'migration': 'false: never move a node out (the no-migration baseline)',
@@ -75,6 +76,11 @@ def settings_with(settings: DeciderSettings, changes: Dict[str, Any]) -> Decider
         elif name == 'migration':
             if not isinstance(value, bool):
                 raise ValueError(f'decider.migration: expected true or false, got {value!r:.40}')
+            values[name] = value
+        elif name == 'hysteresis_scope':
+            if value not in HYSTERESIS_SCOPES:
+                raise ValueError(f'decider.hysteresis_scope: expected one of '
+                                 f'{", ".join(HYSTERESIS_SCOPES)}, got {value!r:.40}')
             values[name] = value
         elif name == 'initial_layout':
             if value not in INITIAL_LAYOUTS:

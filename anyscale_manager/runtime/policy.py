@@ -45,7 +45,8 @@ class MigrationPolicy:
         self.master = deployment.master.name
         self.desired: Dict[str, str] = {}
         self.migrated: List[Tuple[str, str]] = []      # (node, scale), in migration order
-        self.last_back: Dict[str, float] = {}          # node -> time of its last migrate-back
+        # (node, scale it came back from) -> time of its last migrate-back (or relocation)
+        self.last_back: Dict[Tuple[str, str], float] = {}
         self.last_move: Dict[str, float] = {}          # node -> time of its last move (grace)
         self.pending: Dict[str, Tuple[str, float]] = {}  # node -> (scale, when asked)
         # scale -> (when the last move there settled, the node that moved)
@@ -314,13 +315,16 @@ class MigrationPolicy:
         units = self._candidate_units(obs, running)
         remotes = self._scales_by_power([s.name for s in self.deployment.remote_scales])
         for unit, cpu in units:
-            recent = [n for n in unit
-                      if now - self.last_back.get(n, -math.inf) < self.settings.hysteresis_s]
-            if recent:
-                notes.append(f'{unit[0]}: migrated back {now - self.last_back[recent[0]]:.1f} s '
-                             f'ago, within T = {self.settings.hysteresis_s:g} s')
-                continue
+            if self.settings.hysteresis_scope == 'node':
+                held = self._held(unit, None, now)
+                if held:
+                    notes.append(held)
+                    continue
             for scale in remotes:
+                held = self._held(unit, scale, now)
+                if held:
+                    notes.append(held)
+                    continue
                 ok, why = self._can_host(obs, running, report, unit, cpu, scale)
                 if ok is None:
                     # Not a no: not known yet. Picking another scale or node now would be a
@@ -336,6 +340,26 @@ class MigrationPolicy:
                           f'{why}')
                 return [Decision(MIGRATE, n, self.master, scale, reason) for n in unit]
         return []
+
+    def _held(self, unit: Tuple[str, ...], scale: Optional[str], now: float) -> str:
+        """Why the hysteresis T holds ``unit`` back from ``scale`` (any scale if None), or ''.
+
+        Scope 'node' (the paper's literal rule): a node migrated back is not moved out again
+        within T. Scope 'scale' (the default): it is not moved back to the scale it came back
+        from within T, but may go to another remote scale, whose link did not fail it.
+        """
+        t = self.settings.hysteresis_s
+        latest = None
+        for (n, came_from), when in self.last_back.items():
+            if n in unit and (scale is None or came_from == scale) and now - when < t:
+                if latest is None or when > latest[0]:
+                    latest = (when, n, came_from)
+        if latest is None:
+            return ''
+        when, n, came_from = latest
+        target = '' if scale is None else f' -> {scale}'
+        return (f'{unit[0]}{target}: {n} migrated back from {came_from} {now - when:.1f} s ago, '
+                f'within T = {t:g} s')
 
     def _candidate_units(self, obs: Observations, running: Mapping[str, str]
                          ) -> List[Tuple[Tuple[str, ...], float]]:
@@ -427,7 +451,7 @@ class MigrationPolicy:
         if d.kind == MIGRATE:
             self.last_move_out = now
         else:
-            self.last_back[d.node] = now
+            self.last_back[(d.node, d.from_scale)] = now
         self.last_move[d.node] = now
         self.pending[d.node] = (d.to_scale, now)
         self.history.append((now, d))

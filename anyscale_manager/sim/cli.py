@@ -52,6 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--hysteresis', type=float, metavar='S',
                         help="override the decider's hysteresis T in seconds (default: each "
                              "deployment's own, 20 s for the test-bed)")
+    parser.add_argument('--hysteresis-scope', choices=('scale', 'node'),
+                        help="override the decider's hysteresis scope: scale (T bars only the "
+                             "scale a node came back from) or node (the paper's literal rule: "
+                             "any scale); default: each deployment's own")
     parser.add_argument('--testbed', metavar='FILE',
                         help='the test-bed deployment file (default: the installed '
                              'icar2015_testbed.yaml)')
@@ -101,6 +105,8 @@ def run(args) -> int:
         if args.hysteresis is not None and not 0 <= args.hysteresis <= 86400:
             raise ValueError(f'--hysteresis must be in [0, 86400] s, got {args.hysteresis:g}')
         overrides = {} if args.hysteresis is None else {'hysteresis_s': args.hysteresis}
+        if args.hysteresis_scope is not None:
+            overrides['hysteresis_scope'] = args.hysteresis_scope
         path = _path_model(args)
         systems = [build_system(n, m, k, args.seed, args.testbed)
                    for n, m, k in parse_systems(args.systems)]

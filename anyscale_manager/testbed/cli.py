@@ -207,7 +207,7 @@ def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> di
     record = testbed.record
     with testbed.lock:
         objective = [o for t, o in record.objectives if t0 <= t <= t1]
-        violations = record.reported_violations(t0, t1)
+        violations = record.reported_violations(t0, t1, serving_only=True)
         return {
             'mode': testbed.mode, 'mode_reason': testbed.mode_reason,
             'duration_s': round(t1 - t0, 2), 'schedule': [str(s) for s in steps],

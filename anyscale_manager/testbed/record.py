@@ -220,8 +220,13 @@ class Record:
 
     def reported_violations(self, start: float, end: float,
                             names: Optional[Sequence[str]] = None,
-                            gap_s: float = 2.0) -> List[Violation]:
+                            gap_s: float = 2.0, serving_only: bool = False) -> List[Violation]:
         """Spans where a probe reported a connection past its Δ (level ERROR).
+
+        ``serving_only`` keeps only the reports of the probe on the scale where the layout
+        placed the connection's subscriber when its Δ ran out: a copy left running on a scale
+        that was cut off (and is stopped once the link returns) reports its starved inputs,
+        but it served nobody.
 
         A span runs from the moment the connection went below freq_min (the reading's time minus
         its below_for_s) to the first reading of that probe that is no longer ERROR; a probe
@@ -254,7 +259,17 @@ class Record:
                         open_at = None
                 if open_at is not None:
                     out.append(Violation(name, open_at, last_error, tolerance, scale))
+        if serving_only:
+            out = [v for v in out if self._serving(v)]
         return sorted(out, key=lambda v: v.start)
+
+    def _serving(self, v: Violation) -> bool:
+        """Whether the scale that reported v hosted the serving subscriber when Δ ran out."""
+        subscriber = self.deployment.connection(v.connection).subscriber
+        layout = self.layout_at(min(v.end, v.start + v.tolerance_s))
+        if layout is not None and subscriber in layout.assignments:
+            return layout.assignments[subscriber] == v.source
+        return v.source in self.deployment.allowed_scales(subscriber)
 
 
 __all__ = ['MIGRATION_KINDS', 'Record', 'Violation']

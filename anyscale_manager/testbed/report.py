@@ -168,7 +168,7 @@ def draw_timeline(record: Record, path: str, t0: float, t1: float, title: str = 
         if c.freq_opt_hz is not None:
             ax.axhline(c.freq_opt_hz, color='#2ca02c', ls=':', lw=1,
                        label=f'freq_opt {c.freq_opt_hz:g} Hz')
-        for v in record.reported_violations(t0, t1, [c.name]):
+        for v in record.reported_violations(t0, t1, [c.name], serving_only=True):
             ax.axvspan(v.start - t0, v.end - t0, color='#d62728', alpha=0.15, lw=0)
         ax.set_ylabel(f'{c.name}\nHz', rotation=0, ha='right', va='center', fontsize=8)
         ax.legend(loc='upper right', fontsize=7, frameon=False)
