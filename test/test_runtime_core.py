@@ -317,6 +317,31 @@ def test_book_prefers_the_subscribers_probe(d):
     assert obs.now == 2.5 and obs.connections['laser_amcl'].stamp == 2.0   # receive time
 
 
+def test_book_ranks_nodes_on_their_mean_cpu_not_one_sample(d):
+    """AMCL works in bursts: one 0.5 s reading may catch a quarter of its usage and rank it
+    below AR. The book averages each node over the fresh readings; the total stays the latest."""
+    from anyscale_manager.runtime.constraints import node_cpu
+    book = ObservationBook(d, d.decider, started=0.0)
+    running = {n: 'robot' for n in master_layout(d)}
+    samples = [(0.5, 80.0, 20.0), (1.0, 70.0, 22.0), (1.5, 75.0, 18.0), (2.0, 25.0, 32.0)]
+    for t, amcl, ar in samples:
+        book.scale_status(p.ScaleStatus(scale='robot', stamp=t, cpu_total=150.0 + t,
+                                        capacity_cpu=200.0, cpu_by_node={'amcl': amcl, 'ar': ar},
+                                        mem_percent=0.0, load_1m=0.0), t)
+    obs = book.snapshot(2.0, running)
+    assert obs.scales['robot'].cpu_total == 152.0                    # the latest
+    assert obs.scales['robot'].cpu_by_node['amcl'] == pytest.approx(62.5)
+    assert obs.scales['robot'].cpu_by_node['ar'] == pytest.approx(23.0)
+    obs = replace(obs, running=running)
+    assert node_cpu(d, d.decider, obs, 'amcl') > node_cpu(d, d.decider, obs, 'ar')
+    # Readings older than observation_max_age_s drop out of the mean.
+    late = 2.0 + d.decider.observation_max_age_s + 0.1
+    book.scale_status(p.ScaleStatus(scale='robot', stamp=late, cpu_total=150.0,
+                                    capacity_cpu=200.0, cpu_by_node={'amcl': 40.0},
+                                    mem_percent=0.0, load_1m=0.0), late)
+    assert book.scales['robot'].cpu_by_node == {'amcl': 40.0}
+
+
 def test_status_render_without_ros(d):
     from anyscale_manager.nodes.status import StatusBook, render
     book = StatusBook(d)

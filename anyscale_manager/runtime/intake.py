@@ -8,8 +8,9 @@ are skipped.
 """
 
 import math
+from collections import deque
 from dataclasses import dataclass
-from typing import Dict, FrozenSet, Mapping, Optional, Tuple
+from typing import Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
 from ..protocol import AgentState, ConnectionStatus, LinkStatus, ScaleStatus
@@ -35,6 +36,8 @@ class ObservationBook:
         self.scales: Dict[str, ScaleObs] = {}
         self.links: Dict[str, LinkObs] = {}
         self.readings: Dict[Tuple[str, str], ConnectionObs] = {}   # (scale, connection)
+        # scale -> the fresh per-node CPU readings, oldest first: (received, node -> CPU)
+        self.cpu_history: Dict[str, Deque[Tuple[float, Mapping[str, float]]]] = {}
         self.ignored: Dict[str, int] = {}                           # what was skipped, counted
 
     # --- intake -------------------------------------------------------------------------------
@@ -59,7 +62,27 @@ class ObservationBook:
         known = set(self.deployment.node_names)
         by_node = {n: v for n, v in msg.cpu_by_node.items() if n in known and v >= 0}
         self.scales[msg.scale] = ScaleObs(cpu_total=msg.cpu_total, stamp=now,
-                                          cpu_by_node=frozen_map(by_node))
+                                          cpu_by_node=frozen_map(self._mean_cpu(msg.scale,
+                                                                                by_node, now)))
+
+    def _mean_cpu(self, scale: str, latest: Mapping[str, float], now: float
+                  ) -> Dict[str, float]:
+        """Each node's CPU as the mean of its scale's fresh readings (observation_max_age_s).
+
+        A monitor's reading covers one short interval (0.5 s at 2 Hz); a node that works in
+        bursts (AMCL: 240 ms per scan) reads anywhere from a quarter to all of its usage in
+        one, and the policy would rank the nodes on that noise. The scale's total stays the
+        latest reading: it must show a node that just started there.
+        """
+        history = self.cpu_history.setdefault(scale, deque())
+        history.append((now, latest))
+        while history and now - history[0][0] > self.settings.observation_max_age_s:
+            history.popleft()
+        out = {}
+        for node in latest:
+            values = [by_node[node] for _, by_node in history if node in by_node]
+            out[node] = sum(values) / len(values)
+        return out
 
     def link_status(self, msg: LinkStatus, now: float) -> None:
         master = self.deployment.master.name
