@@ -180,6 +180,24 @@ def test_start_ready_and_stop(make_sup):
     assert 'starting' in log
 
 
+def test_node_nice_runs_the_node_below_the_agent(make_sup):
+    """agent.node_nice: the node (and every thread it starts) runs at that niceness, same pid,
+    so a CPU-bound node cannot starve the agent's monitors."""
+    import dataclasses
+    sup = make_sup([py_entry('n', 'import threading, time\n'
+                                  'threading.Thread(target=time.sleep, args=(60,)).start()\n'
+                                  'time.sleep(60)')],
+                   settings=dataclasses.replace(FAST, node_nice=7, readiness_timeout_s=30.0))
+    sup.start('n', time.monotonic())
+    pid = sup.reports()['n'].pid
+    proc = psutil.Process(pid)
+    assert wait_for(lambda: 'python' in ' '.join(proc.cmdline()) and proc.num_threads() >= 2)
+    assert proc.nice() == os.nice(0) + 7
+    for thread in proc.threads():
+        assert psutil.Process(thread.id).nice() == os.nice(0) + 7
+    assert procs.environ_value(pid, ENV_INSTANCE)       # the same process the agent tracks
+
+
 def test_readiness_times_out_without_the_graph(make_sup):
     sup = make_sup([py_entry('n', SLEEPER)])
     sup.start('n', time.monotonic())

@@ -301,7 +301,13 @@ class Supervisor:
             # start_new_session: its own session and process group, away from the agent's
             # terminal, so a Ctrl-C meant for the agent does not reach it and the group can be
             # signalled as one.
-            p.popen = subprocess.Popen(list(entry.argv), env=env, stdin=subprocess.DEVNULL,
+            # node_nice: the node runs below the agent and the decider, so a node that takes
+            # all the CPU it gets (a CPU-bound one on a weak robot) cannot starve the monitors,
+            # heartbeats and probes that judge it. nice(1) execs the node: same pid.
+            argv = list(entry.argv)
+            if self.settings.node_nice:
+                argv = ['nice', '-n', str(self.settings.node_nice)] + argv
+            p.popen = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL,
                                        stdout=log, stderr=subprocess.STDOUT,
                                        start_new_session=True, close_fds=True)
         except OSError as e:

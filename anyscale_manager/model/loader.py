@@ -523,6 +523,7 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
         'restart_backoff_s': dict(low=0, high=3600),
         'restart_backoff_max_s': dict(low=0, high=86400),
         'heartbeat_rate_hz': dict(low=0, high=1000, low_open=True),
+        'node_nice': dict(low=0, high=19),
     })
     root.done()
     if ctx.problems:

@@ -177,6 +177,7 @@ class AgentSettings:
     restart_backoff_s: float = 1.0
     restart_backoff_max_s: float = 30.0
     heartbeat_rate_hz: float = 2.0
+    node_nice: int = 0                    # niceness added to every node the agent starts
     state_dir: str = ''                   # '' = ~/.ros/anyscale_manager
     log_dir: str = ''                     # '' = ~/.ros/log/anyscale_manager
 
