@@ -607,3 +607,13 @@ def test_standby_copies_count_as_present_instances_for_a_while():
     m.apply_layout(protocol.Layout(generation=2, deployment='unit', assignments={'sb': 'b'},
                                    reason='', stamp=0.0), 1.0)
     assert m.parked(['sb']) == {'sb'}
+
+
+def test_process_table_and_trees_in_one_pass():
+    table = procs.process_table()
+    me = os.getpid()
+    assert table[me][0] == os.getppid() and table[me][1] > 0.0
+    synthetic = {10: (1, 1.0), 11: (10, 2.0), 12: (11, 0.5), 20: (1, 4.0), 21: (20, 1.0)}
+    trees = procs.tree_cpu_seconds(synthetic, {'a': 10, 'b': 20, 'leaf': 12, 'gone': 99})
+    assert trees == {'a': {10: 1.0, 11: 2.0, 12: 0.5}, 'b': {20: 4.0, 21: 1.0},
+                     'leaf': {12: 0.5}, 'gone': {}}

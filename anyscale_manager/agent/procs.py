@@ -2,7 +2,7 @@
 
 import os
 import signal
-from typing import List, Optional, Tuple
+from typing import Dict, List, Mapping, Optional, Tuple
 
 import psutil
 
@@ -22,19 +22,64 @@ def describe_exit(returncode: Optional[int]) -> str:
     return f'killed by {name} ({text})' if text else f'killed by {name}'
 
 
-def _stat(pid: int) -> Optional[Tuple[str, int, int]]:
-    """(state, process group, session) of a pid from /proc, or None when it is gone."""
+_TICKS = os.sysconf('SC_CLK_TCK')
+
+
+def _stat_fields(pid: int) -> Optional[List[bytes]]:
+    """The fields of /proc/PID/stat after the command name (state first), or None if gone."""
     try:
         with open(f'/proc/{pid}/stat', 'rb') as f:
             data = f.read()
     except OSError:
         return None
     # The command name may hold spaces and parentheses: fields start after the last ')'.
-    rest = data[data.rfind(b')') + 2:].split()
+    return data[data.rfind(b')') + 2:].split()
+
+
+def _stat(pid: int) -> Optional[Tuple[str, int, int]]:
+    """(state, process group, session) of a pid from /proc, or None when it is gone."""
+    rest = _stat_fields(pid)
     try:
         return rest[0].decode(), int(rest[2]), int(rest[3])
-    except (IndexError, ValueError):
+    except (TypeError, IndexError, ValueError):
         return None
+
+
+def process_table() -> Dict[int, Tuple[int, float]]:
+    """pid -> (parent pid, cumulative user + system CPU seconds) of every live process, read
+    in one pass over /proc (zombies left out)."""
+    out: Dict[int, Tuple[int, float]] = {}
+    for entry in os.listdir('/proc'):
+        if not entry.isdigit():
+            continue
+        rest = _stat_fields(int(entry))
+        try:
+            if rest[0] in (b'Z', b'X'):
+                continue
+            out[int(entry)] = (int(rest[1]), (int(rest[11]) + int(rest[12])) / _TICKS)
+        except (TypeError, IndexError, ValueError):
+            continue
+    return out
+
+
+def tree_cpu_seconds(table: Mapping[int, Tuple[int, float]], leaders: Mapping[str, int]
+                     ) -> Dict[str, Dict[int, float]]:
+    """name -> {pid: cumulative CPU seconds} of each leader and all its descendants, from one
+    process table; a leader that is gone gives an empty map."""
+    children: Dict[int, List[int]] = {}
+    for child, (parent, _) in table.items():
+        children.setdefault(parent, []).append(child)
+    out: Dict[str, Dict[int, float]] = {}
+    for name, pid in leaders.items():
+        tree: Dict[int, float] = {}
+        todo = [pid] if pid in table else []
+        while todo:
+            current = todo.pop()
+            if current not in tree:
+                tree[current] = table[current][1]
+                todo.extend(children.get(current, ()))
+        out[name] = tree
+    return out
 
 
 def session_members(sid: int) -> List[int]:

@@ -20,13 +20,14 @@ import traceback
 from typing import Any, Dict, List, Optional, Sequence
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 
 from . import qos
+from .executor import make_executor
 from .. import protocol
 from ..agent.catalogue import build_catalogue, Entry, standby_profile_xml
 from ..agent.reconcile import Reconciler
@@ -374,7 +375,7 @@ def main(args: Optional[List[str]] = None) -> int:
             return 2
         for _ in early[:2]:
             node.request_shutdown()
-        executor = SingleThreadedExecutor()
+        executor = make_executor()
         executor.add_node(node)
         while rclpy.ok() and not node.finished:
             try:

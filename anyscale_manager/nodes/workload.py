@@ -11,7 +11,7 @@ Every message is a std_msgs/msg/UInt8MultiArray of ``--bytes`` bytes.
 
 ``--work-ms`` is measured at the reference speed: one reference core (the ICAR test-bed's Atom
 1.6 GHz core, ``capacity_cpu`` 100) is ``--reference-core`` of one of this machine's cores
-(0.2 by default: a current x86 core does roughly five times an Atom's work). The work is a busy
+(0.3 by default: a current x86 core does roughly three times an Atom's work). The work is a busy
 loop that runs until the thread has used ``work_ms * reference_core`` of CPU time, so under a
 CPU quota (or on a busy machine) the same work takes longer in wall time, as it would on a
 slower computer.
