@@ -80,7 +80,7 @@ def reaction(args):
                             for v in r.observed_violations(c, t_cut, end, window_s=window)]
                 reported = [v for v in r.reported_violations(t_cut, end, [c.name for c in conns])
                             if v.source == 'robot']
-                timeline = cut_timeline(r, t_cut, end)
+                timeline = r.timeline(t_cut, end)
             row = {'cut': i + 1, 'back_s': round(t_back - t_cut, 3),
                    'observed_violations': [(v.connection, round(v.end - v.start, 2))
                                            for v in observed],
@@ -103,34 +103,6 @@ def reaction(args):
             'violations': sum(len(r['observed_violations']) + len(r['reported_violations'])
                               for r in results),
             'hysteresis_s': args.hysteresis, 'teardown_notes': notes}
-
-
-def cut_timeline(r, t_cut, end):
-    """What happened after a cut, in seconds from it: when the link was reported down, when
-    the layout brought each node back, when the robot's agent reported it running, the
-    /amcl_pose and /markers arrivals at the robot, and the CPU the robot measured for them."""
-    def rel(t):
-        return round(t - t_cut, 2)
-    down = [rel(t) for t, s in r.link_status if t >= t_cut and not s.up][:1]
-    layouts = [(rel(t), {n: lay.assignments.get(n) for n in ('amcl', 'ar')})
-               for t, lay in r.layouts if t_cut <= t <= end]
-    running = {}
-    for t, state in r.agent_states.get('robot', []):
-        if t < t_cut or t > end:
-            continue
-        for n in ('amcl', 'ar'):
-            rep = state.nodes.get(n)
-            if rep is not None and rep.state == 'running' and n not in running:
-                running[n] = rel(t)
-    cpu = [(rel(t), {n: round(v) for n, v in st.cpu_by_node.items() if n in ('amcl', 'ar')},
-            round(st.cpu_total))
-           for t, st in r.scale_status.get('robot', []) if t_cut - 1.0 <= t <= end]
-    return {'link_down_reported': down, 'layouts': layouts, 'robot_running': running,
-            'amcl_pose': [rel(t) for t in r.arrivals.get('/amcl_pose', [])
-                          if t_cut - 0.5 <= t <= end],
-            'markers_count': len([t for t in r.arrivals.get('/markers', [])
-                                  if t_cut <= t <= end]),
-            'robot_cpu': cpu}
 
 
 # The paper's robot drove at 0.4 m/s only while AMCL ran on the laptop, 0.2 m/s otherwise.

@@ -219,10 +219,12 @@ def test_5_link_cut_every_migrated_node_back_before_its_delta_runs_out(bed):
                         for v in r.observed_violations(c, t_cut, end, window_s=window)]
             reported = [v for v in r.reported_violations(t_cut, end, [c.name for c in conns])
                         if v.source == ROBOT]
+            timeline = r.timeline(t_cut, end)
         print(f'back on the robot {t_back - t_cut:.2f} s after the cut; observed {observed}; '
               f'reported {reported}')
-        assert observed == [], f'past Δ at the robot: {observed}'
-        assert reported == [], f'probes on the robot reported connections past Δ: {reported}'
+        assert observed == [], f'past Δ at the robot: {observed}; after the cut: {timeline}'
+        assert reported == [], (f'probes on the robot reported connections past Δ: {reported}; '
+                                f'after the cut: {timeline}')
     finally:
         bed.restore()
 

@@ -326,3 +326,20 @@ def test_remove_stale_cleans_what_a_dead_run_left():
         assert not any(n.startswith(tag) for n in netns.list_namespaces())
     finally:
         net.teardown()
+
+
+def test_timeline_tells_a_thaw_from_a_cold_start(record):
+    def state(t, pid, st='running'):
+        s = _state('robot', ['amcl'])
+        s.nodes['amcl'] = p.NodeReport(state=st, pid=pid, since=0.0, restarts=0, ready=True,
+                                       exit_reason='')
+        record.agent_states.setdefault('robot', []).append((t, s))
+    state(9.0, 500, 'standby')
+    state(10.5, 500)          # thawed: same pid
+    state(11.0, 500)
+    state(20.0, 777)          # a new process
+    record.arrivals['/amcl_pose'] = [9.6, 10.8, 11.2]
+    tl = record.timeline(10.0, 25.0, nodes=('amcl',))
+    assert tl['reports'] == [(-1.0, 'amcl', 'standby', 500), (0.5, 'amcl', 'running', 500),
+                             (10.0, 'amcl', 'running', 777)]
+    assert tl['/amcl_pose'] == [-0.4, 0.8, 1.2]

@@ -263,6 +263,37 @@ class Record:
             out = [v for v in out if self._serving(v)]
         return sorted(out, key=lambda v: v.start)
 
+    def timeline(self, t0: float, t1: float, nodes: Sequence[str] = ('amcl', 'ar'),
+                 scale: str = 'robot', topic: str = '/amcl_pose') -> Dict[str, object]:
+        """What happened between t0 and t1 (a cut), in seconds from t0: the link reported down,
+        the layouts, the scale's agent reports of the nodes (state, pid: a new pid is a cold
+        start, the same pid a thawed copy), a topic's arrivals at the scale, and the CPU the
+        scale measured for the nodes. For failure messages and the benchmark's log."""
+        def rel(t: float) -> float:
+            return round(t - t0, 2)
+        reports = []
+        last: Dict[str, Tuple[str, int]] = {}
+        for t, state in self.agent_states.get(scale, []):
+            if t < t0 - 2.0 or t > t1:
+                continue
+            for n in nodes:
+                rep = state.nodes.get(n)
+                now = (rep.state, rep.pid) if rep is not None else ('absent', 0)
+                if last.get(n) != now:
+                    reports.append((rel(t), n) + now)
+                    last[n] = now
+        down = [rel(t) for t, s in self.link_status if t >= t0 and not s.up][:1]
+        return {
+            'link_down_reported': down,
+            'layouts': [(rel(t), {n: lay.assignments.get(n) for n in nodes})
+                        for t, lay in self.layouts if t0 <= t <= t1],
+            'reports': reports,
+            topic: [rel(t) for t in self.arrivals.get(topic, []) if t0 - 0.5 <= t <= t1],
+            'cpu': [(rel(t), {n: round(v) for n, v in st.cpu_by_node.items() if n in nodes},
+                     round(st.cpu_total))
+                    for t, st in self.scale_status.get(scale, []) if t0 - 1.0 <= t <= t1],
+        }
+
     def _serving(self, v: Violation) -> bool:
         """Whether the scale that reported v hosted the serving subscriber when Δ ran out."""
         subscriber = self.deployment.connection(v.connection).subscriber
