@@ -393,6 +393,12 @@ def main(args=None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # SIGINT shut the context down while rclpy was taking a message (seen once: "Unable
+        # to convert call argument '0' to Python object" from take_message). Stopping was
+        # asked for, so it is a clean stop; while the context is up it is a real error.
+        if rclpy.ok():
+            raise
     except (DeploymentError, LayoutError) as e:
         print(f'anyscale_manager decider: {e}', file=sys.stderr)
         code = 2

@@ -18,6 +18,7 @@ slower computer.
 """
 
 import argparse
+import math
 import signal
 import sys
 import time
@@ -155,8 +156,12 @@ class OutputGate:
         self.period_s = 1.0 / rate_hz
         self.next_due: Optional[float] = None
 
+    def ready_at(self) -> float:
+        """The earliest time the next output may start (-inf before the first)."""
+        return -math.inf if self.next_due is None else self.next_due - 0.4 * self.period_s
+
     def ready(self, now: float) -> bool:
-        return self.next_due is None or now >= self.next_due - 0.4 * self.period_s
+        return now >= self.ready_at()
 
     def started(self, now: float) -> None:
         if self.next_due is None:
@@ -226,6 +231,7 @@ class WorkloadNode(Node):
                       for t in spec.pubs]
         self._gate = OutputGate(spec.rate_hz)
         self._pending = False
+        self._retry = None      # a one-shot timer for an input the cap held back
         for topic in spec.subs:
             self.create_subscription(UInt8MultiArray, topic, self._make_callback(topic),
                                      subscriber_qos(), raw=True)
@@ -238,9 +244,6 @@ class WorkloadNode(Node):
             self._publish()
         elif spec.is_sensor:
             self.create_timer(1.0 / spec.rate_hz, self._publish)
-        else:
-            # Checks for a waiting input that arrived while the cap held the output back.
-            self.create_timer(min(0.01, self._gate.period_s / 4), self._maybe_produce)
 
     def _make_callback(self, topic: str):
         driving = topic == self.spec.subs[0]
@@ -253,12 +256,26 @@ class WorkloadNode(Node):
         return callback
 
     def _maybe_produce(self) -> None:
-        if not self._pending or not self._gate.ready(self._now()):
+        if not self._pending:
+            return
+        now = self._now()
+        if not self._gate.ready(now):
+            # Held back by the cap: come back when it opens (not a polling timer: a node
+            # waking up 100 times a second costs a weak robot more than its own work).
+            if self._retry is None:
+                self._retry = self.create_timer(max(0.001, self._gate.ready_at() - now),
+                                                self._on_retry)
             return
         self._pending = False
         self._gate.started(self._now())
         self.checksum ^= burn_cpu(self.spec.cpu_s_per_output)
         self._publish()
+
+    def _on_retry(self) -> None:
+        if self._retry is not None:
+            self.destroy_timer(self._retry)
+            self._retry = None
+        self._maybe_produce()
 
     def _publish(self) -> None:
         for pub in self._pubs:
