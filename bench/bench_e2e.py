@@ -62,9 +62,13 @@ def reaction(args):
             tb.wait_for(on('amcl', 'laptop'), 90.0, 'amcl on the laptop')
             tb.wait_for(on('ar', 'laptop'), 90.0, 'ar on the laptop')
             # Both connections healthy at the robot before the cut, so what follows is the cut's.
+            # Also settled: no move for 5 s and the robot's probes report both within limits,
+            # so a gap left by the move out is not counted as the cut's.
             tb.wait_for(lambda r: (r.topic_rate('/amcl_pose', tb.now()) >= 4.0 and
-                                   r.topic_rate('/markers', tb.now()) >= 10.0), 30.0,
-                        'amcl_ekf and ar_navigation healthy')
+                                   r.topic_rate('/markers', tb.now()) >= 10.0 and
+                                   r.settled(tb.now(), ('amcl_ekf', 'ar_navigation'), 'robot',
+                                             5.0)), 30.0,
+                        'amcl_ekf and ar_navigation healthy and settled')
             t_cut = tb.now()
             tb.cut()
             # Back = the robot's agent reports both running and ready on the robot. (The cut-off

@@ -343,3 +343,16 @@ def test_timeline_tells_a_thaw_from_a_cold_start(record):
     assert tl['reports'] == [(-1.0, 'amcl', 'standby', 500), (0.5, 'amcl', 'running', 500),
                              (10.0, 'amcl', 'running', 777)]
     assert tl['/amcl_pose'] == [-0.4, 0.8, 1.2]
+
+
+def test_settled_needs_a_quiet_layout_and_the_probes_within_limits(record):
+    ok = p.ConnectionReading(rate_hz=5.0, bytes_per_s=0.0, below_for_s=0.0, level=p.OK)
+    low = p.ConnectionReading(rate_hz=0.0, bytes_per_s=0.0, below_for_s=1.0, level=p.WARN)
+    record.readings['amcl_ekf'] = [(9.0, 'robot', low), (9.8, 'robot', ok), (9.9, 'laptop', low)]
+    record.events.append((3.0, p.Event(kind='migrate', node='amcl', from_scale='robot',
+                                       to_scale='laptop', reason='x', stamp=3.0, generation=2)))
+    assert record.settled(10.0, ['amcl_ekf'], 'robot', 5.0)
+    assert not record.settled(10.0, ['amcl_ekf'], 'robot', 8.0)      # a move 7 s ago
+    assert not record.settled(11.5, ['amcl_ekf'], 'robot', 5.0)      # no fresh reading
+    record.readings['amcl_ekf'].append((10.2, 'robot', low))
+    assert not record.settled(10.3, ['amcl_ekf'], 'robot', 5.0)      # below its minimum

@@ -263,6 +263,20 @@ class Record:
             out = [v for v in out if self._serving(v)]
         return sorted(out, key=lambda v: v.start)
 
+    def settled(self, now: float, connections: Sequence[str], scale: str,
+                quiet_s: float) -> bool:
+        """No move for quiet_s, and the scale's probe reports each connection within its
+        limits now (a fresh reading at level OK). After a move the subscribers' side may take a
+        while to hear the new copy; a cut in that moment would be judged with the move's gap."""
+        if self.moves(since=now - quiet_s):
+            return False
+        for name in connections:
+            last = next((x for x in reversed(self.readings.get(name, [])) if x[1] == scale),
+                        None)
+            if last is None or now - last[0] > 1.0 or last[2].level != p.OK:
+                return False
+        return True
+
     def timeline(self, t0: float, t1: float, nodes: Sequence[str] = ('amcl', 'ar'),
                  scale: str = 'robot', topic: str = '/amcl_pose') -> Dict[str, object]:
         """What happened between t0 and t1 (a cut), in seconds from t0: the link reported down,
@@ -292,6 +306,12 @@ class Record:
             'cpu': [(rel(t), {n: round(v) for n, v in st.cpu_by_node.items() if n in nodes},
                      round(st.cpu_total))
                     for t, st in self.scale_status.get(scale, []) if t0 - 1.0 <= t <= t1],
+            # The probe on the scale: (time, rate, below_for_s, level) of each connection into
+            # the topic's subscribers there, as the decider heard them.
+            'probe': {name: [(rel(t), round(r.rate_hz, 2), round(r.below_for_s, 2), r.level)
+                             for t, src, r in history if src == scale and t0 <= t <= t1]
+                      for name, history in sorted(self.readings.items())
+                      if self.deployment.connection(name).topic == topic},
         }
 
     def _serving(self, v: Violation) -> bool:
