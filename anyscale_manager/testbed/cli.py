@@ -120,6 +120,14 @@ def run(args: argparse.Namespace) -> int:
             print(f'CPU quotas: robot {c["robot"]:.2f} cores, laptop {c["laptop"]:.2f} cores of '
                   f'this machine (one reference core = {options.reference_core:g} core); '
                   f'link {options.rate_kbps / 1000:g} Mbit/s')
+        # The run is judged from a steady start: every probe on the robot reports its
+        # connection within limits (right after the boot they read 0 Hz until discovery).
+        monitored = [c.name for c in testbed.deployment.connections if c.monitored]
+        try:
+            testbed.wait_for(lambda r: r.settled(time.monotonic(), monitored, 'robot', 0.0),
+                             30.0, "every connection within its limits at the robot's probes")
+        except HarnessError as e:
+            print(f'note: starting the schedule anyway: {e}', flush=True)
         print('schedule: ' + ', '.join(str(s) for s in steps) +
               f' (link up {sched.up_fraction(steps, args.duration):.0%} of the run)', flush=True)
         t0 = time.monotonic()
