@@ -9,7 +9,7 @@ units around, and ``explain_infeasible`` names the constraints that cannot all b
 """
 
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import Deployment
 from .instance import Instance, own_scales_of_all
@@ -162,39 +162,39 @@ class Loads:
             return False
         return self._links_after(u, s) is not None
 
-    def _links_after(self, u: int, s: int) -> Optional[Dict[int, float]]:
-        """Link load changes if unplaced unit u went to s; None if a link is missing/full."""
+    def _crossings(self, u: int, s: int) -> Iterator[Tuple[int, float]]:
+        """(link index, bandwidth) of each connection of unit u that would cross from s to a
+        placed neighbour on another scale; link index -1 where no link joins the two."""
         inst = self.inst
-        delta: Dict[int, float] = {}
+        scale_of, link_of = self.scale_of, inst.link_of[s]
         for n in inst.units[u]:
             for m, bw in inst.neighbours[n]:
-                t = self.scale_of[m]
-                if t < 0 or t == s:
-                    continue
-                li = inst.link_of[s][t]
-                if li < 0:
-                    return None
-                delta[li] = delta.get(li, 0.0) + bw
+                t = scale_of[m]
+                if t >= 0 and t != s:
+                    yield link_of[t], bw
+
+    def _links_after(self, u: int, s: int) -> Optional[Dict[int, float]]:
+        """Link load changes if unplaced unit u went to s; None if a link is missing/full."""
+        delta: Dict[int, float] = {}
+        for li, bw in self._crossings(u, s):
+            if li < 0:
+                return None
+            delta[li] = delta.get(li, 0.0) + bw
+        capacity = self.inst.link_capacity
         for li, dl in delta.items():
-            if self.link_load[li] + dl > inst.link_capacity[li] + TOLERANCE:
+            if self.link_load[li] + dl > capacity[li] + TOLERANCE:
                 return None
         return delta
 
     # --- changes --------------------------------------------------------------------------------
     def _account(self, u: int, s: int, sign: float) -> List[int]:
-        inst = self.inst
         touched = []
-        for n in inst.units[u]:
-            for m, bw in inst.neighbours[n]:
-                t = self.scale_of[m]
-                if t < 0 or t == s:
-                    continue
-                li = inst.link_of[s][t]
-                if li < 0:
-                    self.no_link += 1 if sign > 0 else -1
-                else:
-                    self.link_load[li] += sign * bw
-                    touched.append(li)
+        for li, bw in self._crossings(u, s):
+            if li < 0:
+                self.no_link += 1 if sign > 0 else -1
+            else:
+                self.link_load[li] += sign * bw
+                touched.append(li)
         return touched
 
     def place(self, u: int, s: int) -> List[int]:
