@@ -195,6 +195,22 @@ def test_4_laptop_agent_killed_its_nodes_run_on_the_robot_again(bed):
                  'and stopped')
 
 
+def _process_state(pid):
+    """A process's scheduler state, per thread ('R', 'S', 'T' = stopped, ...), and where its
+    main thread waits: what a failure needs to tell a stuck node from a stopped one."""
+    states = {}
+    try:
+        for tid in os.listdir(f'/proc/{pid}/task'):
+            with open(f'/proc/{pid}/task/{tid}/stat') as f:
+                state = f.read().rsplit(') ', 1)[1][:1]
+            states[state] = states.get(state, 0) + 1
+        with open(f'/proc/{pid}/wchan') as f:
+            wchan = f.read()
+    except OSError as e:
+        return f'pid {pid}: {e}'
+    return f'pid {pid}: threads by state {states}, main thread waits in {wchan or "-"}'
+
+
 def _alive(pid):
     try:
         with open(f'/proc/{pid}/stat') as f:
@@ -225,6 +241,9 @@ def test_5_link_cut_every_migrated_node_back_before_its_delta_runs_out(bed):
             reported = [v for v in r.reported_violations(t_cut, end, [c.name for c in conns])
                         if v.source == ROBOT]
             timeline = r.timeline(t_cut, end)
+            pids = {n: rep.pid for n, rep in r.running_on(ROBOT).items() if n in ('amcl', 'ar')}
+        if observed or reported:
+            timeline['processes'] = {n: _process_state(pid) for n, pid in pids.items()}
         print(f'back on the robot {t_back - t_cut:.2f} s after the cut; observed {observed}; '
               f'reported {reported}')
         assert observed == [], f'past Δ at the robot: {observed}; after the cut: {timeline}'
