@@ -16,9 +16,10 @@ from anyscale_manager.testbed import harness
 
 HYSTERESIS_S = 8.0
 OK, WHY = netns.available()
-# Opt-in: about two minutes of real namespaces, quotas and a shaped link. In 1 of the last 4
-# full-suite runs test 5 failed on a real fault not yet found (a thawed standby AMCL that did
-# not resume; docs/testbed.md), so they do not gate the default suite yet.
+# Opt-in: about two minutes of real namespaces, quotas and a shaped link. Test 5 failed once on
+# a fault not yet found (a thawed standby AMCL that did not resume) and test 2 once on a race
+# between AR's return and AMCL's Δ on a congested link (docs/testbed.md), so they do not gate
+# the default suite yet.
 OPTED_IN = os.environ.get('ANYSCALE_E2E') == '1'
 pytestmark = [
     pytest.mark.skipif(not OPTED_IN, reason='end-to-end test-bed tests are opt-in: run '
