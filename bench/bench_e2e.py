@@ -133,13 +133,7 @@ def scheduled_run(args, migration):
         pending = list(steps)
         while tb.now() - t0 < args.duration:
             while pending and tb.now() - t0 >= pending[0].at_s:
-                step = pending.pop(0)
-                if step.action == 'cut':
-                    tb.cut()
-                elif step.action == 'restore':
-                    tb.restore()
-                else:
-                    tb.throttle(step.rate_kbps)
+                tb.apply(pending.pop(0))
             time.sleep(0.05)
         t1 = tb.now()
         cpu1 = tb.cpu_seconds()

@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
             now = time.monotonic()
             while pending and now - t0 >= pending[0].at_s:
                 step = pending.pop(0)
-                _apply(testbed, step)
+                testbed.apply(step)
             if now - t0 >= args.duration:
                 break
             if now >= next_show:
@@ -195,19 +195,6 @@ def run(args: argparse.Namespace) -> int:
     if notes:
         code = code or 1
     return code
-
-
-def _apply(testbed, step: sched.Step) -> None:
-    from .harness import HarnessError
-    try:
-        if step.action == 'cut':
-            testbed.cut()
-        elif step.action == 'restore':
-            testbed.restore()
-        else:
-            testbed.throttle(step.rate_kbps)
-    except HarnessError as e:
-        testbed.mark(f'{step} skipped: {e}')
 
 
 def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> dict:

@@ -387,6 +387,19 @@ class Testbed:
             self.record.link_set(now, self._link_up, self._rate_kbps)
         self.mark(f'link shaped to {rate_kbps:g} kbit/s')
 
+    def apply(self, step) -> None:
+        """One step of a link schedule (``schedule.Step``: cut, restore or throttle). A step
+        this test-bed cannot take (a throttle on loopback) is marked skipped in the record."""
+        try:
+            if step.action == 'cut':
+                self.cut()
+            elif step.action == 'restore':
+                self.restore()
+            else:
+                self.throttle(step.rate_kbps)
+        except HarnessError as e:
+            self.mark(f'{step} skipped: {e}')
+
     @property
     def link(self) -> Tuple[bool, float]:
         return self._link_up, self._rate_kbps
