@@ -210,6 +210,25 @@ def test_demo_refuses_bad_input_before_starting_anything(args, message, tmp_path
     assert message in out.stderr
 
 
+def test_demo_runs_on_loopback_writes_its_files_and_exits_0(tmp_path, python, ros_env):
+    """The README's first command, short and on loopback (no root needed): the schedule is
+    applied (a throttle skipped, said so), the files are written, the teardown is clean."""
+    out_dir = tmp_path / 'demo'
+    out = subprocess.run([python, '-m', 'anyscale_manager.cli', 'demo', '--mode', 'loopback',
+                          '--duration', '8', '--schedule', '2:throttle=5000,4:cut,6:restore',
+                          '--out', str(out_dir)], env=ros_env, capture_output=True, text=True,
+                         timeout=240)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    assert 'mode: loopback' in out.stdout
+    for name in ('timeline.png', 'events.txt', 'events.jsonl', 'summary.json'):
+        assert (out_dir / name).stat().st_size > 0, name
+    summary = json.loads((out_dir / 'summary.json').read_text())
+    assert summary['mode'] == 'loopback' and summary['teardown_notes'] == []
+    assert summary['schedule'] == ['2:throttle=5000', '4:cut', '6:restore']
+    events = (out_dir / 'events.txt').read_text()
+    assert 'throttle=5000 skipped' in events and 'link cut' in events
+
+
 def test_demo_finds_the_packaged_deployment():
     from anyscale_manager.testbed.cli import default_config
     path = default_config()
