@@ -9,6 +9,7 @@ from dataclasses import replace
 from typing import List, Optional, Tuple
 
 from ..model.loader import DeploymentError
+from ..model.types import HYSTERESIS_SCOPES
 from . import report
 from .model import LINK_MODES, PathModel
 from .runner import HEURISTIC, PLANNER, POLICIES, Experiment, run_experiment
@@ -52,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--hysteresis', type=float, metavar='S',
                         help="override the decider's hysteresis T in seconds (default: each "
                              "deployment's own, 20 s for the test-bed)")
-    parser.add_argument('--hysteresis-scope', choices=('scale', 'node'),
+    parser.add_argument('--hysteresis-scope', choices=HYSTERESIS_SCOPES,
                         help="override the decider's hysteresis scope: scale (T bars only the "
                              "scale a node came back from) or node (the paper's literal rule: "
                              "any scale); default: each deployment's own")

@@ -160,7 +160,7 @@ class Testbed:
             # then its quota back. Nothing is measured before that.
             self.wait_for(lambda r: 'robot' in r.scale_status, 30.0,
                           "the robot agent's scale monitor")
-            robot_group.set_cores(float(psutil.cpu_count() or 1))
+            _lift_quota(robot_group)
             self.mark('boot: robot CPU quota lifted while the nodes start')
         self.start_decider()
         managed = [n.name for n in self.deployment.nodes if n.managed]
@@ -174,11 +174,12 @@ class Testbed:
         """Stop everything; return what had to be force-cleaned (empty on a clean stop)."""
         notes: List[str] = []
         self._thaw()
-        if self.network is not None and 'robot' in self.network.groups:
+        robot_group = self.network.groups.get('robot') if self.network else None
+        if robot_group is not None:
             # Ten Python nodes shutting down at once under the robot's quota take many seconds;
             # nothing is measured any more, so the teardown gets the whole machine (as the boot).
             try:
-                self.network.groups['robot'].set_cores(float(psutil.cpu_count() or 1))
+                _lift_quota(robot_group)
             except OSError as e:
                 notes.append(f'could not lift the robot CPU quota for the teardown: {e}')
         for name in ('decider', 'agent_laptop', 'agent_robot'):
@@ -483,6 +484,11 @@ class Testbed:
                 if used is not None:
                     out[f'scale_{scale}'] = used
         return out
+
+
+def _lift_quota(group) -> None:
+    """Let a scale's cgroup use the whole machine (boot and teardown, when nothing is judged)."""
+    group.set_cores(float(psutil.cpu_count() or 1))
 
 
 def _python_leader(pid: int) -> psutil.Process:
