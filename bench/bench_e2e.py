@@ -1,12 +1,16 @@
 #!/usr/bin/env python3
 """End-to-end figures on the ICAR test-bed (needs root for namespaces, tc and cgroups).
 
-    sudo python bench/bench_e2e.py [--cuts 10] [--duration 60] [--domain-id 45] [--out FILE]
+    sudo python bench/bench_e2e.py [--cuts 10] [--throttles 5] [--duration 60] [--out FILE]
 
 1. Reaction: the link is cut while AMCL and AR run on the laptop; the time until both run
    (ready) on the robot again, p50/p95 over ``--cuts`` cuts, and the Δ violations during each
    (probes on the robot reporting a connection past its tolerance, and the harness's own
    measurement of AMCL -> EKF and AR -> Navigation at the robot).
+   Then ``--throttles`` times: with both on the laptop, the link is throttled to 5 Mbit/s (below
+   AR's 6 Mbit/s); the time until the link monitor reports the link congested and until AR
+   runs on the robot again, and whether AMCL (0.2 Mbit/s, which still fits) stayed. Every
+   congestion the monitor reported outside a throttle is counted as a false one.
 2. The paper's headline: the same link schedule (paper_schedule) with migration and with
    ``decider.migration false``, one after the other in this run; the decider's time-integrated
    performance, AMCL's mean output rate at the robot and where AMCL and AR ran.
@@ -97,16 +101,65 @@ def reaction(args):
             if observed or reported:
                 print(f'  timeline of cut {i + 1}: {json.dumps(row["timeline"])}', flush=True)
             results.append(row)
+        throttles, throttled = throttle_reaction(args, tb)
+        with tb.lock:
+            onsets = tb.record.congestion_onsets(tb.t0, tb.now())
+        false_onsets = [round(t - tb.t0, 1) for t in onsets
+                        if not any(a <= t <= b for a, b in throttled)]
     finally:
         notes = tb.stop()
     backs = [r['back_s'] for r in results]
-    return {'cuts': results, 'p50_s': percentile(backs, 0.5), 'p95_s': percentile(backs, 0.95),
+    seen = [r['congested_s'] for r in throttles if r['congested_s'] is not None]
+    ar_back = [r['ar_back_s'] for r in throttles if r['ar_back_s'] is not None]
+    return {'throttles': throttles,
+            'throttle_congested_p50_s': percentile(seen, 0.5),
+            'throttle_congested_max_s': max(seen) if seen else None,
+            'throttle_ar_back_p50_s': percentile(ar_back, 0.5),
+            'throttle_ar_back_max_s': max(ar_back) if ar_back else None,
+            'throttles_amcl_moved': sum(1 for r in throttles if r['amcl_moves']),
+            'false_congestion_onsets': false_onsets,
+            'cuts': results, 'p50_s': percentile(backs, 0.5), 'p95_s': percentile(backs, 0.95),
             'max_s': max(backs) if backs else None,
             'cuts_with_violations': sum(1 for r in results
                                         if r['observed_violations'] or r['reported_violations']),
             'violations': sum(len(r['observed_violations']) + len(r['reported_violations'])
                               for r in results),
             'hysteresis_s': args.hysteresis, 'teardown_notes': notes}
+
+
+def throttle_reaction(args, tb):
+    """Throttle below AR's need with both on the laptop; returns the rows and the intervals
+    (throttle to AR's return + 5 s) in which a congestion report is the throttle's."""
+    rows, throttled = [], []
+    for i in range(args.throttles):
+        tb.throttle(netns.DEFAULT_RATE_KBPS)
+        tb.restore()
+        # The estimate a throttle left stands until the next probe (every 30 s) measures the
+        # full rate again; only then may AR go out.
+        tb.wait_for(on('amcl', 'laptop'), 120.0, 'amcl on the laptop')
+        tb.wait_for(on('ar', 'laptop'), 120.0, 'ar on the laptop')
+        tb.wait_for(lambda r: r.settled(tb.now(), ('amcl_ekf', 'ar_navigation'), 'robot', 5.0),
+                    30.0, 'a settled layout')
+        t0 = tb.now()
+        tb.throttle(5000.0)
+        tb.wait_for(lambda r: r.where('ar') == ('robot',), 30.0, 'ar back on the robot')
+        t_back = tb.now()
+        tb.sleep(6.0)
+        with tb.lock:
+            onsets = tb.record.congestion_onsets(t0, tb.now())
+            amcl_moves = tb.record.moves(since=t0, node='amcl')
+            reasons = [e.reason for _, e in tb.record.moves(since=t0, node='ar')][:1]
+        throttled.append((t0, t_back + 5.0))
+        row = {'throttle': i + 1,
+               'congested_s': round(onsets[0] - t0, 3) if onsets else None,
+               'ar_back_s': round(t_back - t0, 3),
+               'amcl_moves': len(amcl_moves), 'ar_reason': reasons[0] if reasons else ''}
+        print(f'throttle {i + 1}: congested after {row["congested_s"]} s, ar back after '
+              f'{row["ar_back_s"]:.2f} s, amcl moves {row["amcl_moves"]} ({row["ar_reason"]})',
+              flush=True)
+        rows.append(row)
+    tb.throttle(netns.DEFAULT_RATE_KBPS)
+    return rows, throttled
 
 
 # The paper's robot drove at 0.4 m/s only while AMCL ran on the laptop, 0.2 m/s otherwise.
@@ -167,6 +220,7 @@ def main():
     parser.add_argument('--config', default=CONFIG)
     parser.add_argument('--cuts', type=int, default=10)
     parser.add_argument('--duration', type=float, default=60.0)
+    parser.add_argument('--throttles', type=int, default=5)
     parser.add_argument('--hysteresis', type=float, default=8.0)
     parser.add_argument('--domain-id', type=int,
                         default=int(os.environ.get('ROS_DOMAIN_ID', '0') or 0))
@@ -185,6 +239,14 @@ def main():
         print(f'\nreaction to a link cut over {len(r["cuts"])} cuts: p50 {r["p50_s"]:.2f} s, '
               f'p95 {r["p95_s"]:.2f} s, max {r["max_s"]:.2f} s; Δ violations: '
               f'{r["violations"]} (in {r["cuts_with_violations"]} cuts)', flush=True)
+        if r['throttles']:
+            print(f'throttle below AR\'s need over {len(r["throttles"])} throttles: congestion '
+                  f'seen p50 {r["throttle_congested_p50_s"]:.2f} s (max '
+                  f'{r["throttle_congested_max_s"]:.2f} s), AR back p50 '
+                  f'{r["throttle_ar_back_p50_s"]:.2f} s (max {r["throttle_ar_back_max_s"]:.2f} '
+                  f's); AMCL moved in {r["throttles_amcl_moved"]}', flush=True)
+        print(f'congestion reported outside a throttle: {len(r["false_congestion_onsets"])} '
+              f'times {r["false_congestion_onsets"]}', flush=True)
     if not args.skip_headline:
         on_ = scheduled_run(args, True)
         off = scheduled_run(args, False)

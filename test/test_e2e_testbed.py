@@ -126,9 +126,19 @@ def test_2_throttled_below_ar_need_ar_comes_back_amcl_stays(bed):
         with bed.lock:
             amcl_moves = bed.record.moves(since=t_throttle, node='amcl')
             where = bed.record.where('amcl')
-        assert amcl_moves == [], f'AMCL moved although it fits: {amcl_moves}'
+            ar_back = [e for _, e in bed.record.moves(since=t_throttle, node='ar')][:1]
+            congested = [t - t_throttle for t, s in bed.record.link_status
+                         if t >= t_throttle and s.congested][:1]
+            timeline = bed.record.timeline(t_throttle - 1.0, bed.now())
+        why = f'AR back: {ar_back}; congested after {congested} s\n{timeline}'
+        assert amcl_moves == [], f'AMCL moved although it fits: {amcl_moves}\n{why}'
         assert where == (LAPTOP,)
-        print(f'ar back on the robot {t_back - t_throttle:.1f} s after the throttle')
+        # The link's queue gave the throttle away (not AR's rate past its Δ, seconds later),
+        # and AR came back under the bandwidth rule.
+        assert congested, f'the throttle was never seen as congestion: {why}'
+        assert 'usable' in ar_back[0].reason, why
+        print(f'link congested {congested[0]:.1f} s and ar back on the robot '
+              f'{t_back - t_throttle:.1f} s after the throttle ({ar_back[0].reason})')
     finally:
         bed.throttle(netns.DEFAULT_RATE_KBPS)
 

@@ -280,6 +280,49 @@ def test_rtt_is_median_of_recent():
     assert hb.rtt_s() == pytest.approx(0.01)
 
 
+def _beats(hb, start, count, rtt_of, period=0.25):
+    """Send ``count`` beats from ``start``; rtt_of(k) is the k-th echo's RTT, None = lost."""
+    now = start
+    for k in range(count):
+        seq = hb.next_beat(now)
+        rtt = rtt_of(k)
+        if rtt is not None:
+            hb.echo(now + rtt, seq)
+        now += period
+    return now
+
+
+def test_queueing_delay_is_rtt_beyond_the_base_reached_by_three_of_four_beats():
+    hb = HeartbeatTracker(0.25, 3)
+    assert hb.queueing_delay_s(0.0) is None                       # nothing sent
+    now = _beats(hb, 0.0, 20, lambda k: 0.002)
+    assert hb.base_rtt_s() == pytest.approx(0.002)
+    assert hb.queueing_delay_s(now) == pytest.approx(0.0)
+    # One late echo in four (a scheduling hiccup) is not a queue.
+    now = _beats(hb, now, 4, lambda k: 0.2 if k == 1 else 0.002)
+    assert hb.queueing_delay_s(now) == pytest.approx(0.0)
+    # A queue of about 100 ms holds every beat.
+    now = _beats(hb, now, 4, lambda k: 0.1 + 0.01 * k)
+    assert hb.queueing_delay_s(now) == pytest.approx(0.11 - 0.002)
+    assert hb.base_rtt_s() == pytest.approx(0.002)                 # the base is the least
+
+
+def test_queueing_delay_counts_a_beat_still_unanswered_as_waiting():
+    hb = HeartbeatTracker(0.25, 3)
+    now = _beats(hb, 0.0, 10, lambda k: 0.002)
+    # Tail drop: three of four lost; a lost beat has waited since it was sent.
+    now = _beats(hb, now, 4, lambda k: 0.002 if k == 0 else None)
+    assert hb.queueing_delay_s(now) == pytest.approx(0.25 - 0.002)   # the latest, 0.25 s ago
+    # ... but beats sent before ``since`` (a cut, a probe) say nothing.
+    assert hb.queueing_delay_s(now, since=now - 0.5) is None
+
+
+@pytest.mark.parametrize('recent, agree', [(4, 0), (4, 5), (0, 0)])
+def test_queueing_delay_rejects_bad_votes(recent, agree):
+    with pytest.raises(ValueError):
+        HeartbeatTracker(0.25, 3, recent=recent, agree=agree)
+
+
 # --- bandwidth -----------------------------------------------------------------------------
 
 def test_steady_throughput_skips_the_bucket_burst():
@@ -379,3 +422,28 @@ def test_process_group_cpu_sums_children_and_tolerates_churn():
     assert out == {'ar': pytest.approx(0.5)}
     g.update(5.0, {'ar': {20: 6.5}, 'gone': {}})
     assert g.update(6.0, {'ar': {20: 7.0}, 'gone': {}}) == {'ar': pytest.approx(0.5)}
+
+
+def test_a_saturated_link_carries_what_it_delivers_until_the_next_probe():
+    est = BandwidthEstimate(interval_s=30.0, nominal_kbps=54000.0)
+    est.started(0.0)
+    est.record(0.5, 53000.0, used_kbps=500.0)
+    assert est.source == 'probe'
+    # Congestion starts: the delivered traffic replaces the estimate ...
+    assert est.saturated(10.0, 4900.0, onset=True) == pytest.approx(4900.0)
+    assert est.source == 'congestion' and est.age_s(11.0) == pytest.approx(1.0)
+    # ... and while it lasts it may only rise: traffic leaving the link does not shrink it.
+    assert est.saturated(10.5, 5100.0, onset=False) == pytest.approx(5100.0)
+    assert est.saturated(11.0, 200.0, onset=False) == pytest.approx(5100.0)
+    # A new congestion starts afresh; nothing delivered says nothing.
+    assert est.saturated(20.0, 3000.0, onset=True) == pytest.approx(3000.0)
+    assert est.saturated(21.0, 0.0, onset=True) == pytest.approx(3000.0)
+    assert est.saturated(21.0, math.nan, onset=True) == pytest.approx(3000.0)
+    # The probe schedule is not changed; the next probe measures the link again.
+    assert not est.due(29.0, True, 100.0) and est.due(30.0, True, 100.0)
+    est.started(30.0)
+    assert est.record(30.5, 40000.0) == pytest.approx(40000.0) and est.source == 'probe'
+    # A link back from an outage is measured again at once.
+    assert not est.due(31.0, True, 0.0)
+    est.remeasure()
+    assert est.due(31.0, True, 0.0)

@@ -106,6 +106,24 @@ def test_observed_violations_use_the_delta_rule(record):
     assert record.observed_violations(conn, 0.0, 20.0) == []
 
 
+def test_congestion_onsets_count_each_congested_spell_once(record):
+    def link(t, up, congested):
+        record.ingest_line(_line(t, p.TOPIC_LINK_STATUS, p.LinkStatus(
+            master='robot', remote='laptop', stamp=t, up=up, rtt_ms=1.0, loss=0.0,
+            bandwidth_available_kbps=5000.0, bandwidth_available_age_s=0.0,
+            bandwidth_used_kbps=4000.0, queueing_delay_ms=90.0 if congested else 1.0,
+            congested=congested)))
+    for t, up, congested in [(1.0, True, False), (2.0, True, True), (2.25, True, True),
+                             (3.0, True, False), (4.0, True, True), (5.0, False, False),
+                             (6.0, True, True)]:
+        link(t, up, congested)
+    assert record.congestion_onsets(0.0, 10.0) == [2.0, 4.0, 6.0]
+    assert record.congestion_onsets(2.1, 5.0) == [4.0]       # a spell begun before t0 is not
+    spans_ = record.timeline(1.5, 6.5)['link']
+    assert [(t, state, c) for t, state, c, *_ in spans_][:3] == [
+        (-0.5, 'up', ''), (0.5, 'up', 'congested'), (1.5, 'up', '')]
+
+
 def test_reported_violations_close_when_the_probe_goes_quiet_or_recovers(record):
     def reading(level, below):
         return p.ConnectionReading(rate_hz=0.0, bytes_per_s=0.0, below_for_s=below, level=level)

@@ -515,6 +515,7 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
         'bandwidth_probe_interval_s': dict(low=0, high=86400, low_open=True),
         'bandwidth_probe_duration_s': dict(low=0, high=60, low_open=True),
         'bandwidth_probe_port': dict(low=1, high=65535),
+        'congestion_delay_ms': dict(low=0, high=60000),
     })
     agent = _dataclass_settings(root, 'agent', t.AgentSettings, {
         'sigint_grace_s': dict(low=0, high=3600),

@@ -167,6 +167,7 @@ class MonitorSettings:
     bandwidth_probe_interval_s: float = 30.0
     bandwidth_probe_duration_s: float = 0.5
     bandwidth_probe_port: int = 47800
+    congestion_delay_ms: float = 50.0     # queueing delay that marks a link full; 0 = never
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ monitor's callbacks at once.
 
 import importlib
 import json
+import math
 import os
 import re
 import select
@@ -604,6 +605,9 @@ class _Remote:
     bandwidth: Optional[BandwidthEstimate]
     was_up: bool = False
     probing: bool = False
+    congested: bool = False
+    delay_s: Optional[float] = None
+    quiet_since: float = -math.inf     # beats sent earlier say nothing of congestion
     watchdog: object = None
     result: Optional[Tuple[float, Optional[float], str, float]] = None  # done, bps, error, used
 
@@ -642,7 +646,7 @@ class LinkMonitor:
             self._remotes[remote.name] = _Remote(
                 remote, link.name if link else f'{self._scale.name}-{remote.name}',
                 HeartbeatTracker(self._period, settings.heartbeat_misses_down), estimate)
-        self._readings: Dict[str, Tuple[float, float]] = {}    # connection -> (B/s, received)
+        self._readings: Dict[Tuple[str, str], Tuple[float, float]] = {}  # (scale, conn) -> B/s, at
         self._running: Dict[str, Dict[str, str]] = {}          # scale -> node -> scale
         self._beat_pub = self._node.create_publisher(String, p.TOPIC_HEARTBEAT, HEARTBEAT_QOS)
         self._out = _Publishers(self._node, p.TOPIC_LINK_STATUS)
@@ -666,6 +670,7 @@ class LinkMonitor:
             self._timers.append(remote.watchdog)
         self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
         self._probe_duration = settings.bandwidth_probe_duration_s
+        self._congestion_s = settings.congestion_delay_ms / 1000.0
         self._probe_port = settings.bandwidth_probe_port
 
     def _decode(self, cls, msg: String, topic: str):
@@ -692,7 +697,7 @@ class LinkMonitor:
         if report is None:
             return
         for name, reading in report.connections.items():
-            self._readings[name] = (reading.bytes_per_s, now)
+            self._readings[(report.scale, name)] = (reading.bytes_per_s, now)
 
     def _on_agent_state(self, msg: String) -> None:
         state = self._decode(p.AgentState, msg, p.TOPIC_AGENT_STATE)
@@ -707,27 +712,56 @@ class LinkMonitor:
         names = crossing_connections(
             ((c.name, c.publisher, c.subscriber) for c in self._deployment.connections),
             running, self._scale.name, remote)
-        fresh = {n: bps for n, (bps, at) in self._readings.items()
-                 if now - at <= self._readings_max_age}
+        # Each connection as measured where its subscriber runs: a copy starting or stopping
+        # on the other end measures traffic that does not cross the link.
+        fresh = {}
+        for name in names:
+            where = running.get(self._deployment.connection(name).subscriber)
+            bps, at = self._readings.get((where, name), (0.0, -math.inf))
+            if now - at <= self._readings_max_age:
+                fresh[name] = bps
         return used_kbps(fresh, names)
 
     def _beat(self) -> None:
         self._check()
         now = time.monotonic()
         for name, remote in self._remotes.items():
+            self._collect_probe(remote, now)
+            used = self.used_kbps(name, now)
+            self._judge_congestion(remote, now, used)   # on the beats already sent
             seq = remote.beats.next_beat(now)
             beat = p.Heartbeat(scale=self._scale.name, target=name, seq=seq, sent=now)
             self._beat_pub.publish(String(data=beat.to_json()))
-        for name, remote in self._remotes.items():
-            self._collect_probe(remote, now)
-            used = self.used_kbps(name, now)
             if remote.bandwidth is not None and not remote.probing \
                     and remote.bandwidth.due(now, remote.beats.up(now), used):
                 remote.bandwidth.started(now)
                 remote.probing = True
+                remote.quiet_since = math.inf      # the probe fills the queue on purpose
                 threading.Thread(target=self._run_probe, args=(remote, used), daemon=True,
                                  name=f'anyscale-bw-{name}').start()
             self._publish(remote, now, used)
+
+    def _judge_congestion(self, remote: _Remote, now: float, used: float) -> None:
+        """A link whose queue holds the heartbeats is full: the bandwidth it delivers now is
+        what it can carry (until the next probe), which the decider's bandwidth rule compares
+        with what the crossing connections need. Seen within about a second, where a rate
+        past its Δ would take several."""
+        delay = remote.beats.queueing_delay_s(now, since=remote.quiet_since) \
+            if remote.beats.up(now) else None
+        congested = self._congestion_s > 0 and delay is not None and delay > self._congestion_s
+        if congested and remote.bandwidth is not None:
+            remote.bandwidth.saturated(now, used, onset=not remote.congested)
+        if congested != remote.congested:
+            if congested:
+                available = remote.bandwidth.available_kbps if remote.bandwidth else None
+                self._log.warning(
+                    f'link to {remote.scale.name} is congested: queueing delay '
+                    f'{delay * 1000.0:.0f} ms > {self._congestion_s * 1000.0:g} ms; it carries '
+                    + ('?' if available is None else f'{available:.0f}') + ' kbit/s')
+            else:
+                self._log.info(f'link to {remote.scale.name} is no longer congested')
+        remote.congested = congested
+        remote.delay_s = delay
 
     def _run_probe(self, remote: _Remote, used: float) -> None:
         try:
@@ -745,6 +779,8 @@ class LinkMonitor:
             return
         remote.probing = False
         done, bps, error, used = result
+        # The probe's own queue drains within the link's latency; one beat period covers it.
+        remote.quiet_since = done + self._period
         if bps is None:
             remote.bandwidth.failed(done, error)
             self._log.warning(f'bandwidth probe to {remote.scale.name}: {error}',
@@ -758,6 +794,12 @@ class LinkMonitor:
             up = remote.beats.up(now)
             if up != remote.was_up:
                 remote.was_up = up
+                if up:
+                    # Beats sent while it was down were lost to the cut, not to a queue; and
+                    # what the link carried before the outage may not hold where it came back.
+                    remote.quiet_since = max(remote.quiet_since, now)
+                    if remote.bandwidth is not None:
+                        remote.bandwidth.remeasure()
                 self._log.info(f'link to {remote.scale.name} is {"up" if up else "DOWN"}')
                 self._publish(remote, now, self.used_kbps(remote.scale.name, now))
 
@@ -771,20 +813,29 @@ class LinkMonitor:
                                stamp=time.time(), up=up,
                                rtt_ms=None if rtt is None else rtt * 1000.0,
                                loss=beats.loss(now), bandwidth_available_kbps=available,
-                               bandwidth_available_age_s=age, bandwidth_used_kbps=used)
+                               bandwidth_available_age_s=age, bandwidth_used_kbps=used,
+                               queueing_delay_ms=None if remote.delay_s is None
+                               else remote.delay_s * 1000.0,
+                               congested=remote.congested and up)
         self.last[remote.scale.name] = message
         self._out.send(message)
         reference = available if available is not None else (
             estimate.nominal_kbps if estimate is not None else None)
         if not up:
             level, text = p.ERROR, f'down: no echo for over {beats.timeout_s:g} s'
+        elif message.congested:
+            level, text = p.WARN, (f'congested: queueing delay {message.queueing_delay_ms:.0f} '
+                                   f'ms, carries {available or 0.0:.0f} kbit/s')
         elif message.loss > 0.2 or (reference and used > 0.9 * reference):
             level, text = p.WARN, f'up, loss {message.loss:.0%}, used {used:.0f} kbit/s'
         else:
             level, text = p.OK, f'up, rtt {message.rtt_ms or 0.0:.1f} ms'
         values = {'remote': remote.scale.name, 'up': up, 'rtt_ms': message.rtt_ms,
                   'loss': message.loss, 'bandwidth_available_kbps': available,
-                  'bandwidth_available_age_s': age, 'bandwidth_used_kbps': used}
+                  'bandwidth_available_age_s': age, 'bandwidth_used_kbps': used,
+                  'queueing_delay_ms': message.queueing_delay_ms,
+                  'congested': message.congested,
+                  'bandwidth_available_source': estimate.source if estimate else ''}
         if estimate is not None and estimate.last_error:
             values['bandwidth_probe_error'] = estimate.last_error
         self._out.send_diagnostics([status(f'anyscale/link/{remote.link_name}', level, text,

@@ -113,7 +113,8 @@ def render(book: StatusBook, now: float) -> str:
         state, rtt, avail, used = 'not monitored', '-', f'- / {link.bandwidth_kbps:.0f}', '-'
         if remote is not None and remote in book.links:
             ls, at = book.links[remote]
-            state = 'SILENT' if now - at > max_age else ('up' if ls.up else 'DOWN')
+            state = 'SILENT' if now - at > max_age else (
+                ('up, CONGESTED' if ls.congested else 'up') if ls.up else 'DOWN')
             rtt = '-' if ls.rtt_ms is None else f'{ls.rtt_ms:.1f} ms'
             measured = ls.bandwidth_available_kbps
             avail = ('nominal' if measured is None else f'{measured:.0f}') + \

@@ -173,19 +173,35 @@ class HeartbeatTracker:
     the fraction lost among the last ``loss_window`` beats whose fate is known. Echoes of unknown
     or forgotten sequence numbers are ignored; the round-trip time is computed from our own send
     record, never from a value carried by the echo.
+
+    Queueing delay is how a full link shows first: its queue grows before anything is lost. It is
+    the round-trip time beyond the base (the least seen among the last ``base_window`` echoes),
+    as reached by ``agree`` of the last ``recent`` beats, an unanswered beat counting as waiting
+    since it was sent (a lower bound that keeps growing if it was dropped). One late echo (a
+    scheduling hiccup on a loaded scale) does not make it; a queue that holds every beat does.
     """
 
-    def __init__(self, period_s: float, misses_down: int, loss_window: int = 40):
+    def __init__(self, period_s: float, misses_down: int, loss_window: int = 40,
+                 base_window: int = 240, recent: int = 4, agree: int = 3):
         self.period_s = _positive(period_s, 'period_s')
         if not isinstance(misses_down, int) or misses_down < 1:
             raise ValueError(f'misses_down must be an integer >= 1, got {misses_down!r}')
         if loss_window < 1:
             raise ValueError(f'loss_window must be >= 1, got {loss_window!r}')
+        if base_window < 1:
+            raise ValueError(f'base_window must be >= 1, got {base_window!r}')
+        if not 1 <= agree <= recent:
+            raise ValueError(f'need 1 <= agree <= recent, got agree={agree!r}, '
+                             f'recent={recent!r}')
         self.misses_down = misses_down
         self.loss_window = loss_window
+        self.recent = recent
+        self.agree = agree
         self._sent: Dict[int, float] = {}          # seq -> send time, pending beats
         self._fates: Deque[bool] = deque(maxlen=loss_window)   # True = answered
         self._rtts: Deque[float] = deque(maxlen=loss_window)
+        self._base: Deque[float] = deque(maxlen=base_window)
+        self._last: Deque[list] = deque(maxlen=recent)   # [seq, sent, rtt or None]
         self._next_seq = 0
         self.last_echo: Optional[float] = None
         self.last_rtt_s: Optional[float] = None
@@ -199,6 +215,7 @@ class HeartbeatTracker:
         seq = self._next_seq
         self._next_seq += 1
         self._sent[seq] = now
+        self._last.append([seq, now, None])
         self._expire(now)
         return seq
 
@@ -210,6 +227,10 @@ class HeartbeatTracker:
         rtt = now - sent
         self._fates.append(True)
         self._rtts.append(rtt)
+        self._base.append(rtt)
+        for entry in self._last:
+            if entry[0] == seq:
+                entry[2] = rtt
         self.last_rtt_s = rtt
         self.last_echo = now if self.last_echo is None else max(self.last_echo, now)
         return rtt
@@ -228,6 +249,21 @@ class HeartbeatTracker:
         if not self._fates:
             return 0.0
         return sum(1 for f in self._fates if not f) / len(self._fates)
+
+    def base_rtt_s(self) -> Optional[float]:
+        """The least round-trip time among the recent echoes: the link with an empty queue."""
+        return min(self._base) if self._base else None
+
+    def queueing_delay_s(self, now: float, since: float = -math.inf) -> Optional[float]:
+        """Delay beyond the base reached by ``agree`` of the last ``recent`` beats; None until
+        that many beats were sent at or after ``since`` (e.g. the link's return, or the end of
+        a throughput probe that filled the queue on purpose) or before any echo."""
+        base = self.base_rtt_s()
+        beats = [e for e in self._last if e[1] >= since]
+        if base is None or len(beats) < self.recent:
+            return None
+        waits = sorted((e[2] if e[2] is not None else now - e[1]) for e in beats)
+        return max(0.0, waits[self.recent - self.agree] - base)
 
     def rtt_s(self) -> Optional[float]:
         """Median round-trip time of the recent answered beats (robust to one late echo)."""
@@ -272,6 +308,8 @@ class BandwidthEstimate:
     last estimate, else the nominal bandwidth): never probe a link that is already near full.
     The capacity is the probe's throughput plus the traffic measured crossing the link while it
     ran, since a bulk TCP flow only gets what the (unyielding, UDP) ROS traffic leaves it.
+    Between probes, a link found full (its queue growing, see ``HeartbeatTracker``) is taken to
+    carry what it delivers at that moment (``saturated``) until the next probe measures it.
     """
 
     def __init__(self, interval_s: float, nominal_kbps: float, busy_fraction: float = 0.75):
@@ -285,6 +323,7 @@ class BandwidthEstimate:
         self.last_attempt: Optional[float] = None
         self.failures = 0
         self.last_error = ''
+        self.source = ''             # 'probe' or 'congestion': what set available_kbps
 
     def due(self, now: float, link_up: bool, used_kbps: float) -> bool:
         if not link_up:
@@ -298,6 +337,10 @@ class BandwidthEstimate:
     def started(self, now: float) -> None:
         self.last_attempt = now
 
+    def remeasure(self) -> None:
+        """Make a probe due at once (the link came back: the robot may be somewhere else)."""
+        self.last_attempt = None
+
     def record(self, now: float, probe_kbps: float,
                used_kbps: float = 0.0) -> Optional[float]:
         if not math.isfinite(probe_kbps) or probe_kbps <= 0:
@@ -306,6 +349,22 @@ class BandwidthEstimate:
         self.measured_at = now
         self.failures = 0
         self.last_error = ''
+        self.source = 'probe'
+        return self.available_kbps
+
+    def saturated(self, now: float, delivered_kbps: float, onset: bool) -> Optional[float]:
+        """The link is full: its capacity is the traffic it delivers. At the ``onset`` of a
+        congestion that replaces the estimate; later in the same congestion it can only raise
+        it, since traffic that leaves the link (a node moved back) does not shrink the link.
+        Nothing delivered says nothing (the estimate stands); the next probe is not brought
+        forward."""
+        if not math.isfinite(delivered_kbps) or delivered_kbps <= 0:
+            return self.available_kbps
+        if not onset and self.source == 'congestion' and self.available_kbps is not None:
+            delivered_kbps = max(delivered_kbps, self.available_kbps)
+        self.available_kbps = delivered_kbps
+        self.measured_at = now
+        self.source = 'congestion'
         return self.available_kbps
 
     def failed(self, now: float, reason: str) -> Optional[float]:

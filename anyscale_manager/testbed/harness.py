@@ -234,23 +234,10 @@ class Testbed:
 
     # --- processes ----------------------------------------------------------------------------
     def _env(self, scale: str) -> Dict[str, str]:
-        keep = ('PATH', 'HOME', 'LANG', 'LC_ALL', 'PYTHONPATH', 'AMENT_PREFIX_PATH',
-                'LD_LIBRARY_PATH', 'RMW_IMPLEMENTATION', 'VIRTUAL_ENV')
-        env = {k: v for k, v in os.environ.items() if k in keep}
-        env['PYTHONUNBUFFERED'] = '1'
-        env['ROS_DOMAIN_ID'] = str(self.options.domain_id)
-        env['ROS_LOG_DIR'] = os.path.join(self.run_dir, 'ros_log')
-        env.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+        peer = None
         if self.mode == NETNS:
-            other = 'laptop' if scale == 'robot' else 'robot'
-            # DDS stays on the namespace pair: multicast and the peer's address, UDP only
-            # (shared memory would reach across namespaces and bypass the link).
-            env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SUBNET'
-            env['ROS_STATIC_PEERS'] = self.network.addresses[other]
-            env['FASTDDS_BUILTIN_TRANSPORTS'] = 'UDPv4'
-        else:
-            env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-        return env
+            peer = self.network.addresses['laptop' if scale == 'robot' else 'robot']
+        return child_env(self.options.domain_id, os.path.join(self.run_dir, 'ros_log'), peer)
 
     def _deployment_args(self) -> List[str]:
         args = ['--ros-args', '--params-file', self.options.deployment_path]
@@ -486,6 +473,27 @@ class Testbed:
         return out
 
 
+def child_env(domain_id: int, log_dir: str, peer: Optional[str] = None) -> Dict[str, str]:
+    """The environment of a ROS process of the test-bed: this run's domain, and discovery on
+    loopback, or (``peer``: the other namespace's address) on the namespace pair only."""
+    keep = ('PATH', 'HOME', 'LANG', 'LC_ALL', 'PYTHONPATH', 'AMENT_PREFIX_PATH',
+            'LD_LIBRARY_PATH', 'RMW_IMPLEMENTATION', 'VIRTUAL_ENV')
+    env = {k: v for k, v in os.environ.items() if k in keep}
+    env['PYTHONUNBUFFERED'] = '1'
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env['ROS_LOG_DIR'] = log_dir
+    env.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    if peer is not None:
+        # DDS stays on the namespace pair: multicast and the peer's address, UDP only (shared
+        # memory would reach across namespaces and bypass the link).
+        env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SUBNET'
+        env['ROS_STATIC_PEERS'] = peer
+        env['FASTDDS_BUILTIN_TRANSPORTS'] = 'UDPv4'
+    else:
+        env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    return env
+
+
 def _lift_quota(group) -> None:
     """Let a scale's cgroup use the whole machine (boot and teardown, when nothing is judged)."""
     group.set_cores(float(psutil.cpu_count() or 1))
@@ -545,4 +553,4 @@ def tail(path: str, lines: int = 15) -> str:
     return '\n'.join(text.splitlines()[-lines:])
 
 
-__all__ = ['HarnessError', 'LOOPBACK', 'NETNS', 'Options', 'Proc', 'Testbed', 'tail']
+__all__ = ['HarnessError', 'LOOPBACK', 'NETNS', 'Options', 'Proc', 'Testbed', 'child_env', 'tail']

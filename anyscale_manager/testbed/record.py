@@ -277,12 +277,23 @@ class Record:
                 return False
         return True
 
+    def congestion_onsets(self, t0: float, t1: float) -> List[float]:
+        """Times in [t0, t1] at which the link monitor began to report the link congested."""
+        out, was = [], False
+        for t, s in self.link_status:
+            now = s.up and s.congested
+            if now and not was and t0 <= t <= t1:
+                out.append(t)
+            was = now
+        return out
+
     def timeline(self, t0: float, t1: float, nodes: Sequence[str] = ('amcl', 'ar'),
                  scale: str = 'robot', topic: str = '/amcl_pose') -> Dict[str, object]:
         """What happened between t0 and t1 (a cut), in seconds from t0: the link reported down,
-        the layouts, the scale's agent reports of the nodes (state, pid: a new pid is a cold
-        start, the same pid a thawed copy), a topic's arrivals at the scale, and the CPU the
-        scale measured for the nodes. For failure messages and the benchmark's log."""
+        the link's state as its monitor reported it, the layouts, the scale's agent reports of
+        the nodes (state, pid: a new pid is a cold start, the same pid a thawed copy), a topic's
+        arrivals at the scale, and the CPU the scale measured for the nodes. For failure
+        messages and the benchmark's log."""
         def rel(t: float) -> float:
             return round(t - t0, 2)
         reports = []
@@ -297,8 +308,23 @@ class Record:
                     reports.append((rel(t), n) + now)
                     last[n] = now
         down = [rel(t) for t, s in self.link_status if t >= t0 and not s.up][:1]
+        link, seen = [], None
+        for t, s in self.link_status:
+            if not t0 - 1.0 <= t <= t1:
+                continue
+            avail = None if s.bandwidth_available_kbps is None \
+                else round(s.bandwidth_available_kbps)
+            key = (s.up, s.congested, avail)
+            if key != seen:
+                delay = None if s.queueing_delay_ms is None else round(s.queueing_delay_ms)
+                link.append((rel(t), 'up' if s.up else 'down',
+                             'congested' if s.congested else '', delay, avail,
+                             round(s.bandwidth_used_kbps)))
+                seen = key
         return {
             'link_down_reported': down,
+            # (time, up/down, congested, queueing delay ms, available, used kbit/s) on change
+            'link': link,
             'layouts': [(rel(t), {n: lay.assignments.get(n) for n in nodes})
                         for t, lay in self.layouts if t0 <= t <= t1],
             'reports': reports,

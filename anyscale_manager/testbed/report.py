@@ -60,7 +60,8 @@ def status_table(record: Record, now: float, t0: float, mode: str) -> str:
         rtt = f'{link_obs.rtt_ms:.1f} ms' if link_obs.rtt_ms is not None else '-'
         avail = (f'{link_obs.bandwidth_available_kbps / 1000:.1f} Mbit/s'
                  if link_obs.bandwidth_available_kbps is not None else 'not measured yet')
-        seen = (f' | monitor: {"up" if link_obs.up else "DOWN"}, rtt {rtt}, loss '
+        state = ('up, CONGESTED' if link_obs.congested else 'up') if link_obs.up else 'DOWN'
+        seen = (f' | monitor: {state}, rtt {rtt}, loss '
                 f'{link_obs.loss:.0%}, available {avail}, used '
                 f'{link_obs.bandwidth_used_kbps / 1000:.2f} Mbit/s')
     lines.append(f't = {now - t0:6.1f} s   [{mode}]   link: '
