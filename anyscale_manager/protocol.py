@@ -212,11 +212,11 @@ class LinkStatus(Message):
     up: bool
     rtt_ms: Optional[float]
     loss: float                                  # fraction of recent beats lost
-    bandwidth_available_kbps: Optional[float]    # last probe or congestion; None = never
+    bandwidth_available_kbps: Optional[float]    # last active probe; None = never measured
     bandwidth_available_age_s: Optional[float]
     bandwidth_used_kbps: float                   # measured traffic of crossing connections
     queueing_delay_ms: Optional[float] = None    # RTT beyond the base; None = not judged yet
-    congested: bool = False                      # queueing delay past congestion_delay_ms
+    congested: bool = False                      # queueing delay past congestion_delay_ms: probed
     SCHEMA = {'master': str, 'remote': str, 'stamp': float, 'up': bool,
               'rtt_ms': ('optional', float), 'loss': float,
               'bandwidth_available_kbps': ('optional', float),

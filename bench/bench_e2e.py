@@ -10,7 +10,8 @@
    Then ``--throttles`` times: with both on the laptop, the link is throttled to 5 Mbit/s (below
    AR's 6 Mbit/s); the time until the link monitor reports the link congested and until AR
    runs on the robot again, and whether AMCL (0.2 Mbit/s, which still fits) stayed. Every
-   congestion the monitor reported outside a throttle is counted as a false one.
+   congestion the monitor reported outside a throttle is counted as a false alarm (it costs a
+   probe), and every move back for bandwidth outside a throttle as a wrong decision.
 2. The paper's headline: the same link schedule (paper_schedule) with migration and with
    ``decider.migration false``, one after the other in this run; the decider's time-integrated
    performance, AMCL's mean output rate at the robot and where AMCL and AR ran.
@@ -104,8 +105,12 @@ def reaction(args):
         throttles, throttled = throttle_reaction(args, tb)
         with tb.lock:
             onsets = tb.record.congestion_onsets(tb.t0, tb.now())
-        false_onsets = [round(t - tb.t0, 1) for t in onsets
-                        if not any(a <= t <= b for a, b in throttled)]
+            backs = [(t, e) for t, e in tb.record.moves() if e.kind == 'migrate_back'
+                     and 'usable' in e.reason]
+        outside = [t for t in onsets if not any(a <= t <= b for a, b in throttled)]
+        false_onsets = [round(t - tb.t0, 1) for t in outside]
+        false_backs = [(round(t - tb.t0, 1), e.node, e.reason) for t, e in backs
+                       if not any(a <= t <= b for a, b in throttled)]
     finally:
         notes = tb.stop()
     backs = [r['back_s'] for r in results]
@@ -118,6 +123,7 @@ def reaction(args):
             'throttle_ar_back_max_s': max(ar_back) if ar_back else None,
             'throttles_amcl_moved': sum(1 for r in throttles if r['amcl_moves']),
             'false_congestion_onsets': false_onsets,
+            'bandwidth_moves_back_outside_throttles': false_backs,
             'cuts': results, 'p50_s': percentile(backs, 0.5), 'p95_s': percentile(backs, 0.95),
             'max_s': max(backs) if backs else None,
             'cuts_with_violations': sum(1 for r in results
@@ -245,8 +251,10 @@ def main():
                   f'{r["throttle_congested_max_s"]:.2f} s), AR back p50 '
                   f'{r["throttle_ar_back_p50_s"]:.2f} s (max {r["throttle_ar_back_max_s"]:.2f} '
                   f's); AMCL moved in {r["throttles_amcl_moved"]}', flush=True)
-        print(f'congestion reported outside a throttle: {len(r["false_congestion_onsets"])} '
-              f'times {r["false_congestion_onsets"]}', flush=True)
+        print(f'link looked congested outside a throttle (each time it is probed at once): '
+              f'{len(r["false_congestion_onsets"])} times, at {r["false_congestion_onsets"]} s; '
+              f'moves back for bandwidth outside a throttle: '
+              f'{r["bandwidth_moves_back_outside_throttles"]}', flush=True)
     if not args.skip_headline:
         on_ = scheduled_run(args, True)
         off = scheduled_run(args, False)

@@ -414,25 +414,24 @@ s.close()
 
 @pytest.mark.timeout(120)
 @pytest.mark.skipif(not NETNS_OK, reason=f'no namespaces here: {NETNS_WHY}')
-def test_link_monitor_sees_a_full_queue_and_takes_the_delivered_traffic_as_capacity(
-        testbed_path, python, tmp_path):
+def test_link_monitor_sees_a_full_queue_and_probes_the_link_at_once(testbed_path, python,
+                                                                      tmp_path):
     """Two namespaces joined by a 3 Mbit/s token bucket; the master's LinkMonitor in one, the
     remote's in the other, each in its own process. A bulk TCP flow fills the link's queue."""
-    used = 2500.0
     net = netns.Network(rate_kbps=3000.0)
     with net:
         robot_ip, laptop_ip = net.addresses['robot'], net.addresses['laptop']
         domain = int(os.environ['ROS_DOMAIN_ID'])
         logs = str(tmp_path / 'ros_log')
         probe_port, sink_port = str(free_port()), str(free_port())
-        args = [testbed_path, None, robot_ip, laptop_ip, probe_port]
-        net.popen('laptop', [python, HOST] + args[:1] + ['laptop'] + args[2:],
-                  harness.child_env(domain, logs, robot_ip), cpu_quota=False,
-                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+        def host(scale):
+            return [python, HOST, testbed_path, scale, robot_ip, laptop_ip, probe_port]
+        net.popen('laptop', host('laptop'), harness.child_env(domain, logs, robot_ip),
+                  cpu_quota=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         net.popen('laptop', [python, '-c', SINK, sink_port], {'PATH': os.environ['PATH']},
                   cpu_quota=False)
-        master = net.popen('robot', [python, HOST] + args[:1] + ['robot'] + args[2:] +
-                           [str(used)], harness.child_env(domain, logs, laptop_ip),
+        master = net.popen('robot', host('robot'), harness.child_env(domain, logs, laptop_ip),
                            cpu_quota=False, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         seen = []                                   # (time, LinkStatus)
         lock = threading.Lock()
@@ -467,19 +466,25 @@ def test_link_monitor_sees_a_full_queue_and_takes_the_delivered_traffic_as_capac
         assert not any(s.congested for s in calm), calm
         assert max(s.queueing_delay_ms for s in calm) < 20.0
         probed = calm[-1].bandwidth_available_kbps
-        assert 1500.0 <= probed <= 4500.0, probed     # the probe measured the 3 Mbit/s bucket
+        print(f'first probe {probed:.0f} kbit/s')
+        assert 1000.0 <= probed <= 3600.0, probed     # the probe measured the 3 Mbit/s bucket
 
         t_flood = time.monotonic()
         flood = net.popen('robot', [python, '-c', FLOOD, laptop_ip, sink_port, '5'],
                           {'PATH': os.environ['PATH']}, cpu_quota=False)
         t_seen, status = wait(lambda t, s: t >= t_flood and s.congested, 5.0, 'congestion')
         assert status.up and status.queueing_delay_ms > 50.0
-        # Its capacity is now what it delivers (the crossing connection's measured traffic).
-        assert status.bandwidth_available_kbps == pytest.approx(used)
+        # Probed at once although the probe interval (an hour here) has not passed: the flow
+        # takes its share, so the link carries less for us than it did.
+        t_probed, again = wait(lambda t, s: t >= t_seen and s.bandwidth_available_age_s
+                               is not None and s.bandwidth_available_age_s < t - t_flood,
+                               5.0, 'a probe of the congested link')
+        assert again.bandwidth_available_kbps < 0.75 * probed, (probed, again)
         flood.wait(timeout=15)
         t_end = time.monotonic()
-        t_clear, after = wait(lambda t, s: t >= t_end and not s.congested, 5.0,
-                              'congestion to clear after the flow')
-        assert after.bandwidth_available_kbps == pytest.approx(used)    # until the next probe
-        print(f'congestion seen {t_seen - t_flood:.2f} s into the flow, cleared '
-              f'{t_clear - t_end:.2f} s after it')
+        t_clear, _ = wait(lambda t, s: t >= t_end and not s.congested, 5.0,
+                          'congestion to clear after the flow')
+        print(f'congestion seen {t_seen - t_flood:.2f} s into the flow and probed '
+              f'{t_probed - t_flood:.2f} s into it ({probed:.0f} -> '
+              f'{again.bandwidth_available_kbps:.0f} kbit/s); cleared {t_clear - t_end:.2f} s '
+              'after it')

@@ -424,26 +424,22 @@ def test_process_group_cpu_sums_children_and_tolerates_churn():
     assert g.update(6.0, {'ar': {20: 7.0}, 'gone': {}}) == {'ar': pytest.approx(0.5)}
 
 
-def test_a_saturated_link_carries_what_it_delivers_until_the_next_probe():
-    est = BandwidthEstimate(interval_s=30.0, nominal_kbps=54000.0)
+def test_a_link_that_looks_congested_is_probed_at_once_but_not_too_often():
+    est = BandwidthEstimate(interval_s=30.0, nominal_kbps=54000.0, urgent_gap_s=5.0)
+    assert not est.due(0.0, link_up=False, used_kbps=0.0, suspect=True)
     est.started(0.0)
     est.record(0.5, 53000.0, used_kbps=500.0)
-    assert est.source == 'probe'
-    # Congestion starts: the delivered traffic replaces the estimate ...
-    assert est.saturated(10.0, 4900.0, onset=True) == pytest.approx(4900.0)
-    assert est.source == 'congestion' and est.age_s(11.0) == pytest.approx(1.0)
-    # ... and while it lasts it may only rise: traffic leaving the link does not shrink it.
-    assert est.saturated(10.5, 5100.0, onset=False) == pytest.approx(5100.0)
-    assert est.saturated(11.0, 200.0, onset=False) == pytest.approx(5100.0)
-    # A new congestion starts afresh; nothing delivered says nothing.
-    assert est.saturated(20.0, 3000.0, onset=True) == pytest.approx(3000.0)
-    assert est.saturated(21.0, 0.0, onset=True) == pytest.approx(3000.0)
-    assert est.saturated(21.0, math.nan, onset=True) == pytest.approx(3000.0)
-    # The probe schedule is not changed; the next probe measures the link again.
-    assert not est.due(29.0, True, 100.0) and est.due(30.0, True, 100.0)
-    est.started(30.0)
-    assert est.record(30.5, 40000.0) == pytest.approx(40000.0) and est.source == 'probe'
+    # Busy and within the interval: a plain probe is not due, a suspected congestion is.
+    assert not est.due(10.0, True, 45000.0)
+    assert est.due(10.0, True, 45000.0, suspect=True)
+    est.started(10.0)
+    assert est.record(10.5, 800.0, used_kbps=4200.0) == pytest.approx(5000.0)
+    # ... but at most every urgent_gap_s, so a long congestion is not flooded with probes.
+    assert not est.due(14.0, True, 4000.0, suspect=True)
+    assert est.due(15.0, True, 4000.0, suspect=True)
+    assert not est.due(39.0, True, 100.0) and est.due(40.0, True, 100.0)
     # A link back from an outage is measured again at once.
-    assert not est.due(31.0, True, 0.0)
+    est.started(40.0)
+    assert not est.due(41.0, True, 0.0)
     est.remeasure()
-    assert est.due(31.0, True, 0.0)
+    assert est.due(41.0, True, 0.0)

@@ -486,6 +486,9 @@ def probe_throughput(host: str, port: int, duration_s: float,
                     pass
         else:
             raise OSError(f'throughput probe to {host}:{port} timed out')
+        # Reset rather than close gracefully: what is still in the send buffer must not keep
+        # the link busy after the measurement.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack('ii', 1, 0))
     try:
         answer = json.loads(reply.split(b'\n', 1)[0].decode('ascii'))
         bps = float(answer['bytes_per_s'])
@@ -641,8 +644,11 @@ class LinkMonitor:
             link = self._deployment.link_between(self._scale.name, remote.name)
             estimate = None
             if link is not None:
-                estimate = BandwidthEstimate(settings.bandwidth_probe_interval_s,
-                                             link.bandwidth_kbps)
+                # A link that looks congested is probed at once, but the probe fills at most a
+                # tenth of its time.
+                estimate = BandwidthEstimate(
+                    settings.bandwidth_probe_interval_s, link.bandwidth_kbps,
+                    urgent_gap_s=10.0 * settings.bandwidth_probe_duration_s)
             self._remotes[remote.name] = _Remote(
                 remote, link.name if link else f'{self._scale.name}-{remote.name}',
                 HeartbeatTracker(self._period, settings.heartbeat_misses_down), estimate)
@@ -733,7 +739,7 @@ class LinkMonitor:
             beat = p.Heartbeat(scale=self._scale.name, target=name, seq=seq, sent=now)
             self._beat_pub.publish(String(data=beat.to_json()))
             if remote.bandwidth is not None and not remote.probing \
-                    and remote.bandwidth.due(now, remote.beats.up(now), used):
+                    and remote.bandwidth.due(now, remote.beats.up(now), used, remote.congested):
                 remote.bandwidth.started(now)
                 remote.probing = True
                 remote.quiet_since = math.inf      # the probe fills the queue on purpose
@@ -742,22 +748,19 @@ class LinkMonitor:
             self._publish(remote, now, used)
 
     def _judge_congestion(self, remote: _Remote, now: float, used: float) -> None:
-        """A link whose queue holds the heartbeats is full: the bandwidth it delivers now is
-        what it can carry (until the next probe), which the decider's bandwidth rule compares
-        with what the crossing connections need. Seen within about a second, where a rate
-        past its Δ would take several."""
+        """A link whose queue holds the heartbeats looks full: it is probed at once (see
+        BandwidthEstimate), and the decider's bandwidth rule compares what the probe measured
+        with what the crossing connections need. A throttle is seen within about a second,
+        where a rate past its Δ would take several."""
         delay = remote.beats.queueing_delay_s(now, since=remote.quiet_since) \
             if remote.beats.up(now) else None
         congested = self._congestion_s > 0 and delay is not None and delay > self._congestion_s
-        if congested and remote.bandwidth is not None:
-            remote.bandwidth.saturated(now, used, onset=not remote.congested)
         if congested != remote.congested:
             if congested:
-                available = remote.bandwidth.available_kbps if remote.bandwidth else None
                 self._log.warning(
-                    f'link to {remote.scale.name} is congested: queueing delay '
-                    f'{delay * 1000.0:.0f} ms > {self._congestion_s * 1000.0:g} ms; it carries '
-                    + ('?' if available is None else f'{available:.0f}') + ' kbit/s')
+                    f'link to {remote.scale.name} looks congested: queueing delay '
+                    f'{delay * 1000.0:.0f} ms > {self._congestion_s * 1000.0:g} ms with '
+                    f'{used:.0f} kbit/s crossing; probing it')
             else:
                 self._log.info(f'link to {remote.scale.name} is no longer congested')
         remote.congested = congested
@@ -825,7 +828,7 @@ class LinkMonitor:
             level, text = p.ERROR, f'down: no echo for over {beats.timeout_s:g} s'
         elif message.congested:
             level, text = p.WARN, (f'congested: queueing delay {message.queueing_delay_ms:.0f} '
-                                   f'ms, carries {available or 0.0:.0f} kbit/s')
+                                   f'ms, used {used:.0f} kbit/s')
         elif message.loss > 0.2 or (reference and used > 0.9 * reference):
             level, text = p.WARN, f'up, loss {message.loss:.0%}, used {used:.0f} kbit/s'
         else:
@@ -834,8 +837,7 @@ class LinkMonitor:
                   'loss': message.loss, 'bandwidth_available_kbps': available,
                   'bandwidth_available_age_s': age, 'bandwidth_used_kbps': used,
                   'queueing_delay_ms': message.queueing_delay_ms,
-                  'congested': message.congested,
-                  'bandwidth_available_source': estimate.source if estimate else ''}
+                  'congested': message.congested}
         if estimate is not None and estimate.last_error:
             values['bandwidth_probe_error'] = estimate.last_error
         self._out.send_diagnostics([status(f'anyscale/link/{remote.link_name}', level, text,

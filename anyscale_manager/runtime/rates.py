@@ -308,27 +308,33 @@ class BandwidthEstimate:
     last estimate, else the nominal bandwidth): never probe a link that is already near full.
     The capacity is the probe's throughput plus the traffic measured crossing the link while it
     ran, since a bulk TCP flow only gets what the (unyielding, UDP) ROS traffic leaves it.
-    Between probes, a link found full (its queue growing, see ``HeartbeatTracker``) is taken to
-    carry what it delivers at that moment (``saturated``) until the next probe measures it.
+    A link suspected full (its queue growing, see ``HeartbeatTracker``) is probed at once, busy
+    or not, but at most every ``urgent_gap_s``: what a probe measures there is what the link
+    still carries, whereas the queue alone may be a scheduling delay on a loaded scale.
     """
 
-    def __init__(self, interval_s: float, nominal_kbps: float, busy_fraction: float = 0.75):
+    def __init__(self, interval_s: float, nominal_kbps: float, busy_fraction: float = 0.75,
+                 urgent_gap_s: float = 5.0):
         self.interval_s = _positive(interval_s, 'interval_s')
         self.nominal_kbps = _positive(nominal_kbps, 'nominal_kbps')
         if not 0.0 < busy_fraction <= 1.0:
             raise ValueError(f'busy_fraction must be in (0, 1], got {busy_fraction!r}')
         self.busy_fraction = busy_fraction
+        self.urgent_gap_s = _positive(urgent_gap_s, 'urgent_gap_s')
         self.available_kbps: Optional[float] = None
         self.measured_at: Optional[float] = None
         self.last_attempt: Optional[float] = None
         self.failures = 0
         self.last_error = ''
-        self.source = ''             # 'probe' or 'congestion': what set available_kbps
 
-    def due(self, now: float, link_up: bool, used_kbps: float) -> bool:
+    def due(self, now: float, link_up: bool, used_kbps: float, suspect: bool = False) -> bool:
+        """Whether to probe now; ``suspect``: the link looks full (see the class)."""
         if not link_up:
             return False
-        if self.last_attempt is not None and now - self.last_attempt < self.interval_s:
+        since = math.inf if self.last_attempt is None else now - self.last_attempt
+        if suspect:
+            return since >= self.urgent_gap_s
+        if since < self.interval_s:
             return False
         reference = self.available_kbps if self.available_kbps is not None \
             else self.nominal_kbps
@@ -349,22 +355,6 @@ class BandwidthEstimate:
         self.measured_at = now
         self.failures = 0
         self.last_error = ''
-        self.source = 'probe'
-        return self.available_kbps
-
-    def saturated(self, now: float, delivered_kbps: float, onset: bool) -> Optional[float]:
-        """The link is full: its capacity is the traffic it delivers. At the ``onset`` of a
-        congestion that replaces the estimate; later in the same congestion it can only raise
-        it, since traffic that leaves the link (a node moved back) does not shrink the link.
-        Nothing delivered says nothing (the estimate stands); the next probe is not brought
-        forward."""
-        if not math.isfinite(delivered_kbps) or delivered_kbps <= 0:
-            return self.available_kbps
-        if not onset and self.source == 'congestion' and self.available_kbps is not None:
-            delivered_kbps = max(delivered_kbps, self.available_kbps)
-        self.available_kbps = delivered_kbps
-        self.measured_at = now
-        self.source = 'congestion'
         return self.available_kbps
 
     def failed(self, now: float, reason: str) -> Optional[float]:
