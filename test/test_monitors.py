@@ -414,8 +414,8 @@ s.close()
 
 @pytest.mark.timeout(120)
 @pytest.mark.skipif(not NETNS_OK, reason=f'no namespaces here: {NETNS_WHY}')
-def test_link_monitor_sees_a_full_queue_and_probes_the_link_at_once(testbed_path, python,
-                                                                      tmp_path):
+def test_link_monitor_sees_a_full_queue_and_probes_the_link_at_once(
+        testbed_path, python, tmp_path):
     """Two namespaces joined by a 3 Mbit/s token bucket; the master's LinkMonitor in one, the
     remote's in the other, each in its own process. A bulk TCP flow fills the link's queue."""
     net = netns.Network(rate_kbps=3000.0)
