@@ -27,6 +27,8 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
+from bench_agent import stop_agent      # SIGINT, then kill past a deadline
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 TALKER = os.path.join(os.path.dirname(HERE), 'test', 'fixtures', 'agent_talker.py')
 
@@ -95,12 +97,7 @@ def main() -> int:
                 print(json.dumps(row), flush=True)
     finally:
         os.killpg(proc.pid, signal.SIGCONT)
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_agent(proc)
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)

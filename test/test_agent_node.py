@@ -18,6 +18,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from anyscale_manager import protocol
+from processes import LoggedProcess
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FIXTURES = os.path.join(HERE, 'fixtures')
@@ -69,29 +70,16 @@ def write_deployment(tmp_path, run_id, name='agent_test'):
     return str(path), chatter
 
 
-class Agent:
+class Agent(LoggedProcess):
     """One agent process on one scale, output in a file."""
 
     def __init__(self, tmp_path, deployment, scale, env, *extra):
-        self.out = tmp_path / f'agent_{scale}_{time.monotonic_ns()}.out'
-        self.argv = [os.path.join(os.path.dirname(sys.executable), 'agent'), '--ros-args',
-                     '--params-file', deployment, '-p', f'scale:={scale}', *extra]
-        with open(self.out, 'wb') as f:
-            self.proc = subprocess.Popen(self.argv, env=env, stdout=f, stderr=subprocess.STDOUT,
-                                         stdin=subprocess.DEVNULL)
-
-    def text(self):
-        return self.out.read_text(errors='replace')
+        super().__init__(tmp_path / f'agent_{scale}_{time.monotonic_ns()}.out',
+                         [os.path.join(os.path.dirname(sys.executable), 'agent'), '--ros-args',
+                          '--params-file', deployment, '-p', f'scale:={scale}', *extra], env)
 
     def stop(self, sig=signal.SIGINT, timeout=20.0):
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        try:
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(5)
-            raise AssertionError(f'agent did not exit within {timeout} s:\n{self.text()}')
+        return super().stop(sig, timeout, must_exit=True)
 
 
 class Harness:

@@ -6,7 +6,6 @@ and re-published on change (a move out, then the remote agent's end brings the n
 
 import os
 import signal
-import subprocess
 import sys
 import time
 
@@ -19,6 +18,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
+from processes import LoggedProcess
 
 LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -58,27 +58,6 @@ def write_deployment(tmp_path):
     path = tmp_path / 'deployment.yaml'
     path.write_text(yaml.safe_dump(data))
     return str(path)
-
-
-class Proc:
-    def __init__(self, tmp_path, name, argv, env):
-        self.out = tmp_path / f'{name}.out'
-        with open(self.out, 'wb') as f:
-            self.proc = subprocess.Popen(argv, env=env, stdout=f, stderr=subprocess.STDOUT,
-                                         stdin=subprocess.DEVNULL)
-
-    def text(self):
-        return self.out.read_text(errors='replace')
-
-    def stop(self, sig=signal.SIGINT, timeout=20.0):
-        if self.proc.poll() is None:
-            self.proc.send_signal(sig)
-        try:
-            return self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(5)
-            return None
 
 
 @pytest.fixture
@@ -129,13 +108,13 @@ def test_layout_applied_reported_back_and_republished(tmp_path, ros_env, listene
     procs = []
     try:
         for scale in ('home', 'away'):
-            procs.append((f'agent_{scale}', Proc(
-                tmp_path, f'agent_{scale}', [os.path.join(BIN, 'agent'), '--ros-args',
-                                             '--params-file', deployment,
-                                             '-p', f'scale:={scale}'], ros_env)))
-        procs.append(('decider', Proc(
-            tmp_path, 'decider', [os.path.join(BIN, 'decider'), '--ros-args',
-                                  '--params-file', deployment], ros_env)))
+            procs.append((f'agent_{scale}', LoggedProcess(
+                tmp_path / f'agent_{scale}.out', [os.path.join(BIN, 'agent'), '--ros-args',
+                                                  '--params-file', deployment,
+                                                  '-p', f'scale:={scale}'], ros_env)))
+        procs.append(('decider', LoggedProcess(
+            tmp_path / 'decider.out', [os.path.join(BIN, 'decider'), '--ros-args',
+                                       '--params-file', deployment], ros_env)))
         agents = dict(procs[:2])
         decider = procs[2][1]
 
