@@ -16,15 +16,11 @@ from anyscale_manager.testbed import harness
 
 HYSTERESIS_S = 8.0
 OK, WHY = netns.available()
-# Opt-in: about two minutes of real namespaces, quotas and a shaped link. Test 5 failed once on
-# a fault not yet found (a thawed standby AMCL that did not resume) and test 2 once on a race
-# between AR's return and AMCL's Δ on a congested link (docs/testbed.md), so they do not gate
-# the default suite yet.
-OPTED_IN = os.environ.get('ANYSCALE_E2E') == '1'
+# About two minutes of real namespaces, quotas and a shaped link; ANYSCALE_E2E=0 leaves them out
+# (skipped, with that reason printed).
+OPTED_OUT = os.environ.get('ANYSCALE_E2E') == '0'
 pytestmark = [
-    pytest.mark.skipif(not OPTED_IN, reason='end-to-end test-bed tests are opt-in: run '
-                                            '`sudo env ANYSCALE_E2E=1 ./run.sh test` (about '
-                                            '2 minutes more)'),
+    pytest.mark.skipif(OPTED_OUT, reason='end-to-end test-bed tests left out by ANYSCALE_E2E=0'),
     pytest.mark.skipif(not OK, reason=f'no test-bed here: {WHY}'),
 ]
 
