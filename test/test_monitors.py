@@ -431,8 +431,10 @@ def test_link_monitor_sees_a_full_queue_and_probes_the_link_at_once(
                   cpu_quota=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         net.popen('laptop', [python, '-c', SINK, sink_port], {'PATH': os.environ['PATH']},
                   cpu_quota=False)
-        master = net.popen('robot', host('robot'), harness.child_env(domain, logs, laptop_ip),
-                           cpu_quota=False, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        master_log = tmp_path / 'master.err'
+        with open(master_log, 'wb') as err:
+            master = net.popen('robot', host('robot'), harness.child_env(domain, logs, laptop_ip),
+                               cpu_quota=False, stdout=subprocess.PIPE, stderr=err)
         seen = []                                   # (time, LinkStatus)
         lock = threading.Lock()
 
@@ -449,7 +451,8 @@ def test_link_monitor_sees_a_full_queue_and_probes_the_link_at_once(
                     found = [(t, s) for t, s in seen if condition(t, s)]
                 if found:
                     return found[0]
-                assert master.poll() is None, 'the master monitor exited'
+                assert master.poll() is None, \
+                    f'the master monitor exited:\n{master_log.read_text()[-3000:]}'
                 time.sleep(0.05)
             with lock:
                 last = seen[-3:]

@@ -317,10 +317,21 @@ def test_queueing_delay_counts_a_beat_still_unanswered_as_waiting():
     assert hb.queueing_delay_s(now, since=now - 0.5) is None
 
 
-@pytest.mark.parametrize('recent, agree', [(4, 0), (4, 5), (0, 0)])
-def test_queueing_delay_rejects_bad_votes(recent, agree):
+@pytest.mark.parametrize('recent, agree, base_window',
+                         [(4, 0, 240), (4, 5, 240), (0, 0, 240), (4, 3, 39)])
+def test_queueing_delay_rejects_bad_settings(recent, agree, base_window):
     with pytest.raises(ValueError):
-        HeartbeatTracker(0.25, 3, recent=recent, agree=agree)
+        HeartbeatTracker(0.25, 3, loss_window=40, base_window=base_window, recent=recent,
+                         agree=agree)
+
+
+def test_base_outlives_the_rtt_median_window():
+    hb = HeartbeatTracker(0.25, 3, loss_window=4, base_window=12)
+    now = _beats(hb, 0.0, 2, lambda k: 0.001)
+    now = _beats(hb, now, 8, lambda k: 0.05)          # a standing queue since
+    assert hb.rtt_s() == pytest.approx(0.05)           # the last 4
+    assert hb.base_rtt_s() == pytest.approx(0.001)     # the last 12
+    assert hb.queueing_delay_s(now) == pytest.approx(0.049)
 
 
 # --- bandwidth -----------------------------------------------------------------------------

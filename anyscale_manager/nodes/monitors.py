@@ -752,9 +752,14 @@ class LinkMonitor:
         BandwidthEstimate), and the decider's bandwidth rule compares what the probe measured
         with what the crossing connections need. A throttle is seen within about a second,
         where a rate past its Δ would take several."""
-        delay = remote.beats.queueing_delay_s(now, since=remote.quiet_since) \
-            if remote.beats.up(now) else None
-        congested = self._congestion_s > 0 and delay is not None and delay > self._congestion_s
+        up = remote.beats.up(now)
+        delay = remote.beats.queueing_delay_s(now, since=remote.quiet_since) if up else None
+        if not up or self._congestion_s <= 0:
+            congested = False
+        elif delay is None:             # not judged (a probe, a return): the verdict stands
+            congested = remote.congested
+        else:
+            congested = delay > self._congestion_s
         if congested != remote.congested:
             if congested:
                 self._log.warning(
@@ -827,8 +832,10 @@ class LinkMonitor:
         if not up:
             level, text = p.ERROR, f'down: no echo for over {beats.timeout_s:g} s'
         elif message.congested:
-            level, text = p.WARN, (f'congested: queueing delay {message.queueing_delay_ms:.0f} '
-                                   f'ms, used {used:.0f} kbit/s')
+            delay = message.queueing_delay_ms
+            level, text = p.WARN, ('congested: queueing delay '
+                                   + ('being probed' if delay is None else f'{delay:.0f} ms')
+                                   + f', used {used:.0f} kbit/s')
         elif message.loss > 0.2 or (reference and used > 0.9 * reference):
             level, text = p.WARN, f'up, loss {message.loss:.0%}, used {used:.0f} kbit/s'
         else:

@@ -188,8 +188,9 @@ class HeartbeatTracker:
             raise ValueError(f'misses_down must be an integer >= 1, got {misses_down!r}')
         if loss_window < 1:
             raise ValueError(f'loss_window must be >= 1, got {loss_window!r}')
-        if base_window < 1:
-            raise ValueError(f'base_window must be >= 1, got {base_window!r}')
+        if base_window < loss_window:
+            raise ValueError(f'base_window must be >= loss_window ({loss_window}), got '
+                             f'{base_window!r}')
         if not 1 <= agree <= recent:
             raise ValueError(f'need 1 <= agree <= recent, got agree={agree!r}, '
                              f'recent={recent!r}')
@@ -199,8 +200,7 @@ class HeartbeatTracker:
         self.agree = agree
         self._sent: Dict[int, float] = {}          # seq -> send time, pending beats
         self._fates: Deque[bool] = deque(maxlen=loss_window)   # True = answered
-        self._rtts: Deque[float] = deque(maxlen=loss_window)
-        self._base: Deque[float] = deque(maxlen=base_window)
+        self._rtts: Deque[float] = deque(maxlen=base_window)    # of the answered beats
         self._last: Deque[list] = deque(maxlen=recent)   # [seq, sent, rtt or None]
         self._next_seq = 0
         self.last_echo: Optional[float] = None
@@ -227,7 +227,6 @@ class HeartbeatTracker:
         rtt = now - sent
         self._fates.append(True)
         self._rtts.append(rtt)
-        self._base.append(rtt)
         for entry in self._last:
             if entry[0] == seq:
                 entry[2] = rtt
@@ -252,7 +251,7 @@ class HeartbeatTracker:
 
     def base_rtt_s(self) -> Optional[float]:
         """The least round-trip time among the recent echoes: the link with an empty queue."""
-        return min(self._base) if self._base else None
+        return min(self._rtts) if self._rtts else None
 
     def queueing_delay_s(self, now: float, since: float = -math.inf) -> Optional[float]:
         """Delay beyond the base reached by ``agree`` of the last ``recent`` beats; None until
@@ -266,10 +265,11 @@ class HeartbeatTracker:
         return max(0.0, waits[self.recent - self.agree] - base)
 
     def rtt_s(self) -> Optional[float]:
-        """Median round-trip time of the recent answered beats (robust to one late echo)."""
+        """Median round-trip time of the last ``loss_window`` answered beats (robust to one
+        late echo)."""
         if not self._rtts:
             return None
-        ordered = sorted(self._rtts)
+        ordered = sorted(list(self._rtts)[-self.loss_window:])
         mid = len(ordered) // 2
         return ordered[mid] if len(ordered) % 2 else 0.5 * (ordered[mid - 1] + ordered[mid])
 
