@@ -77,7 +77,7 @@ def reaction(args):
             t_cut = tb.now()
             tb.cut()
             # Back = the robot's agent reports both running and ready on the robot. (The cut-off
-            # laptop's copies cannot be told to stop; its reports only age out.)
+            # laptop is not heard from until the link returns; its reports only age out.)
             tb.wait_for(lambda r: {'amcl', 'ar'} <= set(r.running_on('robot', ready_only=True)),
                         30.0, 'amcl and ar running on the robot')
             t_back = tb.now()

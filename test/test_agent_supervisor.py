@@ -466,6 +466,7 @@ def test_stop_before_start_waits_for_a_lagging_agent_but_not_a_silent_one():
     assert 'apply generation 2' in gain.waiting['sbs2']
     gain.peer_state(agent_state('a', 1, {'sbs2': ('running', True)}), 1.0)
     assert gain.desired(3.9, ()) == set()
+    gain.heard_master(4.0)                       # the decider is heard: the link is up
     assert gain.desired(4.1, ()) == {'sbs2'}     # silent for more than agent_timeout_s
 
 
@@ -617,3 +618,34 @@ def test_process_table_and_trees_in_one_pass():
     trees = procs.tree_cpu_seconds(synthetic, {'a': 10, 'b': 20, 'leaf': 12, 'gone': 99})
     assert trees == {'a': {10: 1.0, 11: 2.0, 12: 0.5}, 'b': {20: 4.0, 21: 1.0},
                      'leaf': {12: 0.5}, 'gone': {}}
+
+
+def test_a_remote_scale_cut_off_from_the_master_stops_its_migratable_nodes():
+    r = reconciler('b')                       # 'a' is the master
+    r.heard_master(0.0)                       # the agent's start counts as word from it
+    r.apply_layout(layout(1, {'sbs': 'b', 'sbs2': 'b', 'pinned': 'a'}), 0.0)
+    assert r.desired(1.0, ()) == {'sbs', 'sbs2'}
+    r.peer_state(agent_state('a', 1, {'pinned': ('running', True)}), 2.0)
+    assert r.desired(5.0, ('sbs', 'sbs2')) == {'sbs', 'sbs2'}      # 3 s: within the timeout
+    # Neither the master's agent nor the decider heard for agent_timeout_s (3 s): stopped.
+    assert r.desired(5.1, ('sbs', 'sbs2')) == set()
+    assert 'cut off from a' in r.waiting['sbs']
+    # Word from the master again is not enough: the layout held is the one the decider has
+    # overridden; they stay stopped until a newer one arrives.
+    r.peer_state(agent_state('a', 1, {'pinned': ('running', True)}), 9.0)
+    assert not r.cut_off(9.0)
+    assert r.desired(9.0, ()) == set()
+    r.apply_layout(layout(2, {'sbs': 'b', 'sbs2': 'a', 'pinned': 'a'}), 9.5)
+    assert r.desired(9.5, ()) == {'sbs'}
+    # The decider's output keeps the contact alive without the master's agent.
+    r.heard_master(12.0)
+    assert r.desired(15.0, ('sbs',)) == {'sbs'}
+    assert r.desired(15.1, ('sbs',)) == set()
+
+
+def test_the_master_itself_is_never_cut_off():
+    r = reconciler('a')
+    r.heard_master(0.0)
+    r.apply_layout(layout(1, {'sbs': 'a', 'sbs2': 'a', 'pinned': 'a'}), 0.0)
+    assert not r.cut_off(100.0)
+    assert r.desired(100.0, ('sbs', 'sbs2', 'pinned')) == {'sbs', 'sbs2', 'pinned'}

@@ -12,8 +12,8 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import UInt8MultiArray
 
-from anyscale_manager.nodes.workload import (OutputGate, burn_cpu, parse_spec, publisher_qos,
-                                             subscriber_qos)
+from anyscale_manager.nodes.workload import (OutputGate, WorkloadNode, burn_cpu, parse_spec,
+                                             publisher_qos, subscriber_qos)
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 
@@ -254,3 +254,35 @@ def test_bad_arguments_exit_2_and_start_nothing(python, ros_env):
 
 if __name__ == '__main__':
     sys.exit(pytest.main([__file__, '-v']))
+
+
+def test_an_input_the_cap_held_back_is_served_when_the_cap_opens():
+    """The one retry timer: armed when the cap holds an input back, fired when it opens,
+    re-armed (never created again) for the next one."""
+    ctx = Context()
+    rclpy.init(context=ctx)
+    spec = parse_spec(['--name', 'held', '--sub', '/wl_held_in', '--pub', '/wl_held_out',
+                       '--rate-hz', '4'])
+    node = WorkloadNode(spec, context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    try:
+        timer = node._retry
+        feed = node._make_callback('/wl_held_in')
+        for n in (1, 2, 3):
+            t0 = time.monotonic()
+            feed(b'')
+            if n == 1:
+                assert node.outputs == 1          # the first input is served at once
+                feed(b'')
+            assert node.outputs == n and not timer.is_canceled()     # held back, timer armed
+            while node.outputs == n and time.monotonic() - t0 < 5.0:
+                ex.spin_once(timeout_sec=0.05)
+            waited = time.monotonic() - t0
+            assert node.outputs == n + 1, 'the held-back input was never served'
+            assert 0.05 <= waited <= 1.0, waited   # when the 4 Hz cap opened (0.15 s early)
+            assert timer.is_canceled() and node._retry is timer
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)

@@ -13,6 +13,13 @@ on its old one:
 
 So two copies of a node overlap at most ``readiness_timeout_s`` plus the stop graces
 (start_before_stop) and never (stop_before_start) while the agents hear each other.
+
+A remote scale cut off from the master (neither the master's agent nor the decider heard for
+``agent_timeout_s``) stops its migratable nodes: the decider, on the master, has brought them
+home when it saw the link go down, and a copy left running here would publish stale results
+beside them once the link is back. They stay stopped until a newer layout arrives. While only
+the decider is silent the agents keep running what runs (fail-static), and while only the
+master's agent is silent the decider may place that scale's nodes here.
 """
 
 from dataclasses import dataclass
@@ -63,6 +70,10 @@ class Reconciler:
         self.peers: Dict[str, Peer] = {}
         self._released: Set[str] = set()      # handed over to their new scale: never wanted back
         self.waiting: Dict[str, str] = {}     # node -> why its start or stop is held back
+        self.master = deployment.master.name
+        self._migratable = frozenset(deployment.migratable_nodes)
+        self.contact: Optional[float] = None  # last word from the master's agent or the decider
+        self._cut_generation: Optional[int] = None   # the layout held when contact was lost
 
     @property
     def has_layout(self) -> bool:
@@ -106,7 +117,18 @@ class Reconciler:
                 self._released.discard(node)
             self.assignments[node] = scale
         self.generation = layout.generation
+        self._cut_generation = None
         return LayoutVerdict(True, tuple(warnings))
+
+    def heard_master(self, now: float) -> None:
+        """Word from the master scale: its agent's report, the decider's output, or (for a
+        just-started agent) the start itself, so that silence is counted from there."""
+        self.contact = now if self.contact is None else max(self.contact, now)
+
+    def cut_off(self, now: float) -> bool:
+        """Whether this remote scale has heard nothing from the master for agent_timeout_s."""
+        return (self.scale != self.master and self.contact is not None
+                and now - self.contact > self.agent_timeout_s)
 
     def peer_state(self, state: AgentState, now: float) -> Optional[str]:
         """Record another agent's report; a warning when it cannot be one of our peers."""
@@ -114,6 +136,8 @@ class Reconciler:
             return None   # our own report, or a second agent on this scale (the lock stops it)
         if state.scale not in self.deployment.scale_names:
             return f'agent state from unknown scale {state.scale!r:.60}; ignored'
+        if state.scale == self.master:
+            self.heard_master(now)
         self.peers[state.scale] = Peer(
             scale=state.scale, generation=state.generation, heard=now,
             nodes={n: (r.state, r.ready) for n, r in state.nodes.items()},
@@ -151,6 +175,8 @@ class Reconciler:
         active = set(active)
         want: Set[str] = set()
         self.waiting = {}
+        if self._cut_generation is None and self.cut_off(now):
+            self._cut_generation = self.generation
         for node in self.catalogue:
             target = self.assignments.get(node)
             here = node in active
@@ -159,6 +185,12 @@ class Reconciler:
                     want.add(node)   # no layout places it: leave it as it is (fail-static)
                 continue
             order = self.deployment.node(node).move_order
+            if target == self.scale and self._cut_generation is not None \
+                    and node in self._migratable:
+                self.waiting[node] = (f'stopped: cut off from {self.master}, whose decider '
+                                      f'has taken it back (until a layout newer than '
+                                      f'generation {self._cut_generation})')
+                continue
             if target == self.scale:
                 if here or order != t.STOP_BEFORE_START:
                     want.add(node)

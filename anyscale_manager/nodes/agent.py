@@ -145,6 +145,11 @@ class AgentNode(Node):
         self.create_subscription(String, protocol.TOPIC_LAYOUT, self._on_layout, qos)
         self.create_subscription(String, protocol.TOPIC_AGENT_STATE, self._on_agent_state,
                                  latched_qos())
+        if scale != d.master.name:
+            # The decider's output at each of its steps: word from the master scale, which a
+            # remote scale cut off from it no longer gets (see Reconciler).
+            self.reconciler.heard_master(time.monotonic())
+            self.create_subscription(String, protocol.TOPIC_OBJECTIVE, self._on_objective, 10)
         self.create_timer(TICK_S, self._tick)
         self.create_timer(1.0 / self.settings.heartbeat_rate_hz, self._publish_state)
         self._start_monitors()
@@ -229,6 +234,15 @@ class AgentNode(Node):
             self.get_logger().warn(warning)
         elif state.scale != self.scale:
             self._tick()
+
+    def _on_objective(self, msg: String) -> None:
+        try:
+            protocol.Objective.from_json(msg.data, protocol.TOPIC_OBJECTIVE)
+        except protocol.ProtocolError as e:
+            self.get_logger().warn(f'ignored an objective message: {e}',
+                                   throttle_duration_sec=10.0)
+            return
+        self.reconciler.heard_master(time.monotonic())
 
     # --- the loop -------------------------------------------------------------------------
     def _visible_counts(self) -> Dict[str, int]:

@@ -18,6 +18,7 @@ slower computer.
 """
 
 import argparse
+import faulthandler
 import math
 import signal
 import sys
@@ -173,6 +174,9 @@ class OutputGate:
 def main(args: Optional[List[str]] = None) -> int:
     argv = sys.argv if args is None else args
     spec = parse_spec(remove_ros_args(argv)[1:])
+    # SIGUSR1 writes every thread's stack to stderr (the node's log under an agent): what a
+    # node that stopped serving is doing, without stopping it.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     rclpy.init(args=argv)
     node = None
     try:
@@ -218,8 +222,9 @@ def subscriber_qos() -> QoSProfile:
 class WorkloadNode(Node):
     """The rclpy shell: publishers, subscriptions, a timer for sensors, work for processors."""
 
-    def __init__(self, spec: WorkloadSpec, clock: Callable[[], float] = time.monotonic):
-        super().__init__(spec.name)
+    def __init__(self, spec: WorkloadSpec, clock: Callable[[], float] = time.monotonic,
+                 **kwargs):
+        super().__init__(spec.name, **kwargs)
         self.spec = spec
         self._now = clock
         self._msg = UInt8MultiArray()
@@ -231,7 +236,11 @@ class WorkloadNode(Node):
                       for t in spec.pubs]
         self._gate = OutputGate(spec.rate_hz)
         self._pending = False
-        self._retry = None      # a one-shot timer for an input the cap held back
+        # One timer for an input the cap held back, armed only then: created once, since
+        # creating and destroying timers under a spinning executor is a known source of rclpy
+        # CPU churn and races.
+        self._retry = self.create_timer(1.0, self._on_retry)
+        self._retry.cancel()
         for topic in spec.subs:
             self.create_subscription(UInt8MultiArray, topic, self._make_callback(topic),
                                      subscriber_qos(), raw=True)
@@ -262,9 +271,9 @@ class WorkloadNode(Node):
         if not self._gate.ready(now):
             # Held back by the cap: come back when it opens (not a polling timer: a node
             # waking up 100 times a second costs a weak robot more than its own work).
-            if self._retry is None:
-                self._retry = self.create_timer(max(0.001, self._gate.ready_at() - now),
-                                                self._on_retry)
+            if self._retry.is_canceled():
+                self._retry.timer_period_ns = int(max(0.001, self._gate.ready_at() - now) * 1e9)
+                self._retry.reset()
             return
         self._pending = False
         self._gate.started(self._now())
@@ -272,9 +281,7 @@ class WorkloadNode(Node):
         self._publish()
 
     def _on_retry(self) -> None:
-        if self._retry is not None:
-            self.destroy_timer(self._retry)
-            self._retry = None
+        self._retry.cancel()
         self._maybe_produce()
 
     def _publish(self) -> None:
