@@ -13,7 +13,7 @@ from anyscale_manager import protocol
 from anyscale_manager.agent import procs
 from anyscale_manager.agent.catalogue import (base_environment, build_catalogue, ENV_INSTANCE,
                                               ENV_NODE, ENV_SCALE, Entry, format_parameter)
-from anyscale_manager.agent.reconcile import Reconciler
+from anyscale_manager.agent.reconcile import Reconciler, unheard_after_thaw
 from anyscale_manager.agent.supervisor import Supervisor
 from anyscale_manager.model import types as t
 from anyscale_manager.model.loader import load_mapping
@@ -547,6 +547,31 @@ def test_standby_copy_that_dies_is_handled_like_any_exit(make_sup):
     assert sup.reports()['n'].state == 'stopped' and sup.pids() == {}
 
 
+def test_a_thawed_copy_can_be_restarted_cold_at_once(make_sup):
+    sup = make_sup([py_entry('n', TICKER)])
+    sup.start('n', time.monotonic())
+    pid = sup.pids()['n']
+    assert drive(sup, lambda: sup.reports()['n'].ready, visible=lambda e: True)
+    assert sup.thawed_at('n') is None                     # started, not thawed
+    sup.set_wanted((), time.monotonic(), park={'n'})
+    assert sup.thawed_at('n') is None                     # frozen: not live
+    t_thaw = time.monotonic()
+    sup.set_wanted({'n'}, t_thaw, park={'n'})
+    assert sup.thawed_at('n') == t_thaw
+    restarts = sup.reports()['n'].restarts
+    assert sup.restart_cold('n', time.monotonic(), 'outputs unheard')
+    assert gone(pid) and not procs.session_members(pid)
+    assert sup.reports()['n'].state == 'backoff'
+    # Respawned at the next step, no backoff; a fresh process is no thawed one.
+    sup.step(time.monotonic(), visible=lambda e: True)
+    new = sup.pids()['n']
+    assert new != pid and sup.reports()['n'].restarts == restarts + 1
+    assert sup.thawed_at('n') is None
+    assert not sup.restart_cold('ghost', time.monotonic(), 'x')
+    sup.stop_all(time.monotonic())
+    assert drive(sup, sup.all_stopped)
+
+
 def test_stop_all_thaws_and_stops_a_frozen_copy(make_sup):
     sup = make_sup([py_entry('n', SLEEPER)])
     sup.start('n', time.monotonic())
@@ -649,3 +674,28 @@ def test_the_master_itself_is_never_cut_off():
     r.apply_layout(layout(1, {'sbs': 'a', 'sbs2': 'a', 'pinned': 'a'}), 0.0)
     assert not r.cut_off(100.0)
     assert r.desired(100.0, ('sbs', 'sbs2', 'pinned')) == {'sbs', 'sbs2', 'pinned'}
+
+
+def test_a_thawed_copy_unheard_while_fed_is_named_for_a_cold_restart():
+    conns = {'names': ['in', 'out'],
+             'in': {'topic': '/in', 'publisher': 'sensor', 'subscriber': 'worker',
+                    'freq_min_hz': 5.0, 'tolerance_s': 2.0, 'bandwidth_kbps': 1.0},
+             'out': {'topic': '/out', 'publisher': 'worker', 'subscriber': 'sink',
+                     'freq_min_hz': 2.0, 'tolerance_s': 2.0, 'bandwidth_kbps': 1.0}}
+    data = deployment_dict({
+        'sensor': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'residence': ['a']},
+        'worker': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'standby': True},
+        'sink': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'residence': ['a']},
+    })
+    data['/**']['ros__parameters']['connections'] = conns
+    d = load_mapping(data)
+
+    def why(now, rates, thawed_at=10.0):
+        return unheard_after_thaw(d, 'worker', thawed_at, now, rates, patience_s=3.0)
+    assert why(12.9, {'in': 10.0, 'out': 0.0}) == ''            # still within patience
+    unheard = why(13.0, {'in': 10.0, 'out': 0.0})
+    assert 'out at 0 Hz 3.0 s after the thaw while in arrive' in unheard
+    assert why(13.0, {'in': 10.0, 'out': 2.5}) == ''            # heard
+    assert why(13.0, {'in': 0.0, 'out': 0.0}) == ''             # nothing to work on
+    assert why(13.0, {'in': 10.0}) == ''                        # output not measured here
+    assert why(13.0, {'in': 10.0, 'out': 0.0}, thawed_at=None) == ''   # not a thawed copy

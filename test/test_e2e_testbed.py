@@ -257,6 +257,8 @@ def test_5_link_cut_every_migrated_node_back_before_its_delta_runs_out(bed):
     with bed.lock:
         cut_off = {n: rep.pid for n, rep in bed.record.running_on(LAPTOP).items()
                    if n in ('amcl', 'ar')}
+        standby = {n: rep.pid for n, rep in bed.record.agent_states[ROBOT][-1][1].nodes.items()
+                   if n in ('amcl', 'ar') and rep.state == 'standby'}
     t_cut = bed.now()
     bed.cut()
     try:
@@ -285,6 +287,8 @@ def test_5_link_cut_every_migrated_node_back_before_its_delta_runs_out(bed):
         assert observed == [], f'past Δ at the robot: {observed}; after the cut: {timeline}'
         assert reported == [], (f'probes on the robot reported connections past Δ: {reported}; '
                                 f'after the cut: {timeline}')
+        # The frozen copies served: none was found unheard and restarted cold.
+        assert pids == standby, f'standby pids {standby}, serving pids {pids}: {timeline}'
         # The laptop's copies, cut off from the master, stop by themselves: nothing stale is
         # left to publish beside the robot's copies when the link comes back.
         settings = bed.deployment.agent

@@ -230,3 +230,28 @@ class Reconciler:
             return False
         state, ready = peer.nodes.get(node, ('stopped', False))
         return state == 'running' and ready
+
+
+def unheard_after_thaw(deployment: t.Deployment, node: str, thawed_at: Optional[float],
+                       now: float, rates: Mapping[str, float], patience_s: float) -> str:
+    """Why a thawed standby copy should be started afresh ('' if it should not).
+
+    ``rates``: the connections this scale's probes measure (Hz). Past ``patience_s`` after the
+    thaw, if every output of the node measured here reads 0 Hz while an input it needs, measured
+    here too, reads more, the copy works for nobody: a long freeze can leave a process's DDS
+    participant unmatched from the others for good (docs/testbed.md). A fresh process is
+    discovered like any other.
+    """
+    if thawed_at is None or now - thawed_at < patience_s:
+        return ''
+    outputs = [c.name for c in deployment.connections
+               if c.publisher == node and c.name in rates]
+    inputs = [c.name for c in deployment.connections
+              if c.subscriber == node and c.name in rates]
+    if not outputs or any(rates[n] > 0 for n in outputs):
+        return ''
+    fed = [n for n in inputs if rates[n] > 0]
+    if inputs and not fed:
+        return ''      # nothing to work on: its silence is its inputs'
+    return (f'{", ".join(outputs)} at 0 Hz {now - thawed_at:.1f} s after the thaw'
+            + (f' while {", ".join(fed)} arrive' if fed else ''))

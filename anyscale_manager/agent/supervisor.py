@@ -73,6 +73,7 @@ class _Proc:
     failed_spawns: int = 0
     history: List[str] = field(default_factory=list)
     frozen_ready: bool = False    # it was ready when frozen: ready again at once on thaw
+    thawed_at: Optional[float] = None   # when this process was last thawed (None: not since)
 
 
 class Supervisor:
@@ -156,6 +157,32 @@ class Supervisor:
 
     def start(self, name: str, now: float) -> None:
         self.set_wanted(set(self.wanted()) | {name}, now)
+
+    def thawed_at(self, name: str) -> Optional[float]:
+        """When the live process of ``name`` was thawed, or None if it was not since it began."""
+        p = self._procs.get(name)
+        return p.thawed_at if p is not None and p.state in ('starting', 'running') else None
+
+    def restart_cold(self, name: str, now: float, why: str) -> bool:
+        """Replace the live process of ``name`` with a fresh one at the next step, without
+        backoff: for a thawed copy that does not serve. False if it is not live."""
+        p = self._procs.get(name)
+        if p is None or p.state not in ('starting', 'running') or not p.pid:
+            return False
+        procs.signal_session(p.pid, signal.SIGKILL, p.strays)
+        if p.popen is not None:
+            try:
+                p.popen.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
+                pass
+        self._event('warn', f'{name}: pid {p.pid} restarted cold: {why}')
+        p.popen = None
+        p.pid = 0
+        p.thawed_at = None
+        self._set(p, 'backoff', now, ready=False, reason=f'restarted cold: {why}')
+        p.restart_at = now
+        self._dirty = True
+        return True
 
     def stop(self, name: str, now: float) -> None:
         self.set_wanted(set(self.wanted()) - {name}, now)
@@ -289,6 +316,7 @@ class Supervisor:
             self._event('error', f'{entry.name}: cannot start: {p.exit_reason}')
             return
         p.instance = uuid.uuid4().hex
+        p.thawed_at = None
         env = dict(entry.env)
         env[ENV_INSTANCE] = p.instance
         try:
@@ -386,6 +414,7 @@ class Supervisor:
             p.ready_deadline = now + self.settings.readiness_timeout_s
             self._set(p, 'starting', now, ready=False, reason='')
         p.running_since = now
+        p.thawed_at = now
         self._event('info', f'{p.entry.name}: resumed pid {p.pid} (SIGCONT)')
         self.save()
 

@@ -30,7 +30,7 @@ from . import qos
 from .executor import make_executor
 from .. import protocol
 from ..agent.catalogue import build_catalogue, Entry, standby_profile_xml
-from ..agent.reconcile import Reconciler
+from ..agent.reconcile import Reconciler, unheard_after_thaw
 from ..agent.supervisor import Supervisor
 from ..model.loader import DeploymentError, load_from_parameters
 
@@ -42,6 +42,9 @@ except ImportError as exc:   # a broken install: the agent still supervises with
     _MONITORS_MISSING = str(exc)
 
 TICK_S = 0.1
+# A thawed standby copy has this long beyond one probe window to be heard (it normally is
+# within about a second).
+THAW_PATIENCE_S = 1.0
 SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 
@@ -274,10 +277,25 @@ class AgentNode(Node):
             return counts.get(entry.ros_name, 0) > elsewhere
 
         changed = sup.step(now, visible)
+        self._restart_unheard(now)
         self._log_events()
         if changed:
             self._publish_state()
             self._update_probes()
+
+    def _restart_unheard(self, now: float) -> None:
+        """A thawed standby copy whose outputs nobody here hears is started afresh."""
+        probes = getattr(self, '_probes', None)
+        last = probes.last if probes is not None else None
+        if not self._standby_nodes or last is None:
+            return
+        rates = {name: r.rate_hz for name, r in last.connections.items()}
+        patience = self.deployment.monitoring.probe_window_s + THAW_PATIENCE_S
+        for node in self._standby_nodes:
+            why = unheard_after_thaw(self.deployment, node, self.supervisor.thawed_at(node),
+                                     now, rates, patience)
+            if why:
+                self.supervisor.restart_cold(node, now, why)
 
     def _log_events(self) -> None:
         log = self.get_logger()
