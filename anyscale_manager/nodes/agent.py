@@ -42,9 +42,9 @@ except ImportError as exc:   # a broken install: the agent still supervises with
     _MONITORS_MISSING = str(exc)
 
 TICK_S = 0.1
-# A thawed standby copy has this long beyond one probe window to be heard (it normally is
-# within about a second).
-THAW_PATIENCE_S = 1.0
+# A thawed standby copy has this long beyond one probe window to be heard: it normally is within
+# about a second, but a CPU-starved robot may take a few.
+THAW_PATIENCE_S = 3.0
 SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 
