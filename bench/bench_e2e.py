@@ -90,15 +90,17 @@ def reaction(args):
                 reported = [v for v in r.reported_violations(t_cut, end, [c.name for c in conns])
                             if v.source == 'robot']
                 timeline = r.timeline(t_cut, end)
-            row = {'cut': i + 1, 'back_s': round(t_back - t_cut, 3),
+            # A thawed copy restarted cold (unheard) shows as a backoff in the robot's reports.
+            cold = sorted({rep[1] for rep in timeline['reports'] if rep[2] == 'backoff'})
+            row = {'cut': i + 1, 'back_s': round(t_back - t_cut, 3), 'restarted_cold': cold,
                    'observed_violations': [(v.connection, round(v.end - v.start, 2))
                                            for v in observed],
                    'reported_violations': [(v.connection, round(v.end - v.start, 2))
                                            for v in reported],
                    'timeline': timeline}
             print(f'cut {i + 1}: back on the robot after {row["back_s"]:.2f} s; violations '
-                  f'observed {row["observed_violations"]} reported {row["reported_violations"]}',
-                  flush=True)
+                  f'observed {row["observed_violations"]} reported {row["reported_violations"]}'
+                  + (f'; restarted cold: {cold}' if cold else ''), flush=True)
             if observed or reported:
                 print(f'  timeline of cut {i + 1}: {json.dumps(row["timeline"])}', flush=True)
             results.append(row)
@@ -126,6 +128,7 @@ def reaction(args):
             'bandwidth_moves_back_outside_throttles': false_backs,
             'cuts': results, 'p50_s': percentile(backs, 0.5), 'p95_s': percentile(backs, 0.95),
             'max_s': max(backs) if backs else None,
+            'cuts_with_cold_restarts': sum(1 for r in results if r['restarted_cold']),
             'cuts_with_violations': sum(1 for r in results
                                         if r['observed_violations'] or r['reported_violations']),
             'violations': sum(len(r['observed_violations']) + len(r['reported_violations'])
@@ -244,7 +247,8 @@ def main():
         r = out['reaction']
         print(f'\nreaction to a link cut over {len(r["cuts"])} cuts: p50 {r["p50_s"]:.2f} s, '
               f'p95 {r["p95_s"]:.2f} s, max {r["max_s"]:.2f} s; Δ violations: '
-              f'{r["violations"]} (in {r["cuts_with_violations"]} cuts)', flush=True)
+              f'{r["violations"]} (in {r["cuts_with_violations"]} cuts); thawed copies '
+              f'restarted cold in {r["cuts_with_cold_restarts"]} cuts', flush=True)
         if r['throttles']:
             print(f'throttle below AR\'s need over {len(r["throttles"])} throttles: congestion '
                   f'seen p50 {r["throttle_congested_p50_s"]:.2f} s (max '
