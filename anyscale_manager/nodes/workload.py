@@ -184,6 +184,11 @@ def main(args: Optional[List[str]] = None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # A SIGINT can shut the context down while a callback publishes (rcl then refuses
+        # the publish): that is the shutdown asked for, not a failure.
+        if rclpy.ok():
+            raise
     finally:
         # A supervisor may repeat its SIGINT while we clean up: finish the cleanup anyway.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
