@@ -580,7 +580,11 @@ def test_stop_all_thaws_and_stops_a_frozen_copy(make_sup):
     assert wait_for(lambda: stat_state(pid) == 'T')
     sup.stop_all(time.monotonic())
     assert drive(sup, sup.all_stopped)
-    assert 'SIGINT' in sup.reports()['n'].exit_reason and gone(pid)
+    # Thawed, then the SIGINT alone ended it (status 1 if it was frozen while the interpreter
+    # was still starting): no SIGTERM or SIGKILL was needed.
+    reason = sup.reports()['n'].exit_reason
+    assert ('SIGINT' in reason or 'status 1' in reason) and 'after SIG' not in reason, reason
+    assert gone(pid)
 
 
 def test_a_frozen_copy_is_adopted_frozen(make_sup):
