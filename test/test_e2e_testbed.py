@@ -18,8 +18,7 @@ HYSTERESIS_S = 8.0
 OK, WHY = netns.available()
 # Opt-in: about two minutes of real namespaces, quotas and a shaped link. Test 5 failed in two
 # of eight full-suite runs on a fault not yet found (a thawed standby AMCL that works but is not
-# heard), in none of nine since the workload's timer change (docs/testbed.md); the module joins
-# the default suite once more runs confirm it.
+# heard), in none of thirteen since the workload's timer change (docs/testbed.md).
 OPTED_IN = os.environ.get('ANYSCALE_E2E') == '1'
 pytestmark = [
     pytest.mark.skipif(not OPTED_IN, reason='end-to-end test-bed tests are opt-in: run '
