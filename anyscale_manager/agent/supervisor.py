@@ -176,12 +176,7 @@ class Supervisor:
             except subprocess.TimeoutExpired:
                 pass
         self._event('warn', f'{name}: pid {p.pid} restarted cold: {why}')
-        p.popen = None
-        p.pid = 0
-        p.thawed_at = None
-        self._set(p, 'backoff', now, ready=False, reason=f'restarted cold: {why}')
-        p.restart_at = now
-        self._dirty = True
+        self._gone(p, now, f'restarted cold: {why}', restart_at=now)
         return True
 
     def stop(self, name: str, now: float) -> None:
@@ -385,16 +380,21 @@ class Supervisor:
         left = procs.signal_session(p.pid, signal.SIGKILL, p.strays)
         if left:
             reason += f'; killed {left} leftover process{"es" if left > 1 else ""}'
-        p.popen = None
         delay = self._next_backoff(p)
-        self._set(p, 'backoff', now, ready=False, reason=reason)
-        p.restart_at = now + delay
-        p.pid = 0
+        self._gone(p, now, reason, restart_at=now + delay)
         self._event('error', f'{p.entry.name}: crashed: {reason}; restarting in {delay:g} s '
                              f'(restart {p.restarts + 1})')
-        self._dirty = True
         if not p.wanted:
             self._set(p, 'stopped', now, ready=False, reason=reason)
+
+    def _gone(self, p: _Proc, now: float, reason: str, restart_at: float) -> None:
+        """The process is gone (killed or exited): back off until ``restart_at``."""
+        p.popen = None
+        p.pid = 0
+        p.thawed_at = None
+        self._set(p, 'backoff', now, ready=False, reason=reason)
+        p.restart_at = restart_at
+        self._dirty = True
 
     def _freeze(self, p: _Proc, now: float) -> None:
         """Keep a warm copy: SIGSTOP its group and session; it is thawed when wanted again."""
