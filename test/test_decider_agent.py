@@ -47,7 +47,11 @@ def write_deployment(tmp_path):
         # load (other tests included) against its capacity, so no headroom is kept.
         'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 1.0, 'agent_timeout_s': 3.0,
                     'observation_max_age_s': 3.0, 'hysteresis_s': 60.0},
-        'monitoring': {'heartbeat_rate_hz': 4.0, 'scale_rate_hz': 4.0,
+        # The link is loopback and never fails here: a missed echo is one agent not scheduled on
+        # a loaded machine (once seen in CI: the worker moved home for it). Not this test's
+        # subject, so the link is judged down only after 3 s of silence.
+        'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
+                       'scale_rate_hz': 4.0,
                        'bandwidth_probe_interval_s': 86400.0,
                        'bandwidth_probe_port': 40000 + os.getpid() % 20000},
         'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,

@@ -240,6 +240,28 @@ def test_link_goes_down_after_misses_and_up_on_echo(rate_hz, misses):
     assert hb.up(t + rtt)
 
 
+def test_a_stall_of_the_judging_process_is_not_a_cut():
+    period, misses, rtt = 0.25, 3, 0.01
+    hb = HeartbeatTracker(period, misses)
+    now = _beats(hb, 0.0, 20, lambda k: rtt, period)
+    last_echo = now - period + rtt
+    # The process sends one more beat, then is not scheduled for 2 s: no beats go out, and the
+    # echo of the one it sent waits in its queue. At wake-up, before reading that echo:
+    seq = hb.next_beat(now)
+    wake = now + 2.0
+    assert wake - last_echo > hb.timeout_s
+    assert hb.up(wake)                                # one beat unanswered proves nothing
+    hb.echo(wake + 0.001, seq)
+    assert hb.up(wake + 0.001)
+    # The link really is cut from then on: down once misses_down more beats go unanswered.
+    t = wake + 0.001
+    for k in range(misses - 1):
+        hb.next_beat(t + k * period)
+    assert hb.up(t + 10.0)                            # misses_down - 1 beats: still not proven
+    hb.next_beat(t + (misses - 1) * period)
+    assert not hb.up(t + misses * period + 0.01)
+
+
 def test_loss_fraction_counts_unanswered_beats():
     hb = HeartbeatTracker(0.25, 3, loss_window=40)
     now = 0.0

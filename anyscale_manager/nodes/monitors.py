@@ -746,6 +746,8 @@ class LinkMonitor:
                 threading.Thread(target=self._run_probe, args=(remote, used), daemon=True,
                                  name=f'anyscale-bw-{name}').start()
             self._publish(remote, now, used)
+        # A late beat can be the one that completes misses_down unanswered (see HeartbeatTracker)
+        self._check()
 
     def _judge_congestion(self, remote: _Remote, now: float, used: float) -> None:
         """A link whose queue holds the heartbeats looks full: it is probed at once (see

@@ -167,8 +167,11 @@ class HeartbeatTracker:
     """Round-trip time, loss and up/down of one link from numbered heartbeats.
 
     Down follows BFD's detection rule: the link is down once no echo has arrived for
-    ``misses_down`` heartbeat periods, which is ``misses_down`` beats in a row unanswered; it is
-    up again at the first valid echo. Before any echo it is down (nothing proves it works). A
+    ``misses_down`` heartbeat periods and at least ``misses_down`` beats have been sent since the
+    last one; it is up again at the first valid echo. Before any echo it is down (nothing proves
+    it works). The count of beats matters when the judging process itself stalls (a loaded
+    scale, a paused machine): it sent no beats meanwhile, and the echoes of those it did send
+    wait in its queue, so its silence then is no evidence against the link. A
     beat counts as lost when its echo has not come back within ``misses_down`` periods; loss is
     the fraction lost among the last ``loss_window`` beats whose fate is known. Echoes of unknown
     or forgotten sequence numbers are ignored; the round-trip time is computed from our own send
@@ -203,6 +206,7 @@ class HeartbeatTracker:
         self._rtts: Deque[float] = deque(maxlen=base_window)    # of the answered beats
         self._last: Deque[list] = deque(maxlen=recent)   # [seq, sent, rtt or None]
         self._next_seq = 0
+        self._sent_since_echo = 0
         self.last_echo: Optional[float] = None
         self.last_rtt_s: Optional[float] = None
 
@@ -215,6 +219,7 @@ class HeartbeatTracker:
         seq = self._next_seq
         self._next_seq += 1
         self._sent[seq] = now
+        self._sent_since_echo += 1
         self._last.append([seq, now, None])
         self._expire(now)
         return seq
@@ -231,7 +236,9 @@ class HeartbeatTracker:
             if entry[0] == seq:
                 entry[2] = rtt
         self.last_rtt_s = rtt
-        self.last_echo = now if self.last_echo is None else max(self.last_echo, now)
+        if self.last_echo is None or now >= self.last_echo:
+            self.last_echo = now
+            self._sent_since_echo = 0
         return rtt
 
     def _expire(self, now: float) -> None:
@@ -241,7 +248,8 @@ class HeartbeatTracker:
             self._fates.append(False)
 
     def up(self, now: float) -> bool:
-        return self.last_echo is not None and now - self.last_echo <= self.timeout_s
+        return self.last_echo is not None and (now - self.last_echo <= self.timeout_s
+                                               or self._sent_since_echo < self.misses_down)
 
     def loss(self, now: float) -> float:
         self._expire(now)
