@@ -339,11 +339,22 @@ def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment):
     diag = listener.last_status('anyscale/link/wifi')
     assert diag is not None and diag.hardware_id == '127.0.0.1'
 
+    # The whole process stalls (a paused machine, a saturated scale): nothing spins for 2 s, so
+    # no beat goes out and no echo is read. That is no cut: the link stays up throughout.
+    period = 1.0 / deployment.monitoring.heartbeat_rate_hz
+    stall = 2.0
+    assert stall > deployment.monitoring.heartbeat_misses_down * period
+    before = len(listener.messages)
+    time.sleep(stall)                                           # the stall itself, not a wait
+    spin_until(executor, lambda: len(listener.messages) >= before + 10, 10.0,
+               'ten link statuses after the stall')
+    assert all(m.up for m in listener.messages[before:]), [
+        m.up for m in listener.messages[before:]]
+
     remote.destroy()                                            # the remote stops answering
     cut = time.monotonic()
     spin_until(executor, lambda: listener.messages and not listener.messages[-1].up, 5.0,
                'the link reported down')
-    period = 1.0 / deployment.monitoring.heartbeat_rate_hz
     # Down within misses_down periods of the last echo (plus scheduling slack on a busy box).
     assert time.monotonic() - cut <= deployment.monitoring.heartbeat_misses_down * period + 1.0
     spin_until(executor, lambda: (listener.last_status('anyscale/link/wifi').level
