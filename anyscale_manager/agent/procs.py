@@ -2,6 +2,7 @@
 
 import os
 import signal
+import time
 from typing import Dict, List, Mapping, Optional, Tuple
 
 import psutil
@@ -138,8 +139,16 @@ def alive(pid: int, started: float) -> bool:
         return False
 
 
-def environ_value(pid: int, name: str) -> Optional[str]:
-    try:
-        return psutil.Process(pid).environ().get(name)
-    except (psutil.NoSuchProcess, psutil.AccessDenied, OSError):
-        return None
+def environ_value(pid: int, name: str, exec_wait_s: float = 0.0) -> Optional[str]:
+    """``name`` in the environment ``pid`` was started with. A child forked but not yet exec'd
+    (its spawner killed in between) still shows its spawner's environment: up to
+    ``exec_wait_s`` is given for the exec when the name is missing."""
+    deadline = time.monotonic() + exec_wait_s
+    while True:
+        try:
+            value = psutil.Process(pid).environ().get(name)
+        except (psutil.NoSuchProcess, psutil.AccessDenied, OSError):
+            return None
+        if value is not None or time.monotonic() >= deadline:
+            return value
+        time.sleep(0.02)

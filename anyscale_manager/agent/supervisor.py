@@ -490,7 +490,7 @@ class Supervisor:
             if pid <= 1 or not procs.alive(pid, started):
                 notes.append(f'{name}: recorded pid {pid} is gone')
                 continue
-            if procs.environ_value(pid, ENV_INSTANCE) != instance:
+            if procs.environ_value(pid, ENV_INSTANCE, exec_wait_s=0.5) != instance:
                 notes.append(f'{name}: pid {pid} is another process now (token differs); '
                              'left alone')
                 continue
