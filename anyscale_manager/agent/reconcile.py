@@ -6,7 +6,8 @@ on its old one:
 
 - start_before_stop: the gaining scale starts the node at once; the losing scale keeps its copy
   until the gaining scale's agent reports it running and ready (under the generation that moved
-  it, or a newer one), or until ``readiness_timeout_s`` has passed since the move.
+  it, or a newer one) and, where the losing scale subscribes to the node's output, its DDS has
+  matched the new copy's writer; or until ``readiness_timeout_s`` has passed since the move.
 - stop_before_start: the losing scale stops its copy at once; the gaining scale starts the node
   only when every other live agent has applied the layout's generation and reports no live copy.
   An agent silent for longer than ``agent_timeout_s`` no longer counts.
@@ -23,7 +24,7 @@ master's agent is silent the decider may place that scale's nodes here.
 """
 
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Mapping, Optional, Set, Tuple
+from typing import Callable, Dict, Iterable, List, Mapping, Optional, Set, Tuple
 
 from ..model import types as t
 from ..protocol import AgentState, Layout
@@ -170,8 +171,15 @@ class Reconciler:
                 and self.assignments.get(n) != self.scale}
 
     # --- the decision of what runs here ---------------------------------------------------
-    def desired(self, now: float, active: Iterable[str]) -> Set[str]:
-        """Catalogue nodes that should have a live process here now."""
+    def desired(self, now: float, active: Iterable[str],
+                heard_here: Optional[Callable[[str], Optional[bool]]] = None) -> Set[str]:
+        """Catalogue nodes that should have a live process here now.
+
+        ``heard_here(node)``: whether this scale hears the node's new copy elsewhere (its
+        subscribers here have matched the new writer); None when nothing here can tell. A copy
+        moving away is kept until it is heard, so that this scale's subscribers never wait for
+        the new copy with the old one gone.
+        """
         active = set(active)
         want: Set[str] = set()
         self.waiting = {}
@@ -202,13 +210,16 @@ class Reconciler:
                     want.add(node)
             elif here and order == t.START_BEFORE_STOP and node not in self._released:
                 waited = now - self._moved_at.get(node, now)
-                if self._ready_on(target, node, now) or waited >= self.readiness_timeout_s:
+                ready = self._ready_on(target, node, now)
+                heard = heard_here(node) if ready and heard_here is not None else None
+                if (ready and heard is not False) or waited >= self.readiness_timeout_s:
                     # Once let go it stays let go, whatever the new copy reports afterwards.
                     self._released.add(node)
                 else:
                     want.add(node)
-                    self.waiting[node] = (f'kept until it is running and ready on {target} '
-                                          f'(waited {waited:.1f} of '
+                    until = (f'heard here from {target} (ready there)' if ready else
+                             f'running and ready on {target}')
+                    self.waiting[node] = (f'kept until it is {until} (waited {waited:.1f} of '
                                           f'{self.readiness_timeout_s:g} s)')
         return want
 

@@ -262,7 +262,7 @@ class AgentNode(Node):
         if self._shutdown_requested:
             sup.stop_all(now)
         else:
-            want = self.reconciler.desired(now, sup.active())
+            want = self.reconciler.desired(now, sup.active(), heard_here=self._heard_here)
             sup.set_wanted(want, now, park=self.reconciler.parked(self._standby_nodes))
             waiting = self.reconciler.waiting
             for node, why in waiting.items():
@@ -282,6 +282,18 @@ class AgentNode(Node):
         if changed:
             self._publish_state()
             self._update_probes()
+
+    def _heard_here(self, node: str) -> Optional[bool]:
+        """Whether this scale's DDS has matched a second writer (the node's new copy elsewhere)
+        on every output of ``node`` that it probes; None when it probes none."""
+        probes = getattr(self, '_probes', None)
+        if probes is None:
+            return None
+        probed = set(probes.connections)
+        counts = [probes.matched_publishers(c.name) for c in self.deployment.connections
+                  if c.publisher == node and c.name in probed]
+        counts = [k for k in counts if k is not None]
+        return all(k >= 2 for k in counts) if counts else None
 
     def _restart_unheard(self, now: float) -> None:
         """A thawed standby copy whose outputs nobody here hears is started afresh."""

@@ -385,6 +385,20 @@ class ProbeManager:
                 if probe.subscription is None and not probe.fatal:
                     self._subscribe(probe)
 
+    def matched_publishers(self, name: str) -> Optional[int]:
+        """How many writers of connection ``name``'s topic this scale's DDS has matched with its
+        probe; None when this scale does not probe it (yet)."""
+        with self._lock:
+            conn = self._probes.get(name)
+            probe = self._topics.get(self._resolve(conn[0].topic)) if conn else None
+            subscription = probe.subscription if probe is not None else None
+        if subscription is None:
+            return None
+        try:
+            return subscription.get_publisher_count()
+        except Exception:       # destroyed meanwhile, or a middleware without the count
+            return None
+
     def readings(self, now: float) -> Dict[str, Tuple[p.ConnectionReading, str]]:
         """Connection -> (reading, note) for every probe that can measure; advances Δ."""
         out = {}
