@@ -113,6 +113,7 @@ def reaction(args):
         false_onsets = [round(t - tb.t0, 1) for t in outside]
         false_backs = [(round(t - tb.t0, 1), e.node, e.reason) for t, e in backs
                        if not any(a <= t <= b for a, b in throttled)]
+        moved_out = handovers(tb.record, d, tb.t0, tb.now())
     finally:
         notes = tb.stop()
     backs = [r['back_s'] for r in results]
@@ -133,7 +134,39 @@ def reaction(args):
                                         if r['observed_violations'] or r['reported_violations']),
             'violations': sum(len(r['observed_violations']) + len(r['reported_violations'])
                               for r in results),
+            'handovers': moved_out,
+            'handovers_below_freq_min': sum(1 for h in moved_out if h['below_s'] > 0),
+            'handover_min_rate_p50_hz': {n: percentile([h['min_rate_hz'] for h in moved_out
+                                                        if h['node'] == n], 0.5)
+                                         for n in sorted({h['node'] for h in moved_out})},
             'hysteresis_s': args.hysteresis, 'teardown_notes': notes}
+
+
+def handovers(record, deployment, t0, t1, scale='robot', horizon_s=6.0):
+    """After each move out of ``scale``: how its own probes heard the moved node's outputs over
+    the next ``horizon_s`` (the least rate, and the longest run of readings below freq_min)."""
+    rows = []
+    for t, e in record.moves(since=t0, until=t1):
+        if e.kind != 'migrate' or e.from_scale != scale:
+            continue
+        for c in deployment.connections:
+            if c.publisher != e.node or c.freq_min_hz is None:
+                continue
+            seen = [(ts, r) for ts, where, r in record.readings.get(c.name, [])
+                    if where == scale and t <= ts <= t + horizon_s]
+            if not seen:
+                continue
+            longest, start = 0.0, None
+            for ts, r in seen:
+                if r.rate_hz < c.freq_min_hz:
+                    start = ts if start is None else start
+                    longest = max(longest, ts - start)
+                else:
+                    start = None
+            rows.append({'t': round(t - t0, 2), 'node': e.node, 'connection': c.name,
+                         'min_rate_hz': round(min(r.rate_hz for _, r in seen), 2),
+                         'freq_min_hz': c.freq_min_hz, 'below_s': round(longest, 2)})
+    return rows
 
 
 def throttle_reaction(args, tb):
@@ -255,6 +288,10 @@ def main():
                   f'{r["throttle_congested_max_s"]:.2f} s), AR back p50 '
                   f'{r["throttle_ar_back_p50_s"]:.2f} s (max {r["throttle_ar_back_max_s"]:.2f} '
                   f's); AMCL moved in {r["throttles_amcl_moved"]}', flush=True)
+        worst = max((h['below_s'] for h in r['handovers']), default=0.0)
+        print(f'moves out of the robot: {len(r["handovers"])} outputs judged; below freq_min at '
+              f'the robot in {r["handovers_below_freq_min"]} (longest {worst:.2f} s); least rate '
+              f'p50 by node {r["handover_min_rate_p50_hz"]}', flush=True)
         print(f'link looked congested outside a throttle (each time it is probed at once): '
               f'{len(r["false_congestion_onsets"])} times, at {r["false_congestion_onsets"]} s; '
               f'moves back for bandwidth outside a throttle: '

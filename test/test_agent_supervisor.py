@@ -439,12 +439,12 @@ def test_start_before_stop_keeps_the_old_copy_until_this_scale_hears_the_new_one
     heard = {'sbs': False}
     asked = []
 
-    def heard_here(node):
-        asked.append(node)
+    def heard_here(node, since):
+        asked.append((node, since))
         return heard[node]
     # Ready on b, but this scale's subscribers have not matched the new copy yet: kept.
     assert r.desired(6.0, ('sbs',), heard_here) == {'sbs'}
-    assert 'heard here from b (ready there)' in r.waiting['sbs'] and asked == ['sbs']
+    assert 'heard here from b (ready there)' in r.waiting['sbs'] and asked == [('sbs', 5.0)]
     heard['sbs'] = None                       # nothing here can tell: readiness alone decides
     assert r.desired(6.5, ('sbs',), heard_here) == set()
     # Heard: let go at once.

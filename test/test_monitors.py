@@ -136,16 +136,21 @@ def test_probe_reads_a_real_publisher_then_judges_its_stop(ros, deployment):
                       5.0, 'the probe on /diagnostics')
     assert diag.hardware_id == '127.0.0.1'
     assert {kv.key for kv in diag.values} >= {'rate_hz', 'bytes_per_s', 'below_for_s', 'topic'}
-    # The writers matched here: what tells the agent that a copy started elsewhere is heard.
-    assert probes.matched_publishers('laser_amcl') == 1
-    assert probes.matched_publishers('camera_ar') is None            # not probed here
+    # A writer matched here after a moment: what tells the agent that a copy of the publisher
+    # started elsewhere is heard. The writers found by a new subscription are not news.
+    probes.poll_writers(time.monotonic())
+    assert probes.writer_joined_since('laser_amcl', 0.0) is False
+    assert probes.writer_joined_since('camera_ar', 0.0) is None      # not probed here
+    moved = time.monotonic()
     copy = Publisher(make('laser_copy'), '/scan', rate_hz=1.0, nbytes=16)
-    spin_until(executor, lambda: probes.matched_publishers('laser_amcl') == 2, 10.0,
-               'the second writer matched')
+
+    def joined():
+        probes.poll_writers(time.monotonic())
+        return probes.writer_joined_since('laser_amcl', moved)
+    spin_until(executor, joined, 10.0, 'the second writer matched')
+    assert not probes.writer_joined_since('laser_amcl', time.monotonic() + 1.0)
     copy.stop()
     copy.node.destroy_publisher(copy.pub)
-    spin_until(executor, lambda: probes.matched_publishers('laser_amcl') == 1, 10.0,
-               'the second writer gone')
 
     laser.stop()
     warn = spin_until(executor, lambda: (reading(listener, 'laser_amcl').level == p.WARN

@@ -7,7 +7,7 @@ on its old one:
 - start_before_stop: the gaining scale starts the node at once; the losing scale keeps its copy
   until the gaining scale's agent reports it running and ready (under the generation that moved
   it, or a newer one) and, where the losing scale subscribes to the node's output, its DDS has
-  matched the new copy's writer; or until ``readiness_timeout_s`` has passed since the move.
+  matched a new writer since the move; or until ``readiness_timeout_s`` has passed since it.
 - stop_before_start: the losing scale stops its copy at once; the gaining scale starts the node
   only when every other live agent has applied the layout's generation and reports no live copy.
   An agent silent for longer than ``agent_timeout_s`` no longer counts.
@@ -172,13 +172,14 @@ class Reconciler:
 
     # --- the decision of what runs here ---------------------------------------------------
     def desired(self, now: float, active: Iterable[str],
-                heard_here: Optional[Callable[[str], Optional[bool]]] = None) -> Set[str]:
+                heard_here: Optional[Callable[[str, float], Optional[bool]]] = None
+                ) -> Set[str]:
         """Catalogue nodes that should have a live process here now.
 
-        ``heard_here(node)``: whether this scale hears the node's new copy elsewhere (its
-        subscribers here have matched the new writer); None when nothing here can tell. A copy
-        moving away is kept until it is heard, so that this scale's subscribers never wait for
-        the new copy with the old one gone.
+        ``heard_here(node, since)``: whether this scale hears the node's new copy elsewhere
+        (its subscribers here have matched a new writer of its outputs since the move at
+        ``since``); None when nothing here can tell. A copy moving away is kept until then, so
+        that this scale's subscribers never wait for the new copy with the old one gone.
         """
         active = set(active)
         want: Set[str] = set()
@@ -211,7 +212,8 @@ class Reconciler:
             elif here and order == t.START_BEFORE_STOP and node not in self._released:
                 waited = now - self._moved_at.get(node, now)
                 ready = self._ready_on(target, node, now)
-                heard = heard_here(node) if ready and heard_here is not None else None
+                heard = (heard_here(node, self._moved_at.get(node, now))
+                         if ready and heard_here is not None else None)
                 if (ready and heard is not False) or waited >= self.readiness_timeout_s:
                     # Once let go it stays let go, whatever the new copy reports afterwards.
                     self._released.add(node)

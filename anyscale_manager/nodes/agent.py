@@ -259,6 +259,9 @@ class AgentNode(Node):
     def _tick(self) -> None:
         now = time.monotonic()
         sup = self.supervisor
+        probes = getattr(self, '_probes', None)
+        if probes is not None:
+            probes.poll_writers(now)
         if self._shutdown_requested:
             sup.stop_all(now)
         else:
@@ -283,17 +286,17 @@ class AgentNode(Node):
             self._publish_state()
             self._update_probes()
 
-    def _heard_here(self, node: str) -> Optional[bool]:
-        """Whether this scale's DDS has matched a second writer (the node's new copy elsewhere)
-        on every output of ``node`` that it probes; None when it probes none."""
+    def _heard_here(self, node: str, since: float) -> Optional[bool]:
+        """Whether this scale's DDS has matched a new writer (the node's copy elsewhere) since
+        ``since`` on every output of ``node`` that it probes; None when it probes none."""
         probes = getattr(self, '_probes', None)
         if probes is None:
             return None
         probed = set(probes.connections)
-        counts = [probes.matched_publishers(c.name) for c in self.deployment.connections
+        joined = [probes.writer_joined_since(c.name, since) for c in self.deployment.connections
                   if c.publisher == node and c.name in probed]
-        counts = [k for k in counts if k is not None]
-        return all(k >= 2 for k in counts) if counts else None
+        joined = [j for j in joined if j is not None]
+        return all(joined) if joined else None
 
     def _restart_unheard(self, now: float) -> None:
         """A thawed standby copy whose outputs nobody here hears is started afresh."""

@@ -278,6 +278,9 @@ class _TopicProbe:
     declared_type: str = ''
     subscription: object = None
     type_name: str = ''
+    writers: int = 0           # writers matched, as last polled
+    writers_of: object = None  # the subscription that count is of
+    writer_joined: Optional[float] = None   # when the count last rose
     problem: str = ''          # why there is no subscription yet
     fatal: bool = False        # the type cannot be used here: no reading at all
     users: Set[str] = field(default_factory=set)
@@ -385,19 +388,37 @@ class ProbeManager:
                 if probe.subscription is None and not probe.fatal:
                     self._subscribe(probe)
 
-    def matched_publishers(self, name: str) -> Optional[int]:
-        """How many writers of connection ``name``'s topic this scale's DDS has matched with its
-        probe; None when this scale does not probe it (yet)."""
+    def poll_writers(self, now: float) -> None:
+        """Count the writers each probe subscription has matched; note when a count rises."""
+        with self._lock:
+            topics = list(self._topics.values())
+        for probe in topics:
+            subscription = probe.subscription
+            if subscription is None:
+                continue
+            try:
+                count = subscription.get_publisher_count()
+            except Exception:   # destroyed meanwhile, or a middleware without the count
+                continue
+            if probe.writers_of is not subscription:
+                # A new subscription: the writers it finds are not news.
+                probe.writers_of, probe.writers = subscription, count
+                continue
+            if count > probe.writers:
+                probe.writer_joined = now
+            probe.writers = count
+
+    def writer_joined_since(self, name: str, since: float) -> Optional[bool]:
+        """Whether a writer of connection ``name``'s topic was matched here at or after
+        ``since`` (say, a copy of its publisher started elsewhere); None when this scale does
+        not probe it. Needs ``poll_writers`` called often. ROS 2 does not tell a subscriber which
+        writer a message came from, so a count that rises is the sign."""
         with self._lock:
             conn = self._probes.get(name)
             probe = self._topics.get(self._resolve(conn[0].topic)) if conn else None
-            subscription = probe.subscription if probe is not None else None
-        if subscription is None:
-            return None
-        try:
-            return subscription.get_publisher_count()
-        except Exception:       # destroyed meanwhile, or a middleware without the count
-            return None
+            if probe is None or probe.writers_of is None:
+                return None
+            return probe.writer_joined is not None and probe.writer_joined >= since
 
     def readings(self, now: float) -> Dict[str, Tuple[p.ConnectionReading, str]]:
         """Connection -> (reading, note) for every probe that can measure; advances Δ."""
