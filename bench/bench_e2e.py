@@ -113,7 +113,7 @@ def reaction(args):
         false_onsets = [round(t - tb.t0, 1) for t in outside]
         false_backs = [(round(t - tb.t0, 1), e.node, e.reason) for t, e in backs
                        if not any(a <= t <= b for a, b in throttled)]
-        moved_out = handovers(tb.record, d, tb.t0, tb.now())
+        moved_out = tb.record.handovers(d.connections, tb.t0, tb.now(), 'robot')
     finally:
         notes = tb.stop()
     backs = [r['back_s'] for r in results]
@@ -140,33 +140,6 @@ def reaction(args):
                                                         if h['node'] == n], 0.5)
                                          for n in sorted({h['node'] for h in moved_out})},
             'hysteresis_s': args.hysteresis, 'teardown_notes': notes}
-
-
-def handovers(record, deployment, t0, t1, scale='robot', horizon_s=6.0):
-    """After each move out of ``scale``: how its own probes heard the moved node's outputs over
-    the next ``horizon_s`` (the least rate, and the longest run of readings below freq_min)."""
-    rows = []
-    for t, e in record.moves(since=t0, until=t1):
-        if e.kind != 'migrate' or e.from_scale != scale:
-            continue
-        for c in deployment.connections:
-            if c.publisher != e.node or c.freq_min_hz is None:
-                continue
-            seen = [(ts, r) for ts, where, r in record.readings.get(c.name, [])
-                    if where == scale and t <= ts <= t + horizon_s]
-            if not seen:
-                continue
-            longest, start = 0.0, None
-            for ts, r in seen:
-                if r.rate_hz < c.freq_min_hz:
-                    start = ts if start is None else start
-                    longest = max(longest, ts - start)
-                else:
-                    start = None
-            rows.append({'t': round(t - t0, 2), 'node': e.node, 'connection': c.name,
-                         'min_rate_hz': round(min(r.rate_hz for _, r in seen), 2),
-                         'freq_min_hz': c.freq_min_hz, 'below_s': round(longest, 2)})
-    return rows
 
 
 def throttle_reaction(args, tb):

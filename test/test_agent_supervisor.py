@@ -13,7 +13,7 @@ from anyscale_manager import protocol
 from anyscale_manager.agent import procs
 from anyscale_manager.agent.catalogue import (base_environment, build_catalogue, ENV_INSTANCE,
                                               ENV_NODE, ENV_SCALE, Entry, format_parameter)
-from anyscale_manager.agent.reconcile import Reconciler, unheard_after_thaw
+from anyscale_manager.agent.reconcile import HEAR_PATIENCE_S, Reconciler, unheard_after_thaw
 from anyscale_manager.agent.supervisor import Supervisor
 from anyscale_manager.model import types as t
 from anyscale_manager.model.loader import load_mapping
@@ -455,13 +455,15 @@ def test_start_before_stop_keeps_the_old_copy_until_this_scale_hears_the_new_one
     assert r.desired(8.5, ('sbs',), heard_here) == {'sbs'}
     heard['sbs'] = True
     assert r.desired(8.6, ('sbs',), heard_here) == set()
-    # Never heard: the readiness timeout still bounds the overlap.
+    # Never heard: kept at most HEAR_PATIENCE_S past the ready report.
     r.apply_layout(layout(5, {'sbs': 'a'}), 9.0)
     r.apply_layout(layout(6, {'sbs': 'b'}), 10.0)
     r.peer_state(agent_state('b', 6, {'sbs': ('running', True)}), 10.5)
     heard['sbs'] = False
-    assert r.desired(19.9, ('sbs',), heard_here) == {'sbs'}
-    assert r.desired(20.0, ('sbs',), heard_here) == set()
+    assert r.desired(10.5, ('sbs',), heard_here) == {'sbs'}
+    r.peer_state(agent_state('b', 6, {'sbs': ('running', True)}), 15.0)
+    assert r.desired(10.5 + HEAR_PATIENCE_S - 0.1, ('sbs',), heard_here) == {'sbs'}
+    assert r.desired(10.5 + HEAR_PATIENCE_S, ('sbs',), heard_here) == set()
     # Not asked before the new copy is ready there.
     r.apply_layout(layout(7, {'sbs': 'a'}), 21.0)
     r.apply_layout(layout(8, {'sbs': 'b'}), 22.0)

@@ -111,6 +111,14 @@ def test_1_link_up_amcl_moves_first_then_ar_and_amcl_ekf_reaches_its_optimal_rat
     print(f'amcl on the laptop {t_amcl - t_up:.1f} s after the link came up; /amcl_pose at '
           f'the robot {robot_rate:.2f} Hz with AMCL on the robot, {rate:.2f} Hz on the laptop')
     assert 4.3 <= rate <= 5.5
+    # The robot kept its copies until it heard the laptop's: its own probes never read a moved
+    # node's output below freq_min for as long as Δ after the move (the decider would not see
+    # it, being in its grace period, but EKF and the navigation would).
+    with bed.lock:
+        handovers = bed.record.handovers(bed.deployment.connections, t_up, bed.now(), ROBOT)
+    tolerance = {c.name: c.tolerance_s for c in bed.deployment.connections}
+    assert {h['node'] for h in handovers} >= {'amcl', 'ar'}, handovers
+    assert all(h['below_s'] < tolerance[h['connection']] for h in handovers), handovers
     # CPU-bound on the weak robot: 2.4-3.5 Hz in most runs, once 4.09 Hz (the paper: about 2);
     # always visibly below the laptop's rate.
     assert 1.5 <= robot_rate <= rate - 0.5, (robot_rate, rate)

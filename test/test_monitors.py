@@ -101,7 +101,12 @@ class Publisher:
         self.node = node
         self.pub = node.create_publisher(UInt8MultiArray, topic, 10)
         self.msg = UInt8MultiArray(data=bytes(nbytes))
-        self.timer = node.create_timer(1.0 / rate_hz, lambda: self.pub.publish(self.msg))
+        self.sent = 0
+        self.timer = node.create_timer(1.0 / rate_hz, self._send)
+
+    def _send(self):
+        self.pub.publish(self.msg)
+        self.sent += 1
 
     def stop(self):
         self.node.destroy_timer(self.timer)
@@ -136,22 +141,6 @@ def test_probe_reads_a_real_publisher_then_judges_its_stop(ros, deployment):
                       5.0, 'the probe on /diagnostics')
     assert diag.hardware_id == '127.0.0.1'
     assert {kv.key for kv in diag.values} >= {'rate_hz', 'bytes_per_s', 'below_for_s', 'topic'}
-    # A writer matched here after a moment: what tells the agent that a copy of the publisher
-    # started elsewhere is heard. The writers found by a new subscription are not news.
-    probes.poll_writers(time.monotonic())
-    assert probes.writer_joined_since('laser_amcl', 0.0) is False
-    assert probes.writer_joined_since('camera_ar', 0.0) is None      # not probed here
-    moved = time.monotonic()
-    copy = Publisher(make('laser_copy'), '/scan', rate_hz=1.0, nbytes=16)
-
-    def joined():
-        probes.poll_writers(time.monotonic())
-        return probes.writer_joined_since('laser_amcl', moved)
-    spin_until(executor, joined, 10.0, 'the second writer matched')
-    assert not probes.writer_joined_since('laser_amcl', time.monotonic() + 1.0)
-    copy.stop()
-    copy.node.destroy_publisher(copy.pub)
-
     laser.stop()
     warn = spin_until(executor, lambda: (reading(listener, 'laser_amcl').level == p.WARN
                                          and reading(listener, 'laser_amcl')),
@@ -173,6 +162,44 @@ def test_probe_reads_a_real_publisher_then_judges_its_stop(ros, deployment):
         3.0, 'ERROR on /diagnostics')
     assert 'below freq_min' in status.message
     probes.destroy()
+
+
+def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deployment):
+    """What the agent asks before it lets a moving node's old copy go: has this scale heard the
+    copy started elsewhere? Two real writers of /amcl_pose (AMCL is migratable), one long
+    running, one started later."""
+    make, executor = ros
+    agent = make('agent_watch')
+    watch = rclpy.create_node('agent_watch_handover', context=executor.context,
+                              start_parameter_services=False)      # spun by nobody
+    probes = ProbeManager(agent, deployment, 'robot', watch_node=watch)
+    probes.set_connections(['amcl_ekf', 'laser_navigation'])
+    try:
+        old = Publisher(make('amcl_old'), '/amcl_pose', rate_hz=20.0, nbytes=64)
+
+        def polled(cond):
+            def check():
+                probes.poll_writers(time.monotonic())
+                return cond()
+            return check
+        # The old copy's stream builds up (its numbers run past what the new copy will send).
+        spin_until(executor, polled(lambda: old.sent >= 40 and
+                                    probes.writer_joined_since('amcl_ekf', 0.0) is not None),
+                   15.0, 'the old writer heard through the watch')
+        assert probes.writer_joined_since('amcl_ekf', 0.0) is False
+        assert probes.writer_joined_since('laser_navigation', 0.0) is None   # laser: pinned
+        assert probes.writer_joined_since('camera_ar', 0.0) is None           # not probed here
+        moved = time.monotonic()
+        new = Publisher(make('amcl_new'), '/amcl_pose', rate_hz=5.0, nbytes=64)
+        spin_until(executor, polled(lambda: probes.writer_joined_since('amcl_ekf', moved)),
+                   10.0, 'the new writer heard')
+        assert new.sent >= 1
+        assert not probes.writer_joined_since('amcl_ekf', time.monotonic() + 1.0)
+        new.stop()
+        old.stop()
+    finally:
+        probes.destroy()
+        watch.destroy_node()
 
 
 def test_probe_learns_the_type_from_the_graph_and_moves(ros, deployment):

@@ -8,6 +8,7 @@ import pytest
 from anyscale_manager.protocol import ERROR, OK, WARN
 from anyscale_manager.runtime import cpu
 from anyscale_manager.runtime.rates import (BandwidthEstimate, HeartbeatTracker, RateWindow,
+                                            WriterStreams,
                                             ToleranceTracker, crossing_connections,
                                             steady_throughput_bps, used_kbps)
 
@@ -476,3 +477,50 @@ def test_a_link_that_looks_congested_is_probed_at_once_but_not_too_often():
     assert not est.due(41.0, True, 0.0)
     est.remeasure()
     assert est.due(41.0, True, 0.0)
+
+
+# --- WriterStreams -----------------------------------------------------------------------------
+
+def test_writer_streams_tell_a_newly_started_writer_from_the_old_one():
+    w = WriterStreams(forget_s=3.0)
+    t = 0.0
+    for seq in range(500, 520):                  # the old copy, running for a while
+        w.add(t, seq)
+        t += 0.1
+    assert w.streams == 1 and not w.joined_since(0.0)   # the first writer heard is no news
+    moved = t
+    # The new copy's first messages were lost (volatile, before the match): it is heard from 7
+    # on, interleaved with the old copy, with losses on both.
+    for old, new in [(520, 7), (522, 8), (523, 10), (525, None)]:
+        w.add(t, old)
+        if new is not None:
+            w.add(t + 0.01, new)
+        t += 0.1
+    assert w.streams == 2 and w.joined_since(moved) and not w.joined_since(t)
+    # Numbers the middleware does not give are ignored.
+    for seq in (None, -1, 'x', True, 3.5):
+        w.add(t, seq)
+    assert w.streams == 2
+
+
+def test_writer_streams_forget_a_stopped_writer():
+    w = WriterStreams(forget_s=3.0)
+    for k in range(10):
+        w.add(0.1 * k, 50 + k)                  # a copy that stopped at 0.9 s
+    for k in range(10):
+        w.add(5.0 + 0.1 * k, 300 + k)           # the other copy, alone for long
+    # A new copy heard later, numbered past where the stopped one left off: it is new, not the
+    # stopped one's continuation.
+    w.add(7.0, 70)
+    assert w.joined_since(6.5)
+
+
+def test_writer_streams_a_writer_heard_first_is_no_news():
+    w = WriterStreams()
+    w.add(1.0, 3)
+    w.add(1.1, 4)
+    assert not w.joined_since(0.0)
+    w.add(1.2, 1)                               # another writer, started later
+    assert w.joined_since(1.2) and not w.joined_since(1.21)
+    with pytest.raises(ValueError):
+        WriterStreams(forget_s=0)

@@ -124,6 +124,31 @@ def test_congestion_onsets_count_each_congested_spell_once(record):
         (-0.5, 'up', ''), (0.5, 'up', 'congested'), (1.5, 'up', '')]
 
 
+def test_handovers_read_the_moved_nodes_outputs_at_the_scale_it_left(record):
+    def event(t, kind, node, src, dst):
+        record.ingest_line(_line(t, p.TOPIC_EVENTS, p.Event(
+            stamp=t, kind=kind, node=node, from_scale=src, to_scale=dst, reason='test',
+            generation=1)))
+
+    def reading(t, scale, rate):
+        record.readings.setdefault('amcl_ekf', []).append((t, scale, p.ConnectionReading(
+            rate_hz=rate, bytes_per_s=0.0, below_for_s=0.0, level=p.OK)))
+    event(10.0, 'migrate', 'amcl', 'robot', 'laptop')
+    event(30.0, 'migrate_back', 'amcl', 'laptop', 'robot')     # not a move out of the robot
+    event(40.0, 'migrate', 'amcl', 'robot', 'laptop')
+    # After the first move the robot hears AMCL throughout; after the second, a gap of 1.5 s.
+    for k in range(13):
+        reading(10.0 + 0.5 * k, 'robot', 3.0)
+        reading(40.0 + 0.5 * k, 'robot', 0.5 if 2 <= k <= 5 else 3.0)
+        reading(40.0 + 0.5 * k, 'laptop', 0.0)                # another scale's reading
+    record.readings['amcl_ekf'].sort(key=lambda x: x[0])
+    rows = record.handovers(record.deployment.connections, 0.0, 60.0, 'robot')
+    amcl = [(r['t'], r['min_rate_hz'], r['below_s']) for r in rows if r['node'] == 'amcl'
+            and r['connection'] == 'amcl_ekf']
+    assert amcl == [(10.0, 3.0, 0.0), (40.0, 0.5, 1.5)]
+    assert record.handovers(record.deployment.connections, 0.0, 60.0, 'laptop') == []
+
+
 def test_reported_violations_close_when_the_probe_goes_quiet_or_recovers(record):
     def reading(level, below):
         return p.ConnectionReading(rate_hz=0.0, bytes_per_s=0.0, below_for_s=below, level=level)

@@ -6,8 +6,9 @@ on its old one:
 
 - start_before_stop: the gaining scale starts the node at once; the losing scale keeps its copy
   until the gaining scale's agent reports it running and ready (under the generation that moved
-  it, or a newer one) and, where the losing scale subscribes to the node's output, its DDS has
-  matched a new writer since the move; or until ``readiness_timeout_s`` has passed since it.
+  it, or a newer one) and, where the losing scale subscribes to the node's output, it has heard
+  a newly started writer of it since the move (at most ``HEAR_PATIENCE_S`` after the ready
+  report); or until ``readiness_timeout_s`` has passed since the move.
 - stop_before_start: the losing scale stops its copy at once; the gaining scale starts the node
   only when every other live agent has applied the layout's generation and reports no live copy.
   An agent silent for longer than ``agent_timeout_s`` no longer counts.
@@ -35,6 +36,9 @@ NO_GENERATION = -1
 # A frozen copy stays in the others' ROS graph until its DDS participant lease runs out (Fast
 # DDS: 20 s); with slack, it counts as a present instance that long after it was frozen.
 STANDBY_IN_GRAPH_S = 25.0
+# How long a losing scale keeps its copy past the new copy's ready report while it has not heard
+# the new copy (its inputs may not reach it yet; or the copies' sequence numbers overlap).
+HEAR_PATIENCE_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -68,6 +72,7 @@ class Reconciler:
         self.assignments: Dict[str, str] = {}
         self._moved_at: Dict[str, float] = {}
         self._moved_gen: Dict[str, int] = {}
+        self._ready_at: Dict[str, float] = {}   # moving away: when the new copy was first ready
         self.peers: Dict[str, Peer] = {}
         self._released: Set[str] = set()      # handed over to their new scale: never wanted back
         self.waiting: Dict[str, str] = {}     # node -> why its start or stop is held back
@@ -115,6 +120,7 @@ class Reconciler:
             if self.assignments.get(node) != scale:
                 self._moved_at[node] = now
                 self._moved_gen[node] = layout.generation
+                self._ready_at.pop(node, None)
                 self._released.discard(node)
             self.assignments[node] = scale
         self.generation = layout.generation
@@ -177,9 +183,10 @@ class Reconciler:
         """Catalogue nodes that should have a live process here now.
 
         ``heard_here(node, since)``: whether this scale hears the node's new copy elsewhere
-        (its subscribers here have matched a new writer of its outputs since the move at
-        ``since``); None when nothing here can tell. A copy moving away is kept until then, so
-        that this scale's subscribers never wait for the new copy with the old one gone.
+        (a newly started writer of its outputs heard here since the move at ``since``); None
+        when nothing here can tell. A copy moving away is kept until then (at most
+        ``HEAR_PATIENCE_S`` past the ready report), so that this scale's subscribers do not wait
+        for the new copy with the old one gone.
         """
         active = set(active)
         want: Set[str] = set()
@@ -212,8 +219,11 @@ class Reconciler:
             elif here and order == t.START_BEFORE_STOP and node not in self._released:
                 waited = now - self._moved_at.get(node, now)
                 ready = self._ready_on(target, node, now)
-                heard = (heard_here(node, self._moved_at.get(node, now))
-                         if ready and heard_here is not None else None)
+                heard = None
+                if ready:
+                    ready_for = now - self._ready_at.setdefault(node, now)
+                    if heard_here is not None and ready_for < HEAR_PATIENCE_S:
+                        heard = heard_here(node, self._moved_at.get(node, now))
                 if (ready and heard is not False) or waited >= self.readiness_timeout_s:
                     # Once let go it stays let go, whatever the new copy reports afterwards.
                     self._released.add(node)

@@ -92,6 +92,7 @@ class AgentNode(Node):
                          automatically_declare_parameters_from_overrides=True, **kwargs)
         self._lock_file = None
         self._monitors: List[Any] = []
+        self._watch: Optional[Node] = None
         try:
             self._setup(scale)
         except Exception:
@@ -192,7 +193,8 @@ class AgentNode(Node):
         builders = (('ScaleMonitor', lambda cls: cls(self, d, scale,
                                                      pids=self.supervisor.pids)),
                     ('LinkMonitor', lambda cls: cls(self, d, scale)),
-                    ('ProbeManager', lambda cls: cls(self, d, scale)))
+                    ('ProbeManager', lambda cls: cls(self, d, scale,
+                                                     watch_node=self._handover_node())))
         for name, build in builders:
             cls = getattr(_monitors, name, None)
             if cls is None:
@@ -206,6 +208,14 @@ class AgentNode(Node):
             self._monitors.append(monitor)
             if name == 'ProbeManager':
                 self._probes = monitor
+
+    def _handover_node(self) -> Optional[Node]:
+        """A node no executor spins, whose subscriptions the probes read themselves (with the
+        message info the events executor does not hand out): who wrote, for handovers."""
+        if self._watch is None:
+            self._watch = Node(f'{self.get_name()}_handover', context=self.context,
+                               start_parameter_services=False)
+        return self._watch
 
     # --- inputs ---------------------------------------------------------------------------
     def _on_layout(self, msg: String) -> None:
@@ -287,8 +297,9 @@ class AgentNode(Node):
             self._update_probes()
 
     def _heard_here(self, node: str, since: float) -> Optional[bool]:
-        """Whether this scale's DDS has matched a new writer (the node's copy elsewhere) since
-        ``since`` on every output of ``node`` that it probes; None when it probes none."""
+        """Whether this scale has heard, since ``since``, a newly started writer (the node's
+        copy elsewhere) on every output of ``node`` that it watches; None when it watches
+        none."""
         probes = getattr(self, '_probes', None)
         if probes is None:
             return None
@@ -384,6 +395,9 @@ class AgentNode(Node):
             except Exception as e:
                 self.get_logger().error(f'destroying {type(monitor).__name__}: {e!r}')
         self._monitors = []
+        if self._watch is not None:
+            self._watch.destroy_node()
+            self._watch = None
         self._release_lock()
         super().destroy_node()
 

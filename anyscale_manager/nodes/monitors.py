@@ -31,8 +31,8 @@ from ..agent import procs
 from ..model.types import Connection, Deployment
 from ..runtime import cpu as cpu_math
 from ..runtime.rates import (BandwidthEstimate, HeartbeatTracker, RateWindow,
-                             ToleranceTracker, crossing_connections, steady_throughput_bps,
-                             used_kbps)
+                             ToleranceTracker, WriterStreams, crossing_connections,
+                             steady_throughput_bps, used_kbps)
 
 PROBE_QOS = qos.PROBE
 STATUS_QOS = qos.STATUS
@@ -278,19 +278,29 @@ class _TopicProbe:
     declared_type: str = ''
     subscription: object = None
     type_name: str = ''
-    writers: int = 0           # writers matched, as last polled
-    writers_of: object = None  # the subscription that count is of
-    writer_joined: Optional[float] = None   # when the count last rose
+    msg_class: object = None
+    watch: object = None       # a second subscription, polled: who wrote (handovers)
+    writers: WriterStreams = field(default_factory=WriterStreams)
     problem: str = ''          # why there is no subscription yet
     fatal: bool = False        # the type cannot be used here: no reading at all
     users: Set[str] = field(default_factory=set)
 
 
 class ProbeManager:
-    """Raw-subscription probes for the connections whose subscriber runs on this scale."""
+    """Raw-subscription probes for the connections whose subscriber runs on this scale.
 
-    def __init__(self, node, deployment: Deployment, scale: str):
+    With a ``watch_node`` (a node no executor spins), the topics of connections whose publisher
+    is migratable get a second subscription there, read by ``poll_writers``: it takes each
+    message with its info, whose publication sequence number tells a newly started writer from
+    the old one (``WriterStreams``). The agent asks ``writer_joined_since`` before it lets a
+    moving node's old copy go. (The events executor the agent spins on does not hand message
+    info to callbacks, hence the polling.)
+    """
+
+    def __init__(self, node, deployment: Deployment, scale: str, watch_node=None):
         self._node = node
+        self._watch_node = watch_node
+        self._migratable = frozenset(deployment.migratable_nodes)
         self._deployment = deployment
         self._scale = _scale_of(deployment, scale)
         settings = deployment.monitoring
@@ -347,6 +357,16 @@ class ProbeManager:
                 f'connection {conn.name}: declares {conn.msg_type} on {topic}, another '
                 f'connection on it declares {probe.declared_type}; probing with the latter')
         probe.users.add(conn.name)
+        self._ensure_watch(probe)
+
+    def _ensure_watch(self, probe: _TopicProbe) -> None:
+        if self._watch_node is None or probe.watch is not None or probe.msg_class is None:
+            return
+        if not any(self._deployment.connection(n).publisher in self._migratable
+                   for n in probe.users):
+            return
+        probe.watch = self._watch_node.create_subscription(
+            probe.msg_class, probe.topic, lambda _msg: None, PROBE_QOS, raw=True)
 
     def _release(self, topic: str, name: str) -> None:
         topic = self._resolve(topic)
@@ -357,6 +377,8 @@ class ProbeManager:
         if not probe.users:
             if probe.subscription is not None:
                 self._node.destroy_subscription(probe.subscription)
+            if probe.watch is not None:
+                self._watch_node.destroy_subscription(probe.watch)
             del self._topics[topic]
 
     def _subscribe(self, probe: _TopicProbe) -> None:
@@ -381,6 +403,8 @@ class ProbeManager:
         probe.subscription = self._node.create_subscription(
             cls, probe.topic, on_message, PROBE_QOS, callback_group=self._group, raw=True)
         probe.type_name, probe.problem, probe.fatal = type_name, '', False
+        probe.msg_class = cls
+        self._ensure_watch(probe)
 
     def _resolve_pending(self) -> None:
         with self._lock:
@@ -388,37 +412,33 @@ class ProbeManager:
                 if probe.subscription is None and not probe.fatal:
                     self._subscribe(probe)
 
-    def poll_writers(self, now: float) -> None:
-        """Count the writers each probe subscription has matched; note when a count rises."""
+    def poll_writers(self, now: float, limit: int = 200) -> None:
+        """Read what the watch subscriptions hold: who wrote each message (see the class)."""
         with self._lock:
-            topics = list(self._topics.values())
-        for probe in topics:
-            subscription = probe.subscription
-            if subscription is None:
-                continue
+            watched = [(p.watch, p.writers) for p in self._topics.values() if p.watch is not None]
+        for subscription, writers in watched:
             try:
-                count = subscription.get_publisher_count()
-            except Exception:   # destroyed meanwhile, or a middleware without the count
+                with subscription.handle:
+                    for _ in range(limit):
+                        taken = subscription.handle.take_message(subscription.msg_type, True)
+                        if taken is None:
+                            break
+                        info = taken[1] if len(taken) > 1 else None
+                        writers.add(now, info.get('publication_sequence_number')
+                                    if isinstance(info, dict) else None)
+            except Exception:   # destroyed meanwhile: its topic is no longer probed
                 continue
-            if probe.writers_of is not subscription:
-                # A new subscription: the writers it finds are not news.
-                probe.writers_of, probe.writers = subscription, count
-                continue
-            if count > probe.writers:
-                probe.writer_joined = now
-            probe.writers = count
 
     def writer_joined_since(self, name: str, since: float) -> Optional[bool]:
-        """Whether a writer of connection ``name``'s topic was matched here at or after
-        ``since`` (say, a copy of its publisher started elsewhere); None when this scale does
-        not probe it. Needs ``poll_writers`` called often. ROS 2 does not tell a subscriber which
-        writer a message came from, so a count that rises is the sign."""
+        """Whether connection ``name``'s topic was heard from a writer that started later than
+        the others, first at or after ``since`` (a copy of its publisher started elsewhere);
+        None when this scale does not watch it. Needs ``poll_writers`` called often."""
         with self._lock:
             conn = self._probes.get(name)
             probe = self._topics.get(self._resolve(conn[0].topic)) if conn else None
-            if probe is None or probe.writers_of is None:
+            if probe is None or probe.watch is None:
                 return None
-            return probe.writer_joined is not None and probe.writer_joined >= since
+            return probe.writers.joined_since(since)
 
     def readings(self, now: float) -> Dict[str, Tuple[p.ConnectionReading, str]]:
         """Connection -> (reading, note) for every probe that can measure; advances Δ."""
@@ -471,6 +491,8 @@ class ProbeManager:
             for probe in self._topics.values():
                 if probe.subscription is not None:
                     self._node.destroy_subscription(probe.subscription)
+                if probe.watch is not None:
+                    self._watch_node.destroy_subscription(probe.watch)
             self._topics.clear()
             self._probes.clear()
         self._out.destroy()

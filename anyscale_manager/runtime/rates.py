@@ -8,7 +8,7 @@ unit tests with a hand-written clock.
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Deque, Dict, Iterable, Mapping, Optional, Sequence, Tuple
+from typing import Deque, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from ..protocol import ERROR, OK, WARN
 
@@ -280,6 +280,52 @@ class HeartbeatTracker:
         ordered = sorted(list(self._rtts)[-self.loss_window:])
         mid = len(ordered) // 2
         return ordered[mid] if len(ordered) % 2 else 0.5 * (ordered[mid - 1] + ordered[mid])
+
+
+class WriterStreams:
+    """Tells the writers of one topic apart by their publication sequence numbers.
+
+    Each DDS writer numbers its messages 1, 2, 3, ...; ROS 2 hands that number to a subscriber
+    (``publication_sequence_number`` in the message info) but not who sent it. A message whose
+    number follows some stream's last one continues the nearest such stream; one that follows
+    none (at or below every stream's last number) comes from a writer that started later than
+    all of them: a new stream. A copy of a node started elsewhere for a handover thus shows at
+    its first message heard here, its numbers starting near 1 where the old copy's are far past
+    that. Losses and interleaving do not matter. A stream not heard for ``forget_s`` is dropped
+    (a stopped writer), so that a new copy is not taken for the continuation of an old one.
+    """
+
+    def __init__(self, forget_s: float = 3.0, max_streams: int = 16):
+        self.forget_s = _positive(forget_s, 'forget_s')
+        self.max_streams = max_streams
+        self._streams: List[List[float]] = []     # [last number, last heard]
+        self._joined: Deque[float] = deque(maxlen=max_streams)   # when a later writer appeared
+
+    def add(self, now: float, seq: object) -> None:
+        """One message heard at ``now`` with publication sequence number ``seq`` (ignored when
+        the middleware does not give one)."""
+        if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+            return
+        self._streams = [s for s in self._streams if now - s[1] <= self.forget_s]
+        before = [s for s in self._streams if s[0] < seq]
+        if before:
+            stream = max(before, key=lambda s: s[0])
+            stream[0], stream[1] = seq, now
+            return
+        if self._streams:
+            self._joined.append(now)
+        self._streams.append([seq, now])
+        if len(self._streams) > self.max_streams:
+            self._streams.remove(min(self._streams, key=lambda s: s[1]))
+
+    @property
+    def streams(self) -> int:
+        return len(self._streams)
+
+    def joined_since(self, since: float) -> bool:
+        """Whether a writer that started later than the others was first heard at or after
+        ``since``."""
+        return any(t >= since for t in self._joined)
 
 
 def steady_throughput_bps(samples: Sequence[Tuple[float, int]],

@@ -277,6 +277,34 @@ class Record:
                 return False
         return True
 
+    def handovers(self, connections: Sequence[Connection], t0: float, t1: float, scale: str,
+                  horizon_s: float = 6.0) -> List[Dict[str, object]]:
+        """After each move out of ``scale`` in [t0, t1]: how that scale's own probes heard the
+        moved node's outputs over the next ``horizon_s``: the least rate read, and the longest
+        run of readings below freq_min (0 when none)."""
+        rows: List[Dict[str, object]] = []
+        for t, e in self.moves(since=t0, until=t1):
+            if e.kind != 'migrate' or e.from_scale != scale:
+                continue
+            for c in connections:
+                if c.publisher != e.node or c.freq_min_hz is None:
+                    continue
+                seen = [(ts, r) for ts, where, r in self.readings.get(c.name, [])
+                        if where == scale and t <= ts <= t + horizon_s]
+                if not seen:
+                    continue
+                longest, start = 0.0, None
+                for ts, r in seen:
+                    if r.rate_hz < c.freq_min_hz:
+                        start = ts if start is None else start
+                        longest = max(longest, ts - start)
+                    else:
+                        start = None
+                rows.append({'t': round(t - t0, 2), 'node': e.node, 'connection': c.name,
+                             'min_rate_hz': round(min(r.rate_hz for _, r in seen), 2),
+                             'freq_min_hz': c.freq_min_hz, 'below_s': round(longest, 2)})
+        return rows
+
     def congestion_onsets(self, t0: float, t1: float) -> List[float]:
         """Times in [t0, t1] at which the link monitor began to report the link congested."""
         out, was = [], False
