@@ -136,6 +136,12 @@ def reaction(args):
                               for r in results),
             'handovers': moved_out,
             'handovers_below_freq_min': sum(1 for h in moved_out if h['below_s'] > 0),
+            'handover_kept_past_ready_p50_s': percentile(
+                [h['left_s'] - h['ready_s'] for h in moved_out
+                 if h['left_s'] is not None and h['ready_s'] is not None], 0.5),
+            'handover_kept_past_ready_max_s': max(
+                [h['left_s'] - h['ready_s'] for h in moved_out
+                 if h['left_s'] is not None and h['ready_s'] is not None], default=None),
             'handover_min_rate_p50_hz': {n: percentile([h['min_rate_hz'] for h in moved_out
                                                         if h['node'] == n], 0.5)
                                          for n in sorted({h['node'] for h in moved_out})},
@@ -264,7 +270,9 @@ def main():
         worst = max((h['below_s'] for h in r['handovers']), default=0.0)
         print(f'moves out of the robot: {len(r["handovers"])} outputs judged; below freq_min at '
               f'the robot in {r["handovers_below_freq_min"]} (longest {worst:.2f} s); least rate '
-              f'p50 by node {r["handover_min_rate_p50_hz"]}', flush=True)
+              f'p50 by node {r["handover_min_rate_p50_hz"]}; the robot kept its copy past the '
+              f'ready report p50 {r["handover_kept_past_ready_p50_s"]} s, max '
+              f'{r["handover_kept_past_ready_max_s"]} s', flush=True)
         print(f'link looked congested outside a throttle (each time it is probed at once): '
               f'{len(r["false_congestion_onsets"])} times, at {r["false_congestion_onsets"]} s; '
               f'moves back for bandwidth outside a throttle: '

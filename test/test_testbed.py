@@ -142,10 +142,18 @@ def test_handovers_read_the_moved_nodes_outputs_at_the_scale_it_left(record):
         reading(40.0 + 0.5 * k, 'robot', 0.5 if 2 <= k <= 5 else 3.0)
         reading(40.0 + 0.5 * k, 'laptop', 0.0)                # another scale's reading
     record.readings['amcl_ekf'].sort(key=lambda x: x[0])
+    # The agents' reports after the second move: ready on the laptop at 40.4 s, the robot's
+    # copy frozen at 41.2 s.
+    for t, scale, state in [(40.2, 'laptop', 'starting'), (40.4, 'laptop', 'running'),
+                            (40.5, 'robot', 'running'), (41.2, 'robot', 'standby')]:
+        report = _state(scale, ['amcl'])
+        report.nodes['amcl'].state = state
+        report.nodes['amcl'].ready = state == 'running'
+        record.agent_states.setdefault(scale, []).append((t, report))
     rows = record.handovers(record.deployment.connections, 0.0, 60.0, 'robot')
-    amcl = [(r['t'], r['min_rate_hz'], r['below_s']) for r in rows if r['node'] == 'amcl'
-            and r['connection'] == 'amcl_ekf']
-    assert amcl == [(10.0, 3.0, 0.0), (40.0, 0.5, 1.5)]
+    amcl = [(r['t'], r['min_rate_hz'], r['below_s'], r['ready_s'], r['left_s']) for r in rows
+            if r['node'] == 'amcl' and r['connection'] == 'amcl_ekf']
+    assert amcl == [(10.0, 3.0, 0.0, None, None), (40.0, 0.5, 1.5, 0.4, 1.2)]
     assert record.handovers(record.deployment.connections, 0.0, 60.0, 'laptop') == []
 
 

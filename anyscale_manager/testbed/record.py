@@ -281,11 +281,22 @@ class Record:
                   horizon_s: float = 6.0) -> List[Dict[str, object]]:
         """After each move out of ``scale`` in [t0, t1]: how that scale's own probes heard the
         moved node's outputs over the next ``horizon_s``: the least rate read, and the longest
-        run of readings below freq_min (0 when none)."""
+        run of readings below freq_min (0 when none); and, from the agents' reports, when the
+        new copy was ready (``ready_s``) and when ``scale`` stopped running its own
+        (``left_s``), both from the move (None if not within the horizon)."""
         rows: List[Dict[str, object]] = []
+
+        def first(where: str, t: float, node: str, cond) -> Optional[float]:
+            for ts, state in self.agent_states.get(where, []):
+                if t <= ts <= t + horizon_s and cond(state.nodes.get(node)):
+                    return round(ts - t, 2)
+            return None
         for t, e in self.moves(since=t0, until=t1):
             if e.kind != 'migrate' or e.from_scale != scale:
                 continue
+            ready_s = first(e.to_scale, t, e.node, lambda r: r is not None
+                            and r.state == 'running' and r.ready)
+            left_s = first(scale, t, e.node, lambda r: r is None or r.state != 'running')
             for c in connections:
                 if c.publisher != e.node or c.freq_min_hz is None:
                     continue
@@ -302,7 +313,8 @@ class Record:
                         start = None
                 rows.append({'t': round(t - t0, 2), 'node': e.node, 'connection': c.name,
                              'min_rate_hz': round(min(r.rate_hz for _, r in seen), 2),
-                             'freq_min_hz': c.freq_min_hz, 'below_s': round(longest, 2)})
+                             'freq_min_hz': c.freq_min_hz, 'below_s': round(longest, 2),
+                             'ready_s': ready_s, 'left_s': left_s})
         return rows
 
     def congestion_onsets(self, t0: float, t1: float) -> List[float]:
