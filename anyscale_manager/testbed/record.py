@@ -281,7 +281,7 @@ class Record:
                   horizon_s: float = 6.0) -> List[Dict[str, object]]:
         """After each move out of ``scale`` in [t0, t1]: how that scale's own probes heard the
         moved node's outputs over the next ``horizon_s``: the least rate read, and the longest
-        run of readings below freq_min (0 when none); and, from the agents' reports, when the
+        time below freq_min (0 when no reading was); and, from the agents' reports, when the
         new copy was ready (``ready_s``) and when ``scale`` stopped running its own
         (``left_s``), both from the move (None if not within the horizon)."""
         rows: List[Dict[str, object]] = []
@@ -304,12 +304,15 @@ class Record:
                         if where == scale and t <= ts <= t + horizon_s]
                 if not seen:
                     continue
+                # A run below lasts from its first reading to the next reading back above
+                # (or to the last reading, if it is still below then).
                 longest, start = 0.0, None
                 for ts, r in seen:
                     if r.rate_hz < c.freq_min_hz:
                         start = ts if start is None else start
                         longest = max(longest, ts - start)
-                    else:
+                    elif start is not None:
+                        longest = max(longest, ts - start)
                         start = None
                 rows.append({'t': round(t - t0, 2), 'node': e.node, 'connection': c.name,
                              'min_rate_hz': round(min(r.rate_hz for _, r in seen), 2),
