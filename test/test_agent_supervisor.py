@@ -434,39 +434,40 @@ def test_start_before_stop_keeps_the_old_copy_until_the_new_one_is_ready():
 def test_start_before_stop_keeps_the_old_copy_until_this_scale_hears_the_new_one():
     r = reconciler('a')
     r.apply_layout(layout(1, {'sbs': 'a'}), 0.0)
-    r.apply_layout(layout(2, {'sbs': 'b'}), 5.0)
-    r.peer_state(agent_state('b', 2, {'sbs': ('running', True)}), 6.0)
     heard = {'sbs': False}
     asked = []
 
     def heard_here(node, since):
         asked.append((node, since))
         return heard[node]
-    # Ready on b, but this scale's subscribers have not matched the new copy yet: kept.
-    assert r.desired(6.0, ('sbs',), heard_here) == {'sbs'}
+
+    def moved_and_ready(gen, t):
+        """Back here at t, away at t + 1 (layout generation gen), ready there at t + 1.5."""
+        r.apply_layout(layout(gen - 1, {'sbs': 'a'}), t)
+        r.apply_layout(layout(gen, {'sbs': 'b'}), t + 1.0)
+        r.peer_state(agent_state('b', gen, {'sbs': ('running', True)}), t + 1.5)
+    moved_and_ready(3, 4.0)
+    # Ready on b, but this scale has not heard the new copy yet: kept.
+    assert r.desired(5.5, ('sbs',), heard_here) == {'sbs'}
     assert 'heard here from b (ready there)' in r.waiting['sbs'] and asked == [('sbs', 5.0)]
     heard['sbs'] = None                       # nothing here can tell: readiness alone decides
-    assert r.desired(6.5, ('sbs',), heard_here) == set()
+    assert r.desired(6.0, ('sbs',), heard_here) == set()
     # Heard: let go at once.
-    r.apply_layout(layout(3, {'sbs': 'a'}), 7.0)
-    r.apply_layout(layout(4, {'sbs': 'b'}), 8.0)
-    r.peer_state(agent_state('b', 4, {'sbs': ('running', True)}), 8.5)
+    moved_and_ready(5, 7.0)
     heard['sbs'] = False
     assert r.desired(8.5, ('sbs',), heard_here) == {'sbs'}
     heard['sbs'] = True
     assert r.desired(8.6, ('sbs',), heard_here) == set()
     # Never heard: kept at most HEAR_PATIENCE_S past the ready report.
-    r.apply_layout(layout(5, {'sbs': 'a'}), 9.0)
-    r.apply_layout(layout(6, {'sbs': 'b'}), 10.0)
-    r.peer_state(agent_state('b', 6, {'sbs': ('running', True)}), 10.5)
+    moved_and_ready(7, 9.0)
     heard['sbs'] = False
     assert r.desired(10.5, ('sbs',), heard_here) == {'sbs'}
-    r.peer_state(agent_state('b', 6, {'sbs': ('running', True)}), 15.0)
+    r.peer_state(agent_state('b', 7, {'sbs': ('running', True)}), 15.0)
     assert r.desired(10.5 + HEAR_PATIENCE_S - 0.1, ('sbs',), heard_here) == {'sbs'}
     assert r.desired(10.5 + HEAR_PATIENCE_S, ('sbs',), heard_here) == set()
     # Not asked before the new copy is ready there.
-    r.apply_layout(layout(7, {'sbs': 'a'}), 21.0)
-    r.apply_layout(layout(8, {'sbs': 'b'}), 22.0)
+    r.apply_layout(layout(8, {'sbs': 'a'}), 21.0)
+    r.apply_layout(layout(9, {'sbs': 'b'}), 22.0)
     asked.clear()
     assert r.desired(22.5, ('sbs',), heard_here) == {'sbs'} and asked == []
 
