@@ -5,8 +5,9 @@
         [--busy 1]
 
 A 10 Hz talker (the agent tests' fixture) runs with the agent's standby profile (its participant
-announces a 24 h lease; ``--talker-lease default``: without it), beside ``--readers`` listener processes, each its own participant with
-the default lease (or, with ``--readers-lease long``, the standby profile too). Each round the
+announces a 24 h lease; ``--talker-lease default``: without it), beside ``--readers`` listener
+processes, each its own participant with the default lease (or, with ``--readers-lease long``,
+the standby profile too). Each round the
 talker's group is frozen (SIGSTOP) for ``--freeze`` seconds, thawed, and the time from the thaw
 to each reader's first message is taken; a reader that hears nothing within 8 s is reported as
 ``None``. ``--busy`` busy-loop processes load the machine meanwhile. On the test-bed, a thawed
