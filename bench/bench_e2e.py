@@ -113,7 +113,7 @@ def reaction(args):
         false_onsets = [round(t - tb.t0, 1) for t in outside]
         false_backs = [(round(t - tb.t0, 1), e.node, e.reason) for t, e in backs
                        if not any(a <= t <= b for a, b in throttled)]
-        moved_out = tb.record.handovers(d.connections, tb.t0, tb.now(), 'robot')
+        moved_out = tb.record.handovers(tb.t0, tb.now(), 'robot')
     finally:
         notes = tb.stop()
     backs = [r['back_s'] for r in results]

@@ -115,7 +115,7 @@ def test_1_link_up_amcl_moves_first_then_ar_and_amcl_ekf_reaches_its_optimal_rat
     # node's output below freq_min for as long as Δ after the move (the decider would not see
     # it, being in its grace period, but EKF and the navigation would).
     with bed.lock:
-        handovers = bed.record.handovers(bed.deployment.connections, t_up, bed.now(), ROBOT)
+        handovers = bed.record.handovers(t_up, bed.now(), ROBOT)
     tolerance = {c.name: c.tolerance_s for c in bed.deployment.connections}
     assert {h['node'] for h in handovers} >= {'amcl', 'ar'}, handovers
     assert all(h['below_s'] < tolerance[h['connection']] for h in handovers), handovers

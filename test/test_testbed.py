@@ -151,11 +151,11 @@ def test_handovers_read_the_moved_nodes_outputs_at_the_scale_it_left(record):
         report.nodes['amcl'].state = state
         report.nodes['amcl'].ready = state == 'running'
         record.agent_states.setdefault(scale, []).append((t, report))
-    rows = record.handovers(record.deployment.connections, 0.0, 60.0, 'robot')
+    rows = record.handovers(0.0, 60.0, 'robot')
     amcl = [(r['t'], r['min_rate_hz'], r['below_s'], r['ready_s'], r['left_s']) for r in rows
             if r['node'] == 'amcl' and r['connection'] == 'amcl_ekf']
     assert amcl == [(10.0, 3.0, 0.0, None, None), (40.0, 0.5, 2.0, 0.4, 1.2)]
-    assert record.handovers(record.deployment.connections, 0.0, 60.0, 'laptop') == []
+    assert record.handovers(0.0, 60.0, 'laptop') == []
 
 
 def test_reported_violations_close_when_the_probe_goes_quiet_or_recovers(record):

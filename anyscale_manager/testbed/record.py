@@ -277,7 +277,7 @@ class Record:
                 return False
         return True
 
-    def handovers(self, connections: Sequence[Connection], t0: float, t1: float, scale: str,
+    def handovers(self, t0: float, t1: float, scale: str,
                   horizon_s: float = 6.0) -> List[Dict[str, object]]:
         """After each move out of ``scale`` in [t0, t1]: how that scale's own probes heard the
         moved node's outputs over the next ``horizon_s``: the least rate read, and the longest
@@ -297,7 +297,7 @@ class Record:
             ready_s = first(e.to_scale, t, e.node, lambda r: r is not None
                             and r.state == 'running' and r.ready)
             left_s = first(scale, t, e.node, lambda r: r is None or r.state != 'running')
-            for c in connections:
+            for c in self.deployment.connections:
                 if c.publisher != e.node or c.freq_min_hz is None:
                     continue
                 seen = [(ts, r) for ts, where, r in self.readings.get(c.name, [])
