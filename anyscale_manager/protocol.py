@@ -160,8 +160,9 @@ class NodeReport(Message):
     restarts: int
     ready: bool
     exit_reason: str
+    lifecycle: Optional[str] = None     # a lifecycle node's state ('inactive', 'active', ...)
     SCHEMA = {'state': str, 'pid': int, 'since': float, 'restarts': int, 'ready': bool,
-              'exit_reason': str}
+              'exit_reason': str, 'lifecycle': ('optional', str)}
 
     def validate(self, where: str) -> None:
         if self.state not in NODE_STATES:

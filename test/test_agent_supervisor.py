@@ -13,7 +13,7 @@ from anyscale_manager import protocol
 from anyscale_manager.agent import procs
 from anyscale_manager.agent.catalogue import (base_environment, build_catalogue, ENV_INSTANCE,
                                               ENV_NODE, ENV_SCALE, Entry, format_parameter)
-from anyscale_manager.agent.reconcile import HEAR_PATIENCE_S, Reconciler, unheard_after_thaw
+from anyscale_manager.agent.reconcile import HEAR_PATIENCE_S, Reconciler
 from anyscale_manager.agent.supervisor import Supervisor
 from anyscale_manager.model import types as t
 from anyscale_manager.model.loader import load_mapping
@@ -518,177 +518,22 @@ def test_unknown_peers_are_ignored():
     assert r.copies_elsewhere('sbs', 0.0) == 0
 
 
-# --- warm standby ---------------------------------------------------------------------------
-
-# A node with a child: both print a tick every 20 ms, so a frozen group stops ticking.
-TICKER = ('import subprocess, sys, time\n'
-          'kid = subprocess.Popen([sys.executable, "-c", "import time\\nwhile True: '
-          'time.sleep(0.02)"])\n'
-          'print(kid.pid, flush=True)\n'
-          'while True:\n'
-          '    time.sleep(0.02)\n')
-
-
-def stat_state(pid):
-    st = procs._stat(pid)
-    return st[0] if st else ''
-
-
-def group_states(pid):
-    return {stat_state(m) for m in procs.session_members(pid)}
-
-
-def ticking(pid):
-    """TICKER's child has exec'd. Between vfork and exec it is a copy of TICKER, and a group
-    frozen then keeps TICKER in 'D' (waiting for its vfork child) until the thaw."""
-    def own_program(member):
-        try:
-            return 'subprocess' not in ' '.join(psutil.Process(member).cmdline())
-        except psutil.Error:
-            return False
-    return any(own_program(m) for m in procs.session_members(pid) if m != pid)
-
-
-def test_standby_freezes_thaws_and_stops_the_whole_group(make_sup):
-    sup = make_sup([py_entry('n', TICKER)])
-    sup.start('n', time.monotonic())
-    pid = sup.pids()['n']
-    assert drive(sup, lambda: sup.reports()['n'].ready and ticking(pid), visible=lambda e: True)
-    # Moved away with park: frozen, not stopped; not live, not in pids().
-    sup.set_wanted((), time.monotonic(), park={'n'})
-    r = sup.reports()['n']
-    assert (r.state, r.pid, r.ready) == ('standby', pid, False)
-    assert wait_for(lambda: group_states(pid) == {'T'}), group_states(pid)
-    assert sup.pids() == {} and sup.active() == () and sup.standby() == ('n',)
-    assert not sup.all_stopped()
-    sup.step(time.monotonic())
-    assert sup.reports()['n'].state == 'standby'    # stays frozen while parked
-    with open(sup.state_path) as f:
-        rec = json.load(f)['nodes']['n']
-    assert rec['standby'] is True and rec['pid'] == pid and rec['ready'] is True
-    # Wanted again: the same process resumes, ready at once (it was ready before).
-    sup.set_wanted({'n'}, time.monotonic(), park={'n'})
-    r = sup.reports()['n']
-    assert (r.state, r.pid, r.ready) == ('running', pid, True)
-    assert wait_for(lambda: 'T' not in group_states(pid)), group_states(pid)
-    assert sup.pids() == {'n': pid}
-    # Frozen again, then no longer parked: thawed and stopped by SIGINT (no SIGTERM needed).
-    sup.set_wanted((), time.monotonic(), park={'n'})
-    assert wait_for(lambda: group_states(pid) == {'T'})
-    sup.set_wanted((), time.monotonic())
-    assert sup.reports()['n'].state == 'stopping'
-    assert drive(sup, lambda: sup.reports()['n'].state == 'stopped')
-    # The leader got the SIGINT (a frozen process gets none but SIGKILL and SIGCONT).
-    assert 'killed by SIGINT' in sup.reports()['n'].exit_reason
-    assert gone(pid) and not procs.session_members(pid)
-
-
-def test_standby_copy_that_dies_is_handled_like_any_exit(make_sup):
+def test_a_live_copy_can_be_restarted_at_once(make_sup):
     sup = make_sup([py_entry('n', SLEEPER)])
     sup.start('n', time.monotonic())
     pid = sup.pids()['n']
     assert drive(sup, lambda: sup.reports()['n'].ready, visible=lambda e: True)
-    sup.set_wanted((), time.monotonic(), park={'n'})
-    os.kill(pid, signal.SIGKILL)
-    assert drive(sup, lambda: sup.reports()['n'].state == 'stopped')
-    assert 'SIGKILL' in sup.reports()['n'].exit_reason
-    # Not wanted: not restarted.
-    time.sleep(FAST.restart_backoff_s * 2)
-    sup.step(time.monotonic())
-    assert sup.reports()['n'].state == 'stopped' and sup.pids() == {}
-
-
-def test_a_thawed_copy_can_be_restarted_cold_at_once(make_sup):
-    sup = make_sup([py_entry('n', TICKER)])
-    sup.start('n', time.monotonic())
-    pid = sup.pids()['n']
-    assert drive(sup, lambda: sup.reports()['n'].ready, visible=lambda e: True)
-    assert sup.thawed_at('n') is None                     # started, not thawed
-    sup.set_wanted((), time.monotonic(), park={'n'})
-    assert sup.thawed_at('n') is None                     # frozen: not live
-    t_thaw = time.monotonic()
-    sup.set_wanted({'n'}, t_thaw, park={'n'})
-    assert sup.thawed_at('n') == t_thaw
     restarts = sup.reports()['n'].restarts
-    assert sup.restart_cold('n', time.monotonic(), 'outputs unheard')
+    assert sup.restart('n', time.monotonic(), 'its lifecycle did not reach active')
     assert gone(pid) and not procs.session_members(pid)
-    assert sup.reports()['n'].state == 'backoff'
-    # Respawned at the next step, no backoff; a fresh process is no thawed one.
+    r = sup.reports()['n']
+    assert r.state == 'backoff' and 'did not reach active' in r.exit_reason
+    # Respawned at the next step, without backoff.
     sup.step(time.monotonic(), visible=lambda e: True)
-    new = sup.pids()['n']
-    assert new != pid and sup.reports()['n'].restarts == restarts + 1
-    assert sup.thawed_at('n') is None
-    assert not sup.restart_cold('ghost', time.monotonic(), 'x')
+    assert sup.pids()['n'] != pid and sup.reports()['n'].restarts == restarts + 1
+    assert not sup.restart('ghost', time.monotonic(), 'x')
     sup.stop_all(time.monotonic())
     assert drive(sup, sup.all_stopped)
-
-
-def test_stop_all_thaws_and_stops_a_frozen_copy(make_sup):
-    sup = make_sup([py_entry('n', SLEEPER)])
-    sup.start('n', time.monotonic())
-    pid = sup.pids()['n']
-    sup.set_wanted((), time.monotonic(), park={'n'})
-    assert wait_for(lambda: stat_state(pid) == 'T')
-    sup.stop_all(time.monotonic())
-    assert drive(sup, sup.all_stopped)
-    # Thawed, then the SIGINT alone ended it (status 1 if it was frozen while the interpreter
-    # was still starting): no SIGTERM or SIGKILL was needed.
-    reason = sup.reports()['n'].exit_reason
-    assert ('SIGINT' in reason or 'status 1' in reason) and 'after SIG' not in reason, reason
-    assert gone(pid)
-
-
-def test_a_frozen_copy_is_adopted_frozen(make_sup):
-    e = py_entry('n', TICKER)
-    first = make_sup([e])
-    first.start('n', time.monotonic())
-    pid = first.pids()['n']
-    assert drive(first, lambda: first.reports()['n'].ready and ticking(pid),
-                 visible=lambda e: True)
-    first.set_wanted((), time.monotonic(), park={'n'})
-    assert wait_for(lambda: group_states(pid) == {'T'})
-    # The agent dies; someone thaws the group meanwhile: the successor freezes it again.
-    procs.signal_session(pid, signal.SIGCONT)
-    second = make_sup([e])
-    notes = second.adopt(time.monotonic(), time.time())
-    assert notes == [f'n: adopted pid {pid} (standby, frozen)']
-    assert second.reports()['n'].state == 'standby' and second.pids() == {}
-    assert wait_for(lambda: group_states(pid) == {'T'})
-    second.set_wanted((), time.monotonic(), park={'n'})
-    second.step(time.monotonic())
-    assert second.reports()['n'].state == 'standby'
-    second.set_wanted({'n'}, time.monotonic(), park={'n'})
-    r = second.reports()['n']
-    assert (r.state, r.pid, r.ready) == ('running', pid, True)
-    assert wait_for(lambda: 'T' not in group_states(pid))
-
-
-def test_standby_copies_count_as_present_instances_for_a_while():
-    d = load_mapping(deployment_dict({
-        'sb': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'standby': True},
-    }))
-    r = Reconciler(d, 'b', ['sb'], readiness_timeout_s=5.0, agent_timeout_s=3.0,
-                   standby_in_graph_s=25.0)
-
-    def report(state, since):
-        return protocol.AgentState(scale='a', generation=1, stamp=1000.0, nodes={
-            'sb': protocol.NodeReport(state=state, pid=7, since=since, restarts=0,
-                                      ready=False, exit_reason='')})
-    r.peer_state(report('standby', 990.0), 0.0)       # frozen 10 s ago
-    assert r.copies_elsewhere('sb', 0.0) == 1 and r.copies_elsewhere('sb', 2.0) == 1
-    r.peer_state(report('standby', 970.0), 0.0)       # frozen 30 s ago: its lease is over
-    assert r.copies_elsewhere('sb', 0.0) == 0
-    r.peer_state(report('stopped', 0.0), 0.0)
-    assert r.copies_elsewhere('sb', 0.0) == 0
-    # Parked on the master only while the layout places it elsewhere (or nowhere).
-    m = Reconciler(d, 'a', ['sb'], readiness_timeout_s=5.0, agent_timeout_s=3.0)
-    assert m.parked(['sb']) == {'sb'}
-    m.apply_layout(protocol.Layout(generation=1, deployment='unit', assignments={'sb': 'a'},
-                                   reason='', stamp=0.0), 0.0)
-    assert m.parked(['sb']) == set()
-    m.apply_layout(protocol.Layout(generation=2, deployment='unit', assignments={'sb': 'b'},
-                                   reason='', stamp=0.0), 1.0)
-    assert m.parked(['sb']) == {'sb'}
 
 
 def test_process_table_and_trees_in_one_pass():
@@ -730,28 +575,3 @@ def test_the_master_itself_is_never_cut_off():
     r.apply_layout(layout(1, {'sbs': 'a', 'sbs2': 'a', 'pinned': 'a'}), 0.0)
     assert not r.cut_off(100.0)
     assert r.desired(100.0, ('sbs', 'sbs2', 'pinned')) == {'sbs', 'sbs2', 'pinned'}
-
-
-def test_a_thawed_copy_unheard_while_fed_is_named_for_a_cold_restart():
-    conns = {'names': ['in', 'out'],
-             'in': {'topic': '/in', 'publisher': 'sensor', 'subscriber': 'worker',
-                    'freq_min_hz': 5.0, 'tolerance_s': 2.0, 'bandwidth_kbps': 1.0},
-             'out': {'topic': '/out', 'publisher': 'worker', 'subscriber': 'sink',
-                     'freq_min_hz': 2.0, 'tolerance_s': 2.0, 'bandwidth_kbps': 1.0}}
-    data = deployment_dict({
-        'sensor': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'residence': ['a']},
-        'worker': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'standby': True},
-        'sink': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'residence': ['a']},
-    })
-    data['/**']['ros__parameters']['connections'] = conns
-    d = load_mapping(data)
-
-    def why(now, rates, thawed_at=10.0):
-        return unheard_after_thaw(d, 'worker', thawed_at, now, rates, patience_s=3.0)
-    assert why(12.9, {'in': 10.0, 'out': 0.0}) == ''            # still within patience
-    unheard = why(13.0, {'in': 10.0, 'out': 0.0})
-    assert 'out at 0 Hz 3.0 s after the thaw while in arrive' in unheard
-    assert why(13.0, {'in': 10.0, 'out': 2.5}) == ''            # heard
-    assert why(13.0, {'in': 0.0, 'out': 0.0}) == ''             # nothing to work on
-    assert why(13.0, {'in': 10.0}) == ''                        # output not measured here
-    assert why(13.0, {'in': 10.0, 'out': 0.0}, thawed_at=None) == ''   # not a thawed copy

@@ -131,6 +131,18 @@ def mutate(fn):
      'no second scale'),
     (lambda p: p['nodes']['ekf'].update(standby=True), 'nodes.ekf.standby',
      'only for a migratable node'),
+    (lambda p: p['nodes']['amcl'].update(lifecycle=False), 'nodes.amcl.standby',
+     'set lifecycle: true'),
+    (lambda p: p['nodes']['amcl'].update(standby=['robot', 'moon']), 'nodes.amcl.standby[1]',
+     "unknown scale 'moon'"),
+    (lambda p: p['nodes']['amcl'].update(standby=['robot', 'laptop'], residence=['robot']),
+     'nodes.amcl.standby', 'cannot migrate'),
+    (lambda p: p['nodes']['amcl'].update(lifecycle='yes'), 'nodes.amcl.lifecycle',
+     'expected true or false'),
+    (lambda p: p['nodes']['decision'].update(lifecycle=True), 'nodes.decision.lifecycle',
+     'only a node the agents start'),
+    (lambda p: p['agent'].update(lifecycle_timeout_s=0.0), 'agent.lifecycle_timeout_s',
+     'out of range'),
     (lambda p: p['nodes']['names'].append('ghost'), 'nodes.ghost', 'has no section'),
     (lambda p: p['nodes'].update(stray={'cpu': 1.0}), 'nodes.stray', 'not listed'),
     (lambda p: p['nodes']['names'].append('bad name'), 'nodes.names', 'not a valid name'),
@@ -227,3 +239,13 @@ def test_validate_exits_2_with_every_error(tmp_path):
     assert f'{bad}: scales.robot.capacity_cpu' in r.stderr
     assert f'{bad}: nodes.amcl.weight' in r.stderr
     assert 'deployment' in r.stdout   # the good file is still summarised
+
+
+def test_standby_scales_are_every_allowed_scale_or_the_listed_ones():
+    d = load_deployment(TESTBED)
+    assert d.node('amcl').lifecycle and d.standby_scales('amcl') == ('robot', 'laptop')
+    assert d.standby_scales('ekf') == ()
+    only_robot = load_mapping(mutate(lambda p: p['nodes']['amcl'].update(standby=['robot'])),
+                              't.yaml')
+    assert only_robot.standby_scales('amcl') == ('robot',)
+    assert only_robot.standby_scales('ar') == ('robot', 'laptop')

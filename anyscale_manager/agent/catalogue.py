@@ -20,23 +20,12 @@ BASE_ENV_PREFIXES = ('ROS_', 'RMW_', 'RCUTILS_', 'FASTRTPS_', 'FASTDDS_', 'CYCLO
 ENV_NODE = 'ANYSCALE_AGENT_NODE'          # marks a child: which catalogue entry it is
 ENV_SCALE = 'ANYSCALE_AGENT_SCALE'        # and which scale's agent started it
 ENV_INSTANCE = 'ANYSCALE_AGENT_INSTANCE'  # a per-start token, checked when adopting
-FASTDDS_PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
-# A frozen standby copy sends no DDS announcements; peers drop a participant whose lease runs
-# out (Fast DDS: 20 s) and need up to seconds to rediscover it when it is thawed. The master's
-# standby copies therefore announce a lease longer than any freeze.
-STANDBY_LEASE_S = 24 * 3600
-
-
-def standby_profile_xml(lease_s: int = STANDBY_LEASE_S) -> str:
-    """A Fast DDS profile whose participants announce a lease of ``lease_s`` seconds."""
-    return ('<?xml version="1.0" encoding="UTF-8"?>\n'
-            '<profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">\n'
-            '  <participant profile_name="anyscale_standby" is_default_profile="true">\n'
-            '    <rtps><builtin><discovery_config>\n'
-            f'      <leaseDuration><sec>{int(lease_s)}</sec></leaseDuration>\n'
-            '    </discovery_config></builtin></rtps>\n'
-            '  </participant>\n'
-            '</profiles>\n')
+# A lifecycle node's services and transition topic, under its own name (``~/...``). Copies of
+# one node on several scales share that name, so one request to ``/amcl/change_state`` would
+# reach them all: each copy gets them remapped to ``~/<scale>/...`` when it starts.
+LIFECYCLE_SERVICES = ('change_state', 'get_state', 'get_available_states',
+                      'get_available_transitions', 'get_transition_graph')
+LIFECYCLE_TOPICS = ('transition_event',)
 
 
 @dataclass(frozen=True)
@@ -49,6 +38,8 @@ class Entry:
     ros_name: str = ''
     move_order: str = t.START_BEFORE_STOP
     problem: str = ''           # why it cannot be started ('' = it can)
+    lifecycle: bool = False
+    services: str = ''          # a lifecycle copy's service namespace: '/amcl/robot'
 
     @property
     def startable(self) -> bool:
@@ -124,9 +115,10 @@ def format_parameter(value: object) -> str:
 
 
 def build_argv(node: t.Node, search_path: str,
-               ament_prefix: Callable[[str], Optional[str]] = _ament_prefix
-               ) -> Tuple[Tuple[str, ...], str]:
-    """The full argv of a node's launch, or ((), problem)."""
+               ament_prefix: Callable[[str], Optional[str]] = _ament_prefix,
+               scale: str = '') -> Tuple[Tuple[str, ...], str]:
+    """The full argv of a node's launch, or ((), problem); a lifecycle node's services are
+    remapped under ``scale``."""
     launch = node.launch
     if launch.command:
         head = list(launch.command)
@@ -150,7 +142,16 @@ def build_argv(node: t.Node, search_path: str,
         argv += ['-r', f'__ns:={full.rsplit("/", 1)[0]}']
     for key in sorted(launch.parameters):
         argv += ['-p', f'{key}:={format_parameter(launch.parameters[key])}']
+    if node.lifecycle and scale:
+        for name in LIFECYCLE_SERVICES + LIFECYCLE_TOPICS:
+            argv += ['-r', f'~/{name}:=~/{scale}/{name}']
     return tuple(argv), ''
+
+
+def lifecycle_services(node: t.Node, scale: str) -> str:
+    """Where ``scale``'s copy of a lifecycle node serves its lifecycle: '/ns/amcl/robot'."""
+    full = ros_full_name(node)
+    return ('' if full.startswith('/') else '/') + f'{full}/{scale}'
 
 
 def ros_base_name(node: t.Node) -> str:
@@ -167,12 +168,8 @@ def ros_full_name(node: t.Node) -> str:
 def build_catalogue(deployment: t.Deployment, scale: str,
                     environ: Optional[Mapping[str, str]] = None,
                     ament_prefix: Callable[[str], Optional[str]] = _ament_prefix,
-                    standby_profile: str = '') -> Dict[str, Entry]:
-    """Every managed, startable node that may run on ``scale``, in deployment order.
-
-    ``standby_profile``: a Fast DDS profile file (standby_profile_xml) given to the master's
-    standby nodes, unless their environment already names a profile of its own.
-    """
+                    ) -> Dict[str, Entry]:
+    """Every managed, startable node that may run on ``scale``, in deployment order."""
     if scale not in deployment.scale_names:
         raise ValueError(f'{deployment.source}: unknown scale {scale!r} (scales: '
                          f'{", ".join(deployment.scale_names)})')
@@ -188,12 +185,10 @@ def build_catalogue(deployment: t.Deployment, scale: str,
         env.update({str(k): str(v) for k, v in node.launch.env.items()})
         env[ENV_NODE] = node.name
         env[ENV_SCALE] = scale
-        if standby_profile and node.standby and scale == deployment.master.name \
-                and not any(v in env for v in FASTDDS_PROFILE_VARS):
-            for var in FASTDDS_PROFILE_VARS:   # Fast DDS 2 reads the first, 3 the second
-                env[var] = standby_profile
-        argv, problem = build_argv(node, env.get('PATH', os.defpath), ament_prefix)
+        argv, problem = build_argv(node, env.get('PATH', os.defpath), ament_prefix, scale)
         out[node.name] = Entry(name=node.name, argv=argv, env=t.frozen_map(env),
                                ros_name=ros_full_name(node), move_order=node.move_order,
-                               problem=problem)
+                               problem=problem, lifecycle=node.lifecycle,
+                               services=lifecycle_services(node, scale) if node.lifecycle
+                               else '')
     return out

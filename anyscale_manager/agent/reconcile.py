@@ -16,26 +16,27 @@ on its old one:
 So two copies of a node overlap at most ``readiness_timeout_s`` plus the stop graces
 (start_before_stop) and never (stop_before_start) while the agents hear each other.
 
+A lifecycle node with standby keeps a live, inactive copy on every scale in its standby list
+(``standby_here``): "runs here" then means "is active here", and a move is an activation on
+the gaining scale and a deactivation on the losing one, under the same move orders.
+
 A remote scale cut off from the master (neither the master's agent nor the decider heard for
 ``agent_timeout_s``) stops its migratable nodes: the decider, on the master, has brought them
 home when it saw the link go down, and a copy left running here would publish stale results
-beside them once the link is back. They stay stopped until a newer layout arrives. While only
+beside them once the link is back. They stay stopped (a standby copy: inactive) until a newer
+layout arrives. While only
 the decider is silent the agents keep running what runs (fail-static), and while only the
 master's agent is silent the decider may place that scale's nodes here.
 """
 
 from dataclasses import dataclass
-from typing import Callable, Dict, Iterable, List, Mapping, Optional, Set, Tuple
+from typing import Callable, Dict, FrozenSet, Iterable, List, Mapping, Optional, Set, Tuple
 
 from ..model import types as t
 from ..protocol import AgentState, Layout
 
 LIVE = ('starting', 'running', 'stopping')
-STANDBY = 'standby'
 NO_GENERATION = -1
-# A frozen copy stays in the others' ROS graph until its DDS participant lease runs out (Fast
-# DDS: 20 s); with slack, it counts as a present instance that long after it was frozen.
-STANDBY_IN_GRAPH_S = 25.0
 # How long a losing scale keeps its copy past the new copy's ready report while it has not heard
 # the new copy (its inputs may not reach it yet; or the copies' sequence numbers overlap).
 HEAR_PATIENCE_S = 5.0
@@ -49,7 +50,6 @@ class Peer:
     generation: int
     heard: float
     nodes: Mapping[str, Tuple[str, bool]]     # node -> (state, ready)
-    frozen_for: Optional[Mapping[str, float]] = None   # standby node -> s frozen, when heard
 
 
 @dataclass(frozen=True)
@@ -60,14 +60,15 @@ class LayoutVerdict:
 
 class Reconciler:
     def __init__(self, deployment: t.Deployment, scale: str, catalogue: Iterable[str],
-                 readiness_timeout_s: float, agent_timeout_s: float,
-                 standby_in_graph_s: float = STANDBY_IN_GRAPH_S):
+                 readiness_timeout_s: float, agent_timeout_s: float):
         self.deployment = deployment
         self.scale = scale
         self.catalogue = tuple(catalogue)
         self.readiness_timeout_s = readiness_timeout_s
         self.agent_timeout_s = agent_timeout_s
-        self.standby_in_graph_s = standby_in_graph_s
+        # Nodes that keep an inactive copy here wherever the layout places them.
+        self.standby_here: FrozenSet[str] = frozenset(
+            n for n in self.catalogue if scale in deployment.standby_scales(n))
         self.generation = NO_GENERATION
         self.assignments: Dict[str, str] = {}
         self._moved_at: Dict[str, float] = {}
@@ -147,40 +148,23 @@ class Reconciler:
             self.heard_master(now)
         self.peers[state.scale] = Peer(
             scale=state.scale, generation=state.generation, heard=now,
-            nodes={n: (r.state, r.ready) for n, r in state.nodes.items()},
-            frozen_for={n: max(0.0, state.stamp - r.since) for n, r in state.nodes.items()
-                        if r.state == STANDBY})
+            nodes={n: (r.state, r.ready) for n, r in state.nodes.items()})
         return None
 
     def _fresh(self, now: float) -> List[Peer]:
         return [p for p in self.peers.values() if now - p.heard <= self.agent_timeout_s]
 
     def copies_elsewhere(self, node: str, now: float) -> int:
-        """How many instances of ``node`` other live agents account for in the ROS graph.
-
-        A live copy counts; so does a frozen (standby) copy while it may still be in the graph
-        (``standby_in_graph_s`` after it was frozen), so that it is not taken for ours.
-        """
-        count = 0
-        for p in self._fresh(now):
-            state = p.nodes.get(node, ('', False))[0]
-            if state in LIVE:
-                count += 1
-            elif state == STANDBY:
-                frozen = (p.frozen_for or {}).get(node, 0.0) + (now - p.heard)
-                count += frozen < self.standby_in_graph_s
-        return count
-
-    def parked(self, standby_nodes: Iterable[str]) -> Set[str]:
-        """Which of these nodes to keep frozen rather than stop: those not placed here."""
-        return {n for n in standby_nodes if n in self.catalogue
-                and self.assignments.get(n) != self.scale}
+        """How many live instances of ``node`` other live agents account for in the ROS graph
+        (a plain node's readiness counts the instances of its name)."""
+        return sum(p.nodes.get(node, ('', False))[0] in LIVE for p in self._fresh(now))
 
     # --- the decision of what runs here ---------------------------------------------------
     def desired(self, now: float, active: Iterable[str],
                 heard_here: Optional[Callable[[str, float], Optional[bool]]] = None
                 ) -> Set[str]:
-        """Catalogue nodes that should have a live process here now.
+        """Catalogue nodes that should serve here now: a live process, and for a lifecycle
+        node an active one (``active``: those that do now).
 
         ``heard_here(node, since)``: whether this scale hears the node's new copy elsewhere
         (a newly started writer of its outputs heard here since the move at ``since``); None
@@ -253,28 +237,3 @@ class Reconciler:
             return False
         state, ready = peer.nodes.get(node, ('stopped', False))
         return state == 'running' and ready
-
-
-def unheard_after_thaw(deployment: t.Deployment, node: str, thawed_at: Optional[float],
-                       now: float, rates: Mapping[str, float], patience_s: float) -> str:
-    """Why a thawed standby copy should be started afresh ('' if it should not).
-
-    ``rates``: the connections this scale's probes measure (Hz). Past ``patience_s`` after the
-    thaw, if every output of the node measured here reads 0 Hz while an input it needs, measured
-    here too, reads more, the copy works for nobody: a long freeze can leave a process's DDS
-    participant unmatched from the others for good (docs/testbed.md). A fresh process is
-    discovered like any other.
-    """
-    if thawed_at is None or now - thawed_at < patience_s:
-        return ''
-    outputs = [c.name for c in deployment.connections
-               if c.publisher == node and c.name in rates]
-    inputs = [c.name for c in deployment.connections
-              if c.subscriber == node and c.name in rates]
-    if not outputs or any(rates[n] > 0 for n in outputs):
-        return ''
-    fed = [n for n in inputs if rates[n] > 0]
-    if inputs and not fed:
-        return ''      # nothing to work on: its silence is its inputs'
-    return (f'{", ".join(outputs)} at 0 Hz {now - thawed_at:.1f} s after the thaw'
-            + (f' while {", ".join(fed)} arrive' if fed else ''))

@@ -11,11 +11,8 @@ is restarted after a backoff that doubles up to ``restart_backoff_max_s``. A sta
 what runs, so that a restarted agent adopts its nodes (pid, process start time and a per-start
 token must all match) instead of starting them twice.
 
-Warm standby: a node named in ``set_wanted``'s ``park`` that is no longer wanted is frozen
-(SIGSTOP to its whole group and session, state ``standby``) instead of stopped; wanted again, it
-is thawed (SIGCONT) and reported running, ready at once if it was ready before. A frozen copy is
-not live: it is not in ``active()`` nor ``pids()``. Stopping one sends SIGCONT first, since a
-stopped process gets no other signal than SIGKILL and SIGCONT.
+Processes only: a lifecycle node's states (a standby copy is a live, inactive process) are the
+caller's (agent/lifecycle.py); its ``visible`` predicate says when such a process answers.
 """
 
 import json
@@ -33,7 +30,6 @@ from ..model.types import AgentSettings
 STATE_VERSION = 1
 LOG_ROTATE_BYTES = 10 * 1024 * 1024
 ACTIVE = ('starting', 'running', 'stopping')
-STANDBY = 'standby'
 
 
 @dataclass(frozen=True)
@@ -72,8 +68,6 @@ class _Proc:
     adopted: bool = False
     failed_spawns: int = 0
     history: List[str] = field(default_factory=list)
-    frozen_ready: bool = False    # it was ready when frozen: ready again at once on thaw
-    thawed_at: Optional[float] = None   # when this process was last thawed (None: not since)
 
 
 class Supervisor:
@@ -96,8 +90,8 @@ class Supervisor:
         return tuple(self._procs)
 
     def reports(self) -> Dict[str, Report]:
-        return {n: Report(p.state, p.pid if p.state in ACTIVE + (STANDBY,) else 0, p.since,
-                          p.restarts, p.ready and p.state != STANDBY, p.exit_reason)
+        return {n: Report(p.state, p.pid if p.state in ACTIVE else 0, p.since,
+                          p.restarts, p.ready, p.exit_reason)
                 for n, p in self._procs.items()}
 
     def state(self, name: str) -> str:
@@ -107,34 +101,24 @@ class Supervisor:
         """Nodes with a live process here (starting, running or stopping)."""
         return tuple(n for n, p in self._procs.items() if p.state in ACTIVE)
 
-    def standby(self) -> Tuple[str, ...]:
-        """Nodes with a frozen copy here (not live: no CPU, not counted as running)."""
-        return tuple(n for n, p in self._procs.items() if p.state == STANDBY)
-
     def pids(self) -> Dict[str, int]:
-        """Live nodes' pids; a frozen copy is left out (it would read as 0 CPU)."""
+        """Live nodes' pids."""
         return {n: p.pid for n, p in self._procs.items() if p.state in ACTIVE and p.pid}
 
     def wanted(self) -> Tuple[str, ...]:
         return tuple(n for n, p in self._procs.items() if p.wanted)
 
     def all_stopped(self) -> bool:
-        return not self._ghosts and all(p.state not in ACTIVE + (STANDBY,)
-                                        for p in self._procs.values())
+        return not self._ghosts and all(p.state not in ACTIVE for p in self._procs.values())
 
     def log_path(self, name: str) -> str:
         return os.path.join(self.log_dir, f'{name}.log')
 
     # --- commands -------------------------------------------------------------------------
-    def set_wanted(self, names: Iterable[str], now: float, park: Iterable[str] = ()) -> None:
-        """Start the named nodes and stop every other; names outside the catalogue are refused.
-
-        A node in ``park`` that is not wanted is frozen (kept in standby) instead of stopped, and
-        a frozen copy no longer in ``park`` is stopped.
-        """
+    def set_wanted(self, names: Iterable[str], now: float) -> None:
+        """Start the named nodes and stop every other; names outside the catalogue are refused."""
         wanted = set(names)
-        park = set(park) - wanted
-        unknown = (wanted | park) - set(self._procs)
+        unknown = wanted - set(self._procs)
         if unknown:
             raise KeyError(f'not in the catalogue: {", ".join(sorted(unknown))}')
         for name, p in self._procs.items():
@@ -144,28 +128,16 @@ class Supervisor:
                     p.backoff_s = self.settings.restart_backoff_s
                     if p.state in ('stopped', 'failed', 'backoff'):
                         self._spawn(p, now)
-                if p.state == STANDBY:
-                    self._thaw(p, now)
             elif p.wanted:
                 p.wanted = False
-                if name in park and p.state in ('starting', 'running'):
-                    self._freeze(p, now)
-                else:
-                    self._begin_stop(p, now)
-            elif p.state == STANDBY and name not in park:
                 self._begin_stop(p, now)
 
     def start(self, name: str, now: float) -> None:
         self.set_wanted(set(self.wanted()) | {name}, now)
 
-    def thawed_at(self, name: str) -> Optional[float]:
-        """When the live process of ``name`` was thawed, or None if it was not since it began."""
-        p = self._procs.get(name)
-        return p.thawed_at if p is not None and p.state in ('starting', 'running') else None
-
-    def restart_cold(self, name: str, now: float, why: str) -> bool:
+    def restart(self, name: str, now: float, why: str) -> bool:
         """Replace the live process of ``name`` with a fresh one at the next step, without
-        backoff: for a thawed copy that does not serve. False if it is not live."""
+        backoff: for a copy alive but unusable (its lifecycle stuck). False if it is not live."""
         p = self._procs.get(name)
         if p is None or p.state not in ('starting', 'running') or not p.pid:
             return False
@@ -175,15 +147,15 @@ class Supervisor:
                 p.popen.wait(timeout=2.0)
             except subprocess.TimeoutExpired:
                 pass
-        self._event('warn', f'{name}: pid {p.pid} restarted cold: {why}')
-        self._gone(p, now, f'restarted cold: {why}', restart_at=now)
+        self._event('warn', f'{name}: pid {p.pid} restarted: {why}')
+        self._gone(p, now, f'restarted: {why}', restart_at=now)
         return True
 
     def stop(self, name: str, now: float) -> None:
         self.set_wanted(set(self.wanted()) - {name}, now)
 
     def stop_all(self, now: float) -> None:
-        self.set_wanted((), now)     # frozen copies too
+        self.set_wanted((), now)
 
     def kill_all(self, now: float) -> None:
         """Skip the graces: SIGKILL every group now (a second shutdown request)."""
@@ -236,10 +208,6 @@ class Supervisor:
                     p.exit_reason = ''
                 if now - p.running_since >= self.settings.restart_backoff_max_s:
                     p.backoff_s = self.settings.restart_backoff_s
-        elif p.state == STANDBY:
-            code, gone = self._leader_exit(p)
-            if gone:                  # a frozen copy that dies is handled like any exit
-                self._crashed(p, now, code)
         elif p.state == 'stopping':
             self._step_stopping(p, now)
         elif p.state in ('backoff', 'failed'):
@@ -311,7 +279,6 @@ class Supervisor:
             self._event('error', f'{entry.name}: cannot start: {p.exit_reason}')
             return
         p.instance = uuid.uuid4().hex
-        p.thawed_at = None
         env = dict(entry.env)
         env[ENV_INSTANCE] = p.instance
         try:
@@ -391,41 +358,15 @@ class Supervisor:
         """The process is gone (killed or exited): back off until ``restart_at``."""
         p.popen = None
         p.pid = 0
-        p.thawed_at = None
         self._set(p, 'backoff', now, ready=False, reason=reason)
         p.restart_at = restart_at
         self._dirty = True
-
-    def _freeze(self, p: _Proc, now: float) -> None:
-        """Keep a warm copy: SIGSTOP its group and session; it is thawed when wanted again."""
-        p.strays = tuple(set(p.strays) | set(procs.descendants(p.pid)))
-        p.frozen_ready = p.ready
-        procs.signal_session(p.pid, signal.SIGSTOP, p.strays)
-        self._set(p, STANDBY, now, ready=False, reason='')
-        self._event('info', f'{p.entry.name}: frozen pid {p.pid} (standby, SIGSTOP)')
-        self.save()
-
-    def _thaw(self, p: _Proc, now: float) -> None:
-        procs.signal_session(p.pid, signal.SIGCONT, p.strays)
-        if p.frozen_ready:
-            # It was in the graph before: its name still is (or is back within a lease).
-            self._set(p, 'running', now, ready=True, reason='')
-        else:
-            p.ready_deadline = now + self.settings.readiness_timeout_s
-            self._set(p, 'starting', now, ready=False, reason='')
-        p.running_since = now
-        p.thawed_at = now
-        self._event('info', f'{p.entry.name}: resumed pid {p.pid} (SIGCONT)')
-        self.save()
 
     def _begin_stop(self, p: _Proc, now: float) -> None:
         if p.state in ('backoff', 'failed'):
             self._set(p, 'stopped', now, ready=False, reason=p.exit_reason)
             return
-        if p.state == STANDBY:
-            # A stopped process gets no SIGINT or SIGTERM: thaw it so it can exit cleanly.
-            procs.signal_session(p.pid, signal.SIGCONT, p.strays)
-        elif p.state not in ('starting', 'running'):
+        if p.state not in ('starting', 'running'):
             return
         p.strays = tuple(set(p.strays) | set(procs.descendants(p.pid)))
         self._set(p, 'stopping', now, ready=False, reason='')
@@ -441,13 +382,10 @@ class Supervisor:
             return
         nodes = {}
         for name, p in list(self._procs.items()) + list(self._ghosts.items()):
-            if p.state in ACTIVE + (STANDBY,) and p.pid:
+            if p.state in ACTIVE and p.pid:
                 nodes[name] = {'pid': p.pid, 'started': p.started, 'instance': p.instance,
                                'argv': list(p.entry.argv), 'restarts': p.restarts,
                                'stopping': p.state == 'stopping'}
-                if p.state == STANDBY:
-                    nodes[name]['standby'] = True
-                    nodes[name]['ready'] = p.frozen_ready
         data = dict(self.identity, version=STATE_VERSION, agent_pid=os.getpid(), nodes=nodes)
         os.makedirs(os.path.dirname(self.state_path) or '.', exist_ok=True)
         tmp = f'{self.state_path}.{os.getpid()}.tmp'
@@ -499,28 +437,16 @@ class Supervisor:
                 # Ours, but no longer in the catalogue: stop it, never restart it.
                 ghost = _Proc(entry=Entry(name=name, argv=argv))
                 self._take(ghost, pid, started, instance, now, wall_now, rec)
-                if rec.get('standby') is True:
-                    ghost.state = STANDBY      # so that the stop thaws it first
                 self._begin_stop(ghost, now)
                 self._ghosts[name] = ghost
                 notes.append(f'{name}: pid {pid} is not in the catalogue; stopping it')
                 continue
             self._take(p, pid, started, instance, now, wall_now, rec)
-            if argv != p.entry.argv or rec.get('stopping'):
+            if argv != p.entry.argv or rec.get('stopping') or rec.get('standby'):
                 p.wanted = False
-                if rec.get('standby') is True:
-                    p.state = STANDBY      # so that the stop thaws it first
                 self._begin_stop(p, now)
                 notes.append(f'{name}: adopted pid {pid} runs an outdated command or was being '
                              'stopped; stopping it')
-            elif rec.get('standby') is True:
-                # Re-adopted frozen: the caller's park keeps it so, or thaws or stops it.
-                p.wanted = False
-                p.strays = procs.descendants(pid)
-                p.frozen_ready = rec.get('ready') is True
-                procs.signal_session(pid, signal.SIGSTOP, p.strays)
-                self._set(p, STANDBY, now, ready=False, reason='')
-                notes.append(f'{name}: adopted pid {pid} (standby, frozen)')
             else:
                 p.wanted = True
                 notes.append(f'{name}: adopted pid {pid}')
@@ -534,6 +460,9 @@ class Supervisor:
         p.instance = instance
         p.popen = None
         p.adopted = True
+        if rec.get('standby'):
+            # Recorded frozen (SIGSTOP) by an agent of an earlier version: it must run to stop.
+            procs.signal_session(pid, signal.SIGCONT, procs.descendants(pid))
         p.restarts = int(rec.get('restarts', 0)) if str(rec.get('restarts', 0)).isdigit() else 0
         p.backoff_s = self.settings.restart_backoff_s
         p.ready_deadline = now + self.settings.readiness_timeout_s

@@ -340,6 +340,8 @@ def _read_node(name: str, sec: _Section) -> t.Node:
     perf_default = (settings.performance[len(settings.performance) // 2]
                     if settings and settings.performance else 0.0)
     migratable = sec.boolean('migratable', None) if sec.has('migratable') else None
+    standby = (sec.strings('standby', ()) or False) if isinstance(sec.data.get('standby'), list) \
+        else sec.boolean('standby', False)
     node = t.Node(
         name=name,
         launch=launch,
@@ -352,7 +354,9 @@ def _read_node(name: str, sec: _Section) -> t.Node:
         managed=sec.boolean('managed', True),
         move_order=sec.string('move_order', t.START_BEFORE_STOP,
                               choices=(t.START_BEFORE_STOP, t.STOP_BEFORE_START)),
-        standby=sec.boolean('standby', False),
+        lifecycle=sec.boolean('lifecycle', False),
+        standby=standby is not False,
+        standby_on=standby if isinstance(standby, tuple) else (),
         settings=settings,
     )
     if node.cpu is MISSING:
@@ -452,6 +456,21 @@ def _derived_checks(ctx: _Context, d: t.Deployment) -> None:
         if n.standby and n.name not in d.migratable_nodes:
             ctx.error(f'nodes.{n.name}.standby', 'a standby copy is kept only for a migratable '
                                                  'node, and this node cannot migrate')
+        elif n.standby and not n.lifecycle:
+            ctx.error(f'nodes.{n.name}.standby', 'a standby copy is an inactive lifecycle node: '
+                                                 'set lifecycle: true (and make the node a '
+                                                 'lifecycle node, docs/lifecycle.md)')
+        if n.lifecycle and not n.managed:
+            ctx.error(f'nodes.{n.name}.lifecycle', 'only a node the agents start (managed) is '
+                                                   'driven through its lifecycle')
+        for i, scale in enumerate(n.standby_on):
+            if scale not in d.scale_names:
+                ctx.error(f'nodes.{n.name}.standby[{i}]', f'unknown scale {scale!r} (scales: '
+                                                          f'{", ".join(d.scale_names)})')
+            elif scale not in d.allowed_scales(n.name):
+                ctx.error(f'nodes.{n.name}.standby[{i}]',
+                          f'{scale!r} is not a scale the node may run on (allowed: '
+                          f'{", ".join(d.allowed_scales(n.name))})')
         if n.migratable is True and n.name not in d.migratable_nodes and n.name not in critical:
             ctx.error(f'nodes.{n.name}.migratable',
                       'declared migratable, but its residence, coresidence or launch leaves it '
@@ -521,6 +540,7 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
         'sigint_grace_s': dict(low=0, high=3600),
         'sigterm_grace_s': dict(low=0, high=3600),
         'readiness_timeout_s': dict(low=0, high=3600, low_open=True),
+        'lifecycle_timeout_s': dict(low=0, high=3600, low_open=True),
         'restart_backoff_s': dict(low=0, high=3600),
         'restart_backoff_max_s': dict(low=0, high=86400),
         'heartbeat_rate_hz': dict(low=0, high=1000, low_open=True),

@@ -115,7 +115,9 @@ class Node:
     migratable: Optional[bool] = None  # None = derive; False = never move it
     managed: bool = True              # False: the agent does not start it (e.g. the decider)
     move_order: str = START_BEFORE_STOP
-    standby: bool = False             # keep a frozen copy on the master while it runs remotely
+    lifecycle: bool = False           # a managed (lifecycle) node: driven through its services
+    standby: bool = False             # keep an inactive copy on every scale it may run on...
+    standby_on: Tuple[str, ...] = ()  # ...or only on these (empty: all of them)
     settings: Optional[Settings] = None
 
     @property
@@ -175,6 +177,7 @@ class AgentSettings:
     sigint_grace_s: float = 5.0
     sigterm_grace_s: float = 3.0
     readiness_timeout_s: float = 15.0
+    lifecycle_timeout_s: float = 5.0      # a lifecycle transition not answered by then failed
     restart_backoff_s: float = 1.0
     restart_backoff_max_s: float = 30.0
     heartbeat_rate_hz: float = 2.0
@@ -319,6 +322,14 @@ class Deployment:
                 allowed &= set(self.own_scales(member))
             out[n.name] = tuple(s for s in self.scale_names if s in allowed)
         return frozen_map(out)
+
+    def standby_scales(self, node: str) -> Tuple[str, ...]:
+        """Scales that keep an inactive copy of ``node`` while it runs elsewhere."""
+        n = self.node(node)
+        if not (n.standby and n.lifecycle):
+            return ()
+        allowed = self.allowed_scales(node)
+        return tuple(s for s in allowed if not n.standby_on or s in n.standby_on)
 
     @cached_property
     def migratable_nodes(self) -> Tuple[str, ...]:

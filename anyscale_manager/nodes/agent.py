@@ -5,8 +5,11 @@
 Glue only: the catalogue, the supervisor and the move-order rules live in anyscale_manager.agent.
 The node subscribes to the latched layout and to the other agents' reports, publishes its own
 report (latched) on every change and at ``agent.heartbeat_rate_hz``, and drives the supervisor
-from a timer. SIGINT or SIGTERM stops every node it runs (SIGINT, SIGTERM, SIGKILL with the
-configured graces) while it keeps reporting, then it exits 0; a second signal skips the graces.
+from a timer. A lifecycle node is driven through its own copy's services (agent/lifecycle.py):
+configured once started, active where the layout places it, inactive as a standby copy, and
+finalized before its process is signalled. SIGINT or SIGTERM stops every node it runs (SIGINT,
+SIGTERM, SIGKILL with the configured graces) while it keeps reporting, then it exits 0; a second
+signal skips the graces.
 """
 
 import array
@@ -28,9 +31,11 @@ from std_msgs.msg import String
 
 from . import qos
 from .executor import make_executor
+from .lifecycle_client import CopyClients
 from .. import protocol
-from ..agent.catalogue import build_catalogue, Entry, standby_profile_xml
-from ..agent.reconcile import Reconciler, unheard_after_thaw
+from ..agent import lifecycle as lc
+from ..agent.catalogue import build_catalogue, Entry
+from ..agent.reconcile import Reconciler
 from ..agent.supervisor import Supervisor
 from ..model.loader import DeploymentError, load_from_parameters
 
@@ -42,9 +47,6 @@ except ImportError as exc:   # a broken install: the agent still supervises with
     _MONITORS_MISSING = str(exc)
 
 TICK_S = 0.1
-# A thawed standby copy has this long beyond one probe window to be heard: it normally is within
-# about a second, but a CPU-starved robot may take a few.
-THAW_PATIENCE_S = 3.0
 SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 
@@ -118,12 +120,7 @@ class AgentNode(Node):
         stem = os.path.join(state_dir, f'agent_{d.name}_{scale}')
         self._take_lock(stem + '.lock')
 
-        profile = ''
-        if scale == d.master.name and any(d.node(n).standby for n in d.migratable_nodes):
-            profile = stem + '_standby_fastdds.xml'
-            with open(profile, 'w', encoding='utf-8') as f:
-                f.write(standby_profile_xml())
-        self.catalogue: Dict[str, Entry] = build_catalogue(d, scale, standby_profile=profile)
+        self.catalogue: Dict[str, Entry] = build_catalogue(d, scale)
         for entry in self.catalogue.values():
             if entry.problem:
                 self.get_logger().error(f'{entry.name}: {entry.problem}')
@@ -133,9 +130,16 @@ class AgentNode(Node):
         self.reconciler = Reconciler(d, scale, self.catalogue,
                                      readiness_timeout_s=self.settings.readiness_timeout_s,
                                      agent_timeout_s=d.decider.agent_timeout_s)
-        # Warm standby is the master's: a node moved away is frozen there instead of stopped.
-        self._standby_nodes = tuple(
-            n for n in self.catalogue if d.node(n).standby) if scale == d.master.name else ()
+        s = self.settings
+        self._lifecycle: Dict[str, CopyClients] = {
+            name: CopyClients(self, entry.services,
+                              lc.Driver(name, change_timeout_s=s.lifecycle_timeout_s,
+                                        backoff_s=max(s.restart_backoff_s, 0.1),
+                                        backoff_max_s=max(s.restart_backoff_max_s, 0.1)),
+                              time.monotonic, self._tick)
+            for name, entry in self.catalogue.items() if entry.lifecycle and entry.startable}
+        self._lifecycle_pid: Dict[str, int] = {}
+        self._finalize_since: Dict[str, float] = {}
         self._wall_offset = time.time() - time.monotonic()
         for note in self.supervisor.adopt(time.monotonic(), time.time()):
             self.get_logger().info(f'adoption: {note}')
@@ -190,8 +194,7 @@ class AgentNode(Node):
                                    'this agent supervises nodes only')
             return
         d, scale = self.deployment, self.scale
-        builders = (('ScaleMonitor', lambda cls: cls(self, d, scale,
-                                                     pids=self.supervisor.pids)),
+        builders = (('ScaleMonitor', lambda cls: cls(self, d, scale, pids=self._serving_pids)),
                     ('LinkMonitor', lambda cls: cls(self, d, scale)),
                     ('ProbeManager', lambda cls: cls(self, d, scale,
                                                      watch_node=self._handover_node())))
@@ -266,35 +269,115 @@ class AgentNode(Node):
                 counts[key] = counts.get(key, 0) + 1
         return counts
 
+    def _serving(self) -> set:
+        """Nodes that serve here now: a live plain process, or a lifecycle copy that is active
+        or being activated (not one whose state is not known yet)."""
+        out = set()
+        sup = self.supervisor
+        for name in sup.active():
+            clients = self._lifecycle.get(name)
+            if clients is None:
+                out.add(name)
+            elif sup.state(name) != 'stopping':
+                d = clients.driver
+                if d.state == lc.ACTIVE or (d.known and d.goal == lc.ACTIVE and not d.failed):
+                    out.add(name)
+        return out
+
+    def _serving_pids(self) -> Dict[str, int]:
+        """The pids of the copies that serve: an inactive standby copy's CPU is not its node's."""
+        serving = self._serving()
+        return {n: pid for n, pid in self.supervisor.pids().items() if n in serving}
+
     def _tick(self) -> None:
         now = time.monotonic()
         sup = self.supervisor
         probes = getattr(self, '_probes', None)
         if probes is not None:
             probes.poll_writers(now)
+        before = self._lifecycle_view()
         if self._shutdown_requested:
-            sup.stop_all(now)
+            want: set = set()
+            goals = {n: lc.FINALIZED for n in self._lifecycle}
         else:
-            want = self.reconciler.desired(now, sup.active(), heard_here=self._heard_here)
-            sup.set_wanted(want, now, park=self.reconciler.parked(self._standby_nodes))
+            want = self.reconciler.desired(now, self._serving(), heard_here=self._heard_here)
+            goals = {n: lc.ACTIVE if n in want else
+                     lc.INACTIVE if n in self.reconciler.standby_here else lc.FINALIZED
+                     for n in self._lifecycle}
+            want |= {n for n, g in goals.items() if g == lc.INACTIVE}
             waiting = self.reconciler.waiting
             for node, why in waiting.items():
                 if self._last_waiting.get(node) != why.split(' (')[0]:
                     self.get_logger().info(f'{node}: {why}')
             self._last_waiting = {n: w.split(' (')[0] for n, w in waiting.items()}
-        counts = self._visible_counts()
+        want |= {n for n, g in goals.items() if g == lc.FINALIZED and self._finalizing(n, now)}
+        sup.set_wanted(want, now)
+        self._sync_drivers()
+        for name, goal in goals.items():
+            driver = self._lifecycle[name].driver
+            # A copy whose state is not known yet (just started, or adopted) is only asked
+            # for it: activating or deactivating it blind could leave two copies serving.
+            driver.set_goal(goal if driver.known or goal == lc.FINALIZED else None)
+        counts = self._visible_counts() if len(self._lifecycle) < len(self.catalogue) else {}
 
         def visible(entry: Entry) -> bool:
+            if entry.lifecycle:
+                # Up once it answers get_state on its own services.
+                return entry.name in self._lifecycle and self._lifecycle[entry.name].driver.known
             # A copy still running on another scale has the same name: count ours.
             elsewhere = self.reconciler.copies_elsewhere(entry.name, now)
             return counts.get(entry.ros_name, 0) > elsewhere
 
         changed = sup.step(now, visible)
-        self._restart_unheard(now)
+        self._sync_drivers()
+        self._drive_lifecycles(now)
         self._log_events()
-        if changed:
+        if changed or self._lifecycle_view() != before:
             self._publish_state()
             self._update_probes()
+
+    def _lifecycle_view(self) -> Dict[str, tuple]:
+        return {n: (c.driver.state, c.driver.goal, c.driver.failed)
+                for n, c in self._lifecycle.items()}
+
+    def _finalizing(self, name: str, now: float) -> bool:
+        """Whether a lifecycle copy that must stop keeps its process a while longer: until it
+        is finalized, its driver gave up, or lifecycle_timeout_s has passed since it was asked
+        (a node that does not answer is signalled all the same)."""
+        if self.supervisor.state(name) not in ('starting', 'running'):
+            self._finalize_since.pop(name, None)
+            return False
+        driver = self._lifecycle[name].driver
+        since = self._finalize_since.setdefault(name, now)
+        if driver.state == lc.FINALIZED or driver.failed \
+                or now - since > self.settings.lifecycle_timeout_s:
+            return False
+        return True
+
+    def _sync_drivers(self) -> None:
+        """A new process (started, restarted or gone) starts its driver afresh."""
+        pids = self.supervisor.pids()
+        for name, clients in self._lifecycle.items():
+            pid = pids.get(name, 0)
+            if self._lifecycle_pid.get(name, 0) != pid:
+                self._lifecycle_pid[name] = pid
+                clients.driver.reset()
+                self._finalize_since.pop(name, None)
+
+    def _drive_lifecycles(self, now: float) -> None:
+        sup = self.supervisor
+        for name, clients in self._lifecycle.items():
+            driver = clients.driver
+            if sup.state(name) not in ('starting', 'running'):
+                continue
+            if driver.failed and driver.goal in (lc.ACTIVE, lc.INACTIVE):
+                sup.restart(name, now, f'its lifecycle did not reach {driver.goal}: '
+                                       f'{driver.problem}')
+                continue
+            clients.poll()
+            for level, text in driver.events:
+                sup.events.append((level, text))
+            driver.events.clear()
 
     def _heard_here(self, node: str, since: float) -> Optional[bool]:
         """Whether this scale has heard, since ``since``, a newly started writer (the node's
@@ -308,20 +391,6 @@ class AgentNode(Node):
                   if c.publisher == node and c.name in probed]
         joined = [j for j in joined if j is not None]
         return all(joined) if joined else None
-
-    def _restart_unheard(self, now: float) -> None:
-        """A thawed standby copy whose outputs nobody here hears is started afresh."""
-        probes = getattr(self, '_probes', None)
-        last = probes.last if probes is not None else None
-        if not self._standby_nodes or last is None:
-            return
-        rates = {name: r.rate_hz for name, r in last.connections.items()}
-        patience = self.deployment.monitoring.probe_window_s + THAW_PATIENCE_S
-        for node in self._standby_nodes:
-            why = unheard_after_thaw(self.deployment, node, self.supervisor.thawed_at(node),
-                                     now, rates, patience)
-            if why:
-                self.supervisor.restart_cold(node, now, why)
 
     def _log_events(self) -> None:
         log = self.get_logger()
@@ -339,7 +408,7 @@ class AgentNode(Node):
         probes = getattr(self, '_probes', None)
         if probes is None:
             return
-        here = set(self.supervisor.active())
+        here = self._serving()
         for n in self.deployment.nodes:
             if not n.managed and self.deployment.allowed_scales(n.name) == (self.scale,):
                 here.add(n.name)
@@ -355,9 +424,14 @@ class AgentNode(Node):
         nodes = {}
         for name, r in self.supervisor.reports().items():
             since = r.since + self._wall_offset if r.since else 0.0
-            nodes[name] = protocol.NodeReport(state=r.state, pid=r.pid, since=since,
-                                              restarts=r.restarts, ready=r.ready,
-                                              exit_reason=r.exit_reason)
+            state, ready, reason, label = r.state, r.ready, r.exit_reason, None
+            clients = self._lifecycle.get(name)
+            if clients is not None:
+                state, ready, reason, label = lifecycle_report(r.state, r.ready, r.exit_reason,
+                                                               clients.driver)
+            nodes[name] = protocol.NodeReport(state=state, pid=r.pid, since=since,
+                                              restarts=r.restarts, ready=ready,
+                                              exit_reason=reason, lifecycle=label)
         return protocol.AgentState(scale=self.scale, generation=self.reconciler.generation,
                                    stamp=time.time(), nodes=nodes)
 
@@ -371,7 +445,7 @@ class AgentNode(Node):
         if self._shutdown_requested == 1:
             self.get_logger().info('shutting down: stopping every node of this scale')
             self._shutdown_at = now
-            self.supervisor.stop_all(now)
+            self._tick()       # lifecycle nodes are finalized first, then signalled
         else:
             self.get_logger().warn('second shutdown request: killing every node now')
             self.supervisor.kill_all(now)
@@ -395,11 +469,33 @@ class AgentNode(Node):
             except Exception as e:
                 self.get_logger().error(f'destroying {type(monitor).__name__}: {e!r}')
         self._monitors = []
+        for clients in self._lifecycle.values():
+            clients.destroy()
+        self._lifecycle = {}
         if self._watch is not None:
             self._watch.destroy_node()
             self._watch = None
         self._release_lock()
         super().destroy_node()
+
+
+def lifecycle_report(state: str, ready: bool, reason: str, driver: lc.Driver) -> tuple:
+    """(state, ready, reason, lifecycle label) of a lifecycle copy for the agent's report:
+    'running' and ready only while active (what serves), 'standby' for a live copy kept
+    inactive, 'starting' on its way to active, 'stopping' on its way out."""
+    if state not in ('starting', 'running'):
+        return state, False, reason, driver.state if state == 'stopping' else None
+    if driver.failed:
+        reason = f'lifecycle: {driver.problem}'
+    elif driver.problem:
+        reason = f'lifecycle (retrying): {driver.problem}'
+    if driver.state == lc.ACTIVE and driver.goal != lc.FINALIZED:
+        return 'running', True, reason, driver.state
+    if driver.goal == lc.FINALIZED:
+        return 'stopping', False, reason, driver.state
+    if driver.goal == lc.INACTIVE or (driver.goal is None and driver.state == lc.INACTIVE):
+        return 'standby', False, reason, driver.state
+    return 'starting', False, reason, driver.state
 
 
 def main(args: Optional[List[str]] = None) -> int:

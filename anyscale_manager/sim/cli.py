@@ -48,8 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--migration-delay', type=float, default=PathModel.migration_delay_s,
                         metavar='S', help='seconds a moved node needs to start (default 2)')
     parser.add_argument('--standby-resume', type=float, default=PathModel.standby_resume_s,
-                        metavar='S', help='seconds a standby node needs to serve again when it '
-                                          'comes back to the master (default 0.3)')
+                        metavar='S', help='seconds a standby copy needs to serve once activated '
+                                          f'(default {PathModel.standby_resume_s:g})')
     parser.add_argument('--hysteresis', type=float, metavar='S',
                         help="override the decider's hysteresis T in seconds (default: each "
                              "deployment's own, 20 s for the test-bed)")

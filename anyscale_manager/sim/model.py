@@ -41,10 +41,9 @@ class PathModel:
     throughput_fraction: float = 0.45     # WiFi goodput / nominal (802.11g: ~24 of 54 Mbit/s)
     edge_ramp_m: float = 5.0              # goodput ramps from 0 at a hole's edge to its peak
     migration_delay_s: float = 2.0        # a moved node's new instance needs this to start
-    # A node with `standby: true` that comes back to the master is thawed, not started
-    # (bench/bench_standby.py: the first message 2-3 ms after a short freeze, a median of about
-    # 0.25 s after a 30 s freeze, when DDS has to rediscover the thawed participant).
-    standby_resume_s: float = 0.3
+    # A lifecycle node with standby moving to a scale that keeps an inactive copy of it is
+    # activated there, not started (bench/bench_standby.py measures activation -> first output).
+    standby_resume_s: float = 0.05
     links: str = INDEPENDENT              # independent: one coverage pattern per remote scale
 
     def __post_init__(self):

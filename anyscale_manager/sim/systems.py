@@ -138,8 +138,9 @@ def generated_parameters(n: int, m: int, rng: np.random.Generator,
         new_nodes[name] = {'launch': _workload(name), 'cpu': 10.0 * jitter()}
         new_conns[f'ekf_{name}'] = _connection('/pose', 'ekf', name, 2.0, 5.0, 0.0, 6.0)
     speed: Dict[str, float] = {}
-    # The generated migratable nodes keep a standby copy on the master as the test-bed's do.
+    # The generated migratable nodes keep standby copies as the test-bed's do.
     standby = bool(nodes['amcl'].get('standby', False))
+    lifecycle = bool(nodes['amcl'].get('lifecycle', False))
     localisers = math.ceil(m / 2)
     for i in range(1, m + 1):
         if i <= localisers:
@@ -147,7 +148,7 @@ def generated_parameters(n: int, m: int, rng: np.random.Generator,
             base_hz = 2.0 * jitter()
             opt_hz = base_hz * 2.5 * jitter()
             new_nodes[name] = {'launch': _workload(name), 'cpu': 50.0 * jitter(),
-                               'standby': standby}
+                               'standby': standby, 'lifecycle': lifecycle}
             new_conns[f'laser_{name}'] = _connection('/scan', 'laser', name, 5.0, 10.0, 2.0,
                                                      200.0 * jitter())
             new_conns[f'{name}_ekf'] = _connection(f'/{name}/pose', name, 'ekf', base_hz,
@@ -156,7 +157,7 @@ def generated_parameters(n: int, m: int, rng: np.random.Generator,
         else:
             name = f'recogniser_{i - localisers}'
             new_nodes[name] = {'launch': _workload(name), 'cpu': 33.0 * jitter(),
-                               'standby': standby}
+                               'standby': standby, 'lifecycle': lifecycle}
             new_conns[f'camera_{name}'] = _connection('/image', 'camera', name, 1.0, 30.0, 1.0,
                                                       6000.0 * jitter())
             new_conns[f'{name}_navigation'] = _connection(f'/{name}/markers', name,

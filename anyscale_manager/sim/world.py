@@ -12,8 +12,8 @@ applied with a start-up delay. The semantics follow the real monitors:
 * a node's output rate depends on the CPU it gets on its scale (``model.node_rate``);
 * a remote scale cut off from the master stops reporting: its ``ScaleObs`` keeps the stamp of
   its last report, and after the deployment's ``agent_timeout_s`` it is listed as lost;
-* a moved node's new instance serves after ``migration_delay_s`` (``standby_resume_s`` when a
-  ``standby`` node comes back to the master: its frozen copy is thawed); with ``start_before_stop``
+* a moved node's new instance serves after ``migration_delay_s`` (``standby_resume_s`` when the
+  gaining scale keeps a standby copy of it: that copy is activated); with ``start_before_stop``
   the old instance serves until then (if it can still be reached), with ``stop_before_start``
   nothing does; ``running`` reports the serving instance, as the agents would.
 """
@@ -197,9 +197,9 @@ class World:
                 self.serving[dec.node] = True
                 continue
             self.migrations += 1
-            # Back to the master, a standby node's frozen copy is thawed rather than started.
-            thaw = target == d.master.name and d.node(dec.node).standby
-            delay = self.path.standby_resume_s if thaw else self.path.migration_delay_s
+            # A scale that keeps a standby copy activates it rather than starting one.
+            warm = target in d.standby_scales(dec.node)
+            delay = self.path.standby_resume_s if warm else self.path.migration_delay_s
             self.pending[dec.node] = (target, self.t + delay)
             if d.node(dec.node).move_order == STOP_BEFORE_START:
                 self.serving[dec.node] = False
