@@ -15,6 +15,7 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from lifecycle_msgs.srv import GetState
 from std_msgs.msg import String
 
 from anyscale_manager import protocol
@@ -46,7 +47,11 @@ def write_deployment(tmp_path, run_id, name='agent_test'):
         'nodes': {
             'names': ['talker', 'talker2', 'stubborn', 'forker', 'warm'],
             'talker': talker(chatter + '/sbs', 'talker'),
-            'warm': talker(chatter + '/warm', 'warm', standby=True),
+            'warm': dict(talker(chatter + '/warm', 'warm', lifecycle=True, standby=True),
+                         launch={'command': [sys.executable,
+                                             os.path.join(FIXTURES, 'agent_lifecycle_talker.py')],
+                                 'parameters': {'topic': chatter + '/warm', 'rate_hz': 10.0},
+                                 'ros_name': f'warm_{run_id}', 'env': dict(env)}),
             'talker2': talker(chatter + '/stop_first', 'talker2',
                               move_order='stop_before_start'),
             'stubborn': {'launch': {'command': [sys.executable,
@@ -138,6 +143,11 @@ class Harness:
     def state_is(self, scale, node, state):
         r = self.report(scale, node)
         return r is not None and r.state == state
+
+    def standby(self, scale, node):
+        """A configured, inactive copy (not one still on its way there)."""
+        r = self.report(scale, node)
+        return r is not None and r.state == 'standby' and r.lifecycle == 'inactive'
 
     def close(self):
         self.executor.shutdown()
@@ -292,7 +302,8 @@ def test_crash_restart_adoption_and_shutdown(tmp_path, setup):
     assert any('crashed: killed by SIGKILL (Killed)' in line for line in a.text().splitlines())
     assert gone(talker)
 
-    pids = {n: h.report('a', n).pid for n in ('talker', 'stubborn', 'forker')}
+    # 'warm' keeps an inactive standby copy here although the layout does not place it.
+    pids = {n: h.report('a', n).pid for n in ('talker', 'stubborn', 'forker', 'warm')}
     parent, grandchild = map(int, open(tmp_path / 'forker_pids').read().split())
     assert parent == pids['forker']
     a.proc.kill()                       # the agent dies hard; its nodes keep running
@@ -318,41 +329,82 @@ def test_crash_restart_adoption_and_shutdown(tmp_path, setup):
         assert gone(pid), f'pid {pid} survived the agent'
 
 
-def test_standby_node_moved_away_is_frozen_and_comes_back_at_once(setup):
-    h, agent, _, _ = setup
-    a, b = agent('a'), agent('b')          # a is the master: it keeps the warm copy
-    h.publish(1, {'warm': 'a'})
-    h.wait(lambda: h.running('a', 'warm') and 'b' in h.states, what='warm running on a')
-    pid = h.report('a', 'warm').pid
-    t_move = time.monotonic()
-    h.publish(2, {'warm': 'b'})
-    h.wait(lambda: h.running('b', 'warm') and h.state_is('a', 'warm', 'standby'),
-           what='warm on b, frozen on a')
-    r = h.report('a', 'warm')
-    assert r.pid == pid and not r.ready and psutil.Process(pid).status() == psutil.STATUS_STOPPED
-    assert 'warm' not in h.states['a'].running()
-    # Frozen only after the new copy was ready (start_before_stop).
-    ready_b = first_time(h.history, 'b', 'warm', ('running',), t_move)
-    frozen_a = first_time(h.history, 'a', 'warm', ('standby',), t_move)
-    assert ready_b is not None and frozen_a >= ready_b
-    h.wait(lambda: any(d.startswith('b ') and t > t_move for t, d, _ in h.heard),
-           what='chatter from b')
+def lifecycle_state(h, service, timeout=10.0):
+    """The label ``service`` (a get_state service) answers, from a client of the test's own."""
+    client = h.node.create_client(GetState, service)
+    try:
+        h.wait(client.service_is_ready, timeout, f'{service} reachable')
+        future = client.call_async(GetState.Request())
+        h.wait(future.done, timeout, f'an answer from {service}')
+        return future.result().current_state.label
+    finally:
+        h.node.destroy_client(client)
 
-    t_back = time.monotonic()
-    h.publish(3, {'warm': 'a'})
-    h.wait(lambda: h.running('a', 'warm'), what='warm back on a')
-    back = time.monotonic() - t_back
-    r = h.report('a', 'warm')
-    assert r.pid == pid and r.restarts == 0 and \
-        psutil.Process(pid).status() != psutil.STATUS_STOPPED
-    h.wait(lambda: any(d.startswith(f'a {pid} ') and t > t_back for t, d, _ in h.heard),
-           what='chatter from the resumed copy')
-    first = min(t for t, d, _ in h.heard if d.startswith(f'a {pid} ') and t > t_back) - t_back
-    h.wait(lambda: h.state_is('b', 'warm', 'stopped'), what='the copy on b stopped')
-    print(f'standby: back on a (same pid, resumed) {back * 1000:.0f} ms after the layout, '
-          f'first message from it {first * 1000:.0f} ms after')
-    # A start would take the interpreter and rclpy's start (about 0.5 s unloaded, more on a
-    # loaded machine); a resume is a signal. Honest slack for a loaded 2-core machine.
-    assert back < 2.0
-    assert b.stop(signal.SIGINT) == 0 and a.stop(signal.SIGINT) == 0
-    assert gone(pid)
+
+def test_standby_copies_on_both_scales_one_active_moves_are_activations(setup, tmp_path):
+    h, agent, _, run_id = setup
+    a, b = agent('a'), agent('b')
+    h.publish(1, {'warm': 'a'})
+    h.wait(lambda: h.running('a', 'warm') and h.standby('b', 'warm'),
+           what='warm active on a, inactive on b')
+    pids = {s: h.report(s, 'warm').pid for s in ('a', 'b')}
+    assert h.report('a', 'warm').lifecycle == 'active'
+    assert h.report('b', 'warm').lifecycle == 'inactive'
+    assert 'warm' not in h.states['b'].running()
+    # Two copies share the node name; each answers on its own scale's services only.
+    name = f'/warm_{run_id}'
+    assert lifecycle_state(h, f'{name}/a/get_state') == 'active'
+    assert lifecycle_state(h, f'{name}/b/get_state') == 'inactive'
+    assert f'{name}/get_state' not in dict(h.node.get_service_names_and_types())
+    h.wait(lambda: any(d.startswith(f'a {pids["a"]} ') for _, d, _ in h.heard),
+           what='chatter from the active copy')
+    assert not any(d.startswith(f'b {pids["b"]} ') for _, d, _ in h.heard)
+
+    def move(generation, to, other):
+        t0 = time.monotonic()
+        h.publish(generation, {'warm': to})
+        h.wait(lambda: any(d.startswith(f'{to} {pids[to]} ') and t > t0
+                           for t, d, _ in h.heard), what=f'chatter from {to} after the move')
+        h.wait(lambda: h.running(to, 'warm') and h.standby(other, 'warm'),
+               what=f'warm active on {to}, inactive on {other}')
+        first = min(t for t, d, _ in h.heard if d.startswith(f'{to} {pids[to]} ') and t > t0)
+        # The losing copy stops publishing once deactivated: its last message came before
+        # its standby report, and none after.
+        t_standby = first_time(h.history, other, 'warm', ('standby',), t0)
+        h.wait(lambda: time.monotonic() > t_standby + 0.5, what='half a second more')
+        late = [t for t, d, _ in h.heard if d.startswith(f'{other} ') and t > t_standby + 0.1]
+        assert late == [], f'{other} still published after its deactivation'
+        return first - t0
+
+    latencies = [move(2, 'b', 'a'), move(3, 'a', 'b')]
+    # Same processes all along: moves are activations, not starts.
+    assert {s: h.report(s, 'warm').pid for s in ('a', 'b')} == pids
+    assert all(h.report(s, 'warm').restarts == 0 for s in ('a', 'b'))
+    print(f'standby moves: first message from the activated copy '
+          f'{", ".join(f"{x * 1000:.0f}" for x in latencies)} ms after the layout')
+
+    # A standby copy killed: restarted inactive, and the active one untouched.
+    os.kill(pids['b'], signal.SIGKILL)
+    h.wait(lambda: h.standby('b', 'warm') and h.report('b', 'warm').pid
+           not in (0, pids['b']), what='the killed standby copy back, inactive')
+    assert h.report('a', 'warm').pid == pids['a'] and h.running('a', 'warm')
+    pids['b'] = h.report('b', 'warm').pid
+    assert lifecycle_state(h, f'{name}/b/get_state') == 'inactive'
+
+    # The agent of b killed and restarted while its copy is inactive: adopted as it is.
+    b.proc.kill()
+    b.proc.wait(10)
+    b2 = agent('b')
+    h.wait(lambda: f'adopted pid {pids["b"]}' in b2.text() and
+           h.standby('b', 'warm') and h.states['b'].generation == 3,
+           what='b adopting its inactive copy')
+    assert h.report('b', 'warm').pid == pids['b'] and h.running('a', 'warm')
+
+    # Stopped with the agents: finalized through the lifecycle before any signal.
+    assert b2.stop(signal.SIGINT) == 0 and a.stop(signal.SIGINT) == 0
+    log = (tmp_path / 'log' / 'agent_test' / 'a' / 'warm.log').read_text()
+    tail = log[log.rindex('transition: activate'):]
+    assert [line.split(': ')[1] for line in tail.splitlines()
+            if line.startswith('transition: ')] == ['activate', 'deactivate', 'cleanup',
+                                                    'shutdown']
+    assert all(gone(pid) for pid in pids.values())

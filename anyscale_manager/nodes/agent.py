@@ -95,6 +95,7 @@ class AgentNode(Node):
         self._lock_file = None
         self._monitors: List[Any] = []
         self._watch: Optional[Node] = None
+        self._lifecycle: Dict[str, CopyClients] = {}
         try:
             self._setup(scale)
         except Exception:
@@ -131,7 +132,7 @@ class AgentNode(Node):
                                      readiness_timeout_s=self.settings.readiness_timeout_s,
                                      agent_timeout_s=d.decider.agent_timeout_s)
         s = self.settings
-        self._lifecycle: Dict[str, CopyClients] = {
+        self._lifecycle = {
             name: CopyClients(self, entry.services,
                               lc.Driver(name, change_timeout_s=s.lifecycle_timeout_s,
                                         backoff_s=max(s.restart_backoff_s, 0.1),

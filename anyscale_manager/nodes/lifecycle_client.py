@@ -39,9 +39,10 @@ class CopyClients:
             if request.kind == 'get':
                 future = self._get.call_async(GetState.Request())
             else:
+                # By id alone: a label wins over the id in rclpy, and the three shutdown
+                # transitions share the label 'shutdown'.
                 future = self._change.call_async(ChangeState.Request(
-                    transition=Transition(id=request.transition_id,
-                                          label=request.transition)))
+                    transition=Transition(id=request.transition_id)))
         except Exception as e:     # a client destroyed under us, an rcl error: said, not raised
             self.driver.lost(request.serial, f'{type(e).__name__}: {e}', self._clock())
             return
