@@ -229,6 +229,23 @@ def test_validate_prints_a_summary_and_exits_0():
     assert 'laser_amcl' in r.stdout and 'tolerance 2 s' in r.stdout
 
 
+def test_validate_warns_when_a_cold_move_cannot_meet_a_tolerance(tmp_path):
+    data = mutate(lambda p: (p['nodes']['amcl'].update(standby=False, lifecycle=False),
+                             p['connections']['laser_amcl'].update(tolerance_s=1.0)))
+    cold = tmp_path / 'cold.yaml'
+    cold.write_text(yaml.safe_dump(data))
+    r = run_cli('validate', '--quiet', str(cold))
+    assert r.returncode == 0, r.stderr
+    lines = [line for line in r.stderr.splitlines() if line.startswith('warning: ')]
+    assert len(lines) == 1, r.stderr
+    assert f'{cold}: nodes.amcl: a cold move cannot meet the tolerance_s of laser_amcl (1 s)' \
+        in lines[0]
+    assert 'lifecycle node with standby: true' in lines[0] and 'at least 1.6 s' in lines[0]
+    # With standby the same tolerance is met by an activation: no warning.
+    r = run_cli('validate', '--quiet', TESTBED)
+    assert r.returncode == 0 and 'warning' not in r.stderr, r.stderr
+
+
 def test_validate_exits_2_with_every_error(tmp_path):
     data = mutate(lambda p: (p['scales']['robot'].update(capacity_cpu=-1.0),
                              p['nodes']['amcl'].update(weight='heavy')))

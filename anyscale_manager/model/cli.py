@@ -2,13 +2,14 @@
 
 import sys
 
+from .advice import warnings
 from .loader import DeploymentError, load_deployment
 from .types import Deployment
 
 
 def add_arguments(parser) -> None:
     parser.add_argument('files', nargs='+', metavar='FILE', help='deployment YAML files')
-    parser.add_argument('--quiet', action='store_true', help='print only errors')
+    parser.add_argument('--quiet', action='store_true', help='print only errors and warnings')
 
 
 def _fmt(x) -> str:
@@ -42,6 +43,9 @@ def summary(d: Deployment) -> str:
             tags.append('data provider')
         if not n.managed:
             tags.append('not managed')
+        if n.lifecycle:
+            standby = d.standby_scales(n.name)
+            tags.append(f'lifecycle, standby on {", ".join(standby)}' if standby else 'lifecycle')
         if n.configurable:
             tags.append(f'configurable {n.settings.parameter}')
         allowed = d.allowed_scales(n.name)
@@ -69,4 +73,6 @@ def run(args) -> int:
             continue
         if not args.quiet:
             print(summary(d))
+        for w in warnings(d):
+            print(f'warning: {w}', file=sys.stderr)
     return 2 if failed else 0

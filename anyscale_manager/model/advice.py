@@ -1,0 +1,43 @@
+"""Warnings about a valid deployment: settings that work, but not as a user would expect.
+
+Pure: a deployment in, one line per warning out, each naming what, where, and what to do.
+"""
+
+from typing import List
+
+from . import types as t
+
+# A plain rclpy node's cold move on an unloaded machine, layout -> first message at a consumer
+# on another scale (bench/bench_agent.py, p95); a real node's own start (loading a map, a model)
+# comes on top of it.
+COLD_MOVE_S = 0.8
+
+
+def cold_move_budget_s(d: t.Deployment) -> float:
+    """How long a connection of a node moved cold stays unserved after a link cut, at best: the
+    cut is seen after heartbeat_misses_down beats, then the node starts on its new scale."""
+    m = d.monitoring
+    return m.heartbeat_misses_down / m.heartbeat_rate_hz + COLD_MOVE_S
+
+
+def warnings(d: t.Deployment) -> List[str]:
+    out: List[str] = []
+    budget = cold_move_budget_s(d)
+    for name in d.migratable_nodes:
+        if d.standby_scales(name):
+            continue
+        short = [c for c in d.connections_of(name)
+                 if c.tolerance_s is not None and 0 < c.tolerance_s < budget]
+        if not short:
+            continue
+        names = ', '.join(f'{c.name} ({c.tolerance_s:g} s)' for c in short)
+        m = d.monitoring
+        out.append(
+            f'{d.source}: nodes.{name}: a cold move cannot meet the tolerance_s of {names}: '
+            f'after a link cut it is unserved for at least {budget:.2f} s (the cut seen after '
+            f'{m.heartbeat_misses_down} heartbeats at {m.heartbeat_rate_hz:g} Hz, then a '
+            f'plain rclpy node starts in about {COLD_MOVE_S:g} s, plus the node\'s own '
+            f'start). Make it a lifecycle node with standby: true (lifecycle: true; see '
+            f'docs/lifecycle.md), so a move is an activation, or give each of them a '
+            f'tolerance_s of at least {budget:.1f} s')
+    return out
