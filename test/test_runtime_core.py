@@ -361,3 +361,17 @@ def test_status_render_without_ros(d):
     assert '1 malformed message(s) ignored' in text
     assert 'not heard' in text                            # the laptop's agent
     assert 'STALE' in render(book, 20.0)
+    # An inactive standby copy is listed apart, never as where the node runs.
+    standby = p.NodeReport(state='standby', pid=2, since=0.0, restarts=0, ready=False,
+                           exit_reason='', lifecycle='inactive')
+    book.take(p.TOPIC_AGENT_STATE, p.AgentState(scale='laptop', generation=4, stamp=0.0,
+                                                nodes={'amcl': standby}).to_json(), 11.0)
+    row = next(line for line in render(book, 11.5).splitlines() if line.startswith('amcl '))
+    assert row.split()[1:] == ['laptop', 'robot', '(moving)', 'running', 'laptop'], row
+
+
+def test_the_decider_does_not_count_standby_copies(d):
+    book = ObservationBook(d, d.decider, started=0.0)
+    book.agent_state(agent('robot', 3, amcl='running'), 1.0)
+    book.agent_state(agent('laptop', 3, amcl='standby', ar='standby'), 1.0)
+    assert book.running(2.0) == {'amcl': 'robot'}

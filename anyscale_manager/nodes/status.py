@@ -126,9 +126,13 @@ def render(book: StatusBook, now: float) -> str:
     lines += _table(rows) + ['']
 
     running: Dict[str, Tuple[str, str]] = {}
+    standby: Dict[str, list] = {}
     for scale, (a, _) in book.agents.items():
         for n, r in a.nodes.items():
-            if n not in running or r.state == 'running':
+            if r.state == 'standby':
+                standby.setdefault(n, []).append(scale if r.lifecycle == 'inactive'
+                                                 else f'{scale} ({r.lifecycle})')
+            elif n not in running or r.state == 'running' or running[n][1] == 'stopped':
                 running[n] = (scale, r.state)
     rows = [['CONNECTION', 'RATE Hz', 'MIN Hz', 'BELOW s / Δ s', 'STATUS']]
     for c in d.connections:
@@ -157,13 +161,14 @@ def render(book: StatusBook, now: float) -> str:
     lines += _table(rows) + ['']
 
     wanted = book.layout[0].assignments if book.layout else {}
-    rows = [['NODE', 'LAYOUT', 'RUNNING ON', 'STATE']]
+    rows = [['NODE', 'LAYOUT', 'RUNNING ON', 'STATE', 'STANDBY ON']]
     for n in d.nodes:
         if not n.managed:
             continue
         where, state = running.get(n.name, ('-', 'not reported'))
         mark = '' if wanted.get(n.name, where) == where else '  (moving)'
-        rows.append([n.name, wanted.get(n.name, '-'), where + mark, state])
+        rows.append([n.name, wanted.get(n.name, '-'), where + mark, state,
+                     ', '.join(sorted(standby.get(n.name, ()))) or '-'])
     lines += _table(rows)
     if book.events:
         lines += ['', 'RECENT EVENTS']
