@@ -306,7 +306,7 @@ def test_tbf_arguments_and_refusals():
 
 needs_netns = pytest.mark.skipif(not NETNS_OK, reason=f'no namespaces here: {NETNS_WHY}')
 
-TCP_SINK = '''
+TCP_SINK = """
 import socket, threading
 s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
 s.bind(("0.0.0.0", 5301)); s.listen(4)
@@ -315,8 +315,8 @@ def drain(c):
         pass
 while True:
     c, _ = s.accept(); threading.Thread(target=drain, args=(c,), daemon=True).start()
-'''
-TCP_SEND = '''
+"""
+TCP_SEND = """
 import socket, struct, sys, time
 s = socket.create_connection((sys.argv[1], 5301), timeout=float(sys.argv[2]))
 s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 65536)
@@ -327,7 +327,7 @@ print(n * 8 / 1000 / (time.time() - t))
 # Reset instead of a graceful close: no orphaned send buffer keeps the link busy afterwards.
 s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
 s.close()
-'''
+"""
 
 
 def _throughput_kbps(net, connect_timeout_s=5.0):
@@ -427,3 +427,48 @@ def test_settled_needs_a_quiet_layout_and_the_probes_within_limits(record):
     assert not record.settled(11.5, ['amcl_ekf'], 'robot', 5.0)      # no fresh reading
     record.readings['amcl_ekf'].append((10.2, 'robot', low))
     assert not record.settled(10.3, ['amcl_ekf'], 'robot', 5.0)      # below its minimum
+
+
+def test_a_standby_copy_is_live_but_never_where_its_node_runs(record):
+    """A lifecycle node's inactive copy: a process its agent holds (copies, start counts) that
+    serves nobody (not in where, running_on or placement)."""
+    robot = _state('robot', ['laser', 'amcl'])
+    robot.nodes['amcl'] = p.NodeReport(state='standby', pid=500, since=0.0, restarts=0,
+                                       ready=False, exit_reason='', lifecycle='inactive')
+    laptop = _state('laptop', ['amcl'])
+    laptop.nodes['amcl'].lifecycle = 'active'
+    record.ingest_line(_line(1.0, p.TOPIC_AGENT_STATE, robot))
+    record.ingest_line(_line(1.0, p.TOPIC_AGENT_STATE, laptop))
+    assert record.where('amcl', 1.5) == ('laptop',)
+    assert 'amcl' not in record.running_on('robot', 1.5)
+    assert set(record.copies('robot', 1.5)) == {'laser', 'amcl'}
+    assert record.standby_on('robot', 1.5)['amcl'].pid == 500
+    assert record.standby_on('laptop', 1.5) == {}
+    assert 500 in record.start_counts('robot')['amcl']
+
+
+def test_delta_violations_judge_the_connections_into_the_scale(record):
+    """The observer's Δ judgement: amcl_ekf (EKF is pinned to the robot) always counts;
+    camera_ar only while the layout has AR on the robot; Δ = 0 tolerates no reading below."""
+    def layout(t, ar, gen):
+        record.layouts.append((t, p.Layout(generation=gen, deployment='icar2015_testbed',
+                                           assignments={'ar': ar}, reason='test', stamp=t)))
+    layout(0.0, 'laptop', 1)
+    layout(30.0, 'robot', 2)
+
+    def periodic(rate, spans_):
+        return [a + k / rate for a, b in spans_ for k in range(int((b - a) * rate))]
+    record.arrivals['/amcl_pose'] = periodic(5.0, [(0.0, 10.0), (14.0, 60.0)])   # 4 s gap
+    # /image silent for 3 s twice: AR on the laptop the first time, on the robot the second.
+    record.arrivals['/image'] = periodic(30.0, [(0.0, 10.0), (13.0, 40.0), (43.0, 60.0)])
+    record.arrivals['/odom'] = periodic(10.0, [(0.0, 50.0), (50.9, 60.0)])        # 0.9 s gap
+    # The other topics never arrive here: every connection into the robot on them is past Δ.
+    heard = ('amcl_ekf', 'camera_ar', 'odometry_ekf')
+    found = record.delta_violations(2.0, 58.0, 'robot')
+    assert [(v.connection, round(v.start, 1)) for v in found if v.connection in heard] == [
+        ('amcl_ekf', 11.3), ('camera_ar', 42.0), ('odometry_ekf', 51.0)]
+    assert {v.connection for v in found} - set(heard) == {
+        'laser_navigation', 'ar_navigation', 'ekf_navigation', 'odometer_odometry'}
+    longest = record.longest_below(2.0, 58.0, 'robot')
+    assert 2.0 < longest['amcl_ekf'] < 4.0 and longest['ar_navigation'] > 50
+    assert not [v for v in record.delta_violations(15.0, 40.0, 'robot') if v.connection in heard]

@@ -3,10 +3,13 @@
 ``Testbed`` builds the network (``netns.Network``: robot and laptop namespaces, a shaped link,
 CPU quotas in the paper's power ratio), starts the decider and one agent per scale exactly as a
 person would (``--ros-args --params-file DEPLOYMENT -p scale:=...``, with per-run state and log
-folders), and an observer node in the robot's namespace whose output fills a ``Record``. The
-link is cut, restored and throttled from here, agents and the decider can be killed and started
-again, and ``stop()`` (also from ``__exit__`` and on errors) stops everything gracefully, then
-kills whatever is left, removes the namespaces and cgroups, and says what it had to clean.
+folders), and an observer node in the robot's namespace whose output fills a ``Record`` (and,
+with namespaces, a second one on the laptop that hears only the agents' reports, so that the
+laptop's are known while the link is cut: ``laptop_view``). The link is cut, restored and
+throttled from here, agents and the decider can be killed and started again, one managed
+node's process can be signalled, and ``stop()`` (also from ``__exit__`` and on errors) stops
+everything gracefully, then kills whatever is left, removes the namespaces and cgroups, and
+says what it had to clean.
 
 Without the rights to build namespaces the harness runs everything on loopback and emulates the
 link: a cut freezes (SIGSTOP) the laptop agent and every process it started, a restore thaws
@@ -27,6 +30,8 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import psutil
 
+from .. import protocol
+from ..agent.catalogue import ENV_NODE, ENV_SCALE
 from ..model.loader import load_deployment
 from ..model.types import Deployment
 from ..nodes.workload import REFERENCE_CORE
@@ -97,10 +102,13 @@ class Testbed:
         self.network: Optional[netns.Network] = None
         self.procs: Dict[str, Proc] = {}
         self.record = Record(self.deployment)
+        # The agents' reports as heard on the laptop (netns mode only): the laptop's own are
+        # there while the link is cut, when the robot hears nothing of them.
+        self.laptop_view = Record(self.deployment)
         self.lock = threading.Lock()
         self.t0 = time.monotonic()
-        self._observer: Optional[Proc] = None
-        self._reader: Optional[threading.Thread] = None
+        self._observers: List[Proc] = []
+        self._readers: List[threading.Thread] = []
         self._frozen: List[int] = []
         self._link_up = True
         self._rate_kbps = options.rate_kbps
@@ -147,7 +155,11 @@ class Testbed:
         self.record.link_set(self.t0, True, self._rate_kbps)
         if not self.options.link_up_at_start and self.network is not None:
             self.cut()
-        self._start_observer()
+        self._start_observer('robot', self.record,
+                             sorted({c.topic for c in self.deployment.connections}))
+        if self.network is not None:
+            self._start_observer('laptop', self.laptop_view, [],
+                                 project=[protocol.TOPIC_AGENT_STATE])
         self.start_agent('robot')
         self.start_agent('laptop')
         if not self.options.link_up_at_start and self.network is None:
@@ -198,15 +210,16 @@ class Testbed:
                 notes.append(f'{name} did not stop within {grace:.0f} s after SIGINT; killed')
                 _signal_group(proc.popen.pid, signal.SIGKILL)
                 proc.popen.wait()
-        if self._observer is not None:
-            _signal_group(self._observer.popen.pid, signal.SIGINT)
+        for observer in self._observers:
+            _signal_group(observer.popen.pid, signal.SIGINT)
+        for observer in self._observers:
             try:
-                self._observer.popen.wait(timeout=5.0)
+                observer.popen.wait(timeout=5.0)
             except subprocess.TimeoutExpired:
-                _signal_group(self._observer.popen.pid, signal.SIGKILL)
-                self._observer.popen.wait()
-        if self._reader is not None:
-            self._reader.join(timeout=5.0)
+                _signal_group(observer.popen.pid, signal.SIGKILL)
+                observer.popen.wait()
+        for reader in self._readers:
+            reader.join(timeout=5.0)
         leftovers = self._descendants()
         if leftovers:
             notes.append('processes left behind and killed: ' + ', '.join(
@@ -270,23 +283,30 @@ class Testbed:
         self.procs[name] = proc
         return proc
 
-    def _start_observer(self) -> None:
-        topics = sorted({c.topic for c in self.deployment.connections})
+    def _start_observer(self, scale: str, record: Record, topics: Sequence[str],
+                        project: Optional[Sequence[str]] = None) -> None:
+        """An observer on ``scale`` (outside its quota) whose lines fill ``record``: the
+        arrivals of ``topics`` and the project topics (all, or only ``project``)."""
         argv = [self.options.python, '-m', 'anyscale_manager.testbed.observer']
         for topic in topics:
             argv += ['--topic', topic]
-        self._observer = self._spawn('observer', 'robot', argv, quota=False,
-                                     stdout=subprocess.PIPE)
-        self.procs.pop('observer')
-        stream = self._observer.popen.stdout
+        for topic in project or ():
+            argv += ['--project', topic]
+        name = f'observer_{scale}'
+        observer = self._spawn(name, scale, argv, quota=False, stdout=subprocess.PIPE)
+        self.procs.pop(name)
+        self._observers.append(observer)
+        stream = observer.popen.stdout
 
         def read() -> None:
             for raw in iter(stream.readline, b''):
                 with self.lock:
-                    self.record.ingest_line(raw.decode('utf-8', 'replace'))
-        self._reader = threading.Thread(target=read, name='observer-reader', daemon=True)
-        self._reader.start()
-        self.wait_for(lambda r: r.observer_ready is not None, 30.0, 'the observer to start')
+                    record.ingest_line(raw.decode('utf-8', 'replace'))
+        reader = threading.Thread(target=read, name=f'{name}-reader', daemon=True)
+        reader.start()
+        self._readers.append(reader)
+        self.wait_for(lambda _r: record.observer_ready is not None, 30.0,
+                      f'the observer on the {scale} to start')
 
     def start_agent(self, scale: str) -> Proc:
         argv = [self.options.python, '-m', 'anyscale_manager.nodes.agent']
@@ -318,6 +338,51 @@ class Testbed:
             raise HarnessError(f'{name} (pid {proc.popen.pid}) still runs {timeout_s:g} s '
                                f'after {signal.Signals(sig).name}') from None
 
+    def restart_agent(self, scale: str, sig: int = signal.SIGKILL) -> Proc:
+        """Kill one scale's agent (its nodes live on: each is in its own session) and start a
+        new one at once, which adopts them; return the new agent's process."""
+        self.kill(f'agent_{scale}', sig)
+        return self.start_agent(scale)
+
+    def node_pids(self, node: str, scale: str) -> List[int]:
+        """Live processes that an agent of ``scale`` started for ``node`` (found by the
+        environment every agent gives its nodes), whoever supervises them now: two are a
+        duplicate."""
+        out = []
+        for p in self._descendants():
+            try:
+                env = p.environ()
+            except psutil.Error:
+                continue
+            if env.get(ENV_NODE) == node and env.get(ENV_SCALE) == scale:
+                out.append(p.pid)
+        return sorted(out)
+
+    def kill_node(self, node: str, scale: str, sig: int = signal.SIGKILL,
+                  timeout_s: float = 10.0) -> int:
+        """Signal the process of ``node`` on ``scale`` (the pid its agent last reported, checked
+        against the process's environment) and, for a fatal signal, wait until it is gone;
+        return the pid."""
+        with self.lock:
+            report = self.record.copies(scale).get(node)
+        if report is None:
+            raise HarnessError(f'the {scale} agent reports no live process of {node}')
+        pid = report.pid
+        if pid not in self.node_pids(node, scale):
+            raise HarnessError(f'pid {pid}, reported for {node} on {scale}, is not a process '
+                               f'that agent started for it (live: {self.node_pids(node, scale)})')
+        _kill(pid, sig)
+        self.mark(f'{node} on {scale} (pid {pid}, {report.state}) sent '
+                  f'{signal.Signals(sig).name}')
+        if sig in (signal.SIGKILL, signal.SIGTERM, signal.SIGINT):
+            deadline = time.monotonic() + timeout_s
+            while _live(pid):
+                if time.monotonic() > deadline:
+                    raise HarnessError(f'{node} (pid {pid}) still runs {timeout_s:g} s after '
+                                       f'{signal.Signals(sig).name}')
+                time.sleep(0.05)
+        return pid
+
     def running(self, name: str) -> bool:
         proc = self.procs.get(name)
         return proc is not None and proc.popen.poll() is None
@@ -325,8 +390,7 @@ class Testbed:
     def _descendants(self) -> List[psutil.Process]:
         """Live descendants (orphans of killed agents included: we are their subreaper)."""
         ours = {p.popen.pid for p in self.procs.values()}
-        if self._observer is not None:
-            ours.add(self._observer.popen.pid)
+        ours |= {o.popen.pid for o in self._observers}
         _reap(exclude=ours)
         live = []
         try:
@@ -516,6 +580,14 @@ def _kill(pid: int, sig: int) -> None:
         os.kill(pid, sig)
     except (ProcessLookupError, PermissionError):
         pass
+
+
+def _live(pid: int) -> bool:
+    """A process that exists and has not exited (a zombie waiting for its parent has)."""
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
 
 
 def _signal_group(pid: int, sig: int) -> None:

@@ -1,9 +1,11 @@
 """The harness's eyes: an rclpy node that prints what it sees as JSON lines on stdout.
 
-    python -m anyscale_manager.testbed.observer [--topic /amcl_pose ...]
+    python -m anyscale_manager.testbed.observer [--topic /amcl_pose ...] [--project TOPIC ...]
 
 Started by the harness inside the robot's namespace (next to the decider), outside any CPU
-quota. It subscribes to every project topic and, raw, to the given data topics, and writes one
+quota; a second one, with ``--project /anyscale/agent_state`` only, listens on the laptop, so that
+the laptop agent's reports are heard while the link is cut. It subscribes to every project
+topic (or only those given with ``--project``) and, raw, to the given data topics, and writes one
 JSON object per line: ``{"t": <monotonic>, "topic": ..., "data": <the String's JSON text>}`` for
 project messages and ``{"t": ..., "arrivals": {topic: [monotonic, ...]}}`` every 0.2 s for the
 data topics. CLOCK_MONOTONIC is the same in every network namespace, so the harness can put
@@ -37,12 +39,14 @@ FLUSH_S = 0.2
 
 
 class Observer(Node):
-    def __init__(self, data_topics: List[str], out=sys.stdout):
+    def __init__(self, data_topics: List[str], out=sys.stdout,
+                 project_topics: Optional[List[str]] = None):
         super().__init__('anyscale_testbed_observer')
         self._out = out
         self._arrivals: Dict[str, List[float]] = {t: [] for t in data_topics}
         for topic, profile in PROJECT_TOPICS.items():
-            self.create_subscription(String, topic, self._project(topic), profile)
+            if project_topics is None or topic in project_topics:
+                self.create_subscription(String, topic, self._project(topic), profile)
         for topic in data_topics:
             self.create_subscription(UInt8MultiArray, topic, self._data(topic), BEST_EFFORT,
                                      raw=True)
@@ -75,11 +79,13 @@ def main(args: Optional[List[str]] = None) -> int:
     argv = sys.argv if args is None else args
     parser = argparse.ArgumentParser(prog='observer')
     parser.add_argument('--topic', action='append', default=[])
+    parser.add_argument('--project', action='append', choices=sorted(PROJECT_TOPICS),
+                        help='listen to only these project topics (default: all of them)')
     a = parser.parse_args(remove_ros_args(argv)[1:])
     rclpy.init(args=argv)
     node = None
     try:
-        node = Observer(a.topic)
+        node = Observer(a.topic, project_topics=a.project)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException, BrokenPipeError):
         pass

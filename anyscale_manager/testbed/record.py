@@ -13,9 +13,10 @@ from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from .. import protocol as p
 from ..model.types import Connection, Deployment
-from ..runtime.rates import RateWindow, ToleranceTracker
+from ..runtime.rates import RateWindow
 
 MIGRATION_KINDS = ('migrate', 'migrate_back')
+LIVE_STATES = ('starting', 'running', 'standby', 'stopping')     # a process the agent holds
 
 
 @dataclass
@@ -49,6 +50,7 @@ class Record:
     marks: List[Tuple[float, str]] = field(default_factory=list)
     problems: List[str] = field(default_factory=list)
     observer_ready: Optional[float] = None
+    heard_until: float = -math.inf     # the observer's clock at its latest line: judge no later
 
     # --- intake -------------------------------------------------------------------------------
     def ingest_line(self, line: str) -> None:
@@ -66,6 +68,7 @@ class Record:
 
     def ingest(self, obj: Mapping) -> None:
         t = float(obj['t'])
+        self.heard_until = max(self.heard_until, t)
         if obj.get('ready'):
             self.observer_ready = t
             return
@@ -119,7 +122,9 @@ class Record:
 
     def running_on(self, scale: str, t: Optional[float] = None, ready_only: bool = False,
                    max_age_s: Optional[float] = None) -> Dict[str, p.NodeReport]:
-        """Nodes the scale's agent reported (at or before t) as starting or running.
+        """Nodes the scale's agent reported (at or before t) as starting or running;
+        ``ready_only``: only those that serve (state 'running' and ready; a lifecycle copy is
+        that only while active). A standby copy (live, inactive) is never among them.
 
         A report older than max_age_s (default: the decider's agent timeout) says nothing:
         behind a cut link nobody here knows what runs over there.
@@ -129,7 +134,25 @@ class Record:
         state = self.agent_state_at(scale, t, max_age_s)
         if state is None:
             return {}
-        return {n: r for n, r in state.running().items() if r.ready or not ready_only}
+        return {n: r for n, r in state.running().items()
+                if not ready_only or (r.state == 'running' and r.ready)}
+
+    def copies(self, scale: str, t: Optional[float] = None,
+               max_age_s: Optional[float] = None) -> Dict[str, p.NodeReport]:
+        """Every live process the scale's agent reported (at or before t): serving, starting,
+        standby (inactive) or stopping; same staleness rule as ``running_on``."""
+        if max_age_s is None:
+            max_age_s = self.deployment.decider.agent_timeout_s
+        state = self.agent_state_at(scale, t, max_age_s)
+        if state is None:
+            return {}
+        return {n: r for n, r in state.nodes.items() if r.state in LIVE_STATES and r.pid > 0}
+
+    def standby_on(self, scale: str, t: Optional[float] = None,
+                   max_age_s: Optional[float] = None) -> Dict[str, p.NodeReport]:
+        """The scale's standby copies (live, inactive) as its agent last reported them."""
+        return {n: r for n, r in self.copies(scale, t, max_age_s).items()
+                if r.state == 'standby'}
 
     def placement(self, t: Optional[float] = None, ready_only: bool = True,
                   max_age_s: Optional[float] = None) -> Dict[str, Tuple[str, ...]]:
@@ -166,11 +189,12 @@ class Record:
                 and (node is None or e.node == node)]
 
     def start_counts(self, scale: str) -> Dict[str, Set[int]]:
-        """node -> every pid the scale's agent ever reported for it (to find restarts)."""
+        """node -> every pid the scale's agent ever reported for it, standby copies included
+        (to find restarts)."""
         out: Dict[str, Set[int]] = {}
         for _, state in self.agent_states.get(scale, []):
             for node, r in state.nodes.items():
-                if r.state in ('starting', 'running') and r.pid > 0:
+                if r.state in LIVE_STATES and r.pid > 0:
                     out.setdefault(node, set()).add(r.pid)
         return out
 
@@ -193,29 +217,71 @@ class Record:
         i = bisect_right([x[0] for x in history], t)
         return history[i - 1] if i else None
 
+    def below_spans(self, conn: Connection, start: float, end: float, step_s: float = 0.1,
+                    window_s: float = 2.0) -> List[Tuple[float, float]]:
+        """Spans in [start, end] where the observer's rate of the connection's topic was below
+        its freq_min, read every step_s as the probes read it (a span still open at ``end``
+        closes there)."""
+        if not conn.monitored:
+            return []
+        out: List[Tuple[float, float]] = []
+        below_start: Optional[float] = None
+        t = start
+        while t <= end + 1e-9:
+            if self.topic_rate(conn.topic, t, window_s) < conn.freq_min_hz:
+                if below_start is None:
+                    below_start = t
+            elif below_start is not None:
+                out.append((below_start, t))
+                below_start = None
+            t += step_s
+        if below_start is not None:
+            out.append((below_start, end))
+        return out
+
     def observed_violations(self, conn: Connection, start: float, end: float,
                             step_s: float = 0.1, window_s: float = 2.0,
                             slack_s: float = 0.0) -> List[Violation]:
         """Spans where the observer's rate of the connection's topic stayed below freq_min for
-        longer than Δ + slack_s, judged with the project's own Δ rule."""
-        if not conn.monitored:
-            return []
-        tracker = ToleranceTracker(conn.freq_min_hz, conn.tolerance_s)
+        longer than Δ + slack_s: the project's Δ rule (a span lasts from the first reading
+        below to the first one back at or above; Δ = 0 tolerates no reading below)."""
+        return [Violation(conn.name, a, b, conn.tolerance_s, 'observer')
+                for a, b in self.below_spans(conn, start, end, step_s, window_s)
+                if b - a > conn.tolerance_s + slack_s]
+
+    def into(self, conn: Connection, scale: str, t: float) -> bool:
+        """Whether the connection flowed into ``scale`` at t: its subscriber may run only
+        there, or an agent reported it serving there, or the layout placed it there."""
+        sub = conn.subscriber
+        if self.deployment.allowed_scales(sub) == (scale,):
+            return True
+        layout = self.layout_at(t)
+        return scale in self.where(sub, t) or (
+            layout is not None and layout.assignments.get(sub) == scale)
+
+    def delta_violations(self, start: float, end: float, scale: str = 'robot',
+                         window_s: float = 2.0) -> List[Violation]:
+        """Every monitored connection into ``scale`` (where the observer listens) that stayed
+        below its freq_min for longer than its Δ in [start, end], measured by the observer, a
+        reader no agent started; a connection counts while its subscriber served on ``scale``
+        when Δ ran out."""
         out: List[Violation] = []
-        below_start: Optional[float] = None
-        t = start
-        while t <= end + 1e-9:
-            verdict = tracker.update(t, self.topic_rate(conn.topic, t, window_s))
-            if verdict.below_for_s > 0 and below_start is None:
-                below_start = t
-            if verdict.below_for_s == 0 and below_start is not None:
-                if t - below_start > conn.tolerance_s + slack_s:
-                    out.append(Violation(conn.name, below_start, t, conn.tolerance_s,
-                                         'observer'))
-                below_start = None
-            t += step_s
-        if below_start is not None and end - below_start > conn.tolerance_s + slack_s:
-            out.append(Violation(conn.name, below_start, end, conn.tolerance_s, 'observer'))
+        for conn in self.deployment.connections:
+            for v in self.observed_violations(conn, start, end, window_s=window_s):
+                if self.into(conn, scale, min(v.end, v.start + v.tolerance_s)):
+                    out.append(v)
+        return sorted(out, key=lambda v: v.start)
+
+    def longest_below(self, start: float, end: float, scale: str = 'robot',
+                      window_s: float = 2.0) -> Dict[str, float]:
+        """connection -> the longest time the observer read it below freq_min in [start, end],
+        for the monitored connections into ``scale`` (what the Δ judgement saw, for logs)."""
+        out: Dict[str, float] = {}
+        for conn in self.deployment.connections:
+            spans = [b - a for a, b in self.below_spans(conn, start, end, window_s=window_s)
+                     if self.into(conn, scale, a)]
+            if conn.monitored:
+                out[conn.name] = round(max(spans, default=0.0), 2)
         return out
 
     def reported_violations(self, start: float, end: float,
@@ -334,9 +400,9 @@ class Record:
                  scale: str = 'robot', topic: str = '/amcl_pose') -> Dict[str, object]:
         """What happened between t0 and t1 (a cut), in seconds from t0: the link reported down,
         the link's state as its monitor reported it, the layouts, the scale's agent reports of
-        the nodes (state, pid: a new pid is a cold start, the same pid a thawed copy), a topic's
-        arrivals at the scale, and the CPU the scale measured for the nodes. For failure
-        messages and the benchmark's log."""
+        the nodes (state, pid: a new pid is a cold start, the same pid a standby copy
+        activated), a topic's arrivals at the scale, and the CPU the scale measured for the
+        nodes. For failure messages and the benchmark's log."""
         def rel(t: float) -> float:
             return round(t - t0, 2)
         reports = []
@@ -392,4 +458,4 @@ class Record:
         return v.source in self.deployment.allowed_scales(subscriber)
 
 
-__all__ = ['MIGRATION_KINDS', 'Record', 'Violation']
+__all__ = ['LIVE_STATES', 'MIGRATION_KINDS', 'Record', 'Violation']
