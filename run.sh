@@ -2,8 +2,9 @@
 # One entry point for people and CI:
 #   ./run.sh demo [ARGS...]   set up .venv when needed, then run the demo
 #   ./run.sh test [ARGS...]   set up .venv when needed, then run the test suite (or ARGS,
-#                             e.g. one test file; the end-to-end test-bed runs with
-#                             ANYSCALE_E2E=1 as root)
+#                             e.g. one test file); the end-to-end test-bed is part of it and
+#                             needs root (namespaces, tc, cgroups): without, it is skipped
+#                             with the reason printed
 #   ./run.sh env              only set up .venv
 # Set-up is idempotent: a stamp of requirements.txt, setup.py and package.xml skips pip when
 # nothing changed, so a second run spends only seconds on it.
