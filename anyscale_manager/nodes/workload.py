@@ -15,6 +15,10 @@ Every message is a std_msgs/msg/UInt8MultiArray of ``--bytes`` bytes.
 loop that runs until the thread has used ``work_ms * reference_core`` of CPU time, so under a
 CPU quota (or on a busy machine) the same work takes longer in wall time, as it would on a
 slower computer.
+
+With ``--lifecycle`` the same node is a lifecycle (managed) node, as Nav2's AMCL is, so that a
+scale can keep an inactive standby copy of it (``workload_lifecycle.py``); without it, the node
+is the plain one below and starts working as soon as it is up.
 """
 
 import argparse
@@ -47,6 +51,7 @@ class WorkloadSpec:
     work_ms: float
     once: bool
     reference_core: float
+    lifecycle: bool = False
 
     @property
     def is_sensor(self) -> bool:
@@ -112,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
                    default=REFERENCE_CORE,
                    help='one reference core as a fraction of one core of this machine '
                         f'(default {REFERENCE_CORE})')
+    p.add_argument('--lifecycle', action='store_true',
+                   help='be a lifecycle (managed) node: unconfigured at start, working only '
+                        'while active')
     return p
 
 
@@ -128,7 +136,7 @@ def parse_spec(argv: Sequence[str]) -> WorkloadSpec:
                      'with --sub')
     return WorkloadSpec(name=a.name, pubs=tuple(a.pub), subs=tuple(a.sub), rate_hz=a.rate_hz,
                         bytes=a.bytes, work_ms=a.work_ms, once=a.once,
-                        reference_core=a.reference_core)
+                        reference_core=a.reference_core, lifecycle=a.lifecycle)
 
 
 def burn_cpu(cpu_s: float, clock: Callable[[], float] = time.thread_time) -> int:
@@ -177,10 +185,15 @@ def main(args: Optional[List[str]] = None) -> int:
     # SIGUSR1 writes every thread's stack to stderr (the node's log under an agent): what a
     # node that stopped serving is doing, without stopping it.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
+    if spec.lifecycle:
+        # Imported here: that module builds on this one.
+        from .workload_lifecycle import LifecycleWorkloadNode as node_class
+    else:
+        node_class = WorkloadNode
     rclpy.init(args=argv)
     node = None
     try:
-        node = WorkloadNode(spec)
+        node = node_class(spec)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -224,12 +237,11 @@ def subscriber_qos() -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE)
 
 
-class WorkloadNode(Node):
-    """The rclpy shell: publishers, subscriptions, a timer for sensors, work for processors."""
+class WorkloadBehaviour:
+    """What a workload does with its inputs and outputs, shared by the plain node and the
+    lifecycle node; each of them decides when its publishers, subscriptions and timers exist."""
 
-    def __init__(self, spec: WorkloadSpec, clock: Callable[[], float] = time.monotonic,
-                 **kwargs):
-        super().__init__(spec.name, **kwargs)
+    def _init_behaviour(self, spec: WorkloadSpec, clock: Callable[[], float]) -> None:
         self.spec = spec
         self._now = clock
         self._msg = UInt8MultiArray()
@@ -237,27 +249,23 @@ class WorkloadNode(Node):
         self.outputs = 0
         self.inputs = {topic: 0 for topic in spec.subs}
         self.checksum = 0
-        self._pubs = [self.create_publisher(UInt8MultiArray, t, publisher_qos(spec))
-                      for t in spec.pubs]
+        self._pubs = []
         self._gate = OutputGate(spec.rate_hz)
         self._pending = False
-        # One timer for an input the cap held back, armed only then: created once, since
-        # creating and destroying timers under a spinning executor is a known source of rclpy
-        # CPU churn and races.
-        self._retry = self.create_timer(1.0, self._on_retry)
-        self._retry.cancel()
-        for topic in spec.subs:
-            self.create_subscription(UInt8MultiArray, topic, self._make_callback(topic),
-                                     subscriber_qos(), raw=True)
+        self._retry = None
         self._first_output_logged = False
-        self.get_logger().info(
-            f'up: publishing {", ".join(spec.pubs) or "nothing"}'
-            + (f', driven by {spec.subs[0]}' if spec.subs else '')
-            + (f', {spec.work_ms:g} ms of reference CPU work per output' if spec.work_ms else ''))
-        if spec.once:
-            self._publish()
-        elif spec.is_sensor:
-            self.create_timer(1.0 / spec.rate_hz, self._publish)
+
+    def describe(self) -> str:
+        spec = self.spec
+        return (f'publishing {", ".join(spec.pubs) or "nothing"}'
+                + (f', driven by {spec.subs[0]}' if spec.subs else '')
+                + (f', {spec.work_ms:g} ms of reference CPU work per output'
+                   if spec.work_ms else ''))
+
+    def _subscribe_inputs(self) -> list:
+        return [self.create_subscription(UInt8MultiArray, topic, self._make_callback(topic),
+                                         subscriber_qos(), raw=True)
+                for topic in self.spec.subs]
 
     def _make_callback(self, topic: str):
         driving = topic == self.spec.subs[0]
@@ -296,6 +304,28 @@ class WorkloadNode(Node):
         if not self._first_output_logged:
             self._first_output_logged = True
             self.get_logger().info('first output published')
+
+
+class WorkloadNode(WorkloadBehaviour, Node):
+    """The plain node: publishers, subscriptions and timers from the start, for its whole life."""
+
+    def __init__(self, spec: WorkloadSpec, clock: Callable[[], float] = time.monotonic,
+                 **kwargs):
+        super().__init__(spec.name, **kwargs)
+        self._init_behaviour(spec, clock)
+        self._pubs = [self.create_publisher(UInt8MultiArray, t, publisher_qos(spec))
+                      for t in spec.pubs]
+        # One timer for an input the cap held back, armed only then: created once, since
+        # creating and destroying timers under a spinning executor is a known source of rclpy
+        # CPU churn and races.
+        self._retry = self.create_timer(1.0, self._on_retry)
+        self._retry.cancel()
+        self._subscribe_inputs()
+        self.get_logger().info(f'up: {self.describe()}')
+        if spec.once:
+            self._publish()
+        elif spec.is_sensor:
+            self.create_timer(1.0 / spec.rate_hz, self._publish)
 
 
 if __name__ == '__main__':
