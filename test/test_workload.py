@@ -8,12 +8,17 @@ import time
 
 import pytest
 import rclpy
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
 from std_msgs.msg import UInt8MultiArray
 
+from anyscale_manager.agent.catalogue import LIFECYCLE_SERVICES, LIFECYCLE_TOPICS
 from anyscale_manager.nodes.workload import (OutputGate, WorkloadNode, burn_cpu, parse_spec,
                                              publisher_qos, subscriber_qos)
+from anyscale_manager.nodes.workload_lifecycle import LifecycleWorkloadNode
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 
@@ -34,6 +39,12 @@ def test_bad_arguments_are_refused_with_the_argument_named(argv, message, capsys
         parse_spec(argv)
     assert e.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_lifecycle_is_a_flag_and_off_by_default():
+    assert not parse_spec(['--name', 'amcl', '--sub', '/scan', '--pub', '/pose']).lifecycle
+    assert parse_spec(['--name', 'amcl', '--sub', '/scan', '--pub', '/pose',
+                       '--lifecycle']).lifecycle
 
 
 def test_arguments_of_the_testbed_amcl():
@@ -252,10 +263,6 @@ def test_bad_arguments_exit_2_and_start_nothing(python, ros_env):
     assert '--rate-hz' in out.stderr
 
 
-if __name__ == '__main__':
-    sys.exit(pytest.main([__file__, '-v']))
-
-
 def test_an_input_the_cap_held_back_is_served_when_the_cap_opens():
     """The one retry timer: armed when the cap holds an input back, fired when it opens,
     re-armed (never created again) for the next one."""
@@ -286,3 +293,254 @@ def test_an_input_the_cap_held_back_is_served_when_the_cap_opens():
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+# --- the lifecycle node -------------------------------------------------------------------------
+
+CONFIGURE = Transition.TRANSITION_CONFIGURE
+ACTIVATE = Transition.TRANSITION_ACTIVATE
+DEACTIVATE = Transition.TRANSITION_DEACTIVATE
+CLEANUP = Transition.TRANSITION_CLEANUP
+INACTIVE_SHUTDOWN = Transition.TRANSITION_INACTIVE_SHUTDOWN
+
+
+def scale_remaps(scale):
+    """The ROS arguments the agent gives one scale's copy of a lifecycle node."""
+    args = ['--ros-args']
+    for name in LIFECYCLE_SERVICES + LIFECYCLE_TOPICS:
+        args += ['-r', f'~/{name}:=~/{scale}/{name}']
+    return args
+
+
+class LifecycleProbe(Counter):
+    """A Counter that also feeds an input at 20 Hz and drives lifecycle copies through
+    get_state / change_state clients it keeps, every call with a deadline."""
+
+    def __init__(self, topics, feed=None):
+        super().__init__(topics)
+        self._clients = {}
+        if feed:
+            pub = self.node.create_publisher(UInt8MultiArray, feed, subscriber_qos())
+            msg = UInt8MultiArray(data=bytes(64))
+            self.node.create_timer(0.05, lambda: pub.publish(msg))
+
+    def _call(self, services, srv_type, name, request, timeout_s):
+        key = (services, name)
+        if key not in self._clients:
+            self._clients[key] = self.node.create_client(srv_type, f'{services}/{name}')
+        client = self._clients[key]
+        assert self.spin_until(client.service_is_ready, timeout_s), f'no {services}/{name}'
+        future = client.call_async(request)
+        assert self.spin_until(future.done, timeout_s), f'{services}/{name} did not answer'
+        return future.result()
+
+    def state(self, services, timeout_s=15.0):
+        return self._call(services, GetState, 'get_state', GetState.Request(),
+                          timeout_s).current_state.label
+
+    def change(self, services, transition_id, timeout_s=15.0):
+        request = ChangeState.Request(transition=Transition(id=transition_id))
+        return self._call(services, ChangeState, 'change_state', request, timeout_s).success
+
+
+def test_lifecycle_workload_works_only_while_active(python, ros_env):
+    proc = _start(python, ros_env, '--name', 'wl_lc', '--sub', '/wl_lc_in', '--pub',
+                  '/wl_lc_out', '--rate-hz', '20', '--work-ms', '2', '--lifecycle',
+                  *scale_remaps('robot'))
+    probe = LifecycleProbe(['/wl_lc_out'], feed='/wl_lc_in')
+    robot = '/wl_lc/robot'
+    out = probe.arrivals['/wl_lc_out']
+    graph = probe.node
+    try:
+        assert probe.state(robot) == 'unconfigured'
+        # Not valid from unconfigured: refused, and the node lives on (rclpy Jazzy would end).
+        assert not probe.change(robot, ACTIVATE)
+        assert probe.state(robot) == 'unconfigured'
+
+        assert probe.change(robot, CONFIGURE)
+        assert probe.state(robot) == 'inactive'
+        assert probe.spin_until(lambda: graph.count_publishers('/wl_lc_out') == 1, 10.0)
+        probe.spin_until(lambda: False, 1.0)        # fed at 20 Hz all along
+        assert graph.count_subscribers('/wl_lc_in') == 0
+        assert not out, 'an inactive copy published'
+
+        assert probe.change(robot, ACTIVATE)
+        assert probe.state(robot) == 'active'
+        assert probe.spin_until(
+            lambda: len(out) >= 5 and graph.count_subscribers('/wl_lc_in') == 1, 15.0), \
+            f'{len(out)} outputs, {graph.count_subscribers("/wl_lc_in")} input subscriptions'
+
+        assert probe.change(robot, DEACTIVATE)
+        assert probe.state(robot) == 'inactive'
+        assert probe.spin_until(lambda: graph.count_subscribers('/wl_lc_in') == 0, 10.0)
+        probe.spin_until(lambda: False, 0.3)        # what was already on its way
+        seen = len(out)
+        probe.spin_until(lambda: False, 1.0)
+        assert len(out) == seen, 'a deactivated copy kept publishing'
+        assert graph.count_publishers('/wl_lc_out') == 1     # configured: ready to serve
+
+        assert probe.change(robot, INACTIVE_SHUTDOWN)
+        assert probe.state(robot) == 'finalized'
+    finally:
+        probe.close()
+        code = _stop(proc)
+    log = proc.stdout.read()
+    assert code == 0, log
+    for line in ('not valid from unconfigured', 'configured: inactive',
+                 'activated: publishing /wl_lc_out, driven by /wl_lc_in', 'deactivated:',
+                 'shut down (from inactive)'):
+        assert line in log, log
+
+
+def test_two_copies_of_one_node_answer_only_on_their_own_scale(python, ros_env):
+    """Same node name, same domain: each copy's lifecycle is reached only under its scale.
+    The copies differ in payload size only so that the reader can tell who published."""
+    common = ('--name', 'wl_two', '--sub', '/wl_two_in', '--pub', '/wl_two_out', '--rate-hz',
+              '20', '--lifecycle')
+    procs = {'robot': _start(python, ros_env, *common, '--bytes', '100',
+                             *scale_remaps('robot')),
+             'laptop': _start(python, ros_env, *common, '--bytes', '200',
+                              *scale_remaps('laptop'))}
+    probe = LifecycleProbe(['/wl_two_out'], feed='/wl_two_in')
+    robot, laptop = '/wl_two/robot', '/wl_two/laptop'
+    out = probe.arrivals['/wl_two_out']
+    try:
+        for services in (robot, laptop):
+            assert probe.change(services, CONFIGURE)
+        assert probe.state(robot) == probe.state(laptop) == 'inactive'
+
+        assert probe.change(laptop, ACTIVATE)
+        assert probe.state(laptop) == 'active'
+        assert probe.state(robot) == 'inactive'
+        assert probe.spin_until(
+            lambda: len(out) >= 5 and probe.node.count_subscribers('/wl_two_in') == 1, 15.0)
+        probe.spin_until(lambda: False, 0.5)
+        assert probe.sizes['/wl_two_out'] == {200}, 'the robot copy published'
+        assert probe.node.count_subscribers('/wl_two_in') == 1
+        assert probe.state(robot) == 'inactive'
+    finally:
+        probe.close()
+        codes = {scale: _stop(p) for scale, p in procs.items()}
+    assert codes == {'robot': 0, 'laptop': 0}, {s: p.stdout.read() for s, p in procs.items()}
+
+
+@pytest.fixture
+def context():
+    ctx = Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def _entities(node):
+    return (len(list(node.publishers)), len(list(node.subscriptions)), len(list(node.timers)))
+
+
+def _state(node):
+    return node._state_machine.current_state[1]
+
+
+@pytest.mark.parametrize('argv, subs, timers', [
+    (['--sub', '/wl_e_scan', '--sub', '/wl_e_map', '--pub', '/wl_e_pose'], 2, 1),
+    (['--pub', '/wl_e_image', '--rate-hz', '30'], 0, 2),      # the retry and the sensor timer
+    (['--pub', '/wl_e_map', '--once'], 0, 1),
+])
+def test_lifecycle_workload_has_inputs_and_timers_only_while_active(context, argv, subs,
+                                                                    timers):
+    node = LifecycleWorkloadNode(parse_spec(['--name', 'wl_e', '--lifecycle', *argv]),
+                                 context=context)
+    try:
+        pubs, base_subs, base_timers = _entities(node)
+        assert _state(node) == 'unconfigured'
+        configured = (pubs + 1, base_subs, base_timers)
+        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        assert _entities(node) == configured
+        assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        assert _entities(node) == (pubs + 1, base_subs + subs, base_timers + timers)
+        assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+        assert _entities(node) == configured and _state(node) == 'inactive'
+        assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+        assert _entities(node) == (pubs, base_subs, base_timers)
+        assert node.trigger_configure() == node.trigger_activate() == \
+            TransitionCallbackReturn.SUCCESS
+        assert node.trigger_shutdown() == TransitionCallbackReturn.SUCCESS
+        assert _entities(node) == (pubs, base_subs, base_timers)
+        assert _state(node) == 'finalized'
+    finally:
+        node.destroy_node()
+
+
+class RecordingLogger:
+    def __init__(self):
+        self.lines = []
+
+    def __getattr__(self, level):
+        return lambda text: self.lines.append((level, text))
+
+
+def test_a_failing_transition_is_logged_with_its_reason_and_leaves_nothing_behind(context):
+    node = LifecycleWorkloadNode(parse_spec(['--name', 'wl_fail', '--sub', '/wl_f_in', '--pub',
+                                             '/wl_f_out', '--lifecycle']), context=context)
+    log = RecordingLogger()
+    node.get_logger = lambda: log
+    try:
+        before = _entities(node)
+        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+
+        def no_subscriptions(*args, **kwargs):
+            raise OSError('no route to the input')
+        node.create_subscription = no_subscriptions
+        assert node.trigger_activate() == TransitionCallbackReturn.ERROR
+        assert ('error', 'activate failed (from inactive): OSError: no route to the input') \
+            in log.lines
+        # The error handler tore down what the half-done activation and configure had made.
+        assert _state(node) == 'unconfigured'
+        assert _entities(node) == before
+        del node.create_subscription
+        assert node.trigger_configure() == node.trigger_activate() == \
+            TransitionCallbackReturn.SUCCESS
+    finally:
+        node.destroy_node()
+
+
+def test_an_inactive_once_publisher_leaves_nothing_latched_for_late_readers(context):
+    node = LifecycleWorkloadNode(parse_spec(['--name', 'wl_lc_map', '--pub', '/wl_lc_map',
+                                             '--once', '--lifecycle']), context=context)
+    reader = rclpy.create_node('wl_lc_map_reader', context=context)
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    ex.add_node(reader)
+    got = []
+
+    def spin_until(condition, timeout_s):
+        deadline = time.monotonic() + timeout_s
+        while not condition() and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.05)
+        return condition()
+
+    def late_reader():
+        got.clear()
+        sub = reader.create_subscription(UInt8MultiArray, '/wl_lc_map', got.append, LATCHED)
+        assert spin_until(lambda: node._pubs[0].get_subscription_count() == 1, 10.0)
+        return sub
+
+    try:
+        node.trigger_configure()
+        node.trigger_activate()
+        sub = late_reader()
+        assert spin_until(lambda: got, 10.0), 'the active copy latched nothing'
+        reader.destroy_subscription(sub)
+        node.trigger_deactivate()
+        late_reader()
+        spin_until(lambda: False, 0.5)
+        assert not got, 'an inactive copy handed out its old message'
+        node.trigger_activate()
+        assert spin_until(lambda: got, 10.0)
+    finally:
+        ex.shutdown()
+        reader.destroy_node()
+        node.destroy_node()
+
+
+if __name__ == '__main__':
+    sys.exit(pytest.main([__file__, '-v']))

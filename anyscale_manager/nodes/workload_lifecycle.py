@@ -33,8 +33,8 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
                  **kwargs):
         super().__init__(spec.name, **kwargs)
         self._init_behaviour(spec, clock)
-        self._subs = []
-        self._timers = []
+        self._input_subs = []
+        self._active_timers = []
         self._refuse_invalid_transitions()
         self.get_logger().info(f'unconfigured: will be {self.describe()} once active')
 
@@ -90,12 +90,12 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
         # Created once per activation and re-armed while active (see WorkloadNode).
         self._retry = self.create_timer(1.0, self._on_retry)
         self._retry.cancel()
-        self._timers.append(self._retry)
-        self._subs = self._subscribe_inputs()
+        self._active_timers.append(self._retry)
+        self._input_subs = self._subscribe_inputs()
         if self.spec.once:
             self._publish()
         elif self.spec.is_sensor:
-            self._timers.append(self.create_timer(1.0 / self.spec.rate_hz, self._publish))
+            self._active_timers.append(self.create_timer(1.0 / self.spec.rate_hz, self._publish))
         return f'activated: {self.describe()}'
 
     def _deactivate(self, state: LifecycleState) -> str:
@@ -123,11 +123,11 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
         return self.create_lifecycle_publisher(UInt8MultiArray, topic, publisher_qos(self.spec))
 
     def _drop_inputs_and_timers(self) -> None:
-        for sub in self._subs:
+        for sub in self._input_subs:
             self.destroy_subscription(sub)
-        for timer in self._timers:
+        for timer in self._active_timers:
             self.destroy_timer(timer)
-        self._subs, self._timers, self._retry = [], [], None
+        self._input_subs, self._active_timers, self._retry = [], [], None
         self._pending = False
 
     def _drop_publishers(self) -> None:
