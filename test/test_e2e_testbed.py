@@ -214,6 +214,19 @@ def test_2_throttled_below_ar_need_ar_comes_back_amcl_stays(bed):
     try:
         bed.wait_for(on(bed, 'ar', ROBOT), 30.0, 'ar back on the robot after the throttle')
         t_back = bed.now()
+        bed.wait_for(lambda r: 'ar' in standby_pids(r, LAPTOP), 20.0,
+                     "the laptop's AR copy inactive")
+        t_standby = bed.now()
+
+        def no_ar_input_probe(r):
+            now = bed.now()
+            return r.agent_state_at(LAPTOP, now, 1.0) is not None and not any(
+                t > max(now - 1.0, t_standby) and src == LAPTOP
+                for t, src, _ in r.readings.get('camera_ar', []))
+        # An inactive copy's inputs no longer cross the link: nor may the laptop agent's probe
+        # of them, or AR's 6 Mbit/s go on filling the throttled link after AR has left.
+        bed.wait_for(no_ar_input_probe, 5.0, "the laptop's agent no longer probing camera_ar "
+                     '(the input of its inactive AR)')
         bed.sleep(6.0)
         with bed.lock:
             amcl_moves = bed.record.moves(since=t_throttle, node='amcl')
