@@ -145,9 +145,17 @@ def assert_within_delta(tb, start, end, what):
     found, longest = delta_check(tb, start, end)
     if found:
         with tb.lock:
-            timeline = tb.record.timeline(start, end)
+            r = tb.record
+            timeline = r.timeline(start, end)
+            moves = moves_since(tb, start)
+            laptop = r.timeline(start, end, scale=LAPTOP)['reports']
+            inputs = {name: [(round(t - start, 2), round(x.rate_hz, 1), round(x.below_for_s, 1))
+                             for t, src, x in r.readings.get(name, [])
+                             if src == LAPTOP and start <= t <= end][::2]
+                      for name in ('laser_amcl', 'camera_ar')}
         raise AssertionError(f'{what}: connections into the robot past their Δ (observer): '
-                             f'{found}; longest below {longest}; {timeline}')
+                             f'{found}; longest below {longest}; moves {moves}; laptop reports '
+                             f'{laptop}; laptop probes {inputs}; at the robot {timeline}')
     return longest
 
 
