@@ -2,19 +2,44 @@
 """Agent figures: move latency between two agents, and the agent's own CPU.
 
     python bench/bench_agent.py [--moves 20] [--cpu-seconds 20] [--domain-id N]
+        [--jitter-s 3.0] [--standby]
 
 Move latency: two agents (scales a and b) on this machine; a small rclpy talker (10 Hz) is moved
 back and forth by publishing a new layout; the time runs from the layout's publication to the
-first message from the talker started on the new scale (told apart by its scale tag and pid).
-Measured for both move orders. Agent CPU: the agent process alone (its children excluded),
-once idle with ten catalogue nodes stopped and once supervising ten running talkers at 1 Hz;
-monitors hosted by the agent are included when the monitors module is present.
-DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in the given domain.
+first message from the talker started on the new scale (told apart by its scale tag and pid),
+received here, a consumer on neither scale. Measured for both move orders. On the way:
+
+- started: the new copy's process was created (its start time in /proc, 10 ms resolution);
+- matched: this consumer's subscription matched a new writer (DDS discovery of the new copy,
+  its participant first; a message can arrive only after this);
+- first message: the headline figure;
+- ready: the gaining agent reports the new copy running and ready (it sees it in its graph).
+
+A random pause of up to --jitter-s precedes each move. Without it the moves lock to the phase of
+this process's own DDS participant announcements (Fast DDS: every 3 s): a new participant
+usually misses the answer to its first announcement (it announces before it listens) and is
+discovered at the next periodic announcement of the participant that should hear it, and a
+move that starts as soon as the previous one ended meets that announcement at the same point
+every time, so every move measured the same part of the 3 s.
+
+With --standby the talker is a lifecycle node kept as an inactive standby copy on the other
+scale (``lifecycle: true``, ``standby: true``); a move is an activation, with no process to start
+(started and matched then do not apply). It fails with the agents' own words when the package's
+agent does not support lifecycle nodes.
+
+Agent CPU: the agent process alone (its children excluded), once idle with ten catalogue nodes
+stopped and once supervising ten running talkers at 1 Hz; monitors hosted by the agent are
+included when the monitors module is present; --cpu-seconds 0 skips it.
+DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in the given domain. A Fast DDS
+profile in the environment (FASTRTPS_DEFAULT_PROFILES_FILE for Jazzy's Fast DDS 2.x,
+FASTDDS_DEFAULT_PROFILES_FILE for 3.x) applies to this process, the agents and, through them,
+the talkers; it is printed.
 """
 
 import argparse
 import json
 import os
+import random
 import signal
 import statistics
 import subprocess
@@ -25,7 +50,7 @@ import time
 import psutil
 import yaml
 
-TALKER = r'''
+TALKER = r"""
 import os, sys
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -46,7 +71,75 @@ except (KeyboardInterrupt, ExternalShutdownException):
 finally:
     node.destroy_node()
     rclpy.try_shutdown()
-'''
+"""
+
+# A lifecycle talker as docs/lifecycle.md asks: the publisher from configure, the timer only
+# while active, one message at once on activation (it serves at once, not one period later).
+LIFECYCLE_TALKER = r"""
+import os, sys
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
+from std_msgs.msg import String
+SUCCESS = TransitionCallbackReturn.SUCCESS
+TAG = os.environ.get('ANYSCALE_AGENT_SCALE', '?') + ' ' + str(os.getpid())
+
+
+class Talker(LifecycleNode):
+    def __init__(self):
+        super().__init__('bench_talker')
+        self.declare_parameter('topic', '/bench_agent/chatter')
+        self.declare_parameter('rate_hz', 10.0)
+        self.pub = None
+        self.timer = None
+
+    def on_configure(self, state):
+        self.pub = self.create_lifecycle_publisher(
+            String, self.get_parameter('topic').value, 10)
+        return SUCCESS
+
+    def on_activate(self, state):
+        super().on_activate(state)
+        self.timer = self.create_timer(1.0 / self.get_parameter('rate_hz').value, self.tick)
+        self.tick()
+        return SUCCESS
+
+    def on_deactivate(self, state):
+        self.drop_timer()
+        super().on_deactivate(state)
+        return SUCCESS
+
+    def on_cleanup(self, state):
+        self.drop_timer()
+        if self.pub is not None:
+            self.destroy_lifecycle_publisher(self.pub)
+            self.pub = None
+        return SUCCESS
+
+    def on_shutdown(self, state):
+        return self.on_cleanup(state)
+
+    def tick(self):
+        self.pub.publish(String(data=TAG))
+
+    def drop_timer(self):
+        if self.timer is not None:
+            self.destroy_timer(self.timer)
+            self.timer = None
+
+
+rclpy.init(args=sys.argv)
+node = Talker()
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, ExternalShutdownException):
+    pass
+finally:
+    node.destroy_node()
+    rclpy.try_shutdown()
+"""
+
+PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
 
 def deployment(tmp, nodes, name='bench_agent'):
@@ -66,17 +159,20 @@ def deployment(tmp, nodes, name='bench_agent'):
     return path
 
 
-def talker(topic, rate_hz, **extra):
-    return dict({'launch': {'command': [sys.executable, '-c', TALKER],
+def talker(topic, rate_hz, source=TALKER, **extra):
+    return dict({'launch': {'command': [sys.executable, '-c', source],
                             'parameters': {'topic': topic, 'rate_hz': rate_hz}},
                  'cpu': 1.0}, **extra)
 
 
 def start_agent(path, scale, tmp):
     exe = os.path.join(os.path.dirname(sys.executable), 'agent')
-    out = open(os.path.join(tmp, f'agent_{scale}.out'), 'ab')
-    return subprocess.Popen([exe, '--ros-args', '--params-file', path, '-p', f'scale:={scale}'],
+    log = os.path.join(tmp, f'agent_{scale}.out')
+    out = open(log, 'ab')
+    proc = subprocess.Popen([exe, '--ros-args', '--params-file', path, '-p', f'scale:={scale}'],
                             stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    proc.log_path = log
+    return proc
 
 
 def stop_agent(proc):
@@ -87,6 +183,14 @@ def stop_agent(proc):
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
+
+
+def tail(path, lines=15):
+    try:
+        with open(path, errors='replace') as f:
+            return ''.join(f.readlines()[-lines:])
+    except OSError as e:
+        return f'({e})'
 
 
 class Bench:
@@ -106,29 +210,47 @@ class Bench:
         self.pub = self.node.create_publisher(String, protocol.TOPIC_LAYOUT, latched)
         self.states = {}
         self.heard = []
+        self.matched = []          # (time, topic) of each new writer matched
+        self.agents = []
         self.node.create_subscription(
             String, protocol.TOPIC_AGENT_STATE, self._state,
             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
 
     def listen(self, topic):
+        def on_matched(event):
+            if event.current_count_change > 0:
+                self.matched.append((time.monotonic(), topic))
+
+        kwargs = {}
+        try:
+            from rclpy.event_handler import SubscriptionEventCallbacks
+            kwargs['event_callbacks'] = SubscriptionEventCallbacks(matched=on_matched)
+        except (ImportError, TypeError):     # an rclpy without matched events: no 'matched'
+            pass
         self.node.create_subscription(self.String, topic,
                                       lambda m: self.heard.append((time.monotonic(), m.data)),
-                                      10)
+                                      10, **kwargs)
 
     def _state(self, msg):
         st = self.protocol.AgentState.from_json(msg.data)
         self.states[st.scale] = st
 
     def publish(self, generation, assignments):
+        stamp = time.time()
         self.pub.publish(self.String(data=json.dumps({
             'generation': generation, 'deployment': self.name, 'assignments': assignments,
-            'reason': 'bench', 'stamp': time.time()})))
+            'reason': 'bench', 'stamp': stamp})))
+        return stamp
 
     def spin_until(self, cond, timeout):
         end = time.monotonic() + timeout
         while time.monotonic() < end:
             self.rclpy.spin_once(self.node, timeout_sec=0.01)
+            for a in self.agents:
+                if a.poll() is not None:
+                    raise RuntimeError(f'an agent exited with code {a.returncode}; its output:\n'
+                                       + tail(a.log_path))
             if cond():
                 return True
         return False
@@ -145,15 +267,24 @@ def percentile(values, q):
     return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
 
 
-def bench_moves(tmp, moves):
+STAGES = ('started', 'matched', 'first', 'ready')
+
+
+def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
+    """{node: {stage: [seconds after the layout, one per move]}} for both move orders."""
     topic = '/bench_agent/chatter'
-    nodes = {'sbs': talker(topic + '/sbs', 10.0),
-             'sbs2': talker(topic + '/stop_first', 10.0, move_order='stop_before_start')}
+    extra = {'lifecycle': True, 'standby': True} if standby else {}
+    source = LIFECYCLE_TALKER if standby else TALKER
+    nodes = {'sbs': talker(topic + '/sbs', 10.0, source, **extra),
+             'sbs2': talker(topic + '/stop_first', 10.0, source,
+                            move_order='stop_before_start', **extra)}
     path = deployment(tmp, nodes)
     b = Bench('bench_agent')
     b.listen(topic + '/sbs')
     b.listen(topic + '/stop_first')
-    agents = [start_agent(path, 'a', tmp), start_agent(path, 'b', tmp)]
+    topics = {'sbs': topic + '/sbs', 'sbs2': topic + '/stop_first'}
+    b.agents = [start_agent(path, 'a', tmp), start_agent(path, 'b', tmp)]
+    rng = random.Random(1)
     results = {}
     try:
         gen = 0
@@ -161,56 +292,89 @@ def bench_moves(tmp, moves):
             gen += 1
             b.publish(gen, {node: 'a'})
             if not b.spin_until(lambda: any(d.startswith('a ') for _, d in b.heard), 60.0):
-                raise RuntimeError('the talker never published on scale a')
-            samples, ready = [], []
+                raise RuntimeError(f'the talker {node} never published on scale a; agent a:\n'
+                                   + tail(b.agents[0].log_path))
+            if standby and not b.spin_until(
+                    lambda: getattr(b.states.get('b'), 'nodes', {}).get(node) is not None
+                    and b.states['b'].nodes[node].state == 'standby', 30.0):
+                rep = getattr(b.states.get('b'), 'nodes', {}).get(node)
+                raise RuntimeError(
+                    f'--standby: agent b never reported {node} as a standby copy (its report: '
+                    f'{rep}); this agent does not keep lifecycle standby copies. Agent b:\n'
+                    + tail(b.agents[1].log_path))
+            samples = {s: [] for s in STAGES}
             where = 'a'
             for _ in range(moves):
+                b.spin_until(lambda: False, rng.uniform(0.0, jitter_s))
                 where = 'b' if where == 'a' else 'a'
                 gen += 1
                 b.heard.clear()
+                b.matched.clear()
                 t0 = time.monotonic()
+                boot0 = time.clock_gettime(time.CLOCK_BOOTTIME)
                 b.publish(gen, {node: where})
+                ready_at = []
 
-                def moved():
+                def new_copy():
                     r = b.states.get(where)
                     rep = r.nodes.get(node) if r else None
                     if rep is None or rep.state not in ('starting', 'running') or not rep.pid:
-                        return False
-                    return any(d == f'{where} {rep.pid}' for _, d in b.heard)
+                        return None
+                    return rep
+
+                def moved():
+                    rep = new_copy()
+                    return rep is not None and any(d == f'{where} {rep.pid}' for _, d in b.heard)
 
                 def ready_new():
                     r = b.states.get(where)
-                    rep = r.nodes.get(node) if r else None
+                    rep = new_copy()
                     if rep is not None and rep.state == 'running' and rep.ready \
                             and r.generation == gen and not ready_at:
                         ready_at.append(time.monotonic() - t0)
                     return moved() and bool(ready_at)
 
-                ready_at = []
                 if not b.spin_until(ready_new, 60.0):
                     raise RuntimeError(f'move {gen} of {node} to {where} never completed')
                 rep = b.states[where].nodes[node]
                 first = min(t for t, d in b.heard if d == f'{where} {rep.pid}')
-                samples.append(first - t0)
+                samples['first'].append(first - t0)
+                samples['ready'].append(ready_at[0])
+                if not standby:
+                    started = start_time(rep.pid)
+                    if started is not None:
+                        samples['started'].append(started - boot0)
+                    seen = [t for t, tp in b.matched if tp == topics[node]]
+                    if seen:
+                        samples['matched'].append(min(seen) - t0)
 
                 def settled():
                     old = b.states.get('a' if where == 'b' else 'b')
                     orep = old.nodes.get(node) if old else None
                     new = b.states[where].nodes[node]
-                    return orep is not None and orep.state == 'stopped' and new.ready
+                    return orep is not None and orep.state in ('stopped', 'standby') \
+                        and new.ready
 
                 b.spin_until(settled, 30.0)
-                ready.append(ready_at[0])
                 b.heard.clear()
-            results[node] = (samples, ready)
+            results[node] = samples
             b.publish(gen + 1, {node: 'a'})
             gen += 1
             b.spin_until(lambda: False, 0.5)
     finally:
-        for a in agents:
+        for a in b.agents:
             stop_agent(a)
         b.close()
     return results
+
+
+def start_time(pid):
+    """When a process was created, on CLOCK_BOOTTIME (what /proc/<pid>/stat counts in)."""
+    try:
+        with open(f'/proc/{pid}/stat') as f:
+            return int(f.read().rsplit(')', 1)[1].split()[19]) / os.sysconf('SC_CLK_TCK')
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def cpu_of(pid, seconds):
@@ -227,6 +391,7 @@ def bench_cpu(tmp, seconds):
     path = deployment(tmp, nodes, name='bench_agent_cpu')
     b = Bench('bench_agent_cpu')
     agent = start_agent(path, 'a', tmp)
+    b.agents = [agent]
     try:
         b.publish(1, {n: 'b' for n in names})     # every node placed elsewhere: idle agent
         if not b.spin_until(lambda: 'a' in b.states and b.states['a'].generation == 1, 60.0):
@@ -246,13 +411,25 @@ def bench_cpu(tmp, seconds):
     return idle, busy
 
 
+def figures(values):
+    return (f'p50 {percentile(values, 0.5) * 1000:.0f} ms, '
+            f'p95 {percentile(values, 0.95) * 1000:.0f} ms, '
+            f'max {max(values) * 1000:.0f} ms, mean {statistics.mean(values) * 1000:.0f} ms')
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--moves', type=int, default=20)
     parser.add_argument('--cpu-seconds', type=float, default=20.0)
     parser.add_argument('--domain-id', type=int,
                         default=int(os.environ.get('ROS_DOMAIN_ID', '42')))
+    parser.add_argument('--jitter-s', type=float, default=3.0,
+                        help='random pause of up to this long before each move (see above)')
+    parser.add_argument('--standby', action='store_true',
+                        help='move a lifecycle talker kept as a standby copy (activation)')
     args = parser.parse_args()
+    if args.moves < 1 or args.jitter_s < 0 or args.cpu_seconds < 0:
+        parser.error('--moves must be >= 1, --jitter-s and --cpu-seconds >= 0')
     os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.pop('ROS_STATIC_PEERS', None)
@@ -261,19 +438,39 @@ def main():
         monitors = 'with its monitors'
     except ImportError:
         monitors = 'without monitors (module absent)'
-    print(f'machine: {os.cpu_count()} CPUs; ROS_DOMAIN_ID={args.domain_id}; agent {monitors}')
+    import anyscale_manager
+    profile = ', '.join(f'{v}={os.environ[v]}' for v in PROFILE_VARS if os.environ.get(v)) \
+        or 'none (Fast DDS defaults)'
+    load = ' '.join(f'{x:.2f}' for x in os.getloadavg())
+    print(f'machine: {os.cpu_count()} CPUs, load average {load}; ROS_DOMAIN_ID={args.domain_id};'
+          f' agent {monitors}; package {os.path.dirname(anyscale_manager.__file__)}; '
+          f'DDS profile: {profile}')
+    labels = {'started': 'the gaining agent started the new copy',
+              'matched': 'this consumer matched the new copy (DDS discovery)',
+              'first': 'first message from the new copy',
+              'ready': 'new agent reports it running and ready'}
     with tempfile.TemporaryDirectory(prefix='bench_agent_') as tmp:
-        moves = bench_moves(tmp, args.moves)
+        try:
+            moves = bench_moves(tmp, args.moves, args.jitter_s, args.standby)
+        except RuntimeError as e:
+            hint = (' (--standby needs agents that keep lifecycle standby copies: '
+                    'nodes.<name>.lifecycle and .standby in the deployment)'
+                    if args.standby else '')
+            print(f'bench_agent: move latency failed{hint}:\n{e}', file=sys.stderr)
+            return 1
+        kind = 'standby activation, ' if args.standby else ''
         for node, label in (('sbs', 'start_before_stop'), ('sbs2', 'stop_before_start')):
-            for s, what in zip(moves[node], ('first message from the new copy',
-                                             'new agent reports it running and ready')):
-                print(f'move latency ({label}, {len(s)} moves, layout published -> {what}): '
-                      f'p50 {percentile(s, 0.5) * 1000:.0f} ms, '
-                      f'p95 {percentile(s, 0.95) * 1000:.0f} ms, '
-                      f'max {max(s) * 1000:.0f} ms, mean {statistics.mean(s) * 1000:.0f} ms')
-        idle, busy = bench_cpu(tmp, args.cpu_seconds)
-        print(f'agent CPU over {args.cpu_seconds:g} s (percent of one core): idle '
-              f'{idle:.1f} %, supervising ten running nodes {busy:.1f} %')
+            for stage in ('first', 'ready', 'started', 'matched'):
+                s = moves[node][stage]
+                if s:
+                    print(f'move latency ({kind}{label}, {len(s)} moves, layout published -> '
+                          f'{labels[stage]}): {figures(s)}')
+        if args.cpu_seconds > 0:
+            idle, busy = bench_cpu(tmp, args.cpu_seconds)
+            print(f'agent CPU over {args.cpu_seconds:g} s (percent of one core): idle '
+                  f'{idle:.1f} %, supervising ten running nodes {busy:.1f} %')
+    load = ' '.join(f'{x:.2f}' for x in os.getloadavg())
+    print(f'load average at the end: {load}')
     return 0
 
 
