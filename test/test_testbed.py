@@ -306,7 +306,7 @@ def test_tbf_arguments_and_refusals():
 
 needs_netns = pytest.mark.skipif(not NETNS_OK, reason=f'no namespaces here: {NETNS_WHY}')
 
-TCP_SINK = """
+TCP_SINK = '''
 import socket, threading
 s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
 s.bind(("0.0.0.0", 5301)); s.listen(4)
@@ -315,8 +315,8 @@ def drain(c):
         pass
 while True:
     c, _ = s.accept(); threading.Thread(target=drain, args=(c,), daemon=True).start()
-"""
-TCP_SEND = """
+'''
+TCP_SEND = '''
 import socket, struct, sys, time
 s = socket.create_connection((sys.argv[1], 5301), timeout=float(sys.argv[2]))
 s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 65536)
@@ -327,7 +327,7 @@ print(n * 8 / 1000 / (time.time() - t))
 # Reset instead of a graceful close: no orphaned send buffer keeps the link busy afterwards.
 s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
 s.close()
-"""
+'''
 
 
 def _throughput_kbps(net, connect_timeout_s=5.0):
