@@ -30,8 +30,13 @@ setup_env() {
   fi
 }
 
-# DDS discovery stays on this machine's loopback unless the caller says otherwise.
+# DDS discovery stays on this machine's loopback unless the caller says otherwise, and uses
+# the packaged discovery profile (a new node is found in 0.25 s, not up to 3 s) unless the
+# caller names a profile of their own.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=${ROS_AUTOMATIC_DISCOVERY_RANGE:-LOCALHOST}
+if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}${FASTDDS_DEFAULT_PROFILES_FILE:-}" ]; then
+  export FASTRTPS_DEFAULT_PROFILES_FILE="$here/config/fastdds_discovery.xml"
+fi
 
 cmd=${1:-test}
 shift || true

@@ -2,7 +2,7 @@
 """Agent figures: move latency between two agents, and the agent's own CPU.
 
     python bench/bench_agent.py [--moves 20] [--cpu-seconds 20] [--domain-id N]
-        [--jitter-s 3.0] [--standby]
+        [--jitter-s 3.0] [--standby] [--no-profile]
 
 Move latency: two agents (scales a and b) on this machine; a small rclpy talker (10 Hz) is moved
 back and forth by publishing a new layout; the time runs from the layout's publication to the
@@ -30,10 +30,11 @@ agent does not support lifecycle nodes.
 Agent CPU: the agent process alone (its children excluded), once idle with ten catalogue nodes
 stopped and once supervising ten running talkers at 1 Hz; monitors hosted by the agent are
 included when the monitors module is present; --cpu-seconds 0 skips it.
-DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in the given domain. A Fast DDS
-profile in the environment (FASTRTPS_DEFAULT_PROFILES_FILE for Jazzy's Fast DDS 2.x,
-FASTDDS_DEFAULT_PROFILES_FILE for 3.x) applies to this process, the agents and, through them,
-the talkers; it is printed.
+DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in the given domain. The
+packaged discovery profile (config/fastdds_discovery.xml), or a Fast DDS profile the environment
+names (FASTRTPS_DEFAULT_PROFILES_FILE for Jazzy's Fast DDS 2.x, FASTDDS_DEFAULT_PROFILES_FILE for
+3.x), applies to this process, the agents and, through them, the talkers; it is printed.
+--no-profile leaves the packaged one out.
 """
 
 import argparse
@@ -50,7 +51,7 @@ import time
 import psutil
 import yaml
 
-TALKER = r"""
+TALKER = r'''
 import os, sys
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -71,11 +72,11 @@ except (KeyboardInterrupt, ExternalShutdownException):
 finally:
     node.destroy_node()
     rclpy.try_shutdown()
-"""
+'''
 
 # A lifecycle talker as docs/lifecycle.md asks: the publisher from configure, the timer only
 # while active, one message at once on activation (it serves at once, not one period later).
-LIFECYCLE_TALKER = r"""
+LIFECYCLE_TALKER = r'''
 import os, sys
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -137,7 +138,7 @@ except (KeyboardInterrupt, ExternalShutdownException):
 finally:
     node.destroy_node()
     rclpy.try_shutdown()
-"""
+'''
 
 PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
@@ -427,12 +428,18 @@ def main():
                         help='random pause of up to this long before each move (see above)')
     parser.add_argument('--standby', action='store_true',
                         help='move a lifecycle talker kept as a standby copy (activation)')
+    parser.add_argument('--no-profile', action='store_true',
+                        help="without the packaged config/fastdds_discovery.xml (Fast DDS's "
+                             'defaults, or the profile the environment names)')
     args = parser.parse_args()
     if args.moves < 1 or args.jitter_s < 0 or args.cpu_seconds < 0:
         parser.error('--moves must be >= 1, --jitter-s and --cpu-seconds >= 0')
     os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.pop('ROS_STATIC_PEERS', None)
+    if not args.no_profile:
+        from anyscale_manager import config_files
+        os.environ.update(config_files.with_discovery_profile(os.environ))
     try:
         import anyscale_manager.nodes.monitors  # noqa: F401
         monitors = 'with its monitors'

@@ -14,7 +14,7 @@ def test_flake8_clean():
         import flake8  # noqa: F401
     except ImportError:
         pytest.skip('flake8 is not installed (pip install flake8 flake8-quotes)')
-    paths = [p for p in ('anyscale_manager', 'test', 'bench', 'scripts', 'setup.py')
+    paths = [p for p in ('anyscale_manager', 'test', 'bench', 'scripts', 'examples', 'setup.py')
              if os.path.exists(os.path.join(REPO, p))]
     r = subprocess.run([sys.executable, '-m', 'flake8', '--max-line-length', '99',
                         '--inline-quotes', 'single', '--multiline-quotes', "'''",

@@ -14,8 +14,10 @@ from typing import Callable, Dict, Mapping, Optional, Tuple
 from ..model import types as t
 
 # Variables a child inherits from the agent; everything else comes from launch.env.
+# _ROS_WHEELS_BOOTSTRAP_COMPLETE: set by the pip-installed ROS wheels once LD_LIBRARY_PATH is
+# right (it is passed on too); without it every Python child re-executes itself (~40 ms).
 BASE_ENV_NAMES = ('PATH', 'HOME', 'LANG', 'LC_ALL', 'PYTHONPATH', 'AMENT_PREFIX_PATH',
-                  'LD_LIBRARY_PATH', 'USER', 'LOGNAME', 'TZ')
+                  'LD_LIBRARY_PATH', 'USER', 'LOGNAME', 'TZ', '_ROS_WHEELS_BOOTSTRAP_COMPLETE')
 BASE_ENV_PREFIXES = ('ROS_', 'RMW_', 'RCUTILS_', 'FASTRTPS_', 'FASTDDS_', 'CYCLONEDDS_')
 ENV_NODE = 'ANYSCALE_AGENT_NODE'          # marks a child: which catalogue entry it is
 ENV_SCALE = 'ANYSCALE_AGENT_SCALE'        # and which scale's agent started it

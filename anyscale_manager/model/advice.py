@@ -36,7 +36,7 @@ def warnings(d: t.Deployment) -> List[str]:
             f'{d.source}: nodes.{name}: a cold move cannot meet the tolerance_s of {names}: '
             f'after a link cut it is unserved for at least {budget:.2f} s (the cut seen after '
             f'{m.heartbeat_misses_down} heartbeats at {m.heartbeat_rate_hz:g} Hz, then a '
-            f'plain rclpy node starts in about {COLD_MOVE_S:g} s, plus the node\'s own '
+            f"plain rclpy node starts in about {COLD_MOVE_S:g} s, plus the node's own "
             f'start). Make it a lifecycle node with standby: true (lifecycle: true; see '
             f'docs/lifecycle.md), so a move is an activation, or give each of them a '
             f'tolerance_s of at least {budget:.1f} s')

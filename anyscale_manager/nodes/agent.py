@@ -47,6 +47,9 @@ except ImportError as exc:   # a broken install: the agent still supervises with
     _MONITORS_MISSING = str(exc)
 
 TICK_S = 0.1
+# While a node is stopping the loop runs this often: a stop_before_start move waits until the
+# old copy is seen gone here (and reported) before the other scale starts the new one.
+STOPPING_TICK_S = 0.02
 SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 
 
@@ -147,6 +150,7 @@ class AgentNode(Node):
         self._shutdown_requested = 0
         self._shutdown_at = 0.0
         self._probe_names: Optional[tuple] = None
+        self._published_view: Dict[str, tuple] = {}
         self._last_waiting: Dict[str, str] = {}
 
         qos = latched_qos()
@@ -160,6 +164,8 @@ class AgentNode(Node):
             self.reconciler.heard_master(time.monotonic())
             self.create_subscription(String, protocol.TOPIC_OBJECTIVE, self._on_objective, 10)
         self.create_timer(TICK_S, self._tick)
+        self._stopping_timer = self.create_timer(STOPPING_TICK_S, self._tick)
+        self._stopping_timer.cancel()
         self.create_timer(1.0 / self.settings.heartbeat_rate_hz, self._publish_state)
         self._start_monitors()
         self.get_logger().info(
@@ -296,7 +302,6 @@ class AgentNode(Node):
         probes = getattr(self, '_probes', None)
         if probes is not None:
             probes.poll_writers(now)
-        before = self._lifecycle_view()
         if self._shutdown_requested:
             want: set = set()
             goals = {n: lc.FINALIZED for n in self._lifecycle}
@@ -333,9 +338,19 @@ class AgentNode(Node):
         self._sync_drivers()
         self._drive_lifecycles(now)
         self._log_events()
-        if changed or self._lifecycle_view() != before:
+        # Answers to lifecycle requests arrive between ticks: compare with what was last
+        # published, not with the start of this tick.
+        view = self._lifecycle_view()
+        if changed or view != self._published_view:
+            self._published_view = view
             self._publish_state()
-            self._update_probes()
+        self._update_probes()
+        stopping = any(sup.state(n) == 'stopping' for n in sup.names)
+        if stopping == self._stopping_timer.is_canceled():
+            if stopping:
+                self._stopping_timer.reset()
+            else:
+                self._stopping_timer.cancel()
 
     def _lifecycle_view(self) -> Dict[str, tuple]:
         return {n: (c.driver.state, c.driver.goal, c.driver.failed)

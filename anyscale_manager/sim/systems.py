@@ -17,12 +17,12 @@
 
 import copy
 import math
-import os
 from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import yaml
 
+from .. import config_files
 from ..model.loader import load_mapping
 from .model import SimSystem, profiles_from_deployment
 
@@ -39,20 +39,11 @@ JITTER = (0.7, 1.3)
 
 def find_testbed() -> str:
     """The test-bed deployment file: installed share directory first, then the source tree."""
-    candidates = []
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        candidates.append(os.path.join(get_package_share_directory('anyscale_manager'),
-                                       'config', TESTBED_FILE))
-    except Exception:   # not installed with colcon, or ament_index missing: use the source tree
-        pass
-    here = os.path.dirname(os.path.abspath(__file__))
-    candidates.append(os.path.join(os.path.dirname(os.path.dirname(here)), 'config',
-                                   TESTBED_FILE))
-    for path in candidates:
-        if os.path.isfile(path):
-            return path
-    raise FileNotFoundError(f'cannot find {TESTBED_FILE} (looked in: {", ".join(candidates)})')
+    path = config_files.find(TESTBED_FILE)
+    if path is None:
+        raise FileNotFoundError(f'cannot find {TESTBED_FILE} (looked in: '
+                                f'{", ".join(config_files.candidates(TESTBED_FILE))})')
+    return path
 
 
 def _read_yaml(path: str) -> Dict[str, Any]:

@@ -13,6 +13,7 @@ import sys
 import time
 from typing import List, Optional
 
+from .. import config_files
 from ..model.loader import DeploymentError, load_deployment
 from . import schedule as sched
 
@@ -21,17 +22,7 @@ CONFIG_NAME = 'icar2015_testbed.yaml'
 
 def default_config() -> Optional[str]:
     """The installed share/anyscale_manager/config file, else the source tree's config/."""
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        path = os.path.join(get_package_share_directory('anyscale_manager'), 'config',
-                            CONFIG_NAME)
-        if os.path.isfile(path):
-            return path
-    except (ImportError, LookupError, OSError, ValueError):
-        pass
-    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    path = os.path.join(here, 'config', CONFIG_NAME)
-    return path if os.path.isfile(path) else None
+    return config_files.find(CONFIG_NAME)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -187,7 +178,9 @@ def run(args: argparse.Namespace) -> int:
     if summary['objective_integral'] is not None:
         print(f'time-integrated performance (decider objective): '
               f'{summary["objective_integral"]:.1f}')
-    print(f'connections past their Δ (probe reports): {summary["violations"]}')
+    print(f'connections past their Δ: {summary["violations"]} reported by the probes, '
+          f'{summary["observed_violations"]} heard by the observer at the '
+          f'{testbed.deployment.master.name}')
     print('written:')
     for path in files:
         print(f'  {path}')
@@ -203,6 +196,10 @@ def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> di
     with testbed.lock:
         objective = [o for t, o in record.objectives if t0 <= t <= t1]
         violations = record.reported_violations(t0, t1, serving_only=True)
+        # The same rule judged on what the harness's observer heard at the master scale (a
+        # reader no agent started).
+        observed = record.delta_violations(t0, t1, testbed.deployment.master.name,
+                                           window_s=testbed.deployment.monitoring.probe_window_s)
         return {
             'mode': testbed.mode, 'mode_reason': testbed.mode_reason,
             'duration_s': round(t1 - t0, 2), 'schedule': [str(s) for s in steps],
@@ -218,6 +215,11 @@ def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> di
                 {'connection': v.connection, 'start_s': round(v.start - t0, 2),
                  'end_s': round(v.end - t0, 2), 'tolerance_s': v.tolerance_s,
                  'reported_by': v.source} for v in violations],
+            'observed_violations': len(observed),
+            'observed_violation_details': [
+                {'connection': v.connection, 'start_s': round(v.start - t0, 2),
+                 'end_s': round(v.end - t0, 2), 'tolerance_s': v.tolerance_s}
+                for v in observed],
             'teardown_notes': notes,
             'observer_problems': record.problems[:20],
         }

@@ -30,7 +30,7 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import psutil
 
-from .. import protocol
+from .. import config_files, protocol
 from ..agent.catalogue import ENV_NODE, ENV_SCALE
 from ..model.loader import load_deployment
 from ..model.types import Deployment
@@ -538,8 +538,9 @@ class Testbed:
 
 
 def child_env(domain_id: int, log_dir: str, peer: Optional[str] = None) -> Dict[str, str]:
-    """The environment of a ROS process of the test-bed: this run's domain, and discovery on
-    loopback, or (``peer``: the other namespace's address) on the namespace pair only."""
+    """The environment of a ROS process of the test-bed: this run's domain, discovery on
+    loopback, or (``peer``: the other namespace's address) on the namespace pair only, and the
+    packaged discovery profile (config/fastdds_discovery.xml)."""
     keep = ('PATH', 'HOME', 'LANG', 'LC_ALL', 'PYTHONPATH', 'AMENT_PREFIX_PATH',
             'LD_LIBRARY_PATH', 'RMW_IMPLEMENTATION', 'VIRTUAL_ENV')
     env = {k: v for k, v in os.environ.items() if k in keep}
@@ -555,7 +556,9 @@ def child_env(domain_id: int, log_dir: str, peer: Optional[str] = None) -> Dict[
         env['FASTDDS_BUILTIN_TRANSPORTS'] = 'UDPv4'
     else:
         env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    return env
+    # The discovery profile a deployment is advised to use (a caller's own profile wins).
+    return config_files.with_discovery_profile(
+        {**env, **{v: os.environ[v] for v in config_files.PROFILE_VARS if os.environ.get(v)}})
 
 
 def _lift_quota(group) -> None:
