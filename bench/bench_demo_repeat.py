@@ -30,6 +30,7 @@ def main() -> int:
     if args.runs < 1:
         parser.error('--runs must be >= 1')
     out = args.out or tempfile.mkdtemp(prefix='anyscale_demo_runs_')
+    os.makedirs(out, exist_ok=True)
     exe = os.path.join(os.path.dirname(sys.executable), 'anyscale-manager')
     rows = []
     for i in range(args.runs):

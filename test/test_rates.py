@@ -524,3 +524,26 @@ def test_writer_streams_a_writer_heard_first_is_no_news():
     assert w.joined_since(1.2) and not w.joined_since(1.21)
     with pytest.raises(ValueError):
         WriterStreams(forget_s=0)
+
+
+def test_link_monitor_trackers_judge_congestion_over_a_second_at_any_beat_rate():
+    from anyscale_manager.nodes.monitors.link import heartbeat_tracker
+    slow, fast = heartbeat_tracker(0.25, 3), heartbeat_tracker(0.1, 3)
+    assert (slow.recent, slow.agree) == (4, 3)     # the 4 Hz verdict is unchanged
+    assert (fast.recent, fast.agree) == (10, 8)
+    assert fast.timeout_s == pytest.approx(0.3)    # a cut is still seen after 3 beats
+    # A 0.3 s stall of the judging scale delays 3 beats of 10: no verdict of congestion.
+    now, rtts = 0.0, [0.002] * 66 + [0.3, 0.2, 0.1, 0.002]
+    for rtt in rtts:
+        seq = fast.next_beat(now)
+        fast.echo(now + rtt, seq)
+        now += 0.1
+    assert fast.queueing_delay_s(now + 0.3) < 0.05
+    # The same three beats are 3 of the last 4 at 4 Hz's window: they would make it.
+    strict = HeartbeatTracker(0.1, 3, recent=4, agree=3)
+    now = 0.0
+    for rtt in rtts:
+        seq = strict.next_beat(now)
+        strict.echo(now + rtt, seq)
+        now += 0.1
+    assert strict.queueing_delay_s(now + 0.3) > 0.05

@@ -1,0 +1,93 @@
+"""What the monitors share: QoS profiles, the publishers of a project topic and of
+/diagnostics, message types by name, settings checks."""
+
+import importlib
+import re
+from typing import List, Mapping
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from std_msgs.msg import String
+
+from .. import qos
+from ... import protocol as p
+from ...model.types import Deployment
+
+PROBE_QOS = qos.PROBE
+STATUS_QOS = qos.STATUS
+HEARTBEAT_QOS = qos.HEARTBEAT
+LATCHED_QOS = qos.LATCHED_READER
+DIAGNOSTICS_QOS = STATUS_QOS
+_TYPE_RE = re.compile(r'^([A-Za-z_][A-Za-z0-9_]*)/(?:(msg)/)?([A-Za-z_][A-Za-z0-9_]*)$')
+
+
+def import_message_class(type_name: str):
+    """'pkg/msg/Type' (or 'pkg/Type') -> the message class; ValueError naming what failed."""
+    match = _TYPE_RE.match(type_name or '')
+    if not match:
+        raise ValueError(f'message type {type_name!r:.80} is not of the form pkg/msg/Type')
+    pkg, _, name = match.groups()
+    try:
+        module = importlib.import_module(f'{pkg}.msg')
+    except ImportError as e:
+        raise ValueError(f'message type {type_name}: cannot import {pkg}.msg ({e})') from None
+    cls = getattr(module, name, None)
+    if cls is None or not hasattr(cls, 'get_fields_and_field_types'):
+        raise ValueError(f'message type {type_name}: {pkg}.msg has no message {name}')
+    return cls
+
+
+def status(name: str, level: int, message: str, hardware_id: str,
+           values: Mapping[str, object]) -> DiagnosticStatus:
+    s = DiagnosticStatus()
+    s.level = bytes([level])
+    s.name = name
+    s.message = message
+    s.hardware_id = hardware_id
+    s.values = [KeyValue(key=str(k), value=_fmt(v)) for k, v in values.items()]
+    return s
+
+
+def _fmt(value: object) -> str:
+    if isinstance(value, float):
+        return f'{value:.6g}'
+    return '' if value is None else str(value)
+
+
+class Publishers:
+    """A monitor's project-topic publisher plus the shared /diagnostics publisher."""
+
+    def __init__(self, node, topic: str):
+        self.node = node
+        self.topic = topic
+        self.own = node.create_publisher(String, topic, STATUS_QOS)
+        self.diagnostics = node.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS,
+                                                 DIAGNOSTICS_QOS)
+
+    def send(self, message: p.Message) -> None:
+        self.own.publish(String(data=message.to_json()))
+
+    def send_diagnostics(self, statuses: List[DiagnosticStatus]) -> None:
+        if not statuses:
+            return
+        array = DiagnosticArray()
+        array.header.stamp = self.node.get_clock().now().to_msg()
+        array.status = statuses
+        self.diagnostics.publish(array)
+
+    def destroy(self) -> None:
+        self.node.destroy_publisher(self.own)
+        self.node.destroy_publisher(self.diagnostics)
+
+
+def period_of(rate_hz: float, what: str) -> float:
+    if not rate_hz > 0:
+        raise ValueError(f'monitoring.{what} must be positive, got {rate_hz!r}')
+    return 1.0 / rate_hz
+
+
+def scale_of(deployment: Deployment, scale: str):
+    try:
+        return deployment.scale(scale)
+    except KeyError:
+        raise ValueError(f'deployment {deployment.name!r} has no scale {scale!r} '
+                         f'(scales: {", ".join(deployment.scale_names)})') from None

@@ -1,0 +1,324 @@
+"""LinkMonitor: heartbeats, RTT, loss, up/down and bandwidth of the link to each remote
+scale."""
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Dict, Optional, Tuple
+
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from std_msgs.msg import String
+
+from ... import protocol as p
+from ...model.types import Deployment
+from ...runtime.rates import BandwidthEstimate, HeartbeatTracker, crossing_connections, used_kbps
+from .common import HEARTBEAT_QOS, LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, status
+from .throughput import ProbeServer, probe_throughput
+
+WATCHDOG_SLACK_S = 0.002
+# What a tracker judges over, in seconds rather than beats, so that a faster beat sees a cut
+# sooner without making the queueing-delay verdict twitchier: a scale starved of CPU for a few
+# tenths of a second delays a few beats, a full link delays all of them.
+CONGESTION_SPAN_S = 1.0
+LOSS_SPAN_S = 10.0
+BASE_SPAN_S = 60.0
+
+
+def heartbeat_tracker(period_s: float, misses_down: int) -> HeartbeatTracker:
+    """A tracker whose windows span CONGESTION_SPAN_S (queueing delay reached by 3 of the last 4
+    beats at 4 Hz, 8 of 10 at 10 Hz), LOSS_SPAN_S and BASE_SPAN_S, at any beat rate."""
+    recent = max(4, math.ceil(CONGESTION_SPAN_S / period_s - 1e-9))
+    loss = max(40, math.ceil(LOSS_SPAN_S / period_s - 1e-9))
+    return HeartbeatTracker(period_s, misses_down, loss_window=loss,
+                            base_window=max(240, loss, math.ceil(BASE_SPAN_S / period_s - 1e-9)),
+                            recent=recent, agree=recent - max(1, recent // 5))
+
+
+@dataclass
+class _Remote:
+    scale: object
+    link_name: str
+    beats: HeartbeatTracker
+    bandwidth: Optional[BandwidthEstimate]
+    was_up: bool = False
+    probing: bool = False
+    congested: bool = False
+    delay_s: Optional[float] = None
+    quiet_since: float = -math.inf     # beats sent earlier say nothing of congestion
+    watchdog: object = None
+    result: Optional[Tuple[float, Optional[float], str, float]] = None  # done, bps, error, used
+
+
+class LinkMonitor:
+    """Master: heartbeats, RTT, loss, up/down and bandwidth of the link to each remote.
+    Remote: echoes the heartbeats addressed to it and serves the throughput probe."""
+
+    def __init__(self, node, deployment: Deployment, scale: str):
+        self._node = node
+        self._deployment = deployment
+        self._scale = scale_of(deployment, scale)
+        settings = deployment.monitoring
+        self._period = period_of(settings.heartbeat_rate_hz, 'heartbeat_rate_hz')
+        self._group = MutuallyExclusiveCallbackGroup()
+        self._log = node.get_logger()
+        self._timers = []
+        self._subs = []
+        self._server: Optional[ProbeServer] = None
+        self._remotes: Dict[str, _Remote] = {}
+        self._lock = threading.Lock()
+        self.last: Dict[str, p.LinkStatus] = {}
+        if self._scale.is_master:
+            self._start_master(settings)
+        else:
+            self._start_remote(settings)
+
+    # master side ----------------------------------------------------------------------------
+    def _start_master(self, settings) -> None:
+        for remote in self._deployment.remote_scales:
+            link = self._deployment.link_between(self._scale.name, remote.name)
+            estimate = None
+            if link is not None:
+                # A link that looks congested is probed at once, but the probe fills at most a
+                # tenth of its time.
+                estimate = BandwidthEstimate(
+                    settings.bandwidth_probe_interval_s, link.bandwidth_kbps,
+                    urgent_gap_s=10.0 * settings.bandwidth_probe_duration_s)
+            self._remotes[remote.name] = _Remote(
+                remote, link.name if link else f'{self._scale.name}-{remote.name}',
+                heartbeat_tracker(self._period, settings.heartbeat_misses_down), estimate)
+        self._readings: Dict[Tuple[str, str], Tuple[float, float]] = {}  # (scale, conn) -> B/s, at
+        self._running: Dict[str, Dict[str, str]] = {}          # scale -> node -> scale
+        self._beat_pub = self._node.create_publisher(String, p.TOPIC_HEARTBEAT, HEARTBEAT_QOS)
+        self._out = Publishers(self._node, p.TOPIC_LINK_STATUS)
+        self._subs.append(self._node.create_subscription(
+            String, p.TOPIC_HEARTBEAT_ECHO, self._on_echo, HEARTBEAT_QOS,
+            callback_group=self._group))
+        self._subs.append(self._node.create_subscription(
+            String, p.TOPIC_CONNECTION_STATUS, self._on_connections, STATUS_QOS,
+            callback_group=self._group))
+        self._subs.append(self._node.create_subscription(
+            String, p.TOPIC_AGENT_STATE, self._on_agent_state, LATCHED_QOS,
+            callback_group=self._group))
+        self._timers.append(self._node.create_timer(self._period, self._beat,
+                                                    callback_group=self._group))
+        # A watchdog per remote, re-armed by every echo, fires just after misses_down periods
+        # of silence: a cut is published at that instant, not at the next periodic check.
+        for remote in self._remotes.values():
+            remote.watchdog = self._node.create_timer(
+                remote.beats.timeout_s + WATCHDOG_SLACK_S, self._check,
+                callback_group=self._group)
+            self._timers.append(remote.watchdog)
+        self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
+        self._probe_duration = settings.bandwidth_probe_duration_s
+        self._congestion_s = settings.congestion_delay_ms / 1000.0
+        self._probe_port = settings.bandwidth_probe_port
+
+    def _decode(self, cls, msg: String, topic: str):
+        try:
+            return cls.from_json(msg.data, topic)
+        except p.ProtocolError as e:
+            self._log.warning(f'link monitor: ignoring a bad message: {e}',
+                              throttle_duration_sec=10.0)
+            return None
+
+    def _on_echo(self, msg: String) -> None:
+        now = time.monotonic()
+        echo = self._decode(p.Heartbeat, msg, p.TOPIC_HEARTBEAT_ECHO)
+        if echo is None or echo.target != self._scale.name:
+            return
+        remote = self._remotes.get(echo.scale)
+        if remote is not None and remote.beats.echo(now, echo.seq) is not None:
+            remote.watchdog.reset()
+            self._check()
+
+    def _on_connections(self, msg: String) -> None:
+        now = time.monotonic()
+        report = self._decode(p.ConnectionStatus, msg, p.TOPIC_CONNECTION_STATUS)
+        if report is None:
+            return
+        for name, reading in report.connections.items():
+            self._readings[(report.scale, name)] = (reading.bytes_per_s, now)
+
+    def _on_agent_state(self, msg: String) -> None:
+        state = self._decode(p.AgentState, msg, p.TOPIC_AGENT_STATE)
+        if state is not None:
+            self._running[state.scale] = {n: state.scale for n in state.running()}
+
+    def used_kbps(self, remote: str, now: float) -> float:
+        """kbit/s of the connections measured crossing the link to ``remote`` now."""
+        running: Dict[str, str] = {}
+        for nodes in self._running.values():
+            running.update(nodes)
+        names = crossing_connections(
+            ((c.name, c.publisher, c.subscriber) for c in self._deployment.connections),
+            running, self._scale.name, remote)
+        # Each connection as measured where its subscriber runs: a copy starting or stopping
+        # on the other end measures traffic that does not cross the link.
+        fresh = {}
+        for name in names:
+            where = running.get(self._deployment.connection(name).subscriber)
+            bps, at = self._readings.get((where, name), (0.0, -math.inf))
+            if now - at <= self._readings_max_age:
+                fresh[name] = bps
+        return used_kbps(fresh, names)
+
+    def _beat(self) -> None:
+        self._check()
+        now = time.monotonic()
+        for name, remote in self._remotes.items():
+            self._collect_probe(remote, now)
+            used = self.used_kbps(name, now)
+            self._judge_congestion(remote, now, used)   # on the beats already sent
+            seq = remote.beats.next_beat(now)
+            beat = p.Heartbeat(scale=self._scale.name, target=name, seq=seq, sent=now)
+            self._beat_pub.publish(String(data=beat.to_json()))
+            if remote.bandwidth is not None and not remote.probing \
+                    and remote.bandwidth.due(now, remote.beats.up(now), used, remote.congested):
+                remote.bandwidth.started(now)
+                remote.probing = True
+                remote.quiet_since = math.inf      # the probe fills the queue on purpose
+                threading.Thread(target=self._run_probe, args=(remote, used), daemon=True,
+                                 name=f'anyscale-bw-{name}').start()
+            self._publish(remote, now, used)
+        # A late beat can be the one that completes misses_down unanswered (see HeartbeatTracker)
+        self._check()
+
+    def _judge_congestion(self, remote: _Remote, now: float, used: float) -> None:
+        """A link whose queue holds the heartbeats looks full: it is probed at once (see
+        BandwidthEstimate), and the decider's bandwidth rule compares what the probe measured
+        with what the crossing connections need. A throttle is seen within about a second,
+        where a rate past its Δ would take several."""
+        up = remote.beats.up(now)
+        delay = remote.beats.queueing_delay_s(now, since=remote.quiet_since) if up else None
+        if not up or self._congestion_s <= 0:
+            congested = False
+        elif delay is None:             # not judged (a probe, a return): the verdict stands
+            congested = remote.congested
+        else:
+            congested = delay > self._congestion_s
+        if congested != remote.congested:
+            if congested:
+                self._log.warning(
+                    f'link to {remote.scale.name} looks congested: queueing delay '
+                    f'{delay * 1000.0:.0f} ms > {self._congestion_s * 1000.0:g} ms with '
+                    f'{used:.0f} kbit/s crossing; probing it')
+            else:
+                self._log.info(f'link to {remote.scale.name} is no longer congested')
+        remote.congested = congested
+        remote.delay_s = delay
+
+    def _run_probe(self, remote: _Remote, used: float) -> None:
+        try:
+            bps, error = probe_throughput(remote.scale.host, self._probe_port,
+                                          self._probe_duration), ''
+        except (OSError, ValueError) as e:
+            bps, error = None, str(e) or type(e).__name__
+        with self._lock:
+            remote.result = (time.monotonic(), bps, error, used)
+
+    def _collect_probe(self, remote: _Remote, now: float) -> None:
+        with self._lock:
+            result, remote.result = remote.result, None
+        if result is None:
+            return
+        remote.probing = False
+        done, bps, error, used = result
+        # The probe's own queue drains within the link's latency; one beat period covers it.
+        remote.quiet_since = done + self._period
+        if bps is None:
+            remote.bandwidth.failed(done, error)
+            self._log.warning(f'bandwidth probe to {remote.scale.name}: {error}',
+                              throttle_duration_sec=60.0)
+        else:
+            remote.bandwidth.record(done, bps * 8.0 / 1000.0, used)
+
+    def _check(self) -> None:
+        now = time.monotonic()
+        for remote in self._remotes.values():
+            up = remote.beats.up(now)
+            if up != remote.was_up:
+                remote.was_up = up
+                if up:
+                    # Beats sent while it was down were lost to the cut, not to a queue; and
+                    # what the link carried before the outage may not hold where it came back.
+                    remote.quiet_since = max(remote.quiet_since, now)
+                    if remote.bandwidth is not None:
+                        remote.bandwidth.remeasure()
+                self._log.info(f'link to {remote.scale.name} is {"up" if up else "DOWN"}')
+                self._publish(remote, now, self.used_kbps(remote.scale.name, now))
+
+    def _publish(self, remote: _Remote, now: float, used: float) -> None:
+        beats, estimate = remote.beats, remote.bandwidth
+        up = beats.up(now)
+        rtt = beats.rtt_s()
+        available = estimate.available_kbps if estimate is not None else None
+        age = estimate.age_s(now) if estimate is not None else None
+        message = p.LinkStatus(master=self._scale.name, remote=remote.scale.name,
+                               stamp=time.time(), up=up,
+                               rtt_ms=None if rtt is None else rtt * 1000.0,
+                               loss=beats.loss(now), bandwidth_available_kbps=available,
+                               bandwidth_available_age_s=age, bandwidth_used_kbps=used,
+                               queueing_delay_ms=None if remote.delay_s is None
+                               else remote.delay_s * 1000.0,
+                               congested=remote.congested and up)
+        self.last[remote.scale.name] = message
+        self._out.send(message)
+        reference = available if available is not None else (
+            estimate.nominal_kbps if estimate is not None else None)
+        if not up:
+            level, text = p.ERROR, f'down: no echo for over {beats.timeout_s:g} s'
+        elif message.congested:
+            delay = message.queueing_delay_ms
+            level, text = p.WARN, ('congested: queueing delay '
+                                   + ('being probed' if delay is None else f'{delay:.0f} ms')
+                                   + f', used {used:.0f} kbit/s')
+        elif message.loss > 0.2 or (reference and used > 0.9 * reference):
+            level, text = p.WARN, f'up, loss {message.loss:.0%}, used {used:.0f} kbit/s'
+        else:
+            level, text = p.OK, f'up, rtt {message.rtt_ms or 0.0:.1f} ms'
+        values = {'remote': remote.scale.name, 'up': up, 'rtt_ms': message.rtt_ms,
+                  'loss': message.loss, 'bandwidth_available_kbps': available,
+                  'bandwidth_available_age_s': age, 'bandwidth_used_kbps': used,
+                  'queueing_delay_ms': message.queueing_delay_ms,
+                  'congested': message.congested}
+        if estimate is not None and estimate.last_error:
+            values['bandwidth_probe_error'] = estimate.last_error
+        self._out.send_diagnostics([status(f'anyscale/link/{remote.link_name}', level, text,
+                                           self._scale.host, values)])
+
+    # remote side ----------------------------------------------------------------------------
+    def _start_remote(self, settings) -> None:
+        self._echo_pub = self._node.create_publisher(String, p.TOPIC_HEARTBEAT_ECHO,
+                                                     HEARTBEAT_QOS)
+        self._subs.append(self._node.create_subscription(
+            String, p.TOPIC_HEARTBEAT, self._on_beat, HEARTBEAT_QOS,
+            callback_group=self._group))
+        try:
+            self._server = ProbeServer(self._scale.host, settings.bandwidth_probe_port,
+                                       self._log)
+        except OSError as e:
+            self._log.error(f'throughput probe server on {self._scale.host}:'
+                            f'{settings.bandwidth_probe_port} not started: {e}; the master '
+                            f'will use the nominal bandwidth of this link')
+
+    def _on_beat(self, msg: String) -> None:
+        beat = self._decode(p.Heartbeat, msg, p.TOPIC_HEARTBEAT)
+        if beat is None or beat.target not in ('', self._scale.name):
+            return
+        echo = p.Heartbeat(scale=self._scale.name, target=beat.scale, seq=beat.seq,
+                           sent=beat.sent)
+        self._echo_pub.publish(String(data=echo.to_json()))
+
+    def destroy(self) -> None:
+        for timer in self._timers:
+            self._node.destroy_timer(timer)
+        for sub in self._subs:
+            self._node.destroy_subscription(sub)
+        if self._scale.is_master:
+            self._node.destroy_publisher(self._beat_pub)
+            self._out.destroy()
+        else:
+            self._node.destroy_publisher(self._echo_pub)
+        if self._server is not None:
+            self._server.close()

@@ -1,0 +1,256 @@
+"""ProbeManager: raw-subscription probes of the connections whose subscriber runs on this
+scale, and who wrote (handovers)."""
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Dict, Iterable, Optional, Set, Tuple
+
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+
+from ... import protocol as p
+from ...model.types import Connection, Deployment
+from ...runtime.rates import RateWindow, ToleranceTracker, WriterStreams
+from .common import PROBE_QOS, Publishers, import_message_class, period_of, scale_of, status
+
+TYPE_RESOLVE_PERIOD_S = 1.0
+
+
+@dataclass
+class _TopicProbe:
+    """One raw subscription, shared by every probed connection on the topic."""
+
+    topic: str
+    window: RateWindow
+    declared_type: str = ''
+    subscription: object = None
+    type_name: str = ''
+    msg_class: object = None
+    watch: object = None       # a second subscription, polled: who wrote (handovers)
+    writers: WriterStreams = field(default_factory=WriterStreams)
+    problem: str = ''          # why there is no subscription yet
+    fatal: bool = False        # the type cannot be used here: no reading at all
+    users: Set[str] = field(default_factory=set)
+
+
+class ProbeManager:
+    """Raw-subscription probes for the connections whose subscriber runs on this scale.
+
+    With a ``watch_node`` (a node no executor spins), the topics of connections whose publisher
+    is migratable get a second subscription there, read by ``poll_writers``: it takes each
+    message with its info, whose publication sequence number tells a newly started writer from
+    the old one (``WriterStreams``). The agent asks ``writer_joined_since`` before it lets a
+    moving node's old copy go. (The events executor the agent spins on does not hand message
+    info to callbacks, hence the polling.)
+    """
+
+    def __init__(self, node, deployment: Deployment, scale: str, watch_node=None):
+        self._node = node
+        self._watch_node = watch_node
+        self._migratable = frozenset(deployment.migratable_nodes)
+        self._deployment = deployment
+        self._scale = scale_of(deployment, scale)
+        settings = deployment.monitoring
+        self._window_s = settings.probe_window_s
+        RateWindow(self._window_s)       # validates the window before anything is created
+        period = period_of(settings.probe_publish_rate_hz, 'probe_publish_rate_hz')
+        self._topics: Dict[str, _TopicProbe] = {}
+        self._probes: Dict[str, Tuple[Connection, ToleranceTracker]] = {}
+        self._out = Publishers(node, p.TOPIC_CONNECTION_STATUS)
+        self._group = MutuallyExclusiveCallbackGroup()
+        self._lock = threading.Lock()
+        self.last: Optional[p.ConnectionStatus] = None
+        self._timer = node.create_timer(period, self._publish, callback_group=self._group)
+        self._resolver = node.create_timer(TYPE_RESOLVE_PERIOD_S, self._resolve_pending,
+                                           callback_group=self._group)
+
+    @property
+    def connections(self) -> Tuple[str, ...]:
+        return tuple(sorted(self._probes))
+
+    def set_connections(self, names: Iterable[str]) -> None:
+        """Probe exactly these connections from now on; unknown names change nothing."""
+        names = list(names)
+        unknown = [n for n in names if n not in {c.name for c in self._deployment.connections}]
+        if unknown:
+            raise ValueError(f'set_connections: deployment {self._deployment.name!r} has no '
+                             f'connection {", ".join(repr(n) for n in unknown)}')
+        wanted = {n: self._deployment.connection(n) for n in names}
+        with self._lock:
+            for name in [n for n in self._probes if n not in wanted]:
+                conn, _ = self._probes.pop(name)
+                self._release(conn.topic, name)
+            for name, conn in wanted.items():
+                if name in self._probes:
+                    continue
+                self._probes[name] = (conn, ToleranceTracker(conn.freq_min_hz, conn.tolerance_s))
+                self._attach(conn)
+
+    def _resolve(self, topic: str) -> str:
+        try:
+            return self._node.resolve_topic_name(topic)
+        except Exception:
+            return topic
+
+    def _attach(self, conn: Connection) -> None:
+        topic = self._resolve(conn.topic)
+        probe = self._topics.get(topic)
+        if probe is None:
+            probe = _TopicProbe(topic, RateWindow(self._window_s), declared_type=conn.msg_type)
+            self._topics[topic] = probe
+            self._subscribe(probe)
+        elif conn.msg_type and probe.declared_type and conn.msg_type != probe.declared_type:
+            self._node.get_logger().warning(
+                f'connection {conn.name}: declares {conn.msg_type} on {topic}, another '
+                f'connection on it declares {probe.declared_type}; probing with the latter')
+        probe.users.add(conn.name)
+        self._ensure_watch(probe)
+
+    def _ensure_watch(self, probe: _TopicProbe) -> None:
+        if self._watch_node is None or probe.watch is not None or probe.msg_class is None:
+            return
+        if not any(self._deployment.connection(n).publisher in self._migratable
+                   for n in probe.users):
+            return
+        probe.watch = self._watch_node.create_subscription(
+            probe.msg_class, probe.topic, lambda _msg: None, PROBE_QOS, raw=True)
+
+    def _release(self, topic: str, name: str) -> None:
+        topic = self._resolve(topic)
+        probe = self._topics.get(topic)
+        if probe is None:
+            return
+        probe.users.discard(name)
+        if not probe.users:
+            if probe.subscription is not None:
+                self._node.destroy_subscription(probe.subscription)
+            if probe.watch is not None:
+                self._watch_node.destroy_subscription(probe.watch)
+            del self._topics[topic]
+
+    def _subscribe(self, probe: _TopicProbe) -> None:
+        type_name = probe.declared_type
+        if not type_name:
+            types = dict(self._node.get_topic_names_and_types()).get(probe.topic)
+            if not types:
+                probe.problem = f'waiting for a publisher on {probe.topic} to learn its type'
+                return
+            type_name = types[0]
+        try:
+            cls = import_message_class(type_name)
+        except ValueError as e:
+            probe.problem, probe.fatal = str(e), True
+            self._node.get_logger().error(f'probe on {probe.topic}: {e}')
+            return
+        window = probe.window
+
+        def on_message(raw: bytes, window=window) -> None:
+            window.add(time.monotonic(), len(raw))
+
+        probe.subscription = self._node.create_subscription(
+            cls, probe.topic, on_message, PROBE_QOS, callback_group=self._group, raw=True)
+        probe.type_name, probe.problem, probe.fatal = type_name, '', False
+        probe.msg_class = cls
+        self._ensure_watch(probe)
+
+    def _resolve_pending(self) -> None:
+        with self._lock:
+            for probe in self._topics.values():
+                if probe.subscription is None and not probe.fatal:
+                    self._subscribe(probe)
+
+    def poll_writers(self, now: float, limit: int = 200) -> None:
+        """Read what the watch subscriptions hold: who wrote each message (see the class)."""
+        with self._lock:
+            watched = [(p.watch, p.writers) for p in self._topics.values() if p.watch is not None]
+        for subscription, writers in watched:
+            try:
+                with subscription.handle:
+                    for _ in range(limit):
+                        taken = subscription.handle.take_message(subscription.msg_type, True)
+                        if taken is None:
+                            break
+                        info = taken[1] if len(taken) > 1 else None
+                        writers.add(now, info.get('publication_sequence_number')
+                                    if isinstance(info, dict) else None)
+            except Exception:   # destroyed meanwhile: its topic is no longer probed
+                continue
+
+    def writer_joined_since(self, name: str, since: float) -> Optional[bool]:
+        """Whether connection ``name``'s topic was heard from a writer that started later than
+        the others, first at or after ``since`` (a copy of its publisher started elsewhere);
+        None when this scale does not watch it. Needs ``poll_writers`` called often."""
+        with self._lock:
+            conn = self._probes.get(name)
+            probe = self._topics.get(self._resolve(conn[0].topic)) if conn else None
+            if probe is None or probe.watch is None:
+                return None
+            return probe.writers.joined_since(since)
+
+    def readings(self, now: float) -> Dict[str, Tuple[p.ConnectionReading, str]]:
+        """Connection -> (reading, note) for every probe that can measure; advances Δ."""
+        out = {}
+        with self._lock:
+            for name, (conn, tracker) in sorted(self._probes.items()):
+                probe = self._topics[self._resolve(conn.topic)]
+                if probe.fatal:
+                    continue
+                rate = probe.window.rate_hz(now)
+                verdict = tracker.update(now, rate)
+                reading = p.ConnectionReading(rate_hz=rate,
+                                              bytes_per_s=probe.window.bytes_per_s(now),
+                                              below_for_s=verdict.below_for_s,
+                                              level=verdict.level)
+                out[name] = (reading, probe.problem)
+        return out
+
+    def _publish(self) -> None:
+        now = time.monotonic()
+        readings = self.readings(now)
+        message = p.ConnectionStatus(scale=self._scale.name, stamp=time.time(),
+                                     connections={k: r for k, (r, _) in readings.items()})
+        self.last = message
+        self._out.send(message)
+        statuses = []
+        with self._lock:
+            probes = sorted(self._probes.items())
+        for name, (conn, _) in probes:
+            values = {'topic': conn.topic, 'publisher': conn.publisher,
+                      'subscriber': conn.subscriber, 'freq_min_hz': conn.freq_min_hz,
+                      'tolerance_s': conn.tolerance_s}
+            if name not in readings:
+                probe = self._topics.get(self._resolve(conn.topic))
+                problem = probe.problem if probe else 'no probe'
+                statuses.append(status(f'anyscale/connection/{name}', p.STALE, problem,
+                                       self._scale.host, values))
+                continue
+            reading, note = readings[name]
+            values.update({'rate_hz': reading.rate_hz, 'bytes_per_s': reading.bytes_per_s,
+                           'below_for_s': reading.below_for_s})
+            statuses.append(status(f'anyscale/connection/{name}', reading.level,
+                                   _describe(conn, reading, note), self._scale.host, values))
+        self._out.send_diagnostics(statuses)
+
+    def destroy(self) -> None:
+        self._node.destroy_timer(self._timer)
+        self._node.destroy_timer(self._resolver)
+        with self._lock:
+            for probe in self._topics.values():
+                if probe.subscription is not None:
+                    self._node.destroy_subscription(probe.subscription)
+                if probe.watch is not None:
+                    self._watch_node.destroy_subscription(probe.watch)
+            self._topics.clear()
+            self._probes.clear()
+        self._out.destroy()
+
+
+def _describe(conn: Connection, reading: p.ConnectionReading, note: str) -> str:
+    text = f'{reading.rate_hz:.3g} Hz'
+    if conn.freq_min_hz is not None:
+        if reading.level == p.OK:
+            text += f' (freq_min {conn.freq_min_hz:g} Hz)'
+        else:
+            text += (f', below freq_min {conn.freq_min_hz:g} Hz for {reading.below_for_s:.1f} s'
+                     f' (tolerance {conn.tolerance_s:g} s)')
+    return f'{text}; {note}' if note else text

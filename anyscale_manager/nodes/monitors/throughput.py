@@ -1,0 +1,163 @@
+"""The link throughput probe: a bulk TCP burst (probe_throughput) and its receiver
+(ProbeServer)."""
+
+import json
+import select
+import socket
+import struct
+import threading
+import time
+from typing import List, Tuple
+
+from ...runtime.rates import steady_throughput_bps
+
+PROBE_MAGIC = b'ASBWPRB1'            # 8 bytes, then the requested duration in ms (uint32)
+PROBE_MAX_DURATION_S = 2.0           # the server never receives longer than this
+PROBE_CHUNK = 64 * 1024
+PROBE_RECV_BYTES = 1 << 20
+
+
+def probe_throughput(host: str, port: int, duration_s: float,
+                     timeout_s: float = 3.0) -> float:
+    """Send a bulk TCP burst to a probe server for ``duration_s``; its measured bytes/s.
+
+    The receiver times the transfer and answers with one JSON line; the sender keeps the pipe
+    full until that answer arrives, so the measurement is bounded by the receiver's clock and
+    not by how much the local socket buffers swallowed. Raises OSError or ValueError.
+    """
+    duration_ms = int(min(max(duration_s, 0.05), PROBE_MAX_DURATION_S) * 1000)
+    deadline = time.monotonic() + duration_ms / 1000.0 + timeout_s
+    chunk = bytes(PROBE_CHUNK)
+    with socket.create_connection((host, port), timeout=timeout_s) as sock:
+        sock.sendall(PROBE_MAGIC + struct.pack('!I', duration_ms))
+        sock.setblocking(False)
+        reply = b''
+        while time.monotonic() < deadline:
+            readable, writable, _ = select.select([sock], [sock], [], 0.2)
+            if readable:
+                data = sock.recv(4096)
+                if not data:
+                    break
+                reply += data
+                if b'\n' in reply or len(reply) > 4096:
+                    break
+                continue
+            if writable:
+                try:
+                    sock.send(chunk)
+                except (BlockingIOError, InterruptedError):
+                    pass
+        else:
+            raise OSError(f'throughput probe to {host}:{port} timed out')
+        # Reset rather than close gracefully: what is still in the send buffer must not keep
+        # the link busy after the measurement.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack('ii', 1, 0))
+    try:
+        answer = json.loads(reply.split(b'\n', 1)[0].decode('ascii'))
+        bps = float(answer['bytes_per_s'])
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError):
+        raise ValueError(f'throughput probe to {host}:{port}: bad answer {reply[:60]!r}') \
+            from None
+    if not bps > 0:
+        raise ValueError(f'throughput probe to {host}:{port}: {answer.get("error", "no data")}')
+    return bps
+
+
+def _drain_ready(conn: socket.socket, buffer: bytearray) -> int:
+    """Read, without waiting, whatever is already buffered; return its size."""
+    total = 0
+    timeout = conn.gettimeout()
+    conn.setblocking(False)
+    try:
+        while True:
+            n = conn.recv_into(buffer)
+            if not n:
+                break
+            total += n
+    except (BlockingIOError, InterruptedError):
+        pass
+    finally:
+        conn.settimeout(timeout)
+    return total
+
+
+class ProbeServer:
+    """The remote end of the throughput probe: receives one bounded burst at a time."""
+
+    def __init__(self, host: str, port: int, logger=None):
+        self._logger = logger
+        self._sock = socket.create_server((host, port), reuse_port=False)
+        self._sock.settimeout(0.5)
+        self.address = self._sock.getsockname()[:2]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, name='anyscale-bw-probe',
+                                        daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except socket.timeout:
+                continue
+            except OSError:
+                break
+            with conn:
+                try:
+                    self._receive(conn)
+                except OSError as e:
+                    if self._logger is not None:
+                        self._logger.warning(f'throughput probe: {e}',
+                                             throttle_duration_sec=60.0)
+
+    def _receive(self, conn: socket.socket) -> None:
+        conn.settimeout(2.0)
+        header = b''
+        while len(header) < 12:
+            data = conn.recv(12 - len(header))
+            if not data:
+                return
+            header += data
+        if header[:8] != PROBE_MAGIC:
+            return         # not ours: drop the connection without an answer
+        duration = min(max(struct.unpack('!I', header[8:])[0] / 1000.0, 0.05),
+                       PROBE_MAX_DURATION_S)
+        samples: List[Tuple[float, int]] = []
+        received = 0
+        first = None
+        buffer = bytearray(PROBE_RECV_BYTES)
+        while True:
+            n = conn.recv_into(buffer)
+            now = time.monotonic()
+            if not n:
+                break
+            received += n
+            if first is None:
+                first = now
+                samples.append((now, received))
+                continue
+            if now - first >= duration:
+                # What the kernel already holds arrived before now: count it with this sample,
+                # or a receiver that was descheduled for a moment would read a slower link.
+                received += _drain_ready(conn, buffer)
+                samples.append((now, received))
+                break
+            samples.append((now, received))
+        bps = steady_throughput_bps(samples)
+        answer = {'bytes': received, 'bytes_per_s': bps or 0.0,
+                  'duration_s': 0.0 if first is None else samples[-1][0] - first}
+        conn.sendall(json.dumps(answer).encode('ascii') + b'\n')
+        conn.shutdown(socket.SHUT_WR)
+        # Drain what the sender still had in flight until it closes, so our answer is not
+        # discarded by a reset.
+        end = time.monotonic() + 2.0
+        try:
+            while time.monotonic() < end and conn.recv(PROBE_CHUNK):
+                pass
+        except OSError:
+            pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._sock.close()
+        self._thread.join(timeout=2.0)
