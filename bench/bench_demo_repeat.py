@@ -37,9 +37,17 @@ def main() -> int:
         folder = os.path.join(out, f'run{i + 1}')
         t0 = time.monotonic()
         with open(os.path.join(out, f'run{i + 1}.log'), 'w') as log:
-            code = subprocess.run([exe, 'demo', '--out', folder, '--domain-id',
-                                   str(args.domain_id), *args.demo_args],
-                                  stdout=log, stderr=subprocess.STDOUT).returncode
+            demo = subprocess.Popen([exe, 'demo', '--out', folder, '--domain-id',
+                                     str(args.domain_id), *args.demo_args],
+                                    stdout=log, stderr=subprocess.STDOUT)
+            try:
+                code = demo.wait()
+            except KeyboardInterrupt:
+                # Ctrl-C reached the demo too (same process group): it tears its test-bed down;
+                # let it finish (a second signal would cut the teardown short), then stop here.
+                demo.wait()
+                print(f'interrupted during run {i + 1}; logs in {out}', file=sys.stderr)
+                return 130
         try:
             with open(os.path.join(folder, 'summary.json')) as f:
                 summary = json.load(f)
