@@ -240,7 +240,7 @@ def test_validate_warns_when_a_cold_move_cannot_meet_a_tolerance(tmp_path):
     assert len(lines) == 1, r.stderr
     assert f'{cold}: nodes.amcl: a cold move cannot meet the tolerance_s of laser_amcl (1 s)' \
         in lines[0]
-    assert 'lifecycle node with standby: true' in lines[0] and 'at least 1.6 s' in lines[0]
+    assert 'lifecycle node with standby: true' in lines[0] and 'at least 1.1 s' in lines[0]
     # With standby the same tolerance is met by an activation: no warning.
     r = run_cli('validate', '--quiet', TESTBED)
     assert r.returncode == 0 and 'warning' not in r.stderr, r.stderr
