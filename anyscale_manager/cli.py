@@ -15,6 +15,7 @@ SUBCOMMANDS = {
     'demo': ('anyscale_manager.testbed.cli',
              'run the ICAR 2015 test-bed with a link outage schedule and draw its timeline'),
     'status': ('anyscale_manager.nodes.status', 'show the live state of a running deployment'),
+    'keygen': ('anyscale_manager.keygen', 'write a new deployment key for signed layouts'),
 }
 
 

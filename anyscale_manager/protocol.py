@@ -26,6 +26,8 @@ TOPIC_PLAN_CHECK = PREFIX + '/plan_check'          # decider plan-against-realit
 TOPIC_DIAGNOSTICS = '/diagnostics'
 
 MAX_PAYLOAD_BYTES = 1 << 20
+# Generations, sequences: the largest integer a JSON reader with doubles still keeps exact.
+MAX_GENERATION = 2 ** 53
 
 # Diagnostic levels as plain ints (DiagnosticStatus.level is bytes in Python).
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
@@ -126,6 +128,14 @@ def _reject_constant(name: str) -> None:
     raise ValueError(f'{name} is not allowed')
 
 
+def _signed_fields_ok(message: Any, where: str) -> None:
+    seq, tag = message.seq, message.auth
+    if seq is not None and not 0 <= seq <= MAX_GENERATION:
+        raise ProtocolError(f'{where}.seq: must be in [0, 2**53]')
+    if tag is not None and len(tag) > 128:
+        raise ProtocolError(f'{where}.auth: too long')
+
+
 def _names_ok(mapping: Mapping[str, Any], where: str, what: str) -> None:
     for key in mapping:
         if not key or len(key) > 256:
@@ -133,21 +143,59 @@ def _names_ok(mapping: Mapping[str, Any], where: str, what: str) -> None:
 
 
 @dataclass
+class DeciderIdentity(Message):
+    """Who publishes a layout: one decider process (a random id drawn at its start)."""
+
+    id: str
+    host: str
+    pid: int
+    started: float            # the decider's wall clock at its start
+    SCHEMA = {'id': str, 'host': str, 'pid': int, 'started': float}
+
+    def validate(self, where: str) -> None:
+        if not self.id or len(self.id) > 64 or len(self.host) > 256:
+            raise ProtocolError(f'{where}: bad decider identity {self.id!r:.60}')
+
+    def describe(self) -> str:
+        return f'{self.id} (host {self.host:.60}, pid {self.pid})'
+
+
+@dataclass
 class Layout(Message):
-    """The desired layout: node -> scale for every managed node, with a generation number."""
+    """The desired layout: node -> scale for every managed node, with a generation number.
+
+    ``decider`` names the decider that publishes it (absent from older deciders), ``seq``
+    counts that decider's layout messages (re-publications included), and ``auth`` is the
+    HMAC of the rest when the deployment has a key (protocol_auth).
+    """
 
     generation: int
     deployment: str
     assignments: Dict[str, str]
     reason: str
     stamp: float
+    decider: Optional[DeciderIdentity] = None
+    seq: Optional[int] = None
+    auth: Optional[str] = None
     SCHEMA = {'generation': int, 'deployment': str, 'assignments': ('map', str),
-              'reason': str, 'stamp': float}
+              'reason': str, 'stamp': float, 'decider': ('optional', DeciderIdentity),
+              'seq': ('optional', int), 'auth': ('optional', str)}
 
     def validate(self, where: str) -> None:
         if self.generation < 0:
             raise ProtocolError(f'{where}.generation: must be >= 0')
+        if self.generation > MAX_GENERATION:
+            raise ProtocolError(f'{where}.generation: {self.generation:.3g} is beyond the '
+                                f'bound 2**53 (no decider counts that far)')
+        _signed_fields_ok(self, where)
         _names_ok(self.assignments, where + '.assignments', 'node')
+
+    def to_dict(self) -> Dict[str, Any]:
+        out = asdict(self)
+        for key in ('decider', 'seq', 'auth'):
+            if out[key] is None:
+                del out[key]    # an older agent's strict decoder still reads it
+        return out
 
 
 @dataclass
@@ -178,11 +226,26 @@ class AgentState(Message):
     generation: int           # the newest layout generation this agent has applied
     stamp: float
     nodes: Dict[str, NodeReport]
-    SCHEMA = {'scale': str, 'generation': int, 'stamp': float, 'nodes': ('map', NodeReport)}
+    decider: Optional[str] = None     # the id of the decider whose layouts it follows
+    instance: Optional[str] = None    # the agent process (a random id drawn at its start)
+    seq: Optional[int] = None         # counts this agent process's reports
+    auth: Optional[str] = None        # HMAC of the rest, with a deployment key
+    SCHEMA = {'scale': str, 'generation': int, 'stamp': float, 'nodes': ('map', NodeReport),
+              'decider': ('optional', str), 'instance': ('optional', str),
+              'seq': ('optional', int), 'auth': ('optional', str)}
+
+    def validate(self, where: str) -> None:
+        if abs(self.generation) > MAX_GENERATION:
+            raise ProtocolError(f'{where}.generation: beyond the bound 2**53')
+        _signed_fields_ok(self, where)
 
     def to_dict(self) -> Dict[str, Any]:
-        return {'scale': self.scale, 'generation': self.generation, 'stamp': self.stamp,
-                'nodes': {k: asdict(v) for k, v in self.nodes.items()}}
+        out = {'scale': self.scale, 'generation': self.generation, 'stamp': self.stamp,
+               'nodes': {k: asdict(v) for k, v in self.nodes.items()}}
+        for key in ('decider', 'instance', 'seq', 'auth'):
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
+        return out
 
     def running(self) -> Dict[str, NodeReport]:
         return {k: v for k, v in self.nodes.items() if v.state in ('starting', 'running')}
@@ -281,7 +344,18 @@ class Objective(Message):
     perf_map: float
     integral: float
     elapsed_s: float
-    SCHEMA = {'stamp': float, 'perf_map': float, 'integral': float, 'elapsed_s': float}
+    decider: Optional[str] = None     # the id of the decider that publishes it
+    seq: Optional[int] = None
+    auth: Optional[str] = None
+    SCHEMA = {'stamp': float, 'perf_map': float, 'integral': float, 'elapsed_s': float,
+              'decider': ('optional', str), 'seq': ('optional', int), 'auth': ('optional', str)}
+
+    def validate(self, where: str) -> None:
+        _signed_fields_ok(self, where)
+
+    def to_dict(self) -> Dict[str, Any]:
+        return {k: v for k, v in asdict(self).items()
+                if v is not None or k not in ('decider', 'seq', 'auth')}
 
 
 @dataclass
@@ -313,7 +387,7 @@ class PlanCheck(Message):
 
 
 __all__ = [
-    'AgentState', 'ConnectionReading', 'ConnectionStatus', 'ERROR', 'Event', 'Heartbeat',
-    'Layout', 'LinkStatus', 'Message', 'NodeReport', 'OK', 'Objective', 'PlanCheck', 'PlanNode',
-    'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
+    'AgentState', 'ConnectionReading', 'ConnectionStatus', 'DeciderIdentity', 'ERROR', 'Event',
+    'Heartbeat', 'Layout', 'LinkStatus', 'MAX_GENERATION', 'Message', 'NodeReport', 'OK',
+    'Objective', 'PlanCheck', 'PlanNode', 'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
 ]

@@ -77,6 +77,7 @@ class FakeWorld(Node):
         self.link_kbps = None          # the link's measured bandwidth (None: not measured)
         self.apply_layouts = True
         self.silent = set()            # scales whose agent says nothing
+        self.follows = {}              # scale -> the decider id its agent reports following
         self.extra_readings = {}       # connection -> rate_hz, for unmonitored connections
 
     def _layout(self, msg):
@@ -100,7 +101,7 @@ class FakeWorld(Node):
                      for n, s in self.running.items() if s == scale}
             self.agent_pub.publish(String(data=p.AgentState(
                 scale=scale, generation=self.generation[scale], stamp=time.time(),
-                nodes=nodes).to_json()))
+                nodes=nodes, decider=self.follows.get(scale)).to_json()))
             self.pubs[p.TOPIC_SCALE_STATUS].publish(String(data=p.ScaleStatus(
                 scale=scale, stamp=time.time(), cpu_total=40.0, capacity_cpu=100.0,
                 cpu_by_node={}, mem_percent=10.0, load_1m=0.1).to_json()))
@@ -261,21 +262,33 @@ def test_layout_latched_adopted_republished_and_robust(world, testbed_path, ros_
     assert code == 0, out
 
 
-def test_agent_reporting_a_newer_generation_is_overtaken(world, testbed_path, ros_env):
+def test_an_agent_following_another_decider_is_said_once_and_not_out_counted(
+        world, testbed_path, ros_env):
+    # Re-publishing above a generation an agent reports is how two deciders fought (issue 14):
+    # the decider says it and goes on re-publishing its own layout, same generation.
     node, ex = world
     node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
     proc = start_decider(testbed_path, ros_env, '-p', 'decider.migration:=false')
     try:
         assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
         g = node.layouts[-1].generation
+        me = node.layouts[-1].decider
+        assert me is not None and node.layouts[-1].seq is not None
         node.apply_layouts = False
         node.generation['laptop'] = g + 10
-        assert spin_until(ex, node, lambda: node.layouts[-1].generation > g + 10, 10.0,
-                          proc=proc)
+        node.follows['laptop'] = 'f00dfeedf00dfeed'
+        heard = len(node.layouts)
+        # Re-publications keep coming (the agents' lease), all of generation g.
+        assert spin_until(ex, node, lambda: len(node.layouts) >= heard + 3, 15.0, proc=proc)
+        assert {lay.generation for lay in node.layouts} == {g}
+        assert {lay.decider.id for lay in node.layouts} == {me.id}
+        seqs = [lay.seq for lay in node.layouts]
+        assert seqs == sorted(set(seqs))
         assert not [e for e in node.events if e.kind == 'migrate']    # baseline: no moves
     finally:
         code, out = stop(proc)
     assert code == 0, out
+    assert out.count('the agent of laptop follows decider f00dfeedf00dfeed') == 1, out
 
 
 def test_silent_agent_loses_its_scale(world, testbed_path, ros_env):

@@ -40,6 +40,9 @@ NO_GENERATION = -1
 # How long a losing scale keeps its copy past the new copy's ready report while it has not heard
 # the new copy (its inputs may not reach it yet; or the copies' sequence numbers overlap).
 HEAR_PATIENCE_S = 5.0
+# A decider adds one generation per decision: a larger jump from the followed decider is not
+# one of its layouts (a forged or corrupted number would otherwise lock its real ones out).
+MAX_GENERATION_STEP = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -87,16 +90,27 @@ class Reconciler:
         return self.generation != NO_GENERATION
 
     # --- inputs ---------------------------------------------------------------------------
-    def apply_layout(self, layout: Layout, now: float) -> LayoutVerdict:
-        """Take a decoded layout; ignore it whole if it is for another deployment or stale."""
+    def apply_layout(self, layout: Layout, now: float,
+                     new_decider: bool = False) -> LayoutVerdict:
+        """Take a decoded layout; ignore it whole if it is for another deployment or stale.
+
+        ``new_decider``: the first layout of a decider followed from now on (authority.py):
+        generations count per decider, so its number is not compared with the last one's.
+        """
         d = self.deployment
         if layout.deployment != d.name:
             return LayoutVerdict(False, (f'layout generation {layout.generation} is for '
                                          f'deployment {layout.deployment!r:.60}, not '
                                          f'{d.name!r}; ignored',))
-        if layout.generation <= self.generation:
+        if not new_decider and layout.generation <= self.generation:
             return LayoutVerdict(False, (f'layout generation {layout.generation} is not newer '
                                          f'than the applied {self.generation}; ignored',))
+        if not new_decider and self.has_layout \
+                and layout.generation - self.generation > MAX_GENERATION_STEP:
+            return LayoutVerdict(False, (f'layout generation {layout.generation} jumps more '
+                                         f'than {MAX_GENERATION_STEP} past the applied '
+                                         f'{self.generation} (a decider adds one per '
+                                         'decision); ignored',))
         warnings: List[str] = []
         nodes = set(d.node_names)
         scales = set(d.scale_names)

@@ -20,8 +20,15 @@ def cold_move_budget_s(d: t.Deployment) -> float:
     return m.heartbeat_misses_down / m.heartbeat_rate_hz + COLD_MOVE_S
 
 
+UNSIGNED = ('layouts are not signed: anyone on the ROS domain can move or stop the managed '
+            'nodes. Write a key with anyscale-manager keygen PATH, copy it to every scale '
+            '(mode 0600) and set security.key_file (docs/decider.md, security)')
+
+
 def warnings(d: t.Deployment) -> List[str]:
     out: List[str] = []
+    if not d.security.key_file:
+        out.append(f'{d.source}: security.key_file is not set: {UNSIGNED}')
     budget = cold_move_budget_s(d)
     for name in d.migratable_nodes:
         if d.standby_scales(name):

@@ -5,6 +5,7 @@ import sys
 from .advice import warnings
 from .loader import DeploymentError, load_deployment
 from .types import Deployment
+from ..protocol_auth import KeyFileError, load_key
 
 
 def add_arguments(parser) -> None:
@@ -71,6 +72,13 @@ def run(args) -> int:
             for p in e.problems:
                 print(f'  {p}', file=sys.stderr)
             continue
+        if d.security.key_file:
+            try:
+                load_key(d.security.key_file)
+            except KeyFileError as e:
+                failed = True
+                print(f'{path}: 1 problem(s):\n  {path}: {e}', file=sys.stderr)
+                continue
         if not args.quiet:
             print(summary(d))
         for w in warnings(d):

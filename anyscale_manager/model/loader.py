@@ -12,6 +12,7 @@ The file looks like::
         decider: {...}
         monitoring: {...}
         agent: {...}
+        security: {key_file: ..., replay_window_s: ...}
 
 ROS parameters have no lists of maps, so every collection is a map of named sections plus a
 ``names`` list that fixes the order. Every error names the file, the path inside it and what
@@ -19,6 +20,7 @@ was expected; all errors are collected and reported at once.
 """
 
 import math
+import os
 import re
 from dataclasses import dataclass, fields, replace
 from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
@@ -524,6 +526,8 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
         'grace_s': dict(low=0, high=3600),
         'agent_timeout_s': dict(low=0, high=3600, low_open=True),
         'initial_layout': dict(choices=t.INITIAL_LAYOUTS),
+        'lease_s': dict(low=0, high=600, low_open=True),
+        'discovery_s': dict(low=0, high=600, low_open=True),
     })
     monitoring = _dataclass_settings(root, 'monitoring', t.MonitorSettings, {
         'scale_rate_hz': dict(low=0, high=1000, low_open=True),
@@ -546,12 +550,19 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
         'heartbeat_rate_hz': dict(low=0, high=1000, low_open=True),
         'node_nice': dict(low=0, high=19),
     })
+    security = _dataclass_settings(root, 'security', t.SecuritySettings, {
+        'replay_window_s': dict(low=0, high=86400, low_open=True),
+    })
+    if security.key_file and not os.path.isabs(os.path.expanduser(security.key_file)):
+        # The decider, each agent and validate run in different folders: one meaning only.
+        ctx.error('security.key_file', f'expected an absolute path, got {security.key_file!r}')
     root.done()
     if ctx.problems:
         raise DeploymentError(ctx.problems)
     deployment = t.Deployment(name=name, source=source, scales=scales, links=links,
                               nodes=nodes, connections=connections, decider=decider,
-                              monitoring=monitoring, agent=agent, description=description)
+                              monitoring=monitoring, agent=agent, description=description,
+                              security=security)
     _cross_check(ctx, deployment)
     if ctx.problems:
         raise DeploymentError(ctx.problems)
@@ -619,6 +630,6 @@ def load_from_parameters(flat: Mapping[str, Any], source: str = '<ROS parameters
                          ) -> t.Deployment:
     """Rebuild a deployment from a node's parameters (loaded with --params-file)."""
     sections = ('deployment', 'scales', 'links', 'nodes', 'connections', 'decider',
-                'monitoring', 'agent')
+                'monitoring', 'agent', 'security')
     picked = {k: v for k, v in flat.items() if k.split('.', 1)[0] in sections}
     return load_mapping(nest_parameters(picked), source, wrapped=False)

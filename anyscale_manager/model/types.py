@@ -157,6 +157,14 @@ class DeciderSettings:
     migration: bool = True                # False: keep the first layout (the baseline)
     initial_layout: str = 'master'
     layout: Mapping[str, str] = field(default_factory=frozen_map)
+    lease_s: float = 3.0                  # agents follow another decider after this silence
+    discovery_s: float = 5.0              # a starting decider listens this long for another
+
+
+@dataclass(frozen=True)
+class SecuritySettings:
+    key_file: str = ''                    # '' = layouts unsigned: anyone on the domain may send
+    replay_window_s: float = 30.0         # signed messages stamped further off are refused
 
 
 @dataclass(frozen=True)
@@ -198,6 +206,7 @@ class Deployment:
     monitoring: MonitorSettings = MonitorSettings()
     agent: AgentSettings = AgentSettings()
     description: str = ''
+    security: SecuritySettings = SecuritySettings()
 
     # --- look-ups (indexes built once: a Deployment never changes) --------------------------
     # cached_property writes straight into the instance dict, which a frozen dataclass allows.

@@ -16,6 +16,7 @@ import array
 import fcntl
 import os
 import re
+import secrets
 import signal
 import sys
 import time
@@ -33,7 +34,9 @@ from . import qos
 from .executor import make_executor
 from .lifecycle_client import CopyClients
 from .. import protocol
+from .. import protocol_auth as auth
 from ..agent import lifecycle as lc
+from ..agent.authority import describe, Follower
 from ..agent.catalogue import build_catalogue, Entry
 from ..agent.reconcile import Reconciler
 from ..agent.supervisor import Supervisor
@@ -51,6 +54,8 @@ TICK_S = 0.1
 # old copy is seen gone here (and reported) before the other scale starts the new one.
 STOPPING_TICK_S = 0.02
 SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+UNSIGNED = ('layouts are not signed and anyone on this ROS domain can move or stop the nodes '
+            'of this scale (anyscale-manager keygen; docs/decider.md, security)')
 
 
 class AgentError(RuntimeError):
@@ -116,6 +121,17 @@ class AgentNode(Node):
                              f'(scales: {", ".join(d.scale_names)})')
         self.scale = scale
         self.settings = d.agent
+        key = auth.load_key(d.security.key_file) if d.security.key_file else None
+        self._key = key
+        self._gate = auth.LayoutGate(key, d.security.replay_window_s)
+        # Peers' reports and the decider's objective also start and stop things here (a
+        # handover lets go on a peer's ready report; a remote scale stops its nodes when the
+        # master goes silent): with a key they are checked like layouts.
+        self._state_gate = auth.Gate(key, d.security.replay_window_s)
+        self._objective_gate = auth.Gate(key, d.security.replay_window_s)
+        self._instance = secrets.token_hex(8)
+        self._seq = 0
+        self._follower = Follower(d.decider.lease_s)
         state_dir = self.settings.state_dir or os.path.join(_ros_home(), 'anyscale_manager')
         log_root = self.settings.log_dir or os.path.join(
             os.environ.get('ROS_LOG_DIR') or os.path.join(_ros_home(), 'log'),
@@ -171,6 +187,8 @@ class AgentNode(Node):
         self.get_logger().info(
             f'agent for scale {scale!r} of {d.name!r}: catalogue '
             f'{", ".join(self.catalogue) or "(empty)"}; logs in {self.log_dir}')
+        if key is None:
+            self.get_logger().warn(f'security.key_file is not set: {UNSIGNED}')
         self._tick()
 
     def _take_lock(self, path: str) -> None:
@@ -234,7 +252,26 @@ class AgentNode(Node):
         except protocol.ProtocolError as e:
             self.get_logger().error(f'ignored a layout message: {e}')
             return
-        verdict = self.reconciler.apply_layout(layout, time.monotonic())
+        if layout.deployment != self.deployment.name:
+            self.get_logger().warn(f'ignored a layout of deployment {layout.deployment!r:.60}, '
+                                   f'not {self.deployment.name!r}', throttle_duration_sec=30.0)
+            return
+        now = time.monotonic()
+        why = self._gate.check(msg.data, layout, time.time())
+        if why:
+            self.get_logger().error(f'dropped layout generation {layout.generation} of decider '
+                                    f'{describe(layout.decider)}: {why}',
+                                    throttle_duration_sec=10.0)
+            return
+        follow = self._follower.consider(layout.decider, now)
+        if not follow.accept:
+            self.get_logger().warn(follow.reason, throttle_duration_sec=10.0)
+            return
+        if follow.reason:
+            self.get_logger().info(follow.reason)
+        if not follow.switched and layout.generation == self.reconciler.generation:
+            return      # the followed decider's re-publication: its lease, nothing new
+        verdict = self.reconciler.apply_layout(layout, now, new_decider=follow.switched)
         for w in verdict.warnings:
             self.get_logger().warn(w)
         if verdict.applied:
@@ -252,6 +289,14 @@ class AgentNode(Node):
         except protocol.ProtocolError as e:
             self.get_logger().warn(f'ignored an agent state message: {e}')
             return
+        if state.scale == self.scale and state.instance == self._instance:
+            return                                      # our own report
+        why = self._state_gate.check_from(msg.data, f'{state.scale}/{state.instance}',
+                                          state.seq, state.stamp, time.time())
+        if why:
+            self.get_logger().error(f'dropped an agent state claiming scale '
+                                    f'{state.scale!r:.60}: {why}', throttle_duration_sec=10.0)
+            return
         warning = self.reconciler.peer_state(state, time.monotonic())
         if warning:
             self.get_logger().warn(warning)
@@ -260,10 +305,16 @@ class AgentNode(Node):
 
     def _on_objective(self, msg: String) -> None:
         try:
-            protocol.Objective.from_json(msg.data, protocol.TOPIC_OBJECTIVE)
+            objective = protocol.Objective.from_json(msg.data, protocol.TOPIC_OBJECTIVE)
         except protocol.ProtocolError as e:
             self.get_logger().warn(f'ignored an objective message: {e}',
                                    throttle_duration_sec=10.0)
+            return
+        why = self._objective_gate.check_from(msg.data, objective.decider, objective.seq,
+                                              objective.stamp, time.time())
+        if why:
+            self.get_logger().error(f'dropped an objective message: {why}',
+                                    throttle_duration_sec=10.0)
             return
         self.reconciler.heard_master(time.monotonic())
 
@@ -449,10 +500,14 @@ class AgentNode(Node):
                                               restarts=r.restarts, ready=ready,
                                               exit_reason=reason, lifecycle=label)
         return protocol.AgentState(scale=self.scale, generation=self.reconciler.generation,
-                                   stamp=time.time(), nodes=nodes)
+                                   stamp=time.time(), nodes=nodes,
+                                   decider=self._follower.followed_id, instance=self._instance)
 
     def _publish_state(self) -> None:
-        self._state_pub.publish(String(data=self.report().to_json()))
+        state = self.report()
+        self._seq += 1
+        state.seq = self._seq
+        self._state_pub.publish(String(data=auth.seal(self._key, state)))
 
     # --- shutdown -------------------------------------------------------------------------
     def request_shutdown(self) -> None:

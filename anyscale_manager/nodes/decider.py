@@ -7,6 +7,8 @@ plan-against-reality check and its own health on /diagnostics.
 """
 
 import math
+import os
+import secrets
 import socket
 import sys
 import time
@@ -23,6 +25,9 @@ from std_msgs.msg import String
 
 from . import qos
 from .. import protocol as p
+from .. import protocol_auth as auth
+from ..agent.reconcile import MAX_GENERATION_STEP
+from ..model.advice import UNSIGNED
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.types import HYSTERESIS_SCOPES, INITIAL_LAYOUTS, DeciderSettings, Deployment
 from ..runtime.constraints import ConstraintReport
@@ -31,6 +36,7 @@ from ..runtime.intake import ObservationBook
 from ..runtime.layout import LayoutError, adopt, initial_plan
 from ..runtime.plan_check import check_plan, expectations
 from ..runtime.policy import MigrationPolicy
+from ..runtime.rivals import RivalWatch
 
 NODE_NAME = 'anyscale_decider'
 
@@ -58,6 +64,10 @@ RANGES = {
     'hysteresis_s': (0.0, 86400.0, False), 'grace_s': (0.0, 3600.0, False),
     'agent_timeout_s': (0.0, 3600.0, True),
 }
+
+
+class RivalDecider(Exception):
+    """Another decider of this deployment keeps it: this one stops (exit 2)."""
 
 
 def settings_with(settings: DeciderSettings, changes: Dict[str, Any]) -> DeciderSettings:
@@ -123,12 +133,24 @@ class DeciderNode(Node):
         self._link_lost = False
         self._decisions = 0
         self.host = socket.gethostname()
-
-        self.pub_layout = self.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
-        self.pub_events = self.create_publisher(String, p.TOPIC_EVENTS, EVENTS_QOS)
-        self.pub_objective = self.create_publisher(String, p.TOPIC_OBJECTIVE, 10)
-        self.pub_plan = self.create_publisher(String, p.TOPIC_PLAN_CHECK, 10)
-        self.pub_diag = self.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS, 10)
+        self.identity = p.DeciderIdentity(id=secrets.token_hex(8), host=self.host[:256],
+                                          pid=os.getpid(), started=time.time())
+        security = self.deployment.security
+        self.key = auth.load_key(security.key_file) if security.key_file else None
+        self.gate = auth.LayoutGate(self.key, security.replay_window_s)
+        self.state_gate = auth.Gate(self.key, security.replay_window_s)
+        self.objective_seq = 0
+        self.rivals = RivalWatch(self.identity, self.settings.lease_s)
+        self.seq = 0
+        self.reason = ''
+        self._layouts_heard = 0
+        self._followers: Dict[str, Optional[str]] = {}    # scale -> decider its agent follows
+        # Nothing is published until no other decider of the deployment has been heard for
+        # discovery_s (discovery): a second decider then stops before it publishes anything.
+        self.publishing = False
+        self.pub_layout = self.pub_events = self.pub_objective = self.pub_plan = None
+        self.pub_diag = None
+        self.create_subscription(String, p.TOPIC_LAYOUT, self._on_layout, LATCHED)
         self.create_subscription(String, p.TOPIC_AGENT_STATE, self._on_agent_state,
                                  AGENT_STATE_QOS)
         self.create_subscription(String, p.TOPIC_SCALE_STATUS, self._on_scale_status,
@@ -140,6 +162,13 @@ class DeciderNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self.timer = self.create_timer(self.settings.period_s, self._tick)
+        # The lease of the agents' follow rule: re-published well within it.
+        self.renew_timer = self.create_timer(self.settings.lease_s / 3.0, self._renew)
+        if self.key is None:
+            self.get_logger().warn(f'security.key_file is not set: {UNSIGNED}')
+        self.get_logger().info(
+            f'decider {self.identity.describe()}: listening {self.settings.discovery_s:g} s for '
+            'another decider of this deployment before publishing')
         self.get_logger().info(
             f'deployment {self.deployment.name!r}: {len(self.deployment.scales)} scales, '
             f'{len(self.deployment.nodes)} nodes, migratable: '
@@ -201,7 +230,12 @@ class DeciderNode(Node):
     def _start(self, now: float) -> None:
         running = self.book.running(now)
         layout, notes = adopt(self.deployment, self.planned, running)
+        # Above what the agents applied, so that their comparisons across scales stay sane;
+        # agents take a new decider's first layout whatever its number, so near the bound
+        # it starts again from 1.
         self.generation = max(self.book.max_generation, 0) + 1
+        if self.generation > p.MAX_GENERATION - MAX_GENERATION_STEP:
+            self.generation = 1
         self.layout = layout
         self.policy.reset(layout, now, running)
         lost = sorted(self.book.lost_scales(now))
@@ -231,14 +265,68 @@ class DeciderNode(Node):
                                     throttle_duration_sec=5.0)
 
     def _on_agent_state(self, msg: String) -> None:
-        self._intake(msg, p.AgentState, p.TOPIC_AGENT_STATE, self._agent_state)
+        self._intake(msg, p.AgentState, p.TOPIC_AGENT_STATE,
+                     lambda state, now: self._agent_state(state, now, msg.data))
 
-    def _agent_state(self, state: p.AgentState, now: float) -> None:
+    def _agent_state(self, state: p.AgentState, now: float, text: str = '') -> None:
+        why = self.state_gate.check_from(text, f'{state.scale}/{state.instance}', state.seq,
+                                         state.stamp, time.time())
+        if why:
+            raise p.ProtocolError(f'agent state claiming scale {state.scale!r:.60}: {why}')
         self.book.agent_state(state, now)
-        if self.layout is not None and state.generation > self.generation:
-            # Someone published a newer generation than ours (a previous decider): stay above.
-            self.generation = state.generation + 1
-            self._publish_layout('re-published above the generation an agent reported')
+        # An agent that follows another decider (one that just stopped: for one lease; or a
+        # forger's anonymous layout) is said once. No re-publication above its generation:
+        # out-counting generations is how two deciders fought.
+        if state.scale in self.deployment.scale_names \
+                and self._followers.get(state.scale, '?') != state.decider:
+            self._followers[state.scale] = state.decider
+            if self.publishing and state.decider != self.identity.id:
+                who = 'no decider' if state.decider is None else (
+                    'an anonymous layout' if state.decider == '' else f'decider {state.decider}')
+                self.get_logger().info(
+                    f'the agent of {state.scale} follows {who} (generation '
+                    f'{state.generation}), not this one ({self.identity.id}); it follows this '
+                    f'one once that one has been silent for {self.settings.lease_s:g} s')
+
+    def _on_layout(self, msg: String) -> None:
+        """Layouts of others: a rival decider (one stops), or foreign or malformed (said,
+        throttled, never answered by re-deciding)."""
+        try:
+            layout = p.Layout.from_json(msg.data, p.TOPIC_LAYOUT)
+        except p.ProtocolError as e:
+            self._rejected += 1
+            self.get_logger().warning(f'ignored a malformed layout: {e}',
+                                      throttle_duration_sec=10.0)
+            return
+        if layout.decider is not None and layout.decider.id == self.identity.id:
+            return                                  # our own
+        self._layouts_heard += 1
+        if layout.deployment != self.deployment.name:
+            return                                  # another deployment's decider
+        why = self.gate.check(msg.data, layout, time.time())
+        if why:
+            self._rejected += 1
+            self.get_logger().warning(f'ignored a layout claiming to be of this deployment '
+                                      f'(generation {layout.generation}): {why}',
+                                      throttle_duration_sec=10.0)
+            return
+        if layout.decider is None:
+            self._rejected += 1
+            self.get_logger().warning(
+                f'ignored a layout of this deployment without a decider identity (generation '
+                f'{layout.generation}: an older decider or a plain script); agents that '
+                'follow this decider ignore it too', throttle_duration_sec=10.0)
+            return
+        now = self._now()
+        self.rivals.heard(layout.decider, layout.seq, layout.stamp, now)
+        stop = self.rivals.must_stop(now, time.time(), started=self.publishing)
+        if stop:
+            raise RivalDecider(stop)
+        for r in self.rivals.younger(now, time.time()):
+            self.get_logger().warning(
+                f'another decider of this deployment publishes: {r.describe()}, started '
+                f'after this one; it stops when it hears this one (the first one keeps the '
+                'deployment)', throttle_duration_sec=10.0)
 
     def _on_scale_status(self, msg: String) -> None:
         self._intake(msg, p.ScaleStatus, p.TOPIC_SCALE_STATUS, self.book.scale_status)
@@ -263,9 +351,40 @@ class DeciderNode(Node):
                      self.book.connection_status)
 
     # --- the loop -----------------------------------------------------------------------------
+    def _discovered(self, now: float) -> bool:
+        """Whether the start-up listening is over and no live rival was heard (else stop)."""
+        if self.publishing:
+            return True
+        stop = self.rivals.must_stop(now, time.time(), started=False)
+        if stop:
+            raise RivalDecider(stop)
+        waited = now - self.started
+        listen = self.settings.discovery_s
+        if waited < listen:
+            return False
+        # A layout writer, or another node named as a decider, not heard from yet (its DDS
+        # discovery is slower than ours): listen for one more lease.
+        others = sum(1 for name in self.get_node_names() if name == NODE_NAME) > 1
+        if waited < listen + self.settings.lease_s and not self._layouts_heard and \
+                (others or self.count_publishers(p.TOPIC_LAYOUT) > 0):
+            return False
+        self.publishing = True
+        self.pub_layout = self.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
+        self.pub_events = self.create_publisher(String, p.TOPIC_EVENTS, EVENTS_QOS)
+        self.pub_objective = self.create_publisher(String, p.TOPIC_OBJECTIVE, 10)
+        self.pub_plan = self.create_publisher(String, p.TOPIC_PLAN_CHECK, 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS, 10)
+        self.get_logger().info(f'no other decider of {self.deployment.name!r} heard in '
+                               f'{waited:.1f} s: this one ({self.identity.id}) decides')
+        return True
+
     def _tick(self) -> None:
         try:
+            if not self._discovered(self._now()):
+                return
             self._turn(self._now())
+        except RivalDecider:
+            raise
         except Exception as e:  # noqa: B902 - report, keep the last layout, try again
             self.get_logger().error(f'decider turn failed: {type(e).__name__}: {e}',
                                     throttle_duration_sec=5.0)
@@ -298,8 +417,10 @@ class DeciderNode(Node):
         for so in obs.scales.values():
             cpu_by_node.update(so.cpu_by_node)
         perf, integral = self.cost.update(now, obs.running, cpu_by_node)
-        self._publish(self.pub_objective, p.Objective(
-            stamp=time.time(), perf_map=perf, integral=integral, elapsed_s=self.cost.elapsed_s))
+        self.objective_seq += 1
+        self.pub_objective.publish(String(data=auth.seal(self.key, p.Objective(
+            stamp=time.time(), perf_map=perf, integral=integral, elapsed_s=self.cost.elapsed_s,
+            decider=self.identity.id, seq=self.objective_seq))))
 
         checked = check_plan(self.deployment, self.expected, obs, self.settings)
         self._publish(self.pub_plan, p.PlanCheck(
@@ -348,13 +469,26 @@ class DeciderNode(Node):
 
     # --- publishing ---------------------------------------------------------------------------
     def _publish(self, pub, message: p.Message) -> None:
-        pub.publish(String(data=message.to_json()))
+        if pub is not None:
+            pub.publish(String(data=message.to_json()))
 
     def _publish_layout(self, reason: str) -> None:
-        self._publish(self.pub_layout, p.Layout(
+        self.reason = reason[:2000]
+        self._send_layout()
+        self._event('layout', '', '', '', self.reason)
+
+    def _send_layout(self) -> None:
+        self.seq += 1
+        layout = p.Layout(
             generation=self.generation, deployment=self.deployment.name,
-            assignments=dict(self.layout), reason=reason[:2000], stamp=time.time()))
-        self._event('layout', '', '', '', reason[:2000])
+            assignments=dict(self.layout), reason=self.reason, stamp=time.time(),
+            decider=self.identity, seq=self.seq)
+        self.pub_layout.publish(String(data=auth.seal(self.key, layout)))
+
+    def _renew(self) -> None:
+        """The same layout again, newly stamped and numbered: the agents' lease on us."""
+        if self.layout is not None and self.pub_layout is not None:
+            self._send_layout()
 
     def _event(self, kind: str, node: str, from_scale: str, to_scale: str, reason: str) -> None:
         self._publish(self.pub_events, p.Event(
@@ -363,6 +497,8 @@ class DeciderNode(Node):
 
     def _diagnostics(self, level: int, message: str, perf: float = 0.0,
                      integral: float = 0.0, running: int = 0) -> None:
+        if self.pub_diag is None:
+            return
         status = DiagnosticStatus(
             level=bytes([level]), name=f'{NODE_NAME}: {self.deployment.name}',
             message=message[:500], hardware_id=self.host)
@@ -373,6 +509,8 @@ class DeciderNode(Node):
             'decisions': self._decisions, 'messages ignored': self._rejected,
             'perf_map': round(perf, 3), 'perf integral': round(integral, 3),
             'migration': self.settings.migration,
+            'decider': self.identity.describe(),
+            'layouts signed': self.key is not None,
         }
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         array = DiagnosticArray(status=[status])
@@ -399,7 +537,7 @@ def main(args=None) -> int:
         # asked for, so it is a clean stop; while the context is up it is a real error.
         if rclpy.ok():
             raise
-    except (DeploymentError, LayoutError) as e:
+    except (DeploymentError, LayoutError, auth.KeyFileError, RivalDecider) as e:
         print(f'anyscale_manager decider: {e}', file=sys.stderr)
         code = 2
     finally:

@@ -83,6 +83,8 @@ def render(book: StatusBook, now: float) -> str:
     head = f'deployment {d.name}'
     if book.layout:
         head += f'   layout generation {book.layout[0].generation} ({_age(now, book.layout[1])})'
+        if book.layout[0].decider is not None:
+            head += f' of decider {book.layout[0].decider.describe()}'
     else:
         head += '   no layout heard (is the decider running?)'
     if book.objective:
@@ -103,6 +105,8 @@ def render(book: StatusBook, now: float) -> str:
             a, at = book.agents[s.name]
             silent = now - at > d.decider.agent_timeout_s
             agent = f'{"SILENT" if silent else "ok"}, generation {a.generation}, {_age(now, at)}'
+            if a.decider:
+                agent += f', follows {a.decider}'
         rows.append([s.name, s.role, cpu, agent])
     lines += _table(rows) + ['']
 

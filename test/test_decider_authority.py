@@ -1,0 +1,263 @@
+"""One decider at a time, and layouts only from it: real deciders and agents over loopback DDS.
+
+- a second decider of a running deployment exits 2 naming the first, and publishes nothing;
+  two started together: one stops, the agents follow the other;
+- without a key, a plain script's layout is refused by agents that follow a live decider;
+- with a key: the decider moves nodes as before; a forged layout (generation 10**15) and a
+  replayed one (a real signed message sent again) are dropped by the agents, each with its
+  reason in their log, and nothing moves.
+"""
+
+import json
+import os
+import signal
+import sys
+import time
+
+import pytest
+import rclpy
+import yaml
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from anyscale_manager import protocol as p
+from anyscale_manager import protocol_auth as auth
+from processes import LoggedProcess
+from test_decider_agent import LATCHED, runs, write_deployment
+
+BIN = os.path.dirname(sys.executable)
+
+
+@pytest.fixture
+def world():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node('decider_authority_test', context=ctx)
+    seen = {'layouts': [], 'raw': [], 'states': {}}
+
+    def layout(m):
+        seen['raw'].append(m.data)
+        seen['layouts'].append(p.Layout.from_json(m.data))
+
+    def state(m):
+        s = p.AgentState.from_json(m.data)
+        if s.instance != 'f00d':          # the test's own forgery
+            seen['states'][s.scale] = s
+    node.create_subscription(String, p.TOPIC_LAYOUT, layout, LATCHED)
+    node.create_subscription(String, p.TOPIC_AGENT_STATE, state, LATCHED)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    procs = []
+    yield node, ex, seen, procs
+    for _, pr in reversed(procs):
+        pr.stop()
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
+def deployment(tmp_path, key=False):
+    path = write_deployment(tmp_path)
+    if key:
+        key_path = tmp_path / 'deployment.key'
+        auth.write_key(str(key_path))
+        with open(path) as f:
+            data = yaml.safe_load(f)
+        data['/**']['ros__parameters']['security'] = {'key_file': str(key_path)}
+        with open(path, 'w') as f:
+            yaml.safe_dump(data, f)
+    return path
+
+
+def start(procs, tmp_path, ros_env, path, name, *args):
+    exe = 'decider' if name.startswith('decider') else 'agent'
+    proc = LoggedProcess(tmp_path / f'{name}.out',
+                         [os.path.join(BIN, exe), '--ros-args', '--params-file', path, *args],
+                         ros_env)
+    procs.append((name, proc))
+    return proc
+
+
+def start_agents(procs, tmp_path, ros_env, path):
+    return {scale: start(procs, tmp_path, ros_env, path, f'agent_{scale}', '-p',
+                         f'scale:={scale}') for scale in ('home', 'away')}
+
+
+def wait(ex, cond, timeout, what, procs):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+        if cond():
+            return
+    logs = '\n'.join(f'--- {name}\n{pr.text()[-3000:]}' for name, pr in procs)
+    raise AssertionError(f'timed out after {timeout} s waiting for {what}\n{logs}')
+
+
+def until_logged(ex, send, agents, why, timeout=30.0):
+    """Send until every agent has logged ``why``: drops are logged once per 10 s (throttled)."""
+    end = time.monotonic() + timeout
+    while not all(why in agent.text() for agent in agents.values()):
+        assert time.monotonic() < end, f'no agent logged {why!r}:\n' + '\n'.join(
+            agent.text()[-2000:] for agent in agents.values())
+        send()
+        again = time.monotonic() + 1.0
+        while time.monotonic() < again:
+            ex.spin_once(timeout_sec=0.1)
+
+
+def serving(seen, scales):
+    """node -> pid of what runs (starting or running) on each scale."""
+    return {s: {n: r.pid for n, r in seen['states'][s].running().items()} for s in scales}
+
+
+def follow(seen, decider_id):
+    return all(seen['states'].get(s) is not None and seen['states'][s].decider == decider_id
+               for s in ('home', 'away'))
+
+
+def test_a_second_decider_exits_2_naming_the_first(tmp_path, ros_env, world):
+    node, ex, seen, procs = world
+    path = deployment(tmp_path)
+    agents = start_agents(procs, tmp_path, ros_env, path)
+    first = start(procs, tmp_path, ros_env, path, 'decider_1')
+    wait(ex, lambda: seen['layouts'] and seen['layouts'][-1].decider is not None, 40.0,
+         "the first decider's layout", procs)
+    one = seen['layouts'][-1].decider
+    assert one.pid == first.proc.pid
+    wait(ex, lambda: follow(seen, one.id), 30.0, 'both agents following the first decider',
+         procs)
+
+    second = start(procs, tmp_path, ros_env, path, 'decider_2')
+    end = time.monotonic() + 30.0
+    while second.proc.poll() is None and time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.1)
+    assert second.proc.poll() == 2, second.text()
+    out = second.text()
+    assert f'another decider of this deployment is live: {one.id} (host {one.host}, ' \
+           f'pid {one.pid})' in out, out
+    # It published nothing: every layout seen is the first decider's.
+    assert {lay.decider.id for lay in seen['layouts'] if lay.decider} == {one.id}
+    assert first.proc.poll() is None and follow(seen, one.id)
+
+    # Without a key, a plain script's layout (no decider identity) is refused while the
+    # followed decider lives, and nothing moves.
+    pids = {s: {n: r.pid for n, r in seen['states'][s].nodes.items()} for s in agents}
+    forger = node.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
+    forger.publish(String(data=json.dumps({
+        'generation': 10 ** 15, 'deployment': seen['layouts'][-1].deployment,
+        'assignments': {'worker': 'home', 'pinned': 'home'}, 'reason': 'forged',
+        'stamp': time.time()})))
+    for scale, agent in agents.items():
+        wait(ex, lambda: 'layout of decider without identity (anonymous) ignored: following '
+             f'{one.id}' in agent.text(), 15.0, f'the {scale} agent refusing it', procs)
+    # (The decider may move the worker meanwhile: its own layouts still count.)
+    real = {lay.generation for lay in seen['layouts'] if lay.decider is not None}
+    assert all(st.generation in real for st in seen['states'].values()), seen['states']
+    assert seen['states']['home'].nodes['pinned'].pid == pids['home']['pinned']
+    assert follow(seen, one.id)
+    assert 'security.key_file is not set' in agents['home'].text()
+    # The decider logs the foreign layout and does not answer it with a layout of its own.
+    wait(ex, lambda: 'ignored a layout of this deployment without a decider identity '
+         '(generation 1000000000000000' in first.text(), 15.0, 'the decider logging it', procs)
+    assert 're-published above' not in first.text()
+    assert max(lay.generation for lay in seen['layouts'] if lay.decider) < 10 ** 15
+    codes = {name: pr.stop() for name, pr in reversed(procs)}
+    assert codes['decider_1'] == 0 and codes['agent_home'] == 0
+
+
+def test_two_deciders_started_together_leave_one(tmp_path, ros_env, world):
+    node, ex, seen, procs = world
+    path = deployment(tmp_path)
+    start_agents(procs, tmp_path, ros_env, path)
+    deciders = [start(procs, tmp_path, ros_env, path, f'decider_{i}') for i in (1, 2)]
+
+    def settled():
+        return sum(d.proc.poll() is None for d in deciders) == 1
+    wait(ex, settled, 40.0, 'one of the two deciders stopping', procs)
+    wait(ex, lambda: seen['layouts'], 30.0, 'a layout', procs)
+    alive = [d for d in deciders if d.proc.poll() is None][0]
+    gone = [d for d in deciders if d is not alive][0]
+    assert gone.proc.returncode == 2, gone.text()
+    assert 'another decider of this deployment' in gone.text()
+    survivor = [lay.decider for lay in seen['layouts'] if lay.decider.pid == alive.proc.pid]
+    assert survivor, [lay.decider for lay in seen['layouts']]
+    # The agents follow the survivor (at once, or one lease after the other one's last word).
+    wait(ex, lambda: follow(seen, survivor[0].id), 30.0, 'both agents following it', procs)
+    # The survivor does not stop later.
+    n = len(seen['layouts'])
+    wait(ex, lambda: len(seen['layouts']) >= n + 3, 15.0, 'its re-publications', procs)
+    assert alive.proc.poll() is None
+
+
+def test_with_a_key_layouts_move_nodes_and_forged_or_replayed_ones_do_not(tmp_path, ros_env,
+                                                                          world):
+    node, ex, seen, procs = world
+    path = deployment(tmp_path, key=True)
+    agents = start_agents(procs, tmp_path, ros_env, path)
+    decider = start(procs, tmp_path, ros_env, path, 'decider')
+    wait(ex, lambda: seen['layouts'], 40.0, 'the first layout', procs)
+    assert seen['layouts'][0].assignments['worker'] == 'home'
+    first_raw = seen['raw'][0]
+    assert auth.check_signature(auth.load_key(str(tmp_path / 'deployment.key')),
+                                first_raw) == ''
+    # The decider moves the worker out as it does without a key.
+    wait(ex, lambda: runs(seen, 'away', 'worker') and not runs(seen, 'home', 'worker'),
+         60.0, 'worker running on away', procs)
+    me = seen['layouts'][-1].decider.id
+    wait(ex, lambda: follow(seen, me), 10.0, 'both agents following the decider', procs)
+    wait(ex, lambda: seen['states']['home'].nodes['worker'].state == 'stopped', 30.0,
+         'the home copy of the worker stopped', procs)
+    pids = serving(seen, agents)
+    generations = {s: seen['states'][s].generation for s in agents}
+
+    forger = node.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
+    forged = json.loads(seen['raw'][-1])
+    forged.update(generation=10 ** 15, assignments={'worker': 'home', 'pinned': 'home'},
+                  seq=forged['seq'] + 1000, stamp=time.time())
+    checks = [
+        # unsigned: a plain rclpy script with the decider's identity copied
+        ({k: v for k, v in forged.items() if k != 'auth'}, 'not signed (no auth field)'),
+        # signed with another key
+        (dict(forged, auth=auth.sign(bytes(32), forged)), 'bad authenticator'),
+        # a real signed layout of the decider, sent again: it placed the worker home
+        (json.loads(first_raw), 'a replay'),
+    ]
+    for data, why in checks:
+        until_logged(ex, lambda: forger.publish(String(data=json.dumps(data))), agents, why)
+    assert 'dropped layout generation 1000000000000000 of decider ' + me in \
+        agents['home'].text()
+    # An agent state is signed too: a forged one (the away agent's worker 'stopped') is dropped
+    # by the other agent and by the decider, and the worker is not brought home for it.
+    fake = p.AgentState(scale='away', generation=generations['away'], stamp=time.time(),
+                        nodes={}, decider=me, instance='f00d', seq=1)
+    states = node.create_publisher(String, p.TOPIC_AGENT_STATE, LATCHED)
+
+    def forge_state():
+        fake.seq += 1
+        fake.stamp = time.time()
+        states.publish(String(data=fake.to_json()))
+    until_logged(ex, forge_state, {'home': agents['home']},
+                 "dropped an agent state claiming scale 'away': not signed")
+    assert "agent state claiming scale 'away': not signed" in decider.text()
+    # Nothing moved, nothing restarted, no generation taken; the decider goes on.
+    wait(ex, lambda: len(seen['layouts']) >= 3, 10.0, 'layouts', procs)
+    assert serving(seen, agents) == pids
+    assert {s: seen['states'][s].generation for s in agents} == generations
+    assert runs(seen, 'away', 'worker') and follow(seen, me)
+    assert decider.proc.poll() is None
+    assert 'security.key_file is not set' not in agents['home'].text()
+    codes = {name: pr.stop(signal.SIGINT) for name, pr in reversed(procs)}
+    assert codes['decider'] == 0
+
+
+def test_a_key_file_open_to_others_stops_the_decider_and_the_agents(tmp_path, ros_env, world):
+    node, ex, seen, procs = world
+    path = deployment(tmp_path, key=True)
+    os.chmod(tmp_path / 'deployment.key', 0o644)
+    started = [start(procs, tmp_path, ros_env, path, 'decider'),
+               start(procs, tmp_path, ros_env, path, 'agent_home', '-p', 'scale:=home')]
+    for proc in started:
+        assert proc.proc.wait(60) == 2, proc.text()
+        assert 'mode 0644 lets group or others read it' in proc.text()
+    assert not seen['layouts'] and not seen['states']
