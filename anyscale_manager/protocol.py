@@ -17,6 +17,9 @@ TOPIC_LAYOUT = PREFIX + '/layout'                  # decider -> agents, latched
 TOPIC_AGENT_STATE = PREFIX + '/agent_state'        # agents -> decider, latched per agent
 TOPIC_SCALE_STATUS = PREFIX + '/scale_status'      # scale monitor (in each agent)
 TOPIC_LINK_STATUS = PREFIX + '/link_status'        # link monitor (in the master's agent)
+# A link monitor that starts publishes no LinkStatus until its first echo, for at most this
+# long: before the remote has discovered it, silence says nothing of the link.
+LINK_MONITOR_START_S = 3.0
 TOPIC_CONNECTION_STATUS = PREFIX + '/connection_status'  # probes (in each agent)
 TOPIC_HEARTBEAT = PREFIX + '/heartbeat'            # master agent -> remote agents
 TOPIC_HEARTBEAT_ECHO = PREFIX + '/heartbeat_echo'  # remote agents -> master agent

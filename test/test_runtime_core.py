@@ -375,3 +375,50 @@ def test_the_decider_does_not_count_standby_copies(d):
     book.agent_state(agent('robot', 3, amcl='running'), 1.0)
     book.agent_state(agent('laptop', 3, amcl='standby', ar='standby'), 1.0)
     assert book.running(2.0) == {'amcl': 'robot'}
+
+
+def link(up=True, kbps=None):
+    return p.LinkStatus(master='robot', remote='laptop', stamp=0.0, up=up, rtt_ms=1.0, loss=0.0,
+                        bandwidth_available_kbps=kbps, bandwidth_available_age_s=None,
+                        bandwidth_used_kbps=0.0)
+
+
+def test_a_silent_or_restarted_master_agent_is_not_a_cut_link(d):
+    """The link monitor runs in the master's agent: its silence, and a new agent's first
+    seconds (its monitor waits for a first echo before it reports), say nothing of the link.
+    Such a link is neither cut (nothing moves back) nor observed (nothing moves out)."""
+    max_age, start = d.decider.observation_max_age_s, p.LINK_MONITOR_START_S
+    book = ObservationBook(d, d.decider, started=0.0)
+    running = dict(master_layout(d), amcl='laptop')
+    # Steady: the master's agent and its monitor report; the link is judged.
+    t = start + max_age + 1.0
+    book.agent_state(agent('robot', 3, amcl='standby'), t)
+    book.agent_state(agent('laptop', 3, amcl='running'), t)
+    book.link_status(link(kbps=40000.0), t)
+    assert book.snapshot(t + 0.5).unjudged_links == frozenset()
+    # The master's agent is killed: its reports and the link's stop together.
+    t_dead = t + max_age + 0.5
+    book.agent_state(agent('laptop', 3, amcl='running'), t_dead)
+    obs = book.snapshot(t_dead)
+    assert obs.unjudged_links == {'laptop'}
+    report = evaluate(d, d.decider, replace(obs, running=running))
+    assert not report.of_kind(LINK_DOWN) and report.links['wifi'].up
+    assert not report.links['wifi'].observed
+    assert report.links['wifi'].available_kbps == 40000.0      # the last measurement
+    # A new master agent speaks; its monitor is silent while it waits for a first echo.
+    t_new = t_dead + 1.0
+    book.agent_state(agent('robot', 3, amcl='standby'), t_new)
+    assert book.snapshot(t_new + start).unjudged_links == {'laptop'}
+    # Past the monitor's start-up and the report age, a silent link is silent again: a cut.
+    late = t_new + start + max_age + 0.1
+    for k in range(1, int((late - t_new) / 0.5) + 1):      # it reports every 0.5 s
+        book.agent_state(agent('robot', 3, amcl='standby'), t_new + 0.5 * k)
+    obs = book.snapshot(late)
+    assert obs.unjudged_links == frozenset()
+    (v,) = evaluate(d, d.decider, replace(obs, running=running)).of_kind(LINK_DOWN)
+    assert 'silent' in v.reason
+    # And a link reported down by a live monitor is down, whatever the agent did before.
+    book.link_status(link(up=False), late)
+    (v,) = evaluate(d, d.decider, replace(book.snapshot(late), running=running)
+                    ).of_kind(LINK_DOWN)
+    assert 'reported down' in v.reason

@@ -178,6 +178,12 @@ def link_capacity(deployment: Deployment, settings: DeciderSettings, obs: Observ
         return True, False, link.bandwidth_kbps, ''
     lo = obs.links.get(key)
     max_age = settings.observation_max_age_s
+    if key in obs.unjudged_links:
+        # No fresh report because the monitor's host is silent or just started: neither a
+        # cut (nothing comes back for it) nor a link to move out over (not observed).
+        last = lo.available_kbps if lo is not None and lo.available_kbps is not None \
+            else link.bandwidth_kbps
+        return True, False, max(0.0, last), ''
     if lo is None:
         silent = math.inf if since is None else obs.now - since
         if silent > max_age:

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 from typing import Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
-from ..protocol import AgentState, ConnectionStatus, LinkStatus, ScaleStatus
+from ..protocol import (LINK_MONITOR_START_S, AgentState, ConnectionStatus, LinkStatus,
+                        ScaleStatus)
 from .observations import ConnectionObs, LinkObs, Observations, ScaleObs
 
 _RANK = {'running': 2, 'starting': 1}
@@ -32,6 +33,7 @@ class ObservationBook:
         self.deployment = deployment
         self.settings = settings
         self.started = started
+        self.master_back_at = started
         self.agents: Dict[str, AgentSeen] = {}
         self.scales: Dict[str, ScaleObs] = {}
         self.links: Dict[str, LinkObs] = {}
@@ -53,6 +55,10 @@ class ObservationBook:
         for name in msg.nodes:
             if name not in self.deployment.node_names:
                 self._skip(f'agent_state from {msg.scale}: unknown node {name[:60]}')
+        before = self.agents.get(msg.scale)
+        if msg.scale == self.deployment.master.name and (
+                before is None or now - before.received > self.settings.observation_max_age_s):
+            self.master_back_at = now    # the master's agent (and its link monitor) is back
         self.agents[msg.scale] = AgentSeen(msg, now)
 
     def scale_status(self, msg: ScaleStatus, now: float) -> None:
@@ -129,6 +135,20 @@ class ObservationBook:
                 lost.add(s)
         return frozenset(lost)
 
+    def unjudged_links(self, now: float) -> FrozenSet[str]:
+        """Remote scales whose link report is missing or stale while the master's agent, the
+        link monitor's host, is silent, or was heard again less than LINK_MONITOR_START_S plus
+        observation_max_age_s ago (its new link monitor has not judged the link yet)."""
+        max_age = self.settings.observation_max_age_s
+        master = self.agents.get(self.deployment.master.name)
+        quiet = master is None or now - master.received > max_age
+        starting = now - self.master_back_at <= LINK_MONITOR_START_S + max_age
+        if not (quiet or starting):
+            return frozenset()
+        return frozenset(s for s in self.deployment.scale_names
+                         if s != self.deployment.master.name
+                         and (s not in self.links or now - self.links[s].stamp > max_age))
+
     def all_agents_heard(self) -> bool:
         return all(s in self.agents for s in self.deployment.scale_names)
 
@@ -180,4 +200,5 @@ class ObservationBook:
         return Observations(now=now, running=frozen_map(running),
                             scales=frozen_map(self.scales), links=frozen_map(self.links),
                             connections=frozen_map(self.connections(running)),
-                            lost_scales=self.lost_scales(now))
+                            lost_scales=self.lost_scales(now),
+                            unjudged_links=self.unjudged_links(now))

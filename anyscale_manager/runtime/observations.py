@@ -51,6 +51,9 @@ class Observations:
     links: Mapping[str, LinkObs] = field(default_factory=frozen_map)   # keyed by remote scale
     connections: Mapping[str, ConnectionObs] = field(default_factory=frozen_map)
     lost_scales: FrozenSet[str] = frozenset()        # scales whose agent went silent
+    # Remote scales whose link has no fresh report because the master's agent, which hosts the
+    # link monitor, is silent or has just started: a dead agent is not a cut link.
+    unjudged_links: FrozenSet[str] = frozenset()
 
 
 MIGRATE = 'migrate'            # master -> remote (Algorithm 1's else branch)

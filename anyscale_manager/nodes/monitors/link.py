@@ -46,6 +46,7 @@ class _Remote:
     congested: bool = False
     delay_s: Optional[float] = None
     quiet_since: float = -math.inf     # beats sent earlier say nothing of congestion
+    started: float = 0.0               # when this monitor began beating to it
     watchdog: object = None
     result: Optional[Tuple[float, Optional[float], str, float]] = None  # done, bps, error, used
 
@@ -86,7 +87,8 @@ class LinkMonitor:
                     urgent_gap_s=10.0 * settings.bandwidth_probe_duration_s)
             self._remotes[remote.name] = _Remote(
                 remote, link.name if link else f'{self._scale.name}-{remote.name}',
-                heartbeat_tracker(self._period, settings.heartbeat_misses_down), estimate)
+                heartbeat_tracker(self._period, settings.heartbeat_misses_down), estimate,
+                started=time.monotonic())
         self._readings: Dict[Tuple[str, str], Tuple[float, float]] = {}  # (scale, conn) -> B/s, at
         self._running: Dict[str, Dict[str, str]] = {}          # scale -> node -> scale
         self._beat_pub = self._node.create_publisher(String, p.TOPIC_HEARTBEAT, HEARTBEAT_QOS)
@@ -250,6 +252,8 @@ class LinkMonitor:
 
     def _publish(self, remote: _Remote, now: float, used: float) -> None:
         beats, estimate = remote.beats, remote.bandwidth
+        if beats.last_echo is None and now - remote.started < p.LINK_MONITOR_START_S:
+            return      # not heard yet, and the remote may not have discovered us yet
         up = beats.up(now)
         rtt = beats.rtt_s()
         available = estimate.available_kbps if estimate is not None else None
