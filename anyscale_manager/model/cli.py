@@ -1,9 +1,11 @@
 """anyscale-manager validate FILE...: check deployments and print a readable summary."""
 
 import sys
+from typing import List, Tuple
 
 from .advice import warnings
-from .loader import DeploymentError, load_deployment
+from .launch_check import launch_problems
+from .loader import DeploymentError, did_you_mean, load_deployment
 from .types import Deployment
 from ..protocol_auth import KeyFileError, load_key
 
@@ -11,6 +13,10 @@ from ..protocol_auth import KeyFileError, load_key
 def add_arguments(parser) -> None:
     parser.add_argument('files', nargs='+', metavar='FILE', help='deployment YAML files')
     parser.add_argument('--quiet', action='store_true', help='print only errors and warnings')
+    parser.add_argument('--scale', metavar='NAME',
+                        help='validate for the scale this machine is: a node that may run on it '
+                             'and cannot be started here is an error (without it, a warning); '
+                             'the launches of nodes that never run on it are not checked')
 
 
 def _fmt(x) -> str:
@@ -32,6 +38,8 @@ def summary(d: Deployment) -> str:
     critical = set(d.critical_nodes)
     providers = set(d.data_providers)
     migratable = set(d.migratable_nodes)
+    # A file for planning only has no launch anywhere: no node of it migrates, nothing to say.
+    runnable = any(n.launch.startable for n in d.nodes)
     lines.append(f'  nodes ({len(d.nodes)}; migratable: {", ".join(d.migratable_nodes) or "none"}'
                  f'; critical: {", ".join(d.critical_nodes) or "none"}):')
     for n in d.nodes:
@@ -39,11 +47,14 @@ def summary(d: Deployment) -> str:
         if n.name in migratable:
             tags.append('migratable')
         if n.name in critical:
-            tags.append('critical')
+            tags.append(f'critical ({d.why_critical(n.name)})')
         if n.name in providers:
-            tags.append('data provider')
+            tags.append(f'data provider ({d.why_data_provider(n.name)})')
         if not n.managed:
             tags.append('not managed')
+        elif n.name not in migratable and n.name not in critical and runnable \
+                and not (n.name in providers and not n.residence):
+            tags.append(f'not migratable ({d.why_not_migratable(n.name)})')
         if n.lifecycle:
             standby = d.standby_scales(n.name)
             tags.append(f'lifecycle, standby on {", ".join(standby)}' if standby else 'lifecycle')
@@ -51,7 +62,7 @@ def summary(d: Deployment) -> str:
             tags.append(f'configurable {n.settings.parameter}')
         allowed = d.allowed_scales(n.name)
         where = 'any scale' if len(allowed) == len(d.scales) else ', '.join(allowed)
-        lines.append(f'    {n.name:<14} cpu {n.cpu:<6g} on {where:<16} {", ".join(tags)}')
+        lines.append(f'    {n.name:<14} cpu {n.cpu:<6g} on {where:<16} {", ".join(tags)}'.rstrip())
     if d.connections:
         lines.append(f'  connections ({len(d.connections)}):')
         for c in d.connections:
@@ -61,26 +72,54 @@ def summary(d: Deployment) -> str:
     return '\n'.join(lines)
 
 
+def machine_check(d: Deployment, scale: str = '') -> Tuple[List[str], List[str]]:
+    """(errors, warnings) about launches this machine cannot start; with ``scale``, the file is
+    validated for that scale: its nodes' launches are errors, other nodes' are not looked at."""
+    errors, notes = [], []
+    for node, problem in launch_problems(d).items():
+        if not scale:
+            notes.append(f'{d.source}: nodes.{node}.launch: {problem}: an agent on this machine '
+                         'cannot start it (validate --scale NAME makes this an error)')
+        elif scale in d.allowed_scales(node):
+            errors.append(f'{d.source}: nodes.{node}.launch: {problem}: the agent of scale '
+                          f'{scale}, on this machine, cannot start it')
+    return errors, notes
+
+
 def run(args) -> int:
     failed = False
+    scale = args.scale or ''
     for path in args.files:
         try:
             d = load_deployment(path)
         except DeploymentError as e:
             failed = True
-            print(f'{path}: {len(e.problems)} problem(s):', file=sys.stderr)
-            for p in e.problems:
-                print(f'  {p}', file=sys.stderr)
+            _print_problems(path, [str(p) for p in e.problems])
             continue
+        problems = []
+        if scale and scale not in d.scale_names:
+            problems.append(f'{path}: --scale: unknown scale {scale!r}'
+                            f'{did_you_mean(scale, d.scale_names)}; the scales of this file '
+                            f'are {", ".join(d.scale_names)}')
         if d.security.key_file:
             try:
                 load_key(d.security.key_file)
             except KeyFileError as e:
-                failed = True
-                print(f'{path}: 1 problem(s):\n  {path}: {e}', file=sys.stderr)
-                continue
+                problems.append(f'{path}: {e}')
+        errors, notes = machine_check(d, scale if scale in d.scale_names else '')
+        problems += errors
+        if problems:
+            failed = True
+            _print_problems(path, problems)
+            continue
         if not args.quiet:
             print(summary(d))
-        for w in warnings(d):
+        for w in warnings(d) + notes:
             print(f'warning: {w}', file=sys.stderr)
     return 2 if failed else 0
+
+
+def _print_problems(path: str, problems: List[str]) -> None:
+    print(f'{path}: {len(problems)} problem(s):', file=sys.stderr)
+    for p in problems:
+        print(f'  {p}', file=sys.stderr)

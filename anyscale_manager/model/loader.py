@@ -16,9 +16,12 @@ The file looks like::
 
 ROS parameters have no lists of maps, so every collection is a map of named sections plus a
 ``names`` list that fixes the order. Every error names the file, the path inside it and what
-was expected; all errors are collected and reported at once.
+was expected; all errors are collected and reported at once, one line each: the cross checks
+(references, residence and coresidence, criticality) run on whatever was read, so a typo in one key
+does not hide a contradiction elsewhere in the same file.
 """
 
+import difflib
 import math
 import os
 import re
@@ -58,13 +61,38 @@ def _describe(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + '...'
 
 
+def did_you_mean(word: Any, candidates) -> str:
+    """' (did you mean X?)' for the closest candidate, or '' when none is close."""
+    close = difflib.get_close_matches(str(word), [str(c) for c in candidates], n=1)
+    return f' (did you mean {close[0]}?)' if close else ''
+
+
 class _Context:
     def __init__(self, source: str):
         self.source = source
         self.problems: List[Problem] = []
+        self._damaged: List[str] = []     # paths whose value was not read as written
+        self.declared: Dict[str, set] = {}   # collection -> every name it mentions
+        self.broken = set()                  # collections whose names could not be read
 
-    def error(self, path: str, message: str) -> None:
-        self.problems.append(Problem(self.source, path, message))
+    def error(self, path: str, message: str, damages: bool = True) -> None:
+        """Record a problem once; ``damages``: the value at ``path`` was replaced by a default
+        (an unknown key damages nothing: it is only left out)."""
+        problem = Problem(self.source, path, message)
+        if problem not in self.problems:
+            self.problems.append(problem)
+        if damages:
+            self.mark_damaged(path)
+
+    def mark_damaged(self, path: str) -> None:
+        self._damaged.append(path)
+
+    def damaged(self, path: str, inside: bool = True) -> bool:
+        """True when ``path``, what holds it (or, with ``inside``, anything in it) was not read
+        as written."""
+        return any(p == path or path.startswith((f'{p}.', f'{p}['))
+                   or inside and p.startswith((f'{path}.', f'{path}['))
+                   for p in self._damaged if p)
 
 
 def _is_number(v: Any) -> bool:
@@ -82,17 +110,25 @@ class _Section:
             ctx.error(path, f'expected a map, got {_describe(data)}')
         self.data: Dict[str, Any] = data if self.ok else {}
         self.seen = set()
+        self.known = set()    # every key the reader asked for: the "did you mean" candidates
 
     def sub(self, key: str) -> str:
         return f'{self.path}.{key}' if self.path else key
 
     def has(self, key: str) -> bool:
+        self.known.add(key)
         return key in self.data
+
+    def read(self, *keys: str) -> bool:
+        """Whether these keys were read as written (absent counts as read): a check of how
+        they fit together means something only then."""
+        return not any(self.ctx.damaged(self.sub(k)) for k in keys)
 
     def raw(self, key: str, default: Any = MISSING) -> Any:
         self.seen.add(key)
+        self.known.add(key)
         if key not in self.data:
-            if default is MISSING:
+            if default is MISSING and self.ok:   # else "expected a map" said it all
                 self.ctx.error(self.sub(key), 'required key is missing')
             return default
         return self.data[key]
@@ -110,7 +146,8 @@ class _Section:
             self.ctx.error(self.sub(key), f'expected a string, got {_describe(v)}')
             return default if default is not MISSING else ''
         if choices is not None and v not in choices:
-            self.ctx.error(self.sub(key), f'expected one of {", ".join(choices)}, got {v!r}')
+            self.ctx.error(self.sub(key), f'expected one of {", ".join(choices)}, got {v!r}'
+                                          f'{did_you_mean(v, choices)}')
         if pattern is not None and not pattern.match(v):
             self.ctx.error(self.sub(key), f'{v!r} is not a valid name here')
         return v
@@ -200,38 +237,77 @@ class _Section:
     def done(self) -> None:
         for key in self.data:
             if key not in self.seen:
-                self.ctx.error(self.sub(str(key)), 'unknown key')
+                self.ctx.error(self.sub(str(key)), f'unknown key{did_you_mean(key, self.known)}',
+                               damages=False)
+
+
+def _quoted(names: List[str], limit: int = 6) -> str:
+    shown = ', '.join(repr(n) for n in names[:limit])
+    return shown + (f' and {len(names) - limit} more' if len(names) > limit else '')
 
 
 def _named_sections(parent: _Section, key: str, required: bool = True
                     ) -> List[Tuple[str, _Section]]:
     """A collection written as ``names: [...]`` plus one map per name."""
     sec = parent.section(key, required=required)
+    ctx = sec.ctx
     if not sec.ok or (not required and not sec.data):
         sec.seen.update(sec.data)
+        if not sec.ok:
+            ctx.broken.add(key)
         return []
+    if 'names' not in sec.data and not ctx.damaged(sec.path):
+        ctx.error(sec.sub('names'), 'required key is missing: a list of the sections in order, '
+                                    f'such as names: [{", ".join(map(str, sec.data))}]')
     names = sec.strings('names', ())
+    if ctx.damaged(sec.path, inside=False) or ctx.damaged(sec.sub('names')):
+        ctx.broken.add(key)
+    unlisted = [str(k) for k in sec.data if k != 'names' and k not in names]
+    # A name listed without a section next to a section not listed, alike: one misspelling,
+    # reported once, at the section.
+    without = [n for n in names if NAME_RE.match(n) and n not in sec.data]
+    typo = {}
+    for n in without:
+        close = difflib.get_close_matches(n, [k for k in unlisted if k not in typo], n=1)
+        if close:
+            typo[close[0]] = n
+    if not typo and len(without) == len(unlisted) == 1:
+        typo[unlisted[0]] = without[0]      # one of each, however unlike: a rename
+    # Every name the file mentions, good or bad: a reference to one of them is not "unknown"
+    # (the problem with the name itself is reported once, where it is).
+    ctx.declared[key] = {str(n) for n in names} | set(unlisted)
     out = []
     seen = set()
     for name in names:
         if not NAME_RE.match(name):
-            sec.ctx.error(sec.sub('names'), f'{name!r} is not a valid name: use letters, '
-                                            'digits and underscores, starting with a letter')
+            ctx.error(sec.sub('names'), f'{name!r} is not a valid name: use letters, '
+                                        'digits and underscores, starting with a letter')
             continue
         if name in seen:
-            sec.ctx.error(sec.sub('names'), f'{name!r} is listed twice')
+            ctx.error(sec.sub('names'), f'{name!r} is listed twice')
             continue
         seen.add(name)
         if name not in sec.data:
-            sec.ctx.error(sec.sub(name), f'{name!r} is listed in names but has no section')
+            if name in typo.values():
+                ctx.mark_damaged(sec.sub(name))
+            else:
+                ctx.error(sec.sub(name), f'{name!r} is listed in names but has no section')
             continue
         out.append((name, sec.section(name)))
-    for k in sec.data:
-        if k != 'names' and k not in seen:
-            sec.seen.add(k)
-            sec.ctx.error(sec.sub(str(k)), f'section {k!r} is not listed in '
-                                           f'{sec.sub("names")}')
-    sec.done()
+    sec.seen.update(sec.data)
+    if key not in ctx.broken:   # else the names list is the one problem, reported already
+        for k in typo:
+            ctx.error(sec.sub(k), f'section {k!r} is not listed in {sec.sub("names")}, which '
+                                  f'lists {typo[k]!r} with no section: one of the two is misspelt')
+        left_out = [k for k in unlisted if k not in typo]
+        if len(left_out) == 1:
+            ctx.error(sec.sub(left_out[0]), f'section {left_out[0]!r} is not listed in '
+                                            f'{sec.sub("names")}')
+        elif left_out:
+            ctx.error(sec.sub('names'), f'sections {_quoted(left_out)} are not listed: list '
+                                        'every section, in the order wanted')
+        for k in left_out:
+            ctx.mark_damaged(sec.sub(k))
     return out
 
 
@@ -258,6 +334,15 @@ def _dataclass_settings(parent: _Section, key: str, cls: type, checks: Dict[str,
     return cls(**{k: v for k, v in values.items() if v is not MISSING})
 
 
+def _settled(obj: Any) -> Any:
+    """``obj`` with each value that could not be read (still MISSING) emptied: '', 0 or (), so
+    that the checks after reading can look at the rest of the file."""
+    empty = {str: '', float: 0.0, int: 0}
+    changes = {f.name: empty.get(f.type, ()) for f in fields(obj)
+               if getattr(obj, f.name) is MISSING}
+    return replace(obj, **changes) if changes else obj
+
+
 def _read_scale(name: str, sec: _Section) -> t.Scale:
     scale = t.Scale(
         name=name,
@@ -270,12 +355,12 @@ def _read_scale(name: str, sec: _Section) -> t.Scale:
         host=sec.string('host', 'localhost'),
     )
     sec.done()
-    return scale
+    return _settled(scale)
 
 
 def _read_link(name: str, sec: _Section) -> t.Link:
     ends = sec.strings('ends')
-    if isinstance(ends, tuple) and len(ends) != 2:
+    if isinstance(ends, tuple) and len(ends) != 2 and sec.read('ends'):
         sec.ctx.error(sec.sub('ends'), f'expected exactly two scale names, got {len(ends)}')
     link = t.Link(
         name=name,
@@ -284,7 +369,7 @@ def _read_link(name: str, sec: _Section) -> t.Link:
         medium=sec.string('medium', t.WIRELESS, choices=(t.WIRED, t.WIRELESS)),
     )
     sec.done()
-    return link
+    return _settled(link)
 
 
 def _read_launch(sec: _Section) -> t.Launch:
@@ -297,9 +382,11 @@ def _read_launch(sec: _Section) -> t.Launch:
         parameters=sec.scalar_map('parameters'),
         ros_name=sec.string('ros_name', ''),
     )
-    if launch.command and (launch.package or launch.executable):
+    # Whether the forms are mixed means something only if each was read as written.
+    forms_read = sec.read('package', 'executable', 'command')
+    if forms_read and launch.command and (launch.package or launch.executable):
         sec.ctx.error(sec.path, 'give either command or package and executable, not both')
-    elif bool(launch.package) != bool(launch.executable):
+    elif forms_read and bool(launch.package) != bool(launch.executable):
         sec.ctx.error(sec.path, 'package and executable go together')
     for k, v in launch.env.items():
         if not isinstance(v, str):
@@ -319,16 +406,21 @@ def _read_settings(sec: _Section) -> t.Settings:
         parameter_form=sec.string('parameter_form', 'linear', choices=forms),
         frequency_hz=sec.numbers('frequency_hz', ()),
     )
+    s = _settled(s)
     n = len(s.cpu)
-    for key in ('values', 'performance', 'frequency_hz'):
-        got = getattr(s, key)
-        if got and n and len(got) != n:
+    off = [k for k in ('values', 'performance', 'frequency_hz')
+           if getattr(s, k) and n and len(getattr(s, k)) != n]
+    if len(off) > 1 and len({len(getattr(s, k)) for k in off}) == 1:
+        # The others agree with each other: cpu is the odd one out, one problem.
+        sec.ctx.error(sec.sub('cpu'), f'{n} samples, but {" and ".join(off)} have '
+                                      f'{len(getattr(s, off[0]))}: one value per sample in each')
+    else:
+        for key in off:
             sec.ctx.error(sec.sub(key), f'expected {n} values (one per cpu sample), '
-                                        f'got {len(got)}')
+                                        f'got {len(getattr(s, key))}')
     if any(c <= 0 for c in s.cpu):
+        # Every regression form needs it (log most of all): one line, at the samples.
         sec.ctx.error(sec.sub('cpu'), 'every CPU sample must be > 0')
-    if s.form == 'log' and any(c <= 0 for c in s.cpu):
-        sec.ctx.error(sec.sub('form'), 'a log form needs positive CPU samples')
     sec.done()
     return s
 
@@ -342,6 +434,7 @@ def _read_node(name: str, sec: _Section) -> t.Node:
     perf_default = (settings.performance[len(settings.performance) // 2]
                     if settings and settings.performance else 0.0)
     migratable = sec.boolean('migratable', None) if sec.has('migratable') else None
+    critical = sec.boolean('critical', None) if sec.has('critical') else None
     standby = (sec.strings('standby', ()) or False) if isinstance(sec.data.get('standby'), list) \
         else sec.boolean('standby', False)
     node = t.Node(
@@ -353,6 +446,7 @@ def _read_node(name: str, sec: _Section) -> t.Node:
         residence=sec.strings('residence', ()),
         coresidence=sec.strings('coresidence', ()),
         migratable=migratable,
+        critical=critical,
         managed=sec.boolean('managed', True),
         move_order=sec.string('move_order', t.START_BEFORE_STOP,
                               choices=(t.START_BEFORE_STOP, t.STOP_BEFORE_START)),
@@ -361,10 +455,8 @@ def _read_node(name: str, sec: _Section) -> t.Node:
         standby_on=standby if isinstance(standby, tuple) else (),
         settings=settings,
     )
-    if node.cpu is MISSING:
-        node = replace(node, cpu=0.0)
     sec.done()
-    return node
+    return _settled(node)
 
 
 def _read_connection(name: str, sec: _Section) -> t.Connection:
@@ -379,10 +471,13 @@ def _read_connection(name: str, sec: _Section) -> t.Connection:
         tolerance_s=sec.number('tolerance_s', None, low=0, high=1e6, unit='s'),
         msg_type=sec.string('msg_type', ''),
     )
-    if (c.freq_min_hz is None) != (c.tolerance_s is None):
+    c = _settled(c)
+    if (c.freq_min_hz is None) != (c.tolerance_s is None) \
+            and sec.read('freq_min_hz', 'tolerance_s'):
         sec.ctx.error(sec.path, 'freq_min_hz and tolerance_s go together: a monitored '
                                 'connection needs both')
-    if c.freq_min_hz is not None and c.freq_opt_hz is not None and c.freq_opt_hz < c.freq_min_hz:
+    if c.freq_min_hz is not None and c.freq_opt_hz is not None \
+            and c.freq_opt_hz < c.freq_min_hz and sec.read('freq_min_hz', 'freq_opt_hz'):
         sec.ctx.error(sec.sub('freq_opt_hz'), f'{c.freq_opt_hz} is below freq_min_hz '
                                               f'{c.freq_min_hz}')
     if c.msg_type and not re.match(r'^[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+$', c.msg_type):
@@ -391,74 +486,134 @@ def _read_connection(name: str, sec: _Section) -> t.Connection:
     return c
 
 
+def _unknown(ctx: _Context, path: str, kind: str, name: Any, known) -> None:
+    """A reference to a name the file never declares. A name it declares badly (invalid, listed
+    without a section, a section not listed) was reported where it is declared: not again."""
+    collection = f'{kind}s'
+    if collection in ctx.broken or str(name) in ctx.declared.get(collection, ()):
+        return
+    ctx.error(path, f'unknown {kind} {name!r}{did_you_mean(name, known)}')
+
+
+def _all_read(ctx: _Context, collection: str, *keys: str) -> bool:
+    """Whether every section the collection declares was read, with these keys of each."""
+    names = ctx.declared.get(collection, ())
+    return collection not in ctx.broken \
+        and not any(ctx.damaged(p, inside=False) for p in (collection, f'{collection}.names')) \
+        and not any(ctx.damaged(f'{collection}.{n}', inside=False) for n in names) \
+        and not any(ctx.damaged(f'{collection}.{n}.{k}') for n in names for k in keys)
+
+
 def _cross_check(ctx: _Context, d: t.Deployment) -> None:
-    scales = set(d.scale_names)
-    nodes = set(d.node_names)
+    scales = d.scale_names
+    nodes = d.node_names
     masters = [s.name for s in d.scales if s.is_master]
-    if len(masters) != 1:
+    if len(masters) != 1 and _all_read(ctx, 'scales', 'role'):
         ctx.error('scales', f'expected exactly one scale with role master, got {len(masters)}'
                             + (f' ({", ".join(masters)})' if masters else ''))
     for link in d.links:
         for end in link.ends:
             if end and end not in scales:
-                ctx.error(f'links.{link.name}.ends', f'unknown scale {end!r}')
+                _unknown(ctx, f'links.{link.name}.ends', 'scale', end, scales)
         if link.ends[0] and link.ends[0] == link.ends[1]:
             ctx.error(f'links.{link.name}.ends', 'a link joins two different scales')
     pairs = {}
     for link in d.links:
         key = frozenset(link.ends)
-        if key in pairs:
+        if key in pairs and all(link.ends):
             ctx.error(f'links.{link.name}', f'scales {" and ".join(link.ends)} are already '
                                             f'joined by link {pairs[key]!r}')
-        pairs[key] = link.name
+        pairs.setdefault(key, link.name)
     for n in d.nodes:
         for s in n.residence:
             if s not in scales:
-                ctx.error(f'nodes.{n.name}.residence', f'unknown scale {s!r}')
+                _unknown(ctx, f'nodes.{n.name}.residence', 'scale', s, scales)
         for other in n.coresidence:
-            if other not in nodes:
-                ctx.error(f'nodes.{n.name}.coresidence', f'unknown node {other!r}')
-            elif other == n.name:
+            if other == n.name:
                 ctx.error(f'nodes.{n.name}.coresidence', 'a node is always on its own scale')
+            elif other not in nodes:
+                _unknown(ctx, f'nodes.{n.name}.coresidence', 'node', other, nodes)
     for c in d.connections:
         for role in ('publisher', 'subscriber'):
             ref = getattr(c, role)
             if ref and ref not in nodes:
-                ctx.error(f'connections.{c.name}.{role}', f'unknown node {ref!r}')
+                _unknown(ctx, f'connections.{c.name}.{role}', 'node', ref, nodes)
         if c.publisher and c.publisher == c.subscriber:
             ctx.error(f'connections.{c.name}', 'publisher and subscriber are the same node')
     layout = d.decider.layout
     for node, scale in layout.items():
         if node not in nodes:
-            ctx.error(f'decider.layout.{node}', f'unknown node {node!r}')
+            _unknown(ctx, f'decider.layout.{node}', 'node', node, nodes)
         if scale not in scales:
-            ctx.error(f'decider.layout.{node}', f'unknown scale {scale!r}')
+            _unknown(ctx, f'decider.layout.{node}', 'scale', scale, scales)
     if d.decider.initial_layout == 'explicit' and not layout:
         ctx.error('decider.layout', 'initial_layout is explicit but no layout is given')
 
 
+def _known_references(d: t.Deployment) -> t.Deployment:
+    """``d`` without the residence and coresidence entries that name no scale or node (the cross
+    checks reported them): the derived sets are computed on the rest."""
+    scales, names = set(d.scale_names), set(d.node_names)
+    return replace(d, nodes=tuple(
+        replace(n, residence=tuple(s for s in n.residence if s in scales),
+                coresidence=tuple(o for o in n.coresidence if o in names and o != n.name))
+        for n in d.nodes))
+
+
+# A tolerance-0 connection pins both ends; how to pin only one of them.
+PIN_ONE_END = ('to pin only the other end, mark that node critical: true and give the '
+               'connection a tolerance_s above 0')
+
+
 def _derived_checks(ctx: _Context, d: t.Deployment) -> None:
+    # Every rule below is relative to the master and to every scale; a node whose input could
+    # not be read would pass for a data provider. Missing parts make for looser rules (fewer
+    # constraints, no false alarm) except these, whose problems are reported already.
+    if sum(s.is_master for s in d.scales) != 1 or not _all_read(ctx, 'scales', 'role') \
+            or 'connections' not in ctx.broken \
+            and not _all_read(ctx, 'connections', 'subscriber'):
+        return
+    d = _known_references(d)
     critical = set(d.critical_nodes)
     master = d.master.name
+    reported_groups = set()
     for n in d.nodes:
+        why = d.why_critical(n.name)
+        zero = d.zero_tolerance_connections(n.name)
+        # Values replaced by a default when they could not be read: the checks that depend on
+        # them would only repeat that problem.
+        unread = any(ctx.damaged(f'nodes.{n.name}.{k}') for k in ('launch', 'lifecycle'))
         if n.name in critical and n.migratable is True:
-            zero = [c.name for c in d.connections_of(n.name) if c.tolerance_s == 0]
             ctx.error(f'nodes.{n.name}.migratable',
-                      f'declared migratable, but connection {zero[0]!r} has tolerance_s 0, '
-                      'which makes the node critical (pinned to the master scale)')
+                      f'declared migratable, but the node is critical ({why}), pinned to the '
+                      f'master scale {master!r}' + (f'; {PIN_ONE_END}' if zero else ''))
+        if n.critical is False and zero:
+            ctx.error(f'nodes.{n.name}.critical',
+                      f'declared critical: false, but {why}: a connection that tolerates no '
+                      f'outage never crosses a link, so both its ends stay on the master; '
+                      f'{PIN_ONE_END}')
         if n.name in critical and n.residence and master not in n.residence:
             ctx.error(f'nodes.{n.name}.residence',
-                      f'critical node must run on the master scale {master!r}, '
+                      f'critical node must run on the master scale {master!r} ({why}), '
                       f'but residence allows only {", ".join(n.residence)}')
         group = d.coresidence_group(n.name)
-        if len(group) > 1 and not d.allowed_scales(n.name):
-            ctx.error(f'nodes.{n.name}.coresidence',
-                      f'no scale satisfies the residence of every node that must share a scale '
-                      f'with it ({", ".join(group)})')
-        if n.standby and n.name not in d.migratable_nodes:
+        allowed = d.allowed_scales(n.name)
+        if not allowed:
+            # One line per group, at its first node that declares a coresidence.
+            if group not in reported_groups:
+                reported_groups.add(group)
+                at = next((m for m in group if d.node(m).coresidence), n.name)
+                each = '; '.join(f'{m} {d.why_own_scales(m)}' for m in group
+                                 if d.why_own_scales(m))
+                ctx.error(f'nodes.{at}.coresidence',
+                          f'no scale satisfies every node that must share a scale '
+                          f'({", ".join(group)}): {each}')
+            continue        # nothing below means anything for a node with nowhere to run
+        if n.standby and n.name not in d.migratable_nodes and not unread:
             ctx.error(f'nodes.{n.name}.standby', 'a standby copy is kept only for a migratable '
-                                                 'node, and this node cannot migrate')
-        elif n.standby and not n.lifecycle:
+                                                 f'node, and this node cannot migrate: '
+                                                 f'{d.why_not_migratable(n.name)}')
+        elif n.standby and not n.lifecycle and not unread:
             ctx.error(f'nodes.{n.name}.standby', 'a standby copy is an inactive lifecycle node: '
                                                  'set lifecycle: true (and make the node a '
                                                  'lifecycle node, docs/lifecycle.md)')
@@ -467,18 +622,18 @@ def _derived_checks(ctx: _Context, d: t.Deployment) -> None:
                                                    'driven through its lifecycle')
         for i, scale in enumerate(n.standby_on):
             if scale not in d.scale_names:
-                ctx.error(f'nodes.{n.name}.standby[{i}]', f'unknown scale {scale!r} (scales: '
-                                                          f'{", ".join(d.scale_names)})')
-            elif scale not in d.allowed_scales(n.name):
+                ctx.error(f'nodes.{n.name}.standby[{i}]',
+                          f'unknown scale {scale!r}{did_you_mean(scale, d.scale_names)}')
+            elif scale not in allowed:
                 ctx.error(f'nodes.{n.name}.standby[{i}]',
                           f'{scale!r} is not a scale the node may run on (allowed: '
-                          f'{", ".join(d.allowed_scales(n.name))})')
-        if n.migratable is True and n.name not in d.migratable_nodes and n.name not in critical:
+                          f'{", ".join(allowed)})')
+        if n.migratable is True and n.name not in d.migratable_nodes \
+                and n.name not in critical and not unread:
             ctx.error(f'nodes.{n.name}.migratable',
-                      'declared migratable, but its residence, coresidence or launch leaves it '
-                      'no second scale to run on')
+                      f'declared migratable, but {d.why_not_migratable(n.name)}')
     for node, scale in d.decider.layout.items():
-        if node in d.node_names and scale in d.scale_names \
+        if node in d.node_names and scale in d.scale_names and d.allowed_scales(node) \
                 and scale not in d.allowed_scales(node):
             ctx.error(f'decider.layout.{node}', f'node {node!r} may not run on {scale!r} '
                                                 f'(allowed: {", ".join(d.allowed_scales(node))})')
@@ -557,15 +712,12 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
         # The decider, each agent and validate run in different folders: one meaning only.
         ctx.error('security.key_file', f'expected an absolute path, got {security.key_file!r}')
     root.done()
-    if ctx.problems:
-        raise DeploymentError(ctx.problems)
+    # What could not be read holds an empty value: the checks below still look at the rest.
     deployment = t.Deployment(name=name, source=source, scales=scales, links=links,
                               nodes=nodes, connections=connections, decider=decider,
                               monitoring=monitoring, agent=agent, description=description,
                               security=security)
     _cross_check(ctx, deployment)
-    if ctx.problems:
-        raise DeploymentError(ctx.problems)
     _derived_checks(ctx, deployment)
     if ctx.problems:
         raise DeploymentError(ctx.problems)

@@ -113,6 +113,7 @@ class Node:
     residence: Tuple[str, ...] = ()   # scales it may run on; empty = any
     coresidence: Tuple[str, ...] = ()  # nodes that must share its scale
     migratable: Optional[bool] = None  # None = derive; False = never move it
+    critical: Optional[bool] = None    # True: pinned to the master without a tolerance-0 link
     managed: bool = True              # False: the agent does not start it (e.g. the decider)
     move_order: str = START_BEFORE_STOP
     lifecycle: bool = False           # a managed (lifecycle) node: driven through its services
@@ -266,14 +267,18 @@ class Deployment:
         return frozen_map({k: tuple(v) for k, v in out.items()})
 
     # --- derived sets (the ICAR paper's static analysis) ------------------------------------
+    def zero_tolerance_connections(self, node: str) -> Tuple[Connection, ...]:
+        """The node's connections with tolerance 0: each makes both its ends critical."""
+        return tuple(c for c in self.connections_of(node)
+                     if c.tolerance_s is not None and c.tolerance_s == 0)
+
     @cached_property
     def critical_nodes(self) -> Tuple[str, ...]:
-        """Nodes in at least one connection whose tolerance is 0: pinned to the master."""
-        names = set()
-        for c in self.connections:
-            if c.tolerance_s is not None and c.tolerance_s == 0:
-                names.update((c.publisher, c.subscriber))
-        return tuple(n.name for n in self.nodes if n.name in names)
+        """Nodes pinned to the master: declared ``critical: true``, or in at least one connection
+        whose tolerance is 0 (ICAR 2015: a connection that tolerates no outage cannot cross a
+        link, whose rate nobody can promise)."""
+        return tuple(n.name for n in self.nodes
+                     if n.critical or self.zero_tolerance_connections(n.name))
 
     @cached_property
     def data_providers(self) -> Tuple[str, ...]:
@@ -282,6 +287,76 @@ class Deployment:
         subscribers = {c.subscriber for c in self.connections}
         return tuple(n.name for n in self.nodes
                      if n.name in publishers and n.name not in subscribers)
+
+    # --- why: the derived facts in words, for validate and for errors -----------------------
+    def why_critical(self, node: str) -> str:
+        """What makes ``node`` critical ('' if it is not): its flag, its tolerance-0 links."""
+        reasons = []
+        if self.node(node).critical:
+            reasons.append('critical: true')
+        zero = [f'{c.name} to {c.subscriber}' if c.publisher == node
+                else f'{c.name} from {c.publisher}'
+                for c in self.zero_tolerance_connections(node)]
+        if zero:
+            reasons.append(f'tolerance_s 0 on {_listed(zero)}')
+        return '; '.join(reasons)
+
+    def why_data_provider(self, node: str) -> str:
+        """What makes ``node`` a data provider ('' if it is not)."""
+        if node not in self.data_providers:
+            return ''
+        out = [c.name for c in self.connections if c.publisher == node]
+        return f'subscribes to nothing, publishes {_listed(out)}'
+
+    def why_pinned(self, node: str) -> str:
+        """Why ``node`` may run only where allowed_scales says, by itself or through the nodes
+        it shares a scale with ('' when nothing restricts it)."""
+        own = self.why_own_scales(node)
+        if own:
+            return own
+        mine = set(self.own_scales(node))
+        for other in self.coresidence_group(node):
+            theirs = self.why_own_scales(other)
+            if other != node and theirs and not mine <= set(self.own_scales(other)):
+                return f'shares a scale with {other} (coresidence), which {theirs}'
+        return ''
+
+    def why_own_scales(self, node: str) -> str:
+        """Why ``node`` by itself may not run on every scale ('' when it may)."""
+        n = self.node(node)
+        master = self.master.name
+        if node in self.critical_nodes:
+            return f'is critical ({self.why_critical(node)}): pinned to the master {master}'
+        if n.residence:
+            if set(self.own_scales(node)) >= set(self.scale_names):
+                return ''
+            return f'has residence {", ".join(self.own_scales(node)) or "on no known scale"}'
+        if node in self.data_providers:
+            return f'is a data provider ({self.why_data_provider(node)}), kept on the master ' \
+                   f'{master} unless given a residence'
+        if not n.managed:
+            return f'is not managed (agents never start or stop it): stays on the master {master}'
+        return ''
+
+    def why_not_migratable(self, node: str) -> str:
+        """Why the runtime never moves ``node`` ('' if it may)."""
+        n = self.node(node)
+        if node in self.migratable_nodes:
+            return ''
+        if not n.managed:
+            return 'not managed: agents never start or stop it'
+        if n.migratable is False:
+            return 'migratable: false'
+        if not n.launch.startable:
+            return 'no launch: agents cannot start it'
+        allowed = self.allowed_scales(node)
+        if not allowed:
+            return 'no scale satisfies its residence and coresidence'
+        pinned = self.why_pinned(node) or f'may run only on {", ".join(allowed)}'
+        master = self.master.name
+        if master not in allowed:
+            return f'it may not run on the master {master}, as a migratable node must: it {pinned}'
+        return f'no second scale to run on: it {pinned}'
 
     def coresidence_group(self, node: str) -> Tuple[str, ...]:
         """The node and every node it must share a scale with (symmetric, transitive)."""
@@ -304,7 +379,7 @@ class Deployment:
         return tuple(n for n in self.node_names if n in group)
 
     def own_scales(self, node: str) -> Tuple[str, ...]:
-        """Scales one node may run on by itself: residence, criticality, provider pinning."""
+        """Scales one node may run on by itself: criticality, residence, provider pinning."""
         n = self.node(node)
         master = self.master.name
         if node in self.critical_nodes:
@@ -352,3 +427,13 @@ class Deployment:
             if master in allowed and len(allowed) > 1:
                 out.append(n.name)
         return tuple(out)
+
+
+def _listed(names, limit: int = 3) -> str:
+    """'a, b and c'; past ``limit`` items, 'a, b and N more'."""
+    names = list(names)
+    if len(names) > limit:
+        return f'{", ".join(names[:limit - 1])} and {len(names) - limit + 1} more'
+    if len(names) > 1:
+        return f'{", ".join(names[:-1])} and {names[-1]}'
+    return ''.join(names)

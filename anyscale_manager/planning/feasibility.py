@@ -33,7 +33,7 @@ def _residence_reason(d: Deployment, node: str, allowed: Tuple[str, ...]) -> str
     n = d.node(node)
     where = ', '.join(allowed) or 'no scale'
     if node in d.critical_nodes:
-        return f'is critical (a connection with tolerance 0) and must run on {where}'
+        return f'is critical ({d.why_critical(node)}) and must run on {where}'
     if n.residence:
         return f'may run only on {where} (residence)'
     if not n.managed:
