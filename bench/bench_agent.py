@@ -140,8 +140,6 @@ finally:
     rclpy.try_shutdown()
 '''
 
-PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
-
 
 def deployment(tmp, nodes, name='bench_agent'):
     data = {'/**': {'ros__parameters': {
@@ -437,8 +435,8 @@ def main():
     os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ.pop('ROS_STATIC_PEERS', None)
+    from anyscale_manager import config_files
     if not args.no_profile:
-        from anyscale_manager import config_files
         os.environ.update(config_files.with_discovery_profile(os.environ))
     try:
         import anyscale_manager.nodes.monitors  # noqa: F401
@@ -446,7 +444,8 @@ def main():
     except ImportError:
         monitors = 'without monitors (module absent)'
     import anyscale_manager
-    profile = ', '.join(f'{v}={os.environ[v]}' for v in PROFILE_VARS if os.environ.get(v)) \
+    profile = ', '.join(f'{v}={os.environ[v]}' for v in config_files.PROFILE_VARS
+                        if os.environ.get(v)) \
         or 'none (Fast DDS defaults)'
     load = ' '.join(f'{x:.2f}' for x in os.getloadavg())
     print(f'machine: {os.cpu_count()} CPUs, load average {load}; ROS_DOMAIN_ID={args.domain_id};'
