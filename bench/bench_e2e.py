@@ -53,16 +53,6 @@ def on(node, scale):
     return lambda r: r.where(node) == (scale,)
 
 
-def serving_from(record, scale, nodes, since):
-    """When the scale's agent first reported every one of ``nodes`` running and ready there
-    after ``since``."""
-    for t, state in record.agent_states.get(scale, []):
-        if t >= since and all(state.nodes.get(n) is not None and state.nodes[n].ready
-                              and state.nodes[n].state == 'running' for n in nodes):
-            return t
-    return None
-
-
 def reaction(args):
     options = harness.Options(args.config, args.domain_id, mode='netns',
                               decider_parameters={'decider.hysteresis_s': str(args.hysteresis)},
@@ -99,7 +89,7 @@ def reaction(args):
                         30.0, 'amcl and ar running on the robot')
             # When the report that said so arrived (the wait above polls; this is exact).
             with tb.lock:
-                t_back = serving_from(tb.record, 'robot', ('amcl', 'ar'), t_cut) or tb.now()
+                t_back = tb.record.serving_since('robot', ('amcl', 'ar'), t_cut) or tb.now()
             tb.sleep(max(c.tolerance_s or 0 for c in conns) + window + 1.0)
             end = tb.now()
             with tb.lock:

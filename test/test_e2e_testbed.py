@@ -118,16 +118,6 @@ def moves_since(tb, t0):
             for t, e in tb.record.moves(since=t0)]
 
 
-def serving_from(record, scale, since):
-    """When the scale's agent first reported AMCL and AR both serving there after ``since``
-    (the other scale's last reports may still say the same until they are stale)."""
-    for t, state in record.agent_states.get(scale, []):
-        if t >= since and all(state.nodes.get(n) is not None and state.nodes[n].ready
-                              and state.nodes[n].state == 'running' for n in MOVING):
-            return t
-    return None
-
-
 def delta_check(tb, start, end):
     """The Δ judgement, on the observer's arrivals: every monitored connection into the robot
     that stayed below its freq_min for Δ or longer in [start, end] (none is the pass), and the
@@ -377,7 +367,7 @@ def cut_and_judge(tb, what):
         reported = [v for v in r.reported_violations(t_cut, end, names) if v.source == ROBOT]
         timeline = r.timeline(t_cut, end)
         pids = serving_pids(r, ROBOT)
-        serving = serving_from(r, ROBOT, t_cut)
+        serving = r.serving_since(ROBOT, MOVING, t_cut)
     if found or reported:
         timeline['processes'] = {n: _process_state(pid) for n, pid in pids.items()}
         timeline['stacks'] = _stacks(tb, pids)

@@ -82,6 +82,16 @@ def test_record_placement_follows_agent_reports_and_forgets_stale_ones(record):
     assert record.where('amcl', 5.0 + record.deployment.decider.agent_timeout_s + 1) == ()
 
 
+def test_record_serving_since_is_the_first_report_of_every_node_running_there(record):
+    record.ingest_line(_line(1.0, p.TOPIC_AGENT_STATE, _state('robot', ['laser', 'amcl'])))
+    record.ingest_line(_line(2.0, p.TOPIC_AGENT_STATE, _state('robot', ['laser', 'amcl', 'ar'])))
+    record.ingest_line(_line(3.0, p.TOPIC_AGENT_STATE, _state('laptop', ['ar'])))
+    assert record.serving_since('robot', ('amcl',), 0.5) == 1.0
+    assert record.serving_since('robot', ('amcl', 'ar'), 0.5) == 2.0
+    assert record.serving_since('robot', ('amcl', 'ar'), 2.5) is None
+    assert record.serving_since('laptop', ('amcl',), 0.0) is None
+
+
 def test_record_keeps_malformed_observer_lines_as_problems(record):
     record.ingest_line('not json at all')
     record.ingest_line(json.dumps({'t': 1.0, 'topic': p.TOPIC_LAYOUT, 'data': '{"x": 1}'}))

@@ -120,6 +120,16 @@ class Record:
             return None
         return history[i - 1][1]
 
+    def serving_since(self, scale: str, nodes: Sequence[str], since: float) -> Optional[float]:
+        """When the scale's agent first reported every one of ``nodes`` running and ready there
+        at or after ``since`` (the other scales' last reports may still say the same until they
+        are stale)."""
+        for t, state in self.agent_states.get(scale, []):
+            if t >= since and all(state.nodes.get(n) is not None and state.nodes[n].ready
+                                  and state.nodes[n].state == 'running' for n in nodes):
+                return t
+        return None
+
     def running_on(self, scale: str, t: Optional[float] = None, ready_only: bool = False,
                    max_age_s: Optional[float] = None) -> Dict[str, p.NodeReport]:
         """Nodes the scale's agent reported (at or before t) as starting or running;
