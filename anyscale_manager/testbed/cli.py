@@ -15,6 +15,7 @@ from typing import List, Optional
 
 from .. import config_files
 from ..model.loader import DeploymentError, load_deployment
+from ..view.screen import LiveScreen
 from . import schedule as sched
 
 CONFIG_NAME = 'icar2015_testbed.yaml'
@@ -95,7 +96,6 @@ def run(args: argparse.Namespace) -> int:
         testbed = Testbed(options)
     except (HarnessError, DeploymentError) as e:
         return _fail(str(e))
-    tty = sys.stdout.isatty()
     print(f'anyscale-manager demo: {config}')
     if any(s.action == 'throttle' for s in steps) and args.mode == 'loopback':
         print('note: throttle steps are skipped on loopback (no bandwidth shaping there)')
@@ -126,25 +126,22 @@ def run(args: argparse.Namespace) -> int:
         testbed.restore()
         pending = list(steps)
         next_show = t0
-        last_plain = -1e9
-        while True:
-            now = time.monotonic()
-            while pending and now - t0 >= pending[0].at_s:
-                step = pending.pop(0)
-                testbed.apply(step)
-            if now - t0 >= args.duration:
-                break
-            if now >= next_show:
-                with testbed.lock:
-                    table = status_table(testbed.record, now, t0, testbed.mode)
-                if tty:
-                    sys.stdout.write('\x1b[H\x1b[2J' + table + '\n')
-                    sys.stdout.flush()
-                elif now - last_plain >= 5.0:
-                    print(table + '\n', flush=True)
-                    last_plain = now
-                next_show = now + args.refresh
-            time.sleep(0.05)
+        # One screen redrawn in place on a terminal (left, also on an error or Ctrl-C, with
+        # its last frame printed); a plain snapshot every 5 s when piped.
+        with LiveScreen(sys.stdout, plain_every_s=5.0) as screen:
+            while True:
+                now = time.monotonic()
+                while pending and now - t0 >= pending[0].at_s:
+                    step = pending.pop(0)
+                    testbed.apply(step)
+                if now - t0 >= args.duration:
+                    break
+                if now >= next_show:
+                    with testbed.lock:
+                        table = status_table(testbed.record, now, t0, testbed.mode)
+                    screen.show(table, now)
+                    next_show = now + args.refresh
+                time.sleep(0.05)
         t1 = time.monotonic()
         testbed.mark('schedule ended')
     except HarnessError as e:

@@ -10,6 +10,7 @@ from typing import Dict, List, Optional, Tuple
 
 from .. import protocol as p
 from ..model.types import Deployment
+from ..view.status import bandwidth_stale_after_s, bandwidth_text, rtt_text, stale_mark
 from .record import Record
 
 # The paper's Fig. 5 colours: where AMCL and AR run.
@@ -54,18 +55,32 @@ def status_table(record: Record, now: float, t0: float, mode: str) -> str:
     d: Deployment = record.deployment
     lines = []
     up, rate = link_at(record, now)
-    link_obs = record.link_status[-1][1] if record.link_status else None
     seen = ''
-    if link_obs is not None:
-        rtt = f'{link_obs.rtt_ms:.1f} ms' if link_obs.rtt_ms is not None else '-'
-        avail = (f'{link_obs.bandwidth_available_kbps / 1000:.1f} Mbit/s'
-                 if link_obs.bandwidth_available_kbps is not None else 'not measured yet')
-        state = ('up, CONGESTED' if link_obs.congested else 'up') if link_obs.up else 'DOWN'
-        seen = (f' | monitor: {state}, rtt {rtt}, loss '
+    if record.link_status:
+        # The same judgement as `anyscale-manager status` (view.status): no RTT on a link that
+        # is down, the measured bandwidth against the nominal, old figures marked stale.
+        heard, link_obs = record.link_status[-1]
+        link = d.link_between(link_obs.master, link_obs.remote)
+        silent = now - heard > d.decider.observation_max_age_s
+        measurable = link_obs.up and not silent
+        if silent:
+            state = f'SILENT, {stale_mark(now - heard)}'
+        elif link_obs.up:
+            state = 'up, CONGESTED' if link_obs.congested else 'up'
+        else:
+            state = 'DOWN'
+        age = None if link_obs.bandwidth_available_age_s is None \
+            else link_obs.bandwidth_available_age_s + (now - heard)
+        avail = '-' if link is None else bandwidth_text(
+            link_obs.bandwidth_available_kbps, link.bandwidth_kbps, measurable, age,
+            bandwidth_stale_after_s(d), mbit=True)
+        seen = (f'monitor: {state}, rtt {rtt_text(measurable, link_obs.rtt_ms)}, loss '
                 f'{link_obs.loss:.0%}, available {avail}, used '
                 f'{link_obs.bandwidth_used_kbps / 1000:.2f} Mbit/s')
     lines.append(f't = {now - t0:6.1f} s   [{mode}]   link: '
-                 f'{"UP" if up else "CUT"} {rate / 1000:.1f} Mbit/s{seen}')
+                 f'{"UP" if up else "CUT"} {rate / 1000:.1f} Mbit/s')
+    if seen:
+        lines.append(seen)
     lines.append('')
     lines.append(f'{"scale":8} {"CPU":>13}   nodes running')
     placement = record.placement(now, ready_only=False)

@@ -1,0 +1,306 @@
+"""The status view of a running deployment as text: pure, no ROS, the clock passed in.
+
+``StatusBook`` keeps the latest message of each kind with the local time it arrived; ``render``
+turns it into the table ``anyscale-manager status`` shows. A figure older than what its judge
+allows is marked ``STALE <age> s`` instead of being shown as current: a scale's CPU and a
+connection's rate past ``decider.observation_max_age_s``, an agent past ``agent_timeout_s``, the
+layout past ``lease_s`` (the decider re-publishes it every ``lease_s / 3``), a link's measured
+bandwidth on a link that is down or past two probe intervals (its probes fail or cannot run).
+A measured bandwidth above the link's nominal (an active probe over loopback measures memory
+copies) is shown capped at the nominal and says so. The layout's age is the time since its
+generation (or its assignments) changed, as this view witnessed it; the decider re-stamps each
+re-publication, so the message's own stamp says when it was last sent, not when it was made.
+"""
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Tuple
+
+from .. import protocol as p
+from ..model.types import Deployment
+
+# A measured bandwidth older than this many probe intervals: probes fail or cannot run.
+BANDWIDTH_STALE_INTERVALS = 2.0
+
+
+def stale_mark(age_s: Optional[float]) -> str:
+    return 'STALE' if age_s is None else f'STALE {age_s:.1f} s'
+
+
+def rtt_text(up: bool, rtt_ms: Optional[float]) -> str:
+    """No RTT on a link that is down: the last echo's RTT says nothing of the link now."""
+    return f'{rtt_ms:.1f} ms' if up and rtt_ms is not None else '-'
+
+
+def bandwidth_stale_after_s(deployment: Deployment) -> float:
+    m = deployment.monitoring
+    return BANDWIDTH_STALE_INTERVALS * m.bandwidth_probe_interval_s + m.bandwidth_probe_duration_s
+
+
+def bandwidth_text(measured_kbps: Optional[float], nominal_kbps: float, up: bool,
+                   age_s: Optional[float], stale_after_s: float, mbit: bool = False) -> str:
+    """``available / nominal``: capped at the nominal (and saying so), stale when it is old or
+    the link is down (nothing can be measured on it), ``not measured`` before a first probe.
+
+    ``age_s`` is how old the measurement is now; ``mbit``: in Mbit/s, with the unit (else
+    kbit/s, without: a table's heading names it).
+    """
+    def num(kbps: float) -> str:
+        return f'{kbps / 1000:.1f}' if mbit else f'{kbps:.0f}'
+
+    unit = ' Mbit/s' if mbit else ''
+    if measured_kbps is None:
+        return f'not measured / {num(nominal_kbps)}{unit} (nominal assumed)'
+    text = f'{num(min(measured_kbps, nominal_kbps))} / {num(nominal_kbps)}{unit}'
+    if measured_kbps > nominal_kbps:
+        text += ' >nominal (loopback?)'
+    if not up or (age_s is not None and age_s > stale_after_s):
+        text += ' ' + stale_mark(age_s)
+    return text
+
+
+@dataclass
+class StatusBook:
+    """The latest message of each kind, with the local time it arrived (pure, no ROS).
+
+    ``layout_made`` is when this book saw the layout's generation or assignments change; None
+    while the layout it holds is the first it heard (made before the view started).
+    """
+
+    deployment: Deployment
+    layout: Optional[Tuple[p.Layout, float]] = None
+    layout_made: Optional[float] = None
+    layout_first_heard: Optional[float] = None
+    objective: Optional[Tuple[p.Objective, float]] = None
+    agents: Dict[str, Tuple[p.AgentState, float]] = field(default_factory=dict)
+    scales: Dict[str, Tuple[p.ScaleStatus, float]] = field(default_factory=dict)
+    links: Dict[str, Tuple[p.LinkStatus, float]] = field(default_factory=dict)
+    readings: Dict[Tuple[str, str], Tuple[p.ConnectionReading, float]] = \
+        field(default_factory=dict)
+    events: List[p.Event] = field(default_factory=list)
+    ignored: int = 0
+    foreign: int = 0
+
+    def take(self, topic: str, text: str, now: float) -> None:
+        """Decode one message of ``topic``; malformed ones are counted and dropped, and so are
+        those about scales or connections the deployment does not have (another deployment on
+        the domain; and names from senders never grow the book)."""
+        scales = self.deployment.scale_names
+        try:
+            if topic == p.TOPIC_LAYOUT:
+                self._take_layout(p.Layout.from_json(text, topic), now)
+            elif topic == p.TOPIC_OBJECTIVE:
+                self.objective = (p.Objective.from_json(text, topic), now)
+            elif topic == p.TOPIC_AGENT_STATE:
+                m = p.AgentState.from_json(text, topic)
+                self._keep(self.agents, m.scale, m, now, m.scale in scales)
+            elif topic == p.TOPIC_SCALE_STATUS:
+                m = p.ScaleStatus.from_json(text, topic)
+                self._keep(self.scales, m.scale, m, now, m.scale in scales)
+            elif topic == p.TOPIC_LINK_STATUS:
+                m = p.LinkStatus.from_json(text, topic)
+                self._keep(self.links, m.remote, m, now, m.remote in scales)
+            elif topic == p.TOPIC_CONNECTION_STATUS:
+                m = p.ConnectionStatus.from_json(text, topic)
+                known = {c.name for c in self.deployment.connections}
+                for name, r in m.connections.items():
+                    self._keep(self.readings, (m.scale, name), r, now,
+                               m.scale in scales and name in known)
+            elif topic == p.TOPIC_EVENTS:
+                self.events = (self.events + [p.Event.from_json(text, topic)])[-8:]
+        except p.ProtocolError:
+            self.ignored += 1
+
+    def _keep(self, book: dict, key, message, now: float, known: bool) -> None:
+        if known:
+            book[key] = (message, now)
+        else:
+            self.foreign += 1
+
+    def _take_layout(self, layout: p.Layout, now: float) -> None:
+        if self.layout is None:
+            self.layout_first_heard = now
+        else:
+            old = self.layout[0]
+            if (old.generation, old.assignments) != (layout.generation, layout.assignments):
+                self.layout_made = now
+        self.layout = (layout, now)
+
+    @property
+    def heard_anything(self) -> bool:
+        return bool(self.layout or self.agents or self.scales or self.links or self.readings)
+
+    def complete(self) -> bool:
+        return self.layout is not None and all(s in self.agents
+                                               for s in self.deployment.scale_names)
+
+
+def _table(rows: List[List[str]]) -> List[str]:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return ['  '.join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+
+
+def _layout_line(book: StatusBook, now: float) -> str:
+    if not book.layout:
+        return 'no layout heard (is the decider running?)'
+    layout, heard = book.layout
+    if book.layout_made is not None:
+        made = f'made {now - book.layout_made:.1f} s ago'
+    else:
+        made = f'made before this view started (over {now - book.layout_first_heard:.1f} s ago)'
+    text = f'layout generation {layout.generation}, {made}'
+    if layout.decider is not None:
+        text += f', by decider {layout.decider.describe()}'
+    if now - heard > book.deployment.decider.lease_s:
+        text += f'; decider silent, {stale_mark(now - heard)}'
+    return text
+
+
+def _objective_line(book: StatusBook, now: float) -> str:
+    if not book.objective:
+        return 'objective not heard'
+    o, at = book.objective
+    d = book.deployment.decider
+    text = f'objective perf_map {o.perf_map:.1f}, integral {o.integral:.0f} over ' \
+           f'{o.elapsed_s:.0f} s'
+    if now - at > max(d.observation_max_age_s, 3.0 * d.period_s):
+        text += ' ' + stale_mark(now - at)
+    return text
+
+
+def _scale_rows(book: StatusBook, now: float) -> List[str]:
+    d = book.deployment
+    rows = [['SCALE', 'ROLE', 'CPU USED / CAPACITY', 'AGENT']]
+    for s in d.scales:
+        cpu = '-'
+        if s.name in book.scales:
+            st, at = book.scales[s.name]
+            cpu = f'{st.cpu_total:.0f} / {s.capacity_cpu:.0f} ' \
+                  f'({st.cpu_total / s.capacity_cpu:.0%})'
+            if now - at > d.decider.observation_max_age_s:
+                cpu += ' ' + stale_mark(now - at)
+        agent = 'not heard'
+        if s.name in book.agents:
+            a, at = book.agents[s.name]
+            if now - at > d.decider.agent_timeout_s:
+                agent = f'SILENT, {stale_mark(now - at)}, generation {a.generation}'
+            else:
+                agent = f'ok, generation {a.generation}, {now - at:.1f} s ago'
+            if a.decider:
+                agent += f', follows {a.decider}'
+        rows.append([s.name, s.role, cpu, agent])
+    return _table(rows)
+
+
+def _link_rows(book: StatusBook, now: float) -> List[str]:
+    d = book.deployment
+    max_age = d.decider.observation_max_age_s
+    rows = [['LINK', 'ENDS', 'STATE', 'RTT', 'AVAILABLE / NOMINAL kbit/s', 'USED kbit/s']]
+    master = d.master.name
+    for link in d.links:
+        remote = link.other(master) if master in link.ends else None
+        state, rtt, avail, used = 'not monitored', '-', f'- / {link.bandwidth_kbps:.0f}', '-'
+        if remote is not None and remote in book.links:
+            ls, at = book.links[remote]
+            silent = now - at > max_age
+            if silent:
+                state = f'SILENT, {stale_mark(now - at)} (counts as down)'
+            else:
+                state = ('up, CONGESTED' if ls.congested else 'up') if ls.up else 'DOWN'
+                rtt = rtt_text(ls.up, ls.rtt_ms)
+                used = f'{ls.bandwidth_used_kbps:.0f}'
+            age = None if ls.bandwidth_available_age_s is None \
+                else ls.bandwidth_available_age_s + (now - at)
+            avail = bandwidth_text(ls.bandwidth_available_kbps, link.bandwidth_kbps,
+                                   ls.up and not silent, age, bandwidth_stale_after_s(d))
+        elif remote is not None:
+            state = 'not heard'
+        rows.append([link.name, '-'.join(link.ends), state, rtt, avail, used])
+    return _table(rows)
+
+
+def _placement(book: StatusBook) -> Tuple[Dict[str, Tuple[str, str, float]], Dict[str, list]]:
+    """node -> (scale, state, when its agent was heard) where it runs; node -> standby scales."""
+    running: Dict[str, Tuple[str, str, float]] = {}
+    standby: Dict[str, list] = {}
+    for scale, (a, at) in book.agents.items():
+        for n, r in a.nodes.items():
+            if r.state == 'standby':
+                standby.setdefault(n, []).append(scale if r.lifecycle == 'inactive'
+                                                 else f'{scale} ({r.lifecycle})')
+            elif n not in running or r.state == 'running' or running[n][1] == 'stopped':
+                running[n] = (scale, r.state, at)
+    return running, standby
+
+
+def _connection_rows(book: StatusBook, now: float, running) -> List[str]:
+    d = book.deployment
+    rows = [['CONNECTION', 'RATE Hz', 'MIN Hz', 'BELOW s / Δ s', 'STATUS']]
+    for c in d.connections:
+        if not c.monitored:
+            continue
+        home = running.get(c.subscriber, (None,))[0]
+        found = book.readings.get((home, c.name)) if home else None
+        if found is None:
+            found = max((v for (s, n), v in book.readings.items() if n == c.name),
+                        key=lambda v: v[1], default=None)
+        if found is None:
+            rows.append([c.name, '-', f'{c.freq_min_hz:g}', f'- / {c.tolerance_s:g}',
+                         'no reading'])
+            continue
+        r, at = found
+        if now - at > d.decider.observation_max_age_s:
+            rows.append([c.name, '-', f'{c.freq_min_hz:g}', f'- / {c.tolerance_s:g}',
+                         f'{stale_mark(now - at)} (counts as 0 Hz), last {r.rate_hz:.1f} Hz'])
+            continue
+        if r.rate_hz >= c.freq_min_hz:
+            status = 'ok'
+        elif r.below_for_s > c.tolerance_s:
+            status = 'VIOLATED (past Δ)'
+        else:
+            status = 'below, within Δ'
+        rows.append([c.name, f'{r.rate_hz:.1f}', f'{c.freq_min_hz:g}',
+                     f'{r.below_for_s:.1f} / {c.tolerance_s:g}', status])
+    return _table(rows)
+
+
+def _node_rows(book: StatusBook, now: float, running, standby) -> List[str]:
+    d = book.deployment
+    wanted = book.layout[0].assignments if book.layout else {}
+    rows = [['NODE', 'LAYOUT', 'RUNNING ON', 'STATE', 'STANDBY ON']]
+    for n in d.nodes:
+        if not n.managed:
+            continue
+        where, state, at = running.get(n.name, ('-', 'not reported', now))
+        if now - at > d.decider.agent_timeout_s:
+            state += f', {stale_mark(now - at)}'
+        mark = '' if wanted.get(n.name, where) == where else '  (moving)'
+        rows.append([n.name, wanted.get(n.name, '-'), where + mark, state,
+                     ', '.join(sorted(standby.get(n.name, ()))) or '-'])
+    return _table(rows)
+
+
+def render(book: StatusBook, now: float) -> str:
+    """The status view as text, its figures judged at ``now`` (the clock of ``take``)."""
+    lines = [f'deployment {book.deployment.name}', _layout_line(book, now),
+             _objective_line(book, now), '']
+    running, standby = _placement(book)
+    lines += _scale_rows(book, now) + ['']
+    lines += _link_rows(book, now) + ['']
+    lines += _connection_rows(book, now, running) + ['']
+    lines += _node_rows(book, now, running, standby)
+    if book.events:
+        lines += ['', 'RECENT EVENTS']
+        lines += [f'  {e.kind} {e.node} {e.from_scale}->{e.to_scale}: {e.reason}'[:160]
+                  if e.node else f'  {e.kind}: {e.reason}'[:160] for e in book.events]
+    if book.ignored or book.foreign:
+        lines.append('')
+    if book.ignored:
+        lines.append(f'{book.ignored} malformed message(s) ignored')
+    if book.foreign:
+        lines.append(f'{book.foreign} report(s) of scales or connections not in this '
+                     'deployment ignored')
+    return '\n'.join(lines)
+
+
+__all__ = ['BANDWIDTH_STALE_INTERVALS', 'StatusBook', 'bandwidth_stale_after_s',
+           'bandwidth_text', 'render', 'rtt_text', 'stale_mark']
