@@ -291,6 +291,7 @@ class Network:
         self._rate_kbps = float(rate_kbps)
         self._up = True
         self._built = False
+        self._generation: Dict[str, int] = {}     # the last root qdisc handle, per scale
         tbf_arguments(rate_kbps)      # validate before building anything
 
     # -- life cycle --
@@ -372,7 +373,14 @@ class Network:
     def _shape(self, scale: str) -> None:
         ns, dev = self.namespaces[scale], self.interfaces[scale]
         qdisc = tbf_arguments(self._rate_kbps) if self._up else ['blackhole']
-        _run(['tc', '-n', ns, 'qdisc', 'replace', 'dev', dev, 'root'] + qdisc)
+        # Every change grafts a new root qdisc (its handle alternates 1:/2:). Replacing a tbf
+        # with a tbf of the same handle only changes it in place, and a veth whose tbf is
+        # changed with packets queued can stall for good (seen here: a throttle left 5-12
+        # packets stuck, and the link silent, in about 1 change of 12); a grafted qdisc starts
+        # clean and drops what the old one held, as a WiFi rate change loses its queue.
+        self._generation[scale] = self._generation.get(scale, 0) % 2 + 1
+        handle = f'{self._generation[scale]}:'
+        _run(['tc', '-n', ns, 'qdisc', 'replace', 'dev', dev, 'root', 'handle', handle] + qdisc)
 
     def cut(self) -> None:
         """Drop every packet on the link, both ways (interfaces stay up)."""
