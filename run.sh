@@ -23,9 +23,16 @@ setup_env() {
     touch "$venv/COLCON_IGNORE"
   fi
   if [ "$(cat "$venv/.anyscale-stamp" 2>/dev/null)" != "$want" ]; then
-    "$venv/bin/python" -m pip install --quiet --upgrade pip >&2
-    "$venv/bin/python" -m pip install --quiet -r requirements.txt >&2
-    "$venv/bin/python" -m pip install --quiet --no-deps -e . >&2
+    # pip's own chatter (and setuptools' deprecation notes) go to a log, shown only on failure.
+    local log="$venv/setup.log"
+    echo "installing requirements into $venv" >&2
+    if ! { "$venv/bin/python" -m pip install --upgrade pip &&
+           "$venv/bin/python" -m pip install -r requirements.txt &&
+           "$venv/bin/python" -m pip install --no-deps -e .; } >"$log" 2>&1; then
+      tail -n 40 "$log" >&2
+      echo "setting up $venv failed (full log: $log)" >&2
+      exit 1
+    fi
     echo "$want" > "$venv/.anyscale-stamp"
   fi
 }
@@ -42,7 +49,7 @@ cmd=${1:-test}
 shift || true
 setup_env
 case "$cmd" in
-  env) ;;
+  env) echo "ready: $venv (run ./run.sh demo or ./run.sh test)" ;;
   demo) exec "$venv/bin/anyscale-manager" demo "$@" ;;
   # -rs prints the reason of every skipped test.
   test) if [ $# -gt 0 ]; then exec "$venv/bin/python" -m pytest -q -rs "$@"
