@@ -16,6 +16,7 @@ SUBCOMMANDS = {
              'run the ICAR 2015 test-bed with a link outage schedule and draw its timeline'),
     'status': ('anyscale_manager.nodes.status', 'show the live state of a running deployment'),
     'keygen': ('anyscale_manager.keygen', 'write a new deployment key for signed layouts'),
+    'profile': ('anyscale_manager.profiling.cli', 'a deployment skeleton from a live ROS 2 graph'),
 }
 
 
