@@ -2,9 +2,10 @@
 
 Every project topic carries a std_msgs/msg/String whose ``data`` is one JSON object, so the
 package needs no generated interfaces and any tool (``ros2 topic echo``) can read it. Decoding
-never trusts the sender: wrong types, missing fields, non-finite numbers, oversized payloads and
-unknown kinds raise ProtocolError with a message naming the topic and the field. Stamps are the
-sender's wall clock and only informative; freshness is judged by the receiver's own clock.
+never trusts the sender: wrong types, missing fields, non-finite or huge numbers, oversized or
+deeply nested payloads and unknown kinds raise ProtocolError with a message naming the topic and
+the field. Stamps are the sender's wall clock and only informative; freshness is judged by the
+receiver's own clock.
 """
 
 import json
@@ -29,6 +30,12 @@ TOPIC_PLAN_CHECK = PREFIX + '/plan_check'          # decider plan-against-realit
 TOPIC_DIAGNOSTICS = '/diagnostics'
 
 MAX_PAYLOAD_BYTES = 1 << 20
+# The deepest message (AgentState.nodes.<node>.<field>) nests 3 levels: anything much deeper is
+# hostile, and is refused before any code walks it recursively.
+MAX_DEPTH = 8
+# Readings, stamps and settings are far below this; a bound keeps sums and products of readings
+# finite (a CPU of 1e308 summed twice is infinite, and so would be the objective published).
+MAX_MAGNITUDE = 1e12
 # Generations, sequences: the largest integer a JSON reader with doubles still keeps exact.
 MAX_GENERATION = 2 ** 53
 
@@ -37,6 +44,8 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
 NODE_STATES = ('starting', 'running', 'stopping', 'stopped', 'crashed', 'backoff', 'failed',
                'standby')
+# ScaleStatus.cpu_source (runtime/cpu.py): what a scale's cpu_total measures.
+CPU_SOURCES = ('cgroup', 'machine', 'processes')
 
 
 class ProtocolError(ValueError):
@@ -52,6 +61,9 @@ def _check(value: Any, kind: Any, where: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)) \
                 or not math.isfinite(value):
             raise ProtocolError(f'{where}: expected a finite number, got {value!r:.60}')
+        if abs(value) > MAX_MAGNITUDE:
+            raise ProtocolError(f'{where}: {value:.3g} is beyond the bound '
+                                f'{MAX_MAGNITUDE:g}')
         return float(value)
     if kind is int:
         if isinstance(value, bool) or not isinstance(value, int):
@@ -70,10 +82,33 @@ def _check(value: Any, kind: Any, where: str) -> Any:
     if isinstance(kind, tuple) and kind[0] == 'map':
         if not isinstance(value, dict):
             raise ProtocolError(f'{where}: expected a map, got {value!r:.60}')
-        return {str(k): _check(v, kind[1], f'{where}.{k}') for k, v in value.items()}
+        return {str(k): _check(v, kind[1], f'{where}.{_printable(k)}')
+                for k, v in value.items()}
     if isinstance(kind, type) and issubclass(kind, Message):
         return kind.from_dict(value, where)
     raise TypeError(f'unsupported schema kind {kind!r}')  # a bug in this module, not input
+
+
+def _printable(name: Any) -> str:
+    """A name from a message as it may appear in a log line: short, on one line."""
+    text = str(name)
+    return text[:60] if text.isprintable() else repr(text)[:60]
+
+
+def _depth_ok(data: Any, where: str) -> None:
+    """Refuse JSON nested deeper than MAX_DEPTH (walked without recursion)."""
+    todo = [(data, 1)]
+    while todo:
+        value, depth = todo.pop()
+        if isinstance(value, dict):
+            children = value.values()
+        elif isinstance(value, list):
+            children = value
+        else:
+            continue
+        if depth > MAX_DEPTH:
+            raise ProtocolError(f'{where}: nested deeper than {MAX_DEPTH} levels')
+        todo.extend((child, depth + 1) for child in children)
 
 
 class Message:
@@ -124,6 +159,7 @@ class Message:
             data = json.loads(text, parse_constant=_reject_constant)
         except (ValueError, RecursionError) as e:
             raise ProtocolError(f'{where}: not valid JSON ({e})') from None
+        _depth_ok(data, where)
         return cls.from_dict(data, where)
 
 
@@ -156,7 +192,8 @@ class DeciderIdentity(Message):
     SCHEMA = {'id': str, 'host': str, 'pid': int, 'started': float}
 
     def validate(self, where: str) -> None:
-        if not self.id or len(self.id) > 64 or len(self.host) > 256:
+        if not self.id or len(self.id) > 64 or len(self.host) > 256 \
+                or not (self.id + self.host).isprintable():
             raise ProtocolError(f'{where}: bad decider identity {self.id!r:.60}')
 
     def describe(self) -> str:
@@ -233,19 +270,28 @@ class AgentState(Message):
     instance: Optional[str] = None    # the agent process (a random id drawn at its start)
     seq: Optional[int] = None         # counts this agent process's reports
     auth: Optional[str] = None        # HMAC of the rest, with a deployment key
+    # The machine it runs on: scales with one host_id share it (single-machine mode,
+    # runtime/hosts.py); host is its host name, for people.
+    host_id: Optional[str] = None
+    host: Optional[str] = None
     SCHEMA = {'scale': str, 'generation': int, 'stamp': float, 'nodes': ('map', NodeReport),
               'decider': ('optional', str), 'instance': ('optional', str),
-              'seq': ('optional', int), 'auth': ('optional', str)}
+              'seq': ('optional', int), 'auth': ('optional', str),
+              'host_id': ('optional', str), 'host': ('optional', str)}
 
     def validate(self, where: str) -> None:
         if abs(self.generation) > MAX_GENERATION:
             raise ProtocolError(f'{where}.generation: beyond the bound 2**53')
         _signed_fields_ok(self, where)
+        for key in ('host_id', 'host'):
+            value = getattr(self, key)
+            if value is not None and (len(value) > 256 or not value.isprintable()):
+                raise ProtocolError(f'{where}.{key}: over 256 characters or not printable')
 
     def to_dict(self) -> Dict[str, Any]:
         out = {'scale': self.scale, 'generation': self.generation, 'stamp': self.stamp,
                'nodes': {k: asdict(v) for k, v in self.nodes.items()}}
-        for key in ('decider', 'instance', 'seq', 'auth'):
+        for key in ('decider', 'instance', 'seq', 'auth', 'host_id', 'host'):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)
         return out
@@ -265,8 +311,23 @@ class ScaleStatus(Message):
     cpu_by_node: Dict[str, float]
     mem_percent: float
     load_1m: float
+    # What cpu_total measures: 'cgroup', 'machine' or 'processes' (the agent's process tree,
+    # single-machine mode; runtime/cpu.py); absent from older agents.
+    cpu_source: Optional[str] = None
     SCHEMA = {'scale': str, 'stamp': float, 'cpu_total': float, 'capacity_cpu': float,
-              'cpu_by_node': ('map', float), 'mem_percent': float, 'load_1m': float}
+              'cpu_by_node': ('map', float), 'mem_percent': float, 'load_1m': float,
+              'cpu_source': ('optional', str)}
+
+    def validate(self, where: str) -> None:
+        if self.cpu_source is not None and self.cpu_source not in CPU_SOURCES:
+            raise ProtocolError(f'{where}.cpu_source: expected one of '
+                                f'{", ".join(CPU_SOURCES)}, got {self.cpu_source!r:.40}')
+
+    def to_dict(self) -> Dict[str, Any]:
+        out = asdict(self)
+        if out['cpu_source'] is None:
+            del out['cpu_source']
+        return out
 
 
 @dataclass
@@ -299,6 +360,11 @@ class ConnectionReading(Message):
     below_for_s: float        # continuous time below freq_min (0 when at or above)
     level: int                # OK / WARN (below, within tolerance) / ERROR (past tolerance)
     SCHEMA = {'rate_hz': float, 'bytes_per_s': float, 'below_for_s': float, 'level': int}
+
+    def validate(self, where: str) -> None:
+        if self.level not in (OK, WARN, ERROR, STALE):
+            raise ProtocolError(f'{where}.level: expected 0-3 (OK, WARN, ERROR, STALE), '
+                                f'got {str(self.level)[:20]}')
 
 
 @dataclass

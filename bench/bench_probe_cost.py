@@ -1,19 +1,24 @@
 #!/usr/bin/env python3
-"""CPU cost of a raw probe against a deserialising subscriber, on one 1 kHz topic of 100 kB.
+"""CPU cost of a raw probe against a deserialising subscriber, on one 1 kHz topic.
 
-Three processes in one run: a publisher (pre-serialised 100 kB std_msgs/UInt8MultiArray at
-1 kHz, absolute schedule), a probe process hosting the project's ProbeManager (raw
-subscription, arrival time and size only), and a subscriber that deserialises every message
-and keeps the inter-arrival gaps the way ``ros2 topic hz`` does. Both subscribers use the same
-QoS (best effort, depth 50). After a warm-up, the CPU time (user + system, psutil) each
-subscriber process spends over the same interval is divided by the interval, with the count of
-messages each received, and the ratio reported.
+Three processes in one run: a publisher (one pre-serialised message sent at 1 kHz, absolute
+schedule), a probe process hosting the project's ProbeManager (raw subscription, arrival time
+and size only), and a subscriber that deserialises every message and keeps the inter-arrival
+gaps the way ``ros2 topic hz`` does. Both subscribers use the same QoS (the probe's: best
+effort, depth 100) and the same executor (the events executor the agent spins, or ``--executor
+single``); the probe drains its subscription in batches, as the agent's does. After a warm-up,
+the CPU time (user + system, psutil) each subscriber process spends over the same interval is
+divided by the interval, with the count of messages each received, and the ratio reported.
 
-    python bench/bench_probe_cost.py [--seconds 10] [--rate 1000] [--kbytes 100]
-                                     [--type bytes|structured] [--domain 12]
+    python bench/bench_probe_cost.py [--seconds 10] [--rate 1000] [--domain 12]
+        [--type image|laserscan|bytes|structured] [--shape SHAPE] [--kbytes 100]
 
-``--type structured`` repeats the comparison with a message of many small nested fields
-(DiagnosticArray) of the same size, where deserialisation is what costs.
+Types: ``image`` (sensor_msgs/Image, the test-bed camera's 176x144 mono8 frame by default;
+``--shape 640x480:rgb8`` for another), ``laserscan`` (sensor_msgs/LaserScan, a Hokuyo
+URG-04LX's 682 beams; ``--shape BEAMS``), both filled as the test-bed's workload nodes fill
+them; ``bytes`` (a flat std_msgs/UInt8MultiArray of ``--kbytes``) and ``structured`` (a
+DiagnosticArray of many small nested fields, about ``--kbytes``, where deserialisation is what
+costs).
 """
 
 import argparse
@@ -25,11 +30,20 @@ import time
 
 TOPIC = '/bench/cost'
 TYPES = {'bytes': 'std_msgs/msg/UInt8MultiArray',
-         'structured': 'diagnostic_msgs/msg/DiagnosticArray'}
+         'structured': 'diagnostic_msgs/msg/DiagnosticArray',
+         'image': 'sensor_msgs/msg/Image',
+         'laserscan': 'sensor_msgs/msg/LaserScan'}
+DEFAULT_SHAPES = {'image': '176x144:mono8', 'laserscan': '682'}
 
 
-def make_message(kind: str, nbytes: int):
-    """A message of about nbytes serialised: one byte array, or many small nested fields."""
+def make_message(kind: str, nbytes: int, shape: str = ''):
+    """A message of the kind: an Image or LaserScan as the workload fills it, or one of about
+    nbytes serialised: one byte array, or many small nested fields."""
+    if kind in DEFAULT_SHAPES:
+        from anyscale_manager.nodes.workload_messages import build_message, parse_endpoint
+        endpoint = parse_endpoint(f'{TOPIC}:{TYPES[kind]}:{shape or DEFAULT_SHAPES[kind]}',
+                                  output=True)
+        return build_message(endpoint)
     if kind == 'bytes':
         from std_msgs.msg import UInt8MultiArray
         return UInt8MultiArray(data=bytes(nbytes))
@@ -44,12 +58,12 @@ def _counter_line(count: int) -> None:
     print(f'count {count}', flush=True)
 
 
-def publisher(rate: float, nbytes: int, kind: str) -> int:
+def publisher(rate: float, nbytes: int, kind: str, shape: str) -> int:
     import rclpy
     from rclpy.serialization import serialize_message
     rclpy.init()
     node = rclpy.create_node('bench_cost_publisher')
-    msg = make_message(kind, nbytes)
+    msg = make_message(kind, nbytes, shape)
     pub = node.create_publisher(type(msg), TOPIC, 10)
     raw = serialize_message(msg)
     print(f'size {len(raw)}', flush=True)
@@ -68,21 +82,31 @@ def publisher(rate: float, nbytes: int, kind: str) -> int:
     return 0
 
 
-def _spin_reporting(node, count) -> None:
+def _make_executor(kind: str):
+    from rclpy.executors import SingleThreadedExecutor
+    if kind == 'single':
+        return SingleThreadedExecutor()
+    from anyscale_manager.nodes.executor import make_executor
+    return make_executor()
+
+
+def _spin_reporting(node, count, executor_kind: str) -> None:
     """Spin until SIGINT; print the received count whenever a line arrives on stdin."""
-    import rclpy
     import select
+    executor = _make_executor(executor_kind)
+    executor.add_node(node)
     stop = []
     # A flag, not KeyboardInterrupt: an interrupt inside a take would end in a traceback.
     signal.signal(signal.SIGINT, lambda *_: stop.append(True))
     while not stop:
-        rclpy.spin_once(node, timeout_sec=0.01)
+        executor.spin_once(timeout_sec=0.01)
         if select.select([sys.stdin], [], [], 0)[0]:
             sys.stdin.readline()
             _counter_line(count())
+    executor.shutdown()
 
 
-def probe(kind: str) -> int:
+def probe(kind: str, executor_kind: str) -> int:
     import rclpy
     from anyscale_manager.model.types import (Connection, Deployment, Launch, MonitorSettings,
                                               Node, Scale)
@@ -100,14 +124,14 @@ def probe(kind: str) -> int:
     probes.set_connections(['cost'])
     window = probes._topics[TOPIC].window          # a bench may read the private count
     print('ready', flush=True)
-    _spin_reporting(node, lambda: window.count)
+    _spin_reporting(node, lambda: window.count, executor_kind)
     probes.destroy()
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
 
 
-def deserialising(kind: str) -> int:
+def deserialising(kind: str, executor_kind: str) -> int:
     import collections
     import rclpy
     from anyscale_manager.nodes.monitors import PROBE_QOS, import_message_class
@@ -125,7 +149,7 @@ def deserialising(kind: str) -> int:
 
     node.create_subscription(import_message_class(TYPES[kind]), TOPIC, on_message, PROBE_QOS)
     print('ready', flush=True)
-    _spin_reporting(node, lambda: state['count'])
+    _spin_reporting(node, lambda: state['count'], executor_kind)
     node.destroy_node()
     rclpy.try_shutdown()
     return 0
@@ -135,21 +159,31 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[1])
     parser.add_argument('--seconds', type=float, default=10.0)
     parser.add_argument('--rate', type=float, default=1000.0)
-    parser.add_argument('--kbytes', type=int, default=100)
-    parser.add_argument('--type', choices=sorted(TYPES), default='bytes',
-                        help='bytes: UInt8MultiArray; structured: DiagnosticArray')
+    parser.add_argument('--kbytes', type=int, default=100, help='size of bytes, structured')
+    parser.add_argument('--type', choices=sorted(TYPES), default='image',
+                        help='image: sensor_msgs/Image; laserscan: sensor_msgs/LaserScan; '
+                             'bytes: UInt8MultiArray; structured: DiagnosticArray')
+    parser.add_argument('--shape', default='',
+                        help='of an image (WIDTHxHEIGHT:ENCODING, default '
+                             f'{DEFAULT_SHAPES["image"]}) or a laserscan (BEAMS, default '
+                             f'{DEFAULT_SHAPES["laserscan"]})')
+    parser.add_argument('--executor', choices=('events', 'single'), default='events',
+                        help="both subscribers' executor: the agent's (events) or rclpy's "
+                             'default (single)')
     parser.add_argument('--domain', default=os.environ.get('ROS_DOMAIN_ID', '12'))
     parser.add_argument('--role', choices=('publisher', 'probe', 'deserialising'),
                         help=argparse.SUPPRESS)
     args = parser.parse_args()
     os.environ['ROS_DOMAIN_ID'] = str(args.domain)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    if args.shape and args.type not in DEFAULT_SHAPES:
+        parser.error(f'--shape is for {" and ".join(DEFAULT_SHAPES)}')
     if args.role == 'publisher':
-        return publisher(args.rate, args.kbytes * 1000, args.type)
+        return publisher(args.rate, args.kbytes * 1000, args.type, args.shape)
     if args.role == 'probe':
-        return probe(args.type)
+        return probe(args.type, args.executor)
     if args.role == 'deserialising':
-        return deserialising(args.type)
+        return deserialising(args.type, args.executor)
 
     import psutil
     env = dict(os.environ, PYTHONUNBUFFERED='1')
@@ -157,7 +191,8 @@ def main() -> int:
     def start(role):
         return subprocess.Popen([sys.executable, __file__, '--role', role, '--domain',
                                  str(args.domain), '--rate', str(args.rate), '--kbytes',
-                                 str(args.kbytes), '--type', args.type], stdin=subprocess.PIPE,
+                                 str(args.kbytes), '--type', args.type, '--shape', args.shape,
+                                 '--executor', args.executor], stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, text=True, env=env)
 
     subs = {'raw probe': start('probe'), 'deserialising': start('deserialising')}
@@ -195,8 +230,9 @@ def main() -> int:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-    print(f'{args.rate:g} Hz of {TYPES[args.type]} ({size} B serialised) for '
-          f'{args.seconds:g} s '
+    shape = f' {args.shape or DEFAULT_SHAPES[args.type]}' if args.type in DEFAULT_SHAPES else ''
+    print(f'{args.rate:g} Hz of {TYPES[args.type]}{shape} ({size} B serialised) for '
+          f'{args.seconds:g} s, {args.executor} executor '
           f'(machine: {psutil.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f})')
     cpu, per_msg = {}, {}
     for name in ('raw probe', 'deserialising', 'publisher'):

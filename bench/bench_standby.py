@@ -135,10 +135,10 @@ class Harness:
         self.node.destroy_node()
         self._rclpy.try_shutdown(context=self.ctx)
 
-    def listen(self, topic):
-        from std_msgs.msg import UInt8MultiArray
+    def listen(self, topic, type_name):
+        from anyscale_manager.nodes.workload_messages import message_class
         self.arrivals[topic] = []
-        self.node.create_subscription(UInt8MultiArray, topic,
+        self.node.create_subscription(message_class(type_name), topic,
                                       lambda _raw: self.arrivals[topic].append(time.monotonic()),
                                       self._qos, raw=True)
 
@@ -193,7 +193,7 @@ def measure(harness, deployment, name, env, seconds, rounds, log):
     args, spec, feeders = plan(deployment, name)
     output = spec.pubs[0]
     driving = spec.subs[0]
-    harness.listen(output)
+    harness.listen(output, spec.outputs[0].msg_type)
     arrivals = harness.arrivals[output]
     log(f'{name}: {" ".join(args)}')
     log(f'{name}: inputs from {", ".join(n for n, _ in feeders) or "nobody"}')

@@ -26,6 +26,16 @@ def pytest_report_header(config):
             f"ROS_AUTOMATIC_DISCOVERY_RANGE={os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']}")
 
 
+@pytest.fixture(autouse=True)
+def no_broken_dds_port_files():
+    """Tests SIGKILL processes on purpose; one killed while its participant started leaves an
+    empty Fast DDS port file that would hang every later participant on that port
+    (agent/shm.py). Cleared before each test, and said."""
+    from anyscale_manager.agent import shm
+    shm.remove_broken_port_files(say=lambda text: print(f'\n[conftest] {text}', file=sys.stderr))
+    yield
+
+
 @pytest.fixture
 def ros_env():
     """An explicit environment for child ROS processes (same domain, loopback only)."""

@@ -274,7 +274,9 @@ def test_start_move_stop_and_hostile_layouts(setup):
     for text, logged in hostile:
         h.publish_raw(text)
         for agent_ in (a, b):
-            h.wait(lambda: logged in agent_.text(), timeout=15.0, what=f'log line {logged!r}')
+            # Malformed layouts are logged once per 10 s (throttled): a later one shows in the
+            # line that counts the ones held back, when the 10 s are over.
+            h.wait(lambda: logged in agent_.text(), timeout=25.0, what=f'log line {logged!r}')
     h.publish(4, {'talker': 'b', 'talker2': 'b'})
     h.wait(lambda: h.states['a'].generation == 4 and h.states['b'].generation == 4,
            what='both agents at generation 4')
@@ -419,4 +421,72 @@ def test_standby_copies_on_both_scales_one_active_moves_are_activations(setup, t
     assert [line.split(': ')[1] for line in tail.splitlines()
             if line.startswith('transition: ')] == ['activate', 'deactivate', 'cleanup',
                                                     'shutdown']
+    assert all(gone(pid) for pid in pids.values())
+
+
+def test_restart_in_place_keeps_every_node_running_and_adopts_it(setup, tmp_path):
+    """The documented restart (SIGHUP; ``systemctl reload``): the agent re-executes itself and
+    adopts its nodes. A plain node, an active lifecycle copy and an inactive standby copy keep
+    their processes, states and restart counts; nothing is started twice; the active copy is
+    never deactivated. An adopted node that dies afterwards is reaped, reported with its exit
+    status and restarted; SIGINT then stops everything as usual."""
+    h, agent, _, run_id = setup
+    a, b = agent('a'), agent('b')
+    h.publish(1, {'talker': 'a', 'warm': 'a'})
+    h.wait(lambda: h.running('a', 'talker') and h.running('a', 'warm')
+           and h.standby('b', 'warm'), what='talker and warm on a, warm standing by on b')
+    pids = {('a', 'talker'): h.report('a', 'talker').pid, ('a', 'warm'): h.report('a', 'warm').pid,
+            ('b', 'warm'): h.report('b', 'warm').pid}
+    before = {s: h.states[s].instance for s in ('a', 'b')}
+    agent_pids = {'a': a.proc.pid, 'b': b.proc.pid}
+    log_a = tmp_path / 'log' / 'agent_test' / 'a' / 'warm.log'
+    transitions_before = log_a.read_text().count('transition: ')
+
+    for scale, proc in (('a', a), ('b', b)):
+        os.kill(proc.proc.pid, signal.SIGHUP)
+    h.wait(lambda: all(h.states[s].instance != before[s] for s in ('a', 'b')),
+           what='both agents reporting as new processes')
+    for (scale, node), pid in pids.items():
+        proc = a if scale == 'a' else b
+        h.wait(lambda: f'{node}: adopted pid {pid}' in proc.text(), timeout=15.0,
+               what=f'{scale} adopting {node}')
+    h.wait(lambda: h.running('a', 'talker') and h.running('a', 'warm') and h.standby('b', 'warm')
+           and h.states['a'].generation == 1 and h.states['b'].generation == 1,
+           what='the same layout served again by the new agents')
+    assert {(s, n): h.report(s, n).pid for s, n in pids} == pids
+    assert all(h.report(s, n).restarts == 0 for s, n in pids)
+    assert {s: p.proc.pid for s, p in (('a', a), ('b', b))} == agent_pids   # same processes
+    assert a.proc.poll() is None and b.proc.poll() is None
+    assert 'restarting in place' in a.text() and 'restarting in place' in b.text()
+    # Nothing started twice, and the active copy went on serving: no transition since.
+    assert sorted(p.pid for p in run_processes(run_id)) == sorted(pids.values())
+    assert log_a.read_text().count('transition: ') == transitions_before
+    t0 = time.monotonic()
+    h.wait(lambda: any(d.startswith(f'a {pids["a", "warm"]} ') and t > t0
+                       for t, d, _ in h.heard), what='the active copy still publishing')
+
+    # The adopted talker is still a child of the (re-executed) agent: when it dies it is
+    # reaped, with its exit status, and restarted.
+    os.kill(pids['a', 'talker'], signal.SIGKILL)
+    h.wait(lambda: h.running('a', 'talker') and h.report('a', 'talker').pid
+           != pids['a', 'talker'], what='the killed adopted talker restarted')
+    assert 'talker: crashed: killed by SIGKILL' in a.text()
+    assert not psutil.pid_exists(pids['a', 'talker'])        # reaped, not a zombie
+
+    # Restarted with no layout to be had (the decider gone): fail-static, the adopted active
+    # copy keeps serving as it reports it, neither deactivated nor finalized.
+    h.node.destroy_publisher(h.layout_pub)
+    h.wait(lambda: a.text().count('applied (test)') == 2, what='a has applied the layout again')
+    instance = h.states['a'].instance
+    os.kill(a.proc.pid, signal.SIGHUP)
+    h.wait(lambda: h.states['a'].instance != instance and h.running('a', 'warm')
+           and h.states['a'].generation == -1, what='a back without a layout, warm active')
+    heard = len(h.history)
+    h.wait(lambda: sum(st.scale == 'a' for _, st in h.history[heard:]) >= 4,
+           what='four more reports from a')
+    assert all(st.nodes['warm'].state == 'running' for _, st in h.history[heard:]
+               if st.scale == 'a')
+    assert log_a.read_text().count('transition: ') == transitions_before
+
+    assert a.stop(signal.SIGINT) == 0 and b.stop(signal.SIGINT) == 0
     assert all(gone(pid) for pid in pids.values())

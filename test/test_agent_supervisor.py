@@ -180,6 +180,21 @@ def test_start_ready_and_stop(make_sup):
     assert 'starting' in log
 
 
+def test_a_broken_dds_port_file_is_cleared_before_a_start(make_sup, tmp_path):
+    shm_dir = tmp_path / 'shm'
+    shm_dir.mkdir()
+    broken = shm_dir / 'fastrtps_port7413'
+    broken.write_bytes(b'')
+    old = time.time() - 60
+    os.utime(broken, (old, old))
+    sup = make_sup([py_entry('n', SLEEPER)])
+    sup.shm_dir = str(shm_dir)
+    sup.start('n', time.monotonic())
+    assert not broken.exists()
+    assert any(level == 'warn' and 'fastrtps_port7413' in text for level, text in sup.events)
+    assert sup.reports()['n'].state == 'starting'
+
+
 def test_node_nice_runs_the_node_below_the_agent(make_sup):
     """agent.node_nice: the node (and every thread it starts) runs at that niceness, same pid,
     so a CPU-bound node cannot starve the agent's monitors."""
@@ -310,12 +325,14 @@ def test_adoption_after_a_restart(make_sup):
     assert second.pids() == {'n': pid} and second.wanted() == ('n',)
     assert second.reports()['n'].state == 'starting'
     assert drive(second, lambda: second.reports()['n'].ready, visible=lambda e: True)
-    # The adopted process dies: reported (status unknown, it is not our child) and restarted.
+    # The adopted process dies: reported and restarted. Both supervisors are this process, so
+    # it is still our child (as after an agent's restart in place): reaped, with its status.
     os.kill(pid, signal.SIGKILL)
     assert drive(second, lambda: second.reports()['n'].state in ('backoff', 'starting')
                  and second.reports()['n'].pid != pid)
-    assert 'adopted' in second.reports()['n'].exit_reason or \
+    assert 'killed by SIGKILL' in second.reports()['n'].exit_reason or \
         second.reports()['n'].restarts == 1
+    assert not psutil.pid_exists(pid)                   # no zombie left
 
 
 def test_adoption_refuses_a_reused_pid(make_sup, tmp_path):

@@ -9,6 +9,7 @@ import signal
 import sys
 import time
 
+import psutil
 import pytest
 import rclpy
 import yaml
@@ -155,4 +156,139 @@ def test_layout_applied_reported_back_and_republished(tmp_path, ros_env, listene
         assert decider.proc.poll() is None
     finally:
         codes = {name: pr.stop() for name, pr in reversed(procs)}
+    assert codes['decider'] == 0, procs[2][1].text()[-3000:]
+
+
+def write_chain_deployment(tmp_path):
+    """sensor (home) -> worker (migratable) -> pinned (home): the home agent's probe measures
+    worker -> pinned, so when that agent dies the connection's readings stop with it."""
+    topic = f'/decider_liveness_{os.getpid()}'
+
+    def workload(name, *args):
+        return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args]}
+    connection = {'msg_type': 'std_msgs/msg/UInt8MultiArray', 'bandwidth_kbps': 1.0}
+    data = {'/**': {'ros__parameters': {
+        'deployment': {'name': f'decider_liveness_{os.getpid()}'},
+        'scales': {'names': ['home', 'away'],
+                   'home': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100000.0,
+                            'cores': 2, 'clock_ghz': 1.0},
+                   'away': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100000.0,
+                            'cores': 4, 'clock_ghz': 2.0, 'gain': 3.0}},
+        'links': {'names': ['net'],
+                  'net': {'ends': ['home', 'away'], 'bandwidth_kbps': 100000.0,
+                          'medium': 'wired'}},
+        'nodes': {'names': ['sensor', 'worker', 'pinned'],
+                  'sensor': {'launch': workload('sensor', '--pub', topic + '/s',
+                                                '--rate-hz', '4.0'),
+                             'cpu': 1.0, 'residence': ['home']},
+                  'worker': {'launch': workload('worker', '--sub', topic + '/s', '--pub',
+                                                topic + '/w', '--rate-hz', '4.0'), 'cpu': 1.0},
+                  'pinned': {'launch': workload('pinned', '--sub', topic + '/w', '--pub',
+                                                topic + '/p', '--rate-hz', '4.0'),
+                             'cpu': 1.0, 'residence': ['home']}},
+        'connections': {'names': ['sensor_worker', 'worker_pinned'],
+                        'sensor_worker': dict(connection, topic=topic + '/s',
+                                              publisher='sensor', subscriber='worker'),
+                        # Without the agent's liveness, its probe's silence would read as 0 Hz
+                        # past Δ after max_age + Δ = 8 s, well before the scale is lost (12 s).
+                        # Δ also covers the chain's cold start on a loaded machine.
+                        'worker_pinned': dict(connection, topic=topic + '/w',
+                                              publisher='worker', subscriber='pinned',
+                                              freq_min_hz=0.5, tolerance_s=6.0)},
+        'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 4.0,
+                    'agent_timeout_s': 12.0, 'observation_max_age_s': 2.0,
+                    'hysteresis_s': 60.0},
+        'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 8,
+                       'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
+                       'bandwidth_probe_port': 40000 + (os.getpid() + 7) % 20000},
+        'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,
+                  'restart_backoff_s': 0.2, 'restart_backoff_max_s': 2.0,
+                  'heartbeat_rate_hz': 4.0, 'state_dir': str(tmp_path / 'state'),
+                  'log_dir': str(tmp_path / 'log')},
+    }}}
+    path = tmp_path / 'liveness.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def test_a_killed_master_agent_is_not_a_cut_link(tmp_path, ros_env, listener):
+    """The robot's (home's) agent is SIGKILLed while the worker runs away: the decider says the
+    agent is silent, does not send the worker home (no agent there to start it; its probe's
+    silence is not a slow connection; its link monitor's silence is not a cut), and the worker
+    runs on. The agent restarted adopts what it ran; the decider says so and acts again: the
+    away agent's end then brings the worker home, where it now runs."""
+    ex, seen = listener
+    deployment = write_chain_deployment(tmp_path)
+    procs = []
+
+    def agent(scale):
+        return LoggedProcess(tmp_path / f'agent_{scale}_{len(procs)}.out',
+                             [os.path.join(BIN, 'agent'), '--ros-args', '--params-file',
+                              deployment, '-p', f'scale:={scale}'], ros_env)
+
+    def events(kind, scale):
+        return [e for e in seen['events'] if e.kind == kind and e.from_scale == scale]
+    try:
+        procs.append(('agent_home', agent('home')))
+        procs.append(('agent_away', agent('away')))
+        procs.append(('decider', LoggedProcess(
+            tmp_path / 'decider.out', [os.path.join(BIN, 'decider'), '--ros-args',
+                                       '--params-file', deployment], ros_env)))
+        wait(ex, lambda: runs(seen, 'away', 'worker') and not runs(seen, 'home', 'worker')
+             and runs(seen, 'home', 'pinned') and runs(seen, 'home', 'sensor'), 60.0,
+             'worker running away, sensor and pinned home', procs)
+        worker = seen['states']['away'].nodes['worker'].pid
+        pinned = seen['states']['home'].nodes['pinned'].pid
+        # The decider judges worker -> pinned on the home agent's probe: wait until it flows.
+        rates = {}
+
+        def reading(msg):
+            status = p.ConnectionStatus.from_json(msg.data)
+            if 'worker_pinned' in status.connections:
+                rates[status.scale] = status.connections['worker_pinned'].rate_hz
+        ex.get_nodes()[0].create_subscription(String, p.TOPIC_CONNECTION_STATUS, reading, 10)
+        wait(ex, lambda: rates.get('home', 0.0) >= 0.5, 30.0, 'worker -> pinned measured home',
+             procs)
+        layouts_before = len(seen['layouts'])
+
+        procs[0][1].proc.kill()                      # the robot's agent dies hard
+        procs[0][1].proc.wait(10)
+        wait(ex, lambda: events('agent_silent', 'home'), 15.0, 'the agent_silent event', procs)
+        (silent,) = events('agent_silent', 'home')
+        assert 'the agent of home (the master scale) has been silent' in silent.reason
+        # Past max_age + Δ of worker -> pinned, and past agent_timeout_s: the scale is lost.
+        wait(ex, lambda: events('scale_lost', 'home'), 20.0, 'home declared lost', procs)
+        assert seen['layouts'][-1].assignments['worker'] == 'away'
+        assert all(lay.assignments['worker'] == 'away' for lay in seen['layouts'][layouts_before:])
+        assert not [e for e in seen['events'] if e.node == 'worker' and e.kind in (
+            'migrate_back', 'relocate', 'migrate')][1:]      # only the move out, long before
+        state = seen['states']['away'].nodes['worker']
+        assert state.state == 'running' and state.pid == worker and state.restarts == 0
+        assert psutil.pid_exists(pinned)             # unsupervised, but left running
+
+        procs.append(('agent_home_2', agent('home')))
+        wait(ex, lambda: events('agent_back', 'home'), 30.0, 'the agent_back event', procs)
+        wait(ex, lambda: runs(seen, 'home', 'pinned')
+             and seen['states']['home'].nodes['pinned'].pid == pinned, 20.0,
+             'pinned adopted by the new home agent', procs)
+        assert f'pinned: adopted pid {pinned}' in procs[-1][1].text()
+        assert seen['states']['away'].nodes['worker'].pid == worker
+        assert len([lay for lay in seen['layouts'][layouts_before:]
+                    if lay.assignments['worker'] != 'away']) == 0
+
+        # The decider acts again, with a live home agent: the away agent's end brings the
+        # worker home, and it runs there.
+        procs[1][1].stop(signal.SIGINT)
+        wait(ex, lambda: seen['layouts'][-1].assignments['worker'] == 'home', 30.0,
+             'the worker placed home again', procs)
+        wait(ex, lambda: runs(seen, 'home', 'worker'), 30.0, 'worker running home', procs)
+        assert procs[2][1].proc.poll() is None
+    finally:
+        codes = {name: pr.stop() for name, pr in reversed(procs)}
+        # A failure before the home agent was restarted leaves the nodes of the killed one
+        # running (by design): they are this test's, found by its topic.
+        marker = f'/decider_liveness_{os.getpid()}/'
+        for proc in psutil.process_iter(['cmdline']):
+            if any(marker in arg for arg in proc.info['cmdline'] or ()):
+                proc.kill()
     assert codes['decider'] == 0, procs[2][1].text()[-3000:]

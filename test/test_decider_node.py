@@ -106,6 +106,8 @@ class FakeWorld(Node):
                 scale=scale, stamp=time.time(), cpu_total=40.0, capacity_cpu=100.0,
                 cpu_by_node={}, mem_percent=10.0, load_1m=0.1).to_json()))
         master = self.d.master.name
+        if master in self.silent:
+            return      # the link monitor and the probes below live in the master's agent
         for remote in self.d.remote_scales:
             if self.d.link_between(master, remote.name) is None:
                 continue
@@ -304,6 +306,41 @@ def test_silent_agent_loses_its_scale(world, testbed_path, ros_env):
                           15.0, proc=proc)
         assert spin_until(ex, node, lambda: any(e.kind == 'relocate' and e.node == 'ar'
                                                 for e in node.events), 5.0, proc=proc)
+        # The link is reported up all along: the agent is gone, not the link, and it is said.
+        assert any(e.kind == 'agent_silent' and e.from_scale == 'laptop'
+                   and 'while link wifi is up: the agent, not the link' in e.reason
+                   for e in node.events), [e.reason for e in node.events]
+    finally:
+        code, out = stop(proc)
+    assert code == 0, out
+
+
+def test_a_silent_master_agent_is_said_and_the_layout_kept(world, testbed_path, ros_env):
+    """The robot's agent (with its link monitor and probes) goes silent while AMCL and AR run
+    on the laptop: said in an event and the diagnostics naming the robot's agent, nothing moved;
+    said again when it is back."""
+    node, ex = world
+    node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
+    node.running.update(amcl='laptop', ar='laptop')
+    proc = start_decider(testbed_path, ros_env)
+
+    def said(kind, scale):
+        return [e for e in node.events if e.kind == kind and e.from_scale == scale]
+    try:
+        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
+        kept = dict(node.layouts[-1].assignments)
+        assert kept['amcl'] == 'laptop' and kept['ar'] == 'laptop'
+        node.silent.add('robot')
+        assert spin_until(ex, node, lambda: said('scale_lost', 'robot'), 15.0, proc=proc)
+        (silent,) = said('agent_silent', 'robot')
+        assert 'the agent of robot (the master scale) has been silent' in silent.reason
+        assert spin_until(ex, node, lambda: any(
+            'agent of robot lost' in st.message and st.level == bytes([p.WARN])
+            for a in node.diags[-3:] for st in a.status), 5.0, proc=proc)
+        node.silent.discard('robot')
+        assert spin_until(ex, node, lambda: said('agent_back', 'robot'), 10.0, proc=proc)
+        assert all(lay.assignments == kept for lay in node.layouts), node.layouts
+        assert not [e for e in node.events if e.kind in ('migrate', 'migrate_back', 'relocate')]
     finally:
         code, out = stop(proc)
     assert code == 0, out

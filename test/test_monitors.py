@@ -20,6 +20,7 @@ from anyscale_manager.testbed import harness, netns
 from anyscale_manager.nodes.monitors import (LATCHED_QOS, STATUS_QOS, LinkMonitor,
                                              ProbeManager, ProbeServer, ScaleMonitor,
                                              import_message_class, probe_throughput)
+from anyscale_manager.nodes.workload_messages import build_message, parse_endpoint
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -96,11 +97,23 @@ class Listener:
         return found[-1] if found else None
 
 
+# What the test-bed's nodes publish on its topics (type and shape, as the workload takes them).
+TESTBED_TYPES = {'/scan': 'sensor_msgs/msg/LaserScan:682',
+                 '/amcl_pose': 'geometry_msgs/msg/PoseWithCovarianceStamped',
+                 '/image': 'sensor_msgs/msg/Image:176x144:mono8'}
+
+
 class Publisher:
-    def __init__(self, node, topic, rate_hz, nbytes):
+    """Publishes at ``rate_hz`` what the test-bed publishes on ``topic`` (a test-bed workload's
+    message), or a byte array of ``nbytes``."""
+
+    def __init__(self, node, topic, rate_hz, nbytes=None):
         self.node = node
-        self.pub = node.create_publisher(UInt8MultiArray, topic, 10)
-        self.msg = UInt8MultiArray(data=bytes(nbytes))
+        if nbytes is None:
+            self.msg = build_message(parse_endpoint(f'{topic}:{TESTBED_TYPES[topic]}', True))
+        else:
+            self.msg = UInt8MultiArray(data=bytes(nbytes))
+        self.pub = node.create_publisher(type(self.msg), topic, 10)
         self.sent = 0
         self.timer = node.create_timer(1.0 / rate_hz, self._send)
 
@@ -127,7 +140,7 @@ def test_probe_reads_a_real_publisher_then_judges_its_stop(ros, deployment):
     listener = Listener(make('listener'), p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus)
     probes = ProbeManager(agent, deployment, 'laptop')
     probes.set_connections(['laser_amcl'])
-    laser = Publisher(make('laser'), '/scan', rate_hz=20.0, nbytes=2500)
+    laser = Publisher(make('laser'), '/scan', rate_hz=20.0)
 
     def steady():
         r = reading(listener, 'laser_amcl')
@@ -135,8 +148,8 @@ def test_probe_reads_a_real_publisher_then_judges_its_stop(ros, deployment):
 
     r = spin_until(executor, steady, 15.0, 'a 20 Hz reading of laser_amcl')
     assert r.level == p.OK and r.below_for_s == 0.0
-    # Raw bytes: the 2500-byte payload plus a few bytes of CDR header and sequence lengths.
-    assert 2500 <= r.bytes_per_s / r.rate_hz <= 2600
+    # Raw bytes: the serialised LaserScan of a Hokuyo URG-04LX (682 beams), 2788 B.
+    assert r.bytes_per_s / r.rate_hz == pytest.approx(2788, rel=1e-3)
     diag = spin_until(executor, lambda: listener.last_status('anyscale/connection/laser_amcl'),
                       5.0, 'the probe on /diagnostics')
     assert diag.hardware_id == '127.0.0.1'
@@ -164,6 +177,30 @@ def test_probe_reads_a_real_publisher_then_judges_its_stop(ros, deployment):
     probes.destroy()
 
 
+def test_probe_places_arrivals_at_their_reception_time(ros, deployment):
+    """The probe drains its subscription in batches (every 50 ms, and before each report): a
+    batch taken late, here after 1.5 s in which nothing was spun (a starved agent), reads the
+    rate the topic had, not a burst at the time of the take."""
+    make, executor = ros
+    probes = ProbeManager(make('agent_batch'), deployment, 'laptop')
+    probes.set_connections(['laser_amcl'])
+    node = make('laser_batch')
+    msg = build_message(parse_endpoint(f'/scan:{TESTBED_TYPES["/scan"]}', output=True))
+    pub = node.create_publisher(type(msg), '/scan', 10)
+    try:
+        spin_until(executor, lambda: pub.get_subscription_count() >= 1, 10.0,
+                   'the probe to match the writer')
+        start = time.monotonic()
+        for k in range(30):        # 20 Hz on an absolute schedule; nothing spun meanwhile
+            time.sleep(max(0.0, start + k * 0.05 - time.monotonic()))
+            pub.publish(msg)
+        reading, _ = probes.readings(time.monotonic())['laser_amcl']
+        assert reading.rate_hz == pytest.approx(20.0, rel=0.05)
+        assert reading.bytes_per_s == pytest.approx(20.0 * 2788, rel=0.05)
+    finally:
+        probes.destroy()
+
+
 def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deployment):
     """What the agent asks before it lets a moving node's old copy go: has this scale heard the
     copy started elsewhere? Two real writers of /amcl_pose (AMCL is migratable), one long
@@ -175,7 +212,7 @@ def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deplo
     probes = ProbeManager(agent, deployment, 'robot', watch_node=watch)
     probes.set_connections(['amcl_ekf', 'laser_navigation'])
     try:
-        old = Publisher(make('amcl_old'), '/amcl_pose', rate_hz=20.0, nbytes=64)
+        old = Publisher(make('amcl_old'), '/amcl_pose', rate_hz=20.0)
 
         def polled(cond):
             def check():
@@ -190,7 +227,7 @@ def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deplo
         assert probes.writer_joined_since('laser_navigation', 0.0) is None   # laser: pinned
         assert probes.writer_joined_since('camera_ar', 0.0) is None           # not probed here
         moved = time.monotonic()
-        new = Publisher(make('amcl_new'), '/amcl_pose', rate_hz=5.0, nbytes=64)
+        new = Publisher(make('amcl_new'), '/amcl_pose', rate_hz=5.0)
         spin_until(executor, polled(lambda: probes.writer_joined_since('amcl_ekf', moved)),
                    10.0, 'the new writer heard')
         assert new.sent >= 1
@@ -216,7 +253,7 @@ def test_probe_learns_the_type_from_the_graph_and_moves(ros, deployment):
         executor, lambda: listener.last_status('anyscale/connection/camera_ar'), 5.0,
         'a diagnostic of the waiting probe')
     assert 'waiting for a publisher' in waiting.message
-    Publisher(make('camera'), '/image', rate_hz=30.0, nbytes=1000)
+    Publisher(make('camera'), '/image', rate_hz=30.0)
     spin_until(executor, lambda: (reading(listener, 'camera_ar') is not None
                                   and abs(reading(listener, 'camera_ar').rate_hz - 30.0) < 3.0),
                15.0, 'camera_ar at 30 Hz once the type is learnt')

@@ -422,3 +422,38 @@ def test_a_silent_or_restarted_master_agent_is_not_a_cut_link(d):
     (v,) = evaluate(d, d.decider, replace(book.snapshot(late), running=running)
                     ).of_kind(LINK_DOWN)
     assert 'reported down' in v.reason
+
+
+def test_a_master_agent_heard_last_just_after_its_link_monitor_is_not_a_cut(d):
+    """Found by the chaos soak: the robot's agent SIGKILLed a moment after its last state and
+    just after its monitor's last LinkStatus; the link went stale before the agent counted as
+    silent, and both nodes were brought home for a cut that was not there. A stale link report
+    is the link's silence only once the agent was heard after it went stale."""
+    max_age = d.decider.observation_max_age_s
+    running = dict(master_layout(d), amcl='laptop')
+    t = 2 * (p.LINK_MONITOR_START_S + max_age)
+
+    def steady():
+        book = ObservationBook(d, d.decider, started=0.0)
+        for k in range(int(t / 0.5) + 1):               # the agent reports every 0.5 s
+            book.agent_state(agent('robot', 3, amcl='standby'), 0.5 * k)
+            book.agent_state(agent('laptop', 3, amcl='running'), 0.5 * k)
+        book.link_status(link(kbps=40000.0), t)
+        assert book.snapshot(t).unjudged_links == frozenset()
+        return book
+    book = steady()
+    book.agent_state(agent('robot', 3, amcl='standby'), t + 0.05)    # then SIGKILL
+    for now in (t + max_age + 0.01, t + max_age + 0.04):      # link stale, agent not yet
+        book.agent_state(agent('laptop', 3, amcl='running'), now)
+        obs = book.snapshot(now)
+        assert obs.unjudged_links == {'laptop'}
+        assert not evaluate(d, d.decider, replace(obs, running=running)).of_kind(LINK_DOWN)
+    # An agent that lives on while its monitor alone falls silent: the link is judged silent
+    # once the agent speaks after the report went stale.
+    book = steady()
+    for k in range(1, int(max_age / 0.5) + 2):
+        book.agent_state(agent('robot', 3, amcl='standby'), t + 0.05 + 0.5 * k)
+    obs = book.snapshot(t + max_age + 0.6)
+    assert obs.unjudged_links == frozenset()
+    (v,) = evaluate(d, d.decider, replace(obs, running=running)).of_kind(LINK_DOWN)
+    assert 'silent' in v.reason

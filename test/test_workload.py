@@ -1,6 +1,8 @@
-"""The workload node: argument checks, the output gate, CPU work, and real processes over DDS."""
+"""The workload node: argument checks, message types and shapes, the output gate, CPU work, and
+real processes over DDS."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -13,12 +15,20 @@ from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.serialization import serialize_message
 from std_msgs.msg import UInt8MultiArray
 
 from anyscale_manager.agent.catalogue import LIFECYCLE_SERVICES, LIFECYCLE_TOPICS
+from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.model.types import (Connection, Deployment, Launch, MonitorSettings, Node,
+                                          Scale)
+from anyscale_manager.nodes.monitors import ProbeManager
 from anyscale_manager.nodes.workload import (OutputGate, WorkloadNode, burn_cpu, parse_spec,
                                              publisher_qos, subscriber_qos)
 from anyscale_manager.nodes.workload_lifecycle import LifecycleWorkloadNode
+from anyscale_manager.nodes.workload_messages import (KINDS, Endpoint, EndpointError,
+                                                      build_message, message_class,
+                                                      parse_endpoint, stamper)
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 
@@ -33,6 +43,17 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
     (['--name', 'a', '--pub', '/x', '--work-ms', 'nan'], '--work-ms'),
     (['--name', 'a', '--sub', '/x', '--once'], '--once'),
     (['--name', '9lives', '--pub', '/x'], 'valid ROS node name'),
+    (['--name', 'a', '--pub', '/s:sensor_msgs/msg/Laserscan'],
+     'did you mean sensor_msgs/msg/LaserScan?'),
+    (['--name', 'a', '--pub', '/s:sensor_msgs/msg/Imu'], 'cannot fill this type'),
+    (['--name', 'a', '--pub', '/i:sensor_msgs/msg/Image:176x144:mono9'], 'did you mean mono8?'),
+    (['--name', 'a', '--pub', '/o:nav_msgs/msg/Odometry:3'], 'fixed size'),
+    (['--name', 'a', '--sub', '/s:sensor_msgs/msg/LaserScan:682', '--pub', '/x'],
+     'an input takes TOPIC[:TYPE]'),
+    (['--name', 'a', '--sub', '/s:no_such_msgs/msg/Scan', '--pub', '/x'],
+     'no message package no_such_msgs'),
+    (['--name', 'a', '--pub', '/s:sensor_msgs/msg/LaserScan', '--bytes', '100'],
+     '--bytes sizes std_msgs/msg/UInt8MultiArray outputs'),
 ])
 def test_bad_arguments_are_refused_with_the_argument_named(argv, message, capsys):
     with pytest.raises(SystemExit) as e:
@@ -48,12 +69,144 @@ def test_lifecycle_is_a_flag_and_off_by_default():
 
 
 def test_arguments_of_the_testbed_amcl():
-    spec = parse_spec(['--name', 'amcl', '--sub', '/scan', '--sub', '/map', '--pub',
-                       '/amcl_pose', '--rate-hz', '5.0', '--bytes', '128', '--work-ms', '100',
-                       '--reference-core', '0.25'])
+    spec = parse_spec(['--name', 'amcl', '--sub', '/scan:sensor_msgs/msg/LaserScan', '--sub',
+                       '/map:nav_msgs/OccupancyGrid', '--pub',
+                       '/amcl_pose:geometry_msgs/msg/PoseWithCovarianceStamped', '--rate-hz',
+                       '5.0', '--work-ms', '100', '--reference-core', '0.25'])
     assert spec.subs == ('/scan', '/map') and spec.pubs == ('/amcl_pose',)
+    assert [e.msg_type for e in spec.inputs] == ['sensor_msgs/msg/LaserScan',
+                                                 'nav_msgs/msg/OccupancyGrid']
+    assert spec.outputs == (Endpoint('/amcl_pose',
+                                     'geometry_msgs/msg/PoseWithCovarianceStamped'),)
     assert not spec.is_sensor
     assert spec.cpu_s_per_output == pytest.approx(0.025)
+
+
+def test_untyped_arguments_mean_byte_arrays_as_before():
+    spec = parse_spec(['--name', 'old', '--sub', '/in', '--pub', '/out', '--pub',
+                       '/big:std_msgs/msg/UInt8MultiArray:5000', '--bytes', '128'])
+    assert spec.inputs == (Endpoint('/in', 'std_msgs/msg/UInt8MultiArray'),)
+    assert spec.outputs == (Endpoint('/out', 'std_msgs/msg/UInt8MultiArray', (128,)),
+                            Endpoint('/big', 'std_msgs/msg/UInt8MultiArray', (5000,)))
+    assert parse_spec(['--name', 'old', '--pub', '/out']).outputs[0].shape == (64,)
+
+
+# The message of each type a workload fills, and what a reader should find in it.
+CONTENT = {
+    'sensor_msgs/msg/LaserScan': lambda m: (
+        len(m.ranges) == 682 and m.intensities.tolist() == [] and m.header.frame_id == 'laser'
+        and m.range_min == pytest.approx(0.02) and m.range_max == pytest.approx(5.6)
+        and all(m.range_min <= r <= m.range_max for r in m.ranges)
+        and m.angle_max - m.angle_min == pytest.approx(681 * 2 * 3.141592653589793 / 1024)),
+    'sensor_msgs/msg/Image': lambda m: (
+        (m.width, m.height, m.encoding, m.step, len(m.data)) == (176, 144, 'mono8', 176, 25344)
+        and len(set(m.data)) > 10 and m.header.frame_id == 'camera'),
+    'nav_msgs/msg/Odometry': lambda m: (
+        (m.header.frame_id, m.child_frame_id) == ('odom', 'base_footprint')
+        and m.pose.covariance[0] > 0 and m.twist.twist.linear.x > 0
+        and m.pose.pose.orientation.w ** 2 + m.pose.pose.orientation.z ** 2
+        == pytest.approx(1.0)),
+    'geometry_msgs/msg/PoseWithCovarianceStamped': lambda m: (
+        m.header.frame_id == 'map' and m.pose.covariance[35] > 0
+        and m.pose.covariance[1] == m.pose.covariance[6]),
+    'sensor_msgs/msg/JointState': lambda m: (
+        m.name == ['wheel_joint_fl', 'wheel_joint_fr', 'wheel_joint_bl', 'wheel_joint_br']
+        and len(m.position) == len(m.velocity) == len(m.effort) == 4),
+    'nav_msgs/msg/OccupancyGrid': lambda m: (
+        (m.info.width, m.info.height, len(m.data)) == (200, 200, 40000)
+        and {-1, 0, 100} == set(m.data) and m.info.resolution == pytest.approx(0.05)),
+    'geometry_msgs/msg/PoseArray': lambda m: len(m.poses) == 4 and m.header.frame_id == 'camera',
+    'geometry_msgs/msg/Twist': lambda m: m.linear.x > 0,
+    'std_msgs/msg/UInt8MultiArray': lambda m: len(m.data) == 64,
+}
+# The test-bed's shapes: (output argument, serialised size).
+TESTBED_OUTPUTS = {
+    'sensor_msgs/msg/LaserScan': ('/t:sensor_msgs/msg/LaserScan:682', 2788),
+    'sensor_msgs/msg/Image': ('/t:sensor_msgs/msg/Image:176x144:mono8', 25396),
+    'nav_msgs/msg/Odometry': ('/t:nav_msgs/msg/Odometry', 724),
+    'geometry_msgs/msg/PoseWithCovarianceStamped': (
+        '/t:geometry_msgs/msg/PoseWithCovarianceStamped', 364),
+    'sensor_msgs/msg/JointState': ('/t:sensor_msgs/msg/JointState:4', 228),
+    'nav_msgs/msg/OccupancyGrid': ('/t:nav_msgs/msg/OccupancyGrid:200x200:0.05', 40104),
+    'geometry_msgs/msg/PoseArray': ('/t:geometry_msgs/msg/PoseArray:4', 252),
+    'geometry_msgs/msg/Twist': ('/t:geometry_msgs/msg/Twist', 52),
+    'std_msgs/msg/UInt8MultiArray': ('/t', 80),
+}
+
+
+def test_every_type_a_workload_fills_is_covered_here():
+    assert set(KINDS) == set(CONTENT) == set(TESTBED_OUTPUTS)
+
+
+@pytest.mark.parametrize('type_name', sorted(TESTBED_OUTPUTS))
+def test_each_type_is_filled_with_plausible_content_of_its_size(type_name):
+    argument, size = TESTBED_OUTPUTS[type_name]
+    endpoint = parse_endpoint(argument, output=True)
+    msg = build_message(endpoint)
+    assert isinstance(msg, message_class(type_name))
+    assert CONTENT[type_name](msg)
+    assert len(serialize_message(msg)) == size
+    stamp = stamper(endpoint)
+    assert (stamp is None) == (not hasattr(msg, 'header'))
+
+
+@pytest.mark.parametrize('argument, expected', [
+    ('/image:sensor_msgs/Image', Endpoint('/image', 'sensor_msgs/msg/Image', (640, 480, 'rgb8'))),
+    ('/image:sensor_msgs/msg/Image:1280x720:bgr8',
+     Endpoint('/image', 'sensor_msgs/msg/Image', (1280, 720, 'bgr8'))),
+    ('/scan:sensor_msgs/msg/LaserScan:1081',
+     Endpoint('/scan', 'sensor_msgs/msg/LaserScan', (1081,))),
+    ('/map:nav_msgs/msg/OccupancyGrid:400x300:0.1',
+     Endpoint('/map', 'nav_msgs/msg/OccupancyGrid', (400, 300, 0.1))),
+    ('/joints:sensor_msgs/msg/JointState:7',
+     Endpoint('/joints', 'sensor_msgs/msg/JointState', (7,))),
+])
+def test_output_shapes(argument, expected):
+    assert parse_endpoint(argument, output=True) == expected
+
+
+@pytest.mark.parametrize('argument, output, words', [
+    ('/s:LaserScan', True, 'did you mean sensor_msgs/msg/LaserScan?'),
+    ('/i:sensor_msgs/msg/Image:176x144:mono8:9', True, 'expected WIDTHxHEIGHT[:ENCODING]'),
+    ('/i:sensor_msgs/msg/Image:0x144', True, 'width and height'),
+    ('/m:nav_msgs/msg/OccupancyGrid:10x10:-1', True, 'metres per cell'),
+    ('/p:geometry_msgs/msg/PoseArray:many', True, 'whole number of poses'),
+    ('/x:std_msgs/msg/UInt8MultiArray:99999999999', True, 'out of range'),
+    ('/s:sensor_msgs/msg/LaserScan:682', False, 'no shape'),
+    ('bad topic:std_msgs/msg/String', False, 'bad topic name'),
+])
+def test_bad_endpoints_say_why(argument, output, words):
+    with pytest.raises(EndpointError, match=re.escape(words)):
+        parse_endpoint(argument, output=output)
+
+
+def test_testbed_connections_carry_what_their_ends_publish_and_subscribe(testbed_path):
+    """Every connection's msg_type is what its publisher's workload publishes on the topic and
+    what its subscriber's workload subscribes to: no UInt8MultiArray left, and a probe on the
+    declared type matches the real writer."""
+    d = load_deployment(testbed_path)
+    outputs, inputs = {}, {}
+    for node in d.nodes:
+        if node.launch.executable != 'workload':
+            continue
+        spec = parse_spec(list(node.launch.arguments))
+        outputs.update({(node.name, e.topic): e.msg_type for e in spec.outputs})
+        inputs.update({(node.name, e.topic): e.msg_type for e in spec.inputs})
+    for c in d.connections:
+        assert c.msg_type != 'std_msgs/msg/UInt8MultiArray', c.name
+        assert outputs[(c.publisher, c.topic)] == c.msg_type, c.name
+        assert inputs[(c.subscriber, c.topic)] == c.msg_type, c.name
+    pose = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+    assert {c.topic: c.msg_type for c in d.connections} == {
+        '/scan': 'sensor_msgs/msg/LaserScan', '/wheel_ticks': 'sensor_msgs/msg/JointState',
+        '/image': 'sensor_msgs/msg/Image', '/amcl_pose': pose, '/odom': 'nav_msgs/msg/Odometry',
+        '/pose': pose, '/markers': 'geometry_msgs/msg/PoseArray'}
+    # AR's input stays about 6 Mbit/s: the camera's frame at its 30 Hz.
+    image = next(c for c in d.connections if c.topic == '/image')
+    camera = parse_spec(list(d.node('camera').launch.arguments))
+    frame = len(serialize_message(build_message(camera.outputs[0])))
+    assert frame * 8 * camera.rate_hz / 1000 == pytest.approx(6000, rel=0.03)
+    assert image.bandwidth_kbps == pytest.approx(frame * 8 * camera.rate_hz / 1000, abs=1)
 
 
 class FakeClock:
@@ -140,9 +293,10 @@ LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 
 
 class Counter:
-    """Arrival times and sizes per topic, from a node in its own context."""
+    """Arrival times, sizes (of a ``data`` field) and the last message per topic, deserialised
+    by a node in its own context; ``types``: topic -> message class (UInt8MultiArray)."""
 
-    def __init__(self, topics, latched=False):
+    def __init__(self, topics, latched=False, types=None):
         self.ctx = Context()
         rclpy.init(context=self.ctx)
         self.node = rclpy.create_node('workload_test_counter', context=self.ctx)
@@ -150,14 +304,18 @@ class Counter:
         self.executor.add_node(self.node)
         self.arrivals = {t: [] for t in topics}
         self.sizes = {t: set() for t in topics}
+        self.messages = {t: [] for t in topics}
         for topic in topics:
             qos = LATCHED if latched else subscriber_qos()
-            self.node.create_subscription(UInt8MultiArray, topic, self._callback(topic), qos)
+            cls = (types or {}).get(topic, UInt8MultiArray)
+            self.node.create_subscription(cls, topic, self._callback(topic), qos)
 
     def _callback(self, topic):
         def cb(msg):
             self.arrivals[topic].append(time.monotonic())
-            self.sizes[topic].add(len(msg.data))
+            if hasattr(msg, 'data'):
+                self.sizes[topic].add(len(msg.data))
+            self.messages[topic] = self.messages[topic][-4:] + [msg]
         return cb
 
     def spin_until(self, condition, timeout_s):
@@ -179,15 +337,22 @@ class Counter:
         rclpy.shutdown(context=self.ctx)
 
 
+IMAGE = 'sensor_msgs/msg/Image'
+MARKERS = 'geometry_msgs/msg/PoseArray'
+
+
 def test_sensor_and_processing_chain_rates_follow_input_cap_and_cpu(python, ros_env):
-    camera = _start(python, ros_env, '--name', 'camera', '--pub', '/wl_image', '--rate-hz',
-                    '30', '--bytes', '25000')
-    light = _start(python, ros_env, '--name', 'ar_light', '--sub', '/wl_image', '--pub',
-                   '/wl_light', '--rate-hz', '10', '--bytes', '256', '--work-ms', '5')
+    """The test-bed's camera and AR, typed: Image in, marker PoseArray out."""
+    camera = _start(python, ros_env, '--name', 'camera', '--pub',
+                    f'/wl_image:{IMAGE}:176x144:mono8', '--rate-hz', '30')
+    light = _start(python, ros_env, '--name', 'ar_light', '--sub', f'/wl_image:{IMAGE}',
+                   '--pub', f'/wl_light:{MARKERS}:4', '--rate-hz', '10', '--work-ms', '5')
     # 1 s of reference work = 0.2 s of this machine's CPU per output: at most 5 Hz, cap 30 Hz.
-    heavy = _start(python, ros_env, '--name', 'ar_heavy', '--sub', '/wl_image', '--pub',
-                   '/wl_heavy', '--rate-hz', '30', '--bytes', '256', '--work-ms', '1000')
-    counter = Counter(['/wl_image', '/wl_light', '/wl_heavy'])
+    heavy = _start(python, ros_env, '--name', 'ar_heavy', '--sub', f'/wl_image:{IMAGE}',
+                   '--pub', f'/wl_heavy:{MARKERS}:2', '--rate-hz', '30', '--work-ms', '1000')
+    counter = Counter(['/wl_image', '/wl_light', '/wl_heavy'],
+                      types={'/wl_image': message_class(IMAGE), '/wl_light':
+                             message_class(MARKERS), '/wl_heavy': message_class(MARKERS)})
     try:
         counts = counter.arrivals.values()
         assert counter.spin_until(lambda: all(len(a) > 5 for a in counts), 30.0), \
@@ -197,8 +362,10 @@ def test_sensor_and_processing_chain_rates_follow_input_cap_and_cpu(python, ros_
         light_hz = counter.rate('/wl_light', 4.0)
         heavy_hz = counter.rate('/wl_heavy', 4.0)
         assert 20.0 <= image_hz <= 33.0
-        assert counter.sizes['/wl_image'] == {25000}
-        assert counter.sizes['/wl_light'] == {256}
+        assert counter.sizes['/wl_image'] == {176 * 144}
+        assert CONTENT[IMAGE](counter.messages['/wl_image'][-1])
+        assert {len(m.poses) for m in counter.messages['/wl_light']} == {4}
+        assert {len(m.poses) for m in counter.messages['/wl_heavy']} == {2}
         assert 7.0 <= light_hz <= 11.0          # the cap, not the 30 Hz input
         assert 0.5 <= heavy_hz <= 5.6           # the CPU, not the 30 Hz cap
         names = counter.node.get_node_names()
@@ -207,6 +374,61 @@ def test_sensor_and_processing_chain_rates_follow_input_cap_and_cpu(python, ros_
         counter.close()
         codes = [_stop(p) for p in (camera, light, heavy)]
     assert codes == [0, 0, 0], [p.stdout.read() for p in (camera, light, heavy)]
+
+
+def _probe_deployment(topic, type_name, rate_hz):
+    """One connection on ``topic``, probed on the declared type, in a 2 s window."""
+    return Deployment(
+        name='wl', source='test_workload',
+        scales=(Scale('here', 'master', 'robot', 100.0, 1, 1.0, 1.0, 'localhost'),), links=(),
+        nodes=(Node('pub', Launch(), 1.0), Node('sub', Launch(), 1.0)),
+        connections=(Connection('flow', topic, 'pub', 'sub', 1.0, freq_min_hz=rate_hz / 2,
+                                tolerance_s=1.0, msg_type=type_name),),
+        monitoring=MonitorSettings(probe_window_s=2.0, probe_publish_rate_hz=4.0))
+
+
+@pytest.mark.parametrize('type_name, rate_hz', [
+    ('sensor_msgs/msg/LaserScan', 10.0),
+    ('sensor_msgs/msg/Image', 30.0),
+    ('nav_msgs/msg/Odometry', 10.0),
+    ('geometry_msgs/msg/PoseWithCovarianceStamped', 5.0),
+])
+def test_a_typed_workload_is_measured_by_a_probe_and_read_by_a_deserialising_subscriber(
+        python, ros_env, type_name, rate_hz):
+    """A real workload process publishes the type at the test-bed's rate and shape; the
+    project's probe (raw, on the declared type) reads its rate and serialised size, and a
+    subscriber that deserialises every message finds the content and fresh stamps."""
+    argument, size = TESTBED_OUTPUTS[type_name]
+    topic = f'/wl_typed_{type_name.split("/")[-1].lower()}'
+    proc = _start(python, ros_env, '--name', 'wl_typed', '--pub', topic + argument[2:],
+                  '--rate-hz', str(rate_hz))
+    counter = Counter([topic], types={topic: message_class(type_name)})
+    probes = ProbeManager(counter.node, _probe_deployment(topic, type_name, rate_hz), 'here')
+    probes.set_connections(['flow'])
+    readings = []
+
+    def steady():
+        reading, _ = probes.readings(time.monotonic()).get('flow', (None, ''))
+        readings.append(reading)
+        return (reading is not None and abs(reading.rate_hz - rate_hz) <= 0.1 * rate_hz
+                and len(counter.arrivals[topic]) >= 2 * rate_hz)
+
+    try:
+        assert counter.spin_until(steady, 30.0), \
+            f'probe readings {readings[-3:]}, {len(counter.arrivals[topic])} deserialised'
+        reading = readings[-1]
+        assert reading.bytes_per_s / reading.rate_hz == pytest.approx(size, rel=1e-3)
+        assert counter.rate(topic, 2.0) == pytest.approx(rate_hz, rel=0.25)
+        received = counter.messages[topic]
+        assert all(CONTENT[type_name](m) for m in received)
+        stamps = [m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in received]
+        assert stamps == sorted(set(stamps)), 'each output is stamped anew'
+        assert abs(stamps[-1] - time.time()) < 5.0
+    finally:
+        probes.destroy()
+        counter.close()
+        code = _stop(proc)
+    assert code == 0, proc.stdout.read()
 
 
 def test_processing_stops_when_its_input_stops(python, ros_env):
@@ -416,7 +638,8 @@ def test_lifecycle_workload_works_only_while_active(python, ros_env):
         print(log)      # shown when the test fails
     assert code == 0, log
     for line in ('not valid from unconfigured', 'configured: inactive',
-                 'activated: publishing /wl_lc_out, driven by /wl_lc_in', 'deactivated:',
+                 'activated: publishing /wl_lc_out (UInt8MultiArray 64), driven by /wl_lc_in',
+                 'deactivated:',
                  'shut down (from inactive)'):
         assert line in log, log
 
@@ -473,6 +696,10 @@ def _state(node):
     (['--sub', '/wl_e_scan', '--sub', '/wl_e_map', '--pub', '/wl_e_pose'], 2, 1),
     (['--pub', '/wl_e_image', '--rate-hz', '30'], 0, 2),      # the retry and the sensor timer
     (['--pub', '/wl_e_map', '--once'], 0, 1),
+    (['--sub', '/wl_e_scan:sensor_msgs/msg/LaserScan', '--sub',
+      '/wl_e_map:nav_msgs/msg/OccupancyGrid', '--pub',
+      '/wl_e_pose:geometry_msgs/msg/PoseWithCovarianceStamped'], 2, 1),    # AMCL, typed
+    (['--pub', '/wl_e_map:nav_msgs/msg/OccupancyGrid:200x200:0.05', '--once'], 0, 1),
 ])
 def test_lifecycle_workload_has_inputs_and_timers_only_while_active(context, argv, subs,
                                                                     timers):
@@ -533,7 +760,9 @@ def test_a_failing_transition_is_logged_with_its_reason_and_leaves_nothing_behin
 
 
 def test_an_inactive_once_publisher_leaves_nothing_latched_for_late_readers(context):
-    node = LifecycleWorkloadNode(parse_spec(['--name', 'wl_lc_map', '--pub', '/wl_lc_map',
+    """map_server as a lifecycle node: its OccupancyGrid is latched only while active."""
+    node = LifecycleWorkloadNode(parse_spec(['--name', 'wl_lc_map', '--pub',
+                                             '/wl_lc_map:nav_msgs/msg/OccupancyGrid:200x200',
                                              '--once', '--lifecycle']), context=context)
     reader = rclpy.create_node('wl_lc_map_reader', context=context)
     ex = SingleThreadedExecutor(context=context)
@@ -549,7 +778,8 @@ def test_an_inactive_once_publisher_leaves_nothing_latched_for_late_readers(cont
 
     def late_reader():
         got.clear()
-        sub = reader.create_subscription(UInt8MultiArray, '/wl_lc_map', got.append, LATCHED)
+        sub = reader.create_subscription(message_class('nav_msgs/msg/OccupancyGrid'),
+                                         '/wl_lc_map', got.append, LATCHED)
         assert spin_until(lambda: node._pubs[0].get_subscription_count() == 1, 10.0)
         return sub
 
@@ -558,6 +788,7 @@ def test_an_inactive_once_publisher_leaves_nothing_latched_for_late_readers(cont
         node.trigger_activate()
         sub = late_reader()
         assert spin_until(lambda: got, 10.0), 'the active copy latched nothing'
+        assert CONTENT['nav_msgs/msg/OccupancyGrid'](got[0])
         reader.destroy_subscription(sub)
         node.trigger_deactivate()
         late_reader()

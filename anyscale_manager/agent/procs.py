@@ -128,6 +128,20 @@ def create_time(pid: int) -> Optional[float]:
         return None
 
 
+def reap(pid: int) -> Optional[Tuple[bool, Optional[int]]]:
+    """For a child of this process: (True, its return code as Popen gives it) once it has
+    ended, collecting it; (False, None) while it has not (a multi-threaded process killed is
+    collectable only once all its threads are gone). None when ``pid`` is not a child of ours
+    (a process adopted from an agent that was killed is init's child)."""
+    try:
+        got, status = os.waitpid(pid, os.WNOHANG)
+    except ChildProcessError:
+        return None
+    if got == 0:
+        return False, None
+    return True, os.waitstatus_to_exitcode(status)
+
+
 def alive(pid: int, started: float) -> bool:
     """The process with this pid and start time is alive (not a zombie)."""
     try:

@@ -23,11 +23,13 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Callable, Dict, Iterable, List, Mapping, Optional, Tuple
 
-from . import procs
+from . import procs, shm
 from .catalogue import ENV_INSTANCE, Entry
 from ..model.types import AgentSettings
 
 STATE_VERSION = 1
+# A state file records a few lines per node: anything much larger is not one of ours.
+MAX_STATE_BYTES = 1 << 20
 LOG_ROTATE_BYTES = 10 * 1024 * 1024
 ACTIVE = ('starting', 'running', 'stopping')
 
@@ -83,6 +85,8 @@ class Supervisor:
         self._ghosts: Dict[str, _Proc] = {}       # adopted, not in the catalogue: being stopped
         self.events: List[Tuple[str, str]] = []   # (level, text), drained by the caller
         self._dirty = False
+        self._save_failures = 0                   # writes of the state file failed in a row
+        self.shm_dir = shm.SHM_DIR                # where Fast DDS keeps its port files
 
     # --- queries --------------------------------------------------------------------------
     @property
@@ -278,16 +282,26 @@ class Supervisor:
             p.restart_at = now + self.settings.restart_backoff_max_s
             self._event('error', f'{entry.name}: cannot start: {p.exit_reason}')
             return
+        # A port file left empty by a participant killed while starting would hang this one
+        # in rclpy.init() (agent/shm.py): cleared before every start.
+        shm.remove_broken_port_files(self.shm_dir, say=lambda text: self._event('warn', text))
         p.instance = uuid.uuid4().hex
         env = dict(entry.env)
         env[ENV_INSTANCE] = p.instance
+        log = None
         try:
             log = self._open_log(p)
-        except OSError as e:
-            self._spawn_failed(p, now, f'cannot open log file {self.log_path(entry.name)}: {e}')
-            return
-        try:
             log.write(f'--- {entry.name}: starting {" ".join(entry.argv)}\n'.encode())
+        except OSError as e:
+            # An unwritable log folder or a full disk must not keep a node from serving.
+            if log is not None:
+                log.close()
+                log = None
+            p.log_path = os.devnull
+            self._event('error', f'{entry.name}: cannot write its log file '
+                                 f'{self.log_path(entry.name)} ({e.strerror or e}); starting it '
+                                 'with its output discarded')
+        try:
             # start_new_session: its own session and process group, away from the agent's
             # terminal, so a Ctrl-C meant for the agent does not reach it and the group can be
             # signalled as one.
@@ -298,13 +312,15 @@ class Supervisor:
             if self.settings.node_nice:
                 argv = ['nice', '-n', str(self.settings.node_nice)] + argv
             p.popen = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL,
-                                       stdout=log, stderr=subprocess.STDOUT,
+                                       stdout=subprocess.DEVNULL if log is None else log,
+                                       stderr=subprocess.STDOUT,
                                        start_new_session=True, close_fds=True)
         except OSError as e:
             self._spawn_failed(p, now, f'cannot start {entry.argv[0]}: {e.strerror or e}')
             return
         finally:
-            log.close()
+            if log is not None:
+                log.close()
         p.pid = p.popen.pid
         p.started = procs.create_time(p.pid) or 0.0
         p.adopted = False
@@ -337,6 +353,12 @@ class Supervisor:
             return code, code is not None
         if not p.pid:
             return None, True
+        # An adopted process is still our child when this agent re-executed itself (a restart
+        # in place): it is gone once reaped, and then its exit status is known.
+        reaped = procs.reap(p.pid)
+        if reaped is not None:
+            ended, code = reaped
+            return code, ended
         return None, not procs.alive(p.pid, p.started)
 
     def _crashed(self, p: _Proc, now: float, code: Optional[int]) -> None:
@@ -387,11 +409,30 @@ class Supervisor:
                                'argv': list(p.entry.argv), 'restarts': p.restarts,
                                'stopping': p.state == 'stopping'}
         data = dict(self.identity, version=STATE_VERSION, agent_pid=os.getpid(), nodes=nodes)
-        os.makedirs(os.path.dirname(self.state_path) or '.', exist_ok=True)
         tmp = f'{self.state_path}.{os.getpid()}.tmp'
-        with open(tmp, 'w', encoding='utf-8') as f:
-            json.dump(data, f, indent=1, sort_keys=True)
-        os.replace(tmp, self.state_path)
+        try:
+            os.makedirs(os.path.dirname(self.state_path) or '.', exist_ok=True)
+            with open(tmp, 'w', encoding='utf-8') as f:
+                json.dump(data, f, indent=1, sort_keys=True)
+            os.replace(tmp, self.state_path)
+        except OSError as e:
+            # What runs keeps running; only a restarted agent would not adopt it. Said once,
+            # retried at every step until it works.
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            self._dirty = True
+            self._save_failures += 1
+            if self._save_failures == 1:
+                self._event('error', f'cannot write the state file {self.state_path} '
+                                     f'({e.strerror or e}); the nodes keep running, but an agent '
+                                     'restarted now would not adopt them')
+            return
+        if self._save_failures:
+            self._event('info', f'state file {self.state_path} written again (after '
+                                f'{self._save_failures} failed writes)')
+            self._save_failures = 0
 
     def adopt(self, now: float, wall_now: float) -> List[str]:
         """Take over the nodes a previous agent recorded; return what was done, in words.
@@ -405,12 +446,31 @@ class Supervisor:
             return notes
         try:
             with open(self.state_path, encoding='utf-8') as f:
-                data = json.load(f)
-            nodes = data['nodes']
-            if data.get('version') != STATE_VERSION or not isinstance(nodes, dict):
-                raise ValueError('unknown version')
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            notes.append(f'state file {self.state_path} unreadable ({e}); adopting nothing')
+                text = f.read(MAX_STATE_BYTES + 1)
+            if len(text) > MAX_STATE_BYTES:
+                raise ValueError(f'over {MAX_STATE_BYTES} bytes')
+            data = json.loads(text)
+            if not isinstance(data, dict):
+                raise ValueError('not a JSON object')
+            if data.get('version') != STATE_VERSION:
+                raise ValueError(f'version {str(data.get("version"))[:20]}, this agent reads '
+                                 f'version {STATE_VERSION}')
+            nodes = data.get('nodes')
+            if not isinstance(nodes, dict):
+                raise ValueError('no map of nodes')
+        except OSError as e:
+            notes.append(f'state file {self.state_path} unreadable ({e.strerror or e}); '
+                         'adopting nothing')
+            return notes
+        except (ValueError, RecursionError) as e:
+            # Kept aside for a person to read: the next save would overwrite it.
+            aside = self.state_path + '.unreadable'
+            try:
+                os.replace(self.state_path, aside)
+            except OSError:
+                aside = ''
+            notes.append(f'state file {self.state_path} unreadable ({str(e)[:200]}); adopting '
+                         f'nothing{f", kept as {aside}" if aside else ""}')
             return notes
         for k in ('deployment', 'scale'):
             if k in self.identity and data.get(k) != self.identity[k]:
@@ -422,8 +482,8 @@ class Supervisor:
                 pid, started, instance = int(rec['pid']), float(rec['started']), \
                     str(rec['instance'])
                 argv = tuple(str(a) for a in rec['argv'])
-            except (KeyError, TypeError, ValueError):
-                notes.append(f'{name}: malformed state record; ignored')
+            except (KeyError, TypeError, ValueError, OverflowError):
+                notes.append(f'{name[:60]}: malformed state record; ignored')
                 continue
             if pid <= 1 or not procs.alive(pid, started):
                 notes.append(f'{name}: recorded pid {pid} is gone')
@@ -463,7 +523,8 @@ class Supervisor:
         if rec.get('standby'):
             # Recorded frozen (SIGSTOP) by an agent of an earlier version: it must run to stop.
             procs.signal_session(pid, signal.SIGCONT, procs.descendants(pid))
-        p.restarts = int(rec.get('restarts', 0)) if str(rec.get('restarts', 0)).isdigit() else 0
+        restarts = rec.get('restarts', 0)
+        p.restarts = restarts if isinstance(restarts, int) and 0 <= restarts < 2 ** 31 else 0
         p.backoff_s = self.settings.restart_backoff_s
         p.ready_deadline = now + self.settings.readiness_timeout_s
         self._set(p, 'starting', now, ready=False, reason='')

@@ -481,9 +481,23 @@ def _read_connection(name: str, sec: _Section) -> t.Connection:
         sec.ctx.error(sec.sub('freq_opt_hz'), f'{c.freq_opt_hz} is below freq_min_hz '
                                               f'{c.freq_min_hz}')
     if c.msg_type and not re.match(r'^[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+$', c.msg_type):
-        sec.ctx.error(sec.sub('msg_type'), f'expected package/msg/Type, got {c.msg_type!r}')
+        sec.ctx.error(sec.sub('msg_type'), f'expected package/msg/Type, got {c.msg_type!r}'
+                                           f'{_msg_type_hint(c.msg_type)}')
     sec.done()
     return c
+
+
+def _msg_type_hint(text: str) -> str:
+    """What a malformed msg_type was probably meant to be: ROS 1's pkg/Type, a service or
+    action type (a topic carries messages), or a C++/Python spelling."""
+    parts = re.split(r'/|::|\.', text.strip('/'))
+    if len(parts) == 2 and all(re.match(r'^[A-Za-z0-9_]+$', x) for x in parts):
+        return f' (did you mean {parts[0]}/msg/{parts[1]}?)'
+    if len(parts) == 3 and all(re.match(r'^[A-Za-z0-9_]+$', x) for x in parts):
+        if parts[1] in ('srv', 'action'):
+            return f' (a topic carries messages: {parts[1]} types have no topic of their own)'
+        return f' (did you mean {parts[0]}/msg/{parts[2]}?)'
+    return ''
 
 
 def _unknown(ctx: _Context, path: str, kind: str, name: Any, known) -> None:

@@ -33,6 +33,7 @@ from std_msgs.msg import String
 from . import qos
 from .executor import make_executor
 from .lifecycle_client import CopyClients
+from .throttled_log import ThrottledLog
 from .. import protocol
 from .. import protocol_auth as auth
 from ..agent import lifecycle as lc
@@ -54,6 +55,8 @@ TICK_S = 0.1
 # old copy is seen gone here (and reported) before the other scale starts the new one.
 STOPPING_TICK_S = 0.02
 SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
+# A layout that names unknown nodes or scales is logged entry by entry up to this many.
+MAX_LAYOUT_WARNINGS = 5
 UNSIGNED = ('layouts are not signed and anyone on this ROS domain can move or stop the nodes '
             'of this scale (anyscale-manager keygen; docs/decider.md, security)')
 
@@ -131,6 +134,7 @@ class AgentNode(Node):
         self._objective_gate = auth.Gate(key, d.security.replay_window_s)
         self._instance = secrets.token_hex(8)
         self._seq = 0
+        self._bad = ThrottledLog(self.get_logger())    # bad input: one line per kind and 10 s
         self._follower = Follower(d.decider.lease_s)
         state_dir = self.settings.state_dir or os.path.join(_ros_home(), 'anyscale_manager')
         log_root = self.settings.log_dir or os.path.join(
@@ -162,8 +166,12 @@ class AgentNode(Node):
         self._finalize_since: Dict[str, float] = {}
         self._wall_offset = time.time() - time.monotonic()
         for note in self.supervisor.adopt(time.monotonic(), time.time()):
-            self.get_logger().info(f'adoption: {note}')
+            if note.startswith('state file'):       # unreadable, or not this agent's
+                self.get_logger().warn(f'adoption: {note}')
+            else:
+                self.get_logger().info(f'adoption: {note}')
         self._shutdown_requested = 0
+        self.restarting = False
         self._shutdown_at = 0.0
         self._probe_names: Optional[tuple] = None
         self._published_view: Dict[str, tuple] = {}
@@ -193,8 +201,15 @@ class AgentNode(Node):
 
     def _take_lock(self, path: str) -> None:
         """One agent per scale and machine: a second one would start every node twice."""
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        f = open(path, 'a+')
+        try:
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            f = open(path, 'a+')
+        except OSError as e:
+            # Without its lock and state file an agent could start every node twice, or lose
+            # track of them when it restarts: it starts nothing.
+            raise AgentError(f'cannot use the state folder {os.path.dirname(path)} (lock '
+                             f'{path}): {e.strerror or e}; set agent.state_dir to a writable '
+                             'folder') from None
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -202,15 +217,21 @@ class AgentNode(Node):
             raise AgentError(f'another agent for scale {self.scale!r} of '
                              f'{self.deployment.name!r} runs on this machine (it holds {path}); '
                              'not starting a second one') from None
-        f.seek(0)
-        f.truncate()
-        f.write(f'{os.getpid()}\n')
-        f.flush()
+        try:
+            f.seek(0)
+            f.truncate()
+            f.write(f'{os.getpid()}\n')
+            f.flush()
+        except OSError:
+            pass        # the pid is for people (a full disk); the lock is the flock
         self._lock_file = f
 
     def _release_lock(self) -> None:
         if self._lock_file is not None:
-            self._lock_file.close()
+            try:
+                self._lock_file.close()
+            except OSError:
+                pass    # its pid line could not be flushed (a full disk); closed all the same
             self._lock_file = None
 
     def _start_monitors(self) -> None:
@@ -250,18 +271,18 @@ class AgentNode(Node):
         try:
             layout = protocol.Layout.from_json(msg.data, protocol.TOPIC_LAYOUT)
         except protocol.ProtocolError as e:
-            self.get_logger().error(f'ignored a layout message: {e}')
+            self._bad.error('layout: malformed', f'ignored a layout message: {e}')
             return
         if layout.deployment != self.deployment.name:
-            self.get_logger().warn(f'ignored a layout of deployment {layout.deployment!r:.60}, '
-                                   f'not {self.deployment.name!r}', throttle_duration_sec=30.0)
+            self._bad.warn('layout: another deployment',
+                           f'ignored a layout of deployment {layout.deployment!r:.60}, not '
+                           f'{self.deployment.name!r}', interval_s=60.0)
             return
         now = time.monotonic()
         why = self._gate.check(msg.data, layout, time.time())
         if why:
-            self.get_logger().error(f'dropped layout generation {layout.generation} of decider '
-                                    f'{describe(layout.decider)}: {why}',
-                                    throttle_duration_sec=10.0)
+            self._bad.error('layout: refused', f'dropped layout generation {layout.generation} '
+                            f'of decider {describe(layout.decider)}: {why}')
             return
         follow = self._follower.consider(layout.decider, now)
         if not follow.accept:
@@ -272,8 +293,12 @@ class AgentNode(Node):
         if not follow.switched and layout.generation == self.reconciler.generation:
             return      # the followed decider's re-publication: its lease, nothing new
         verdict = self.reconciler.apply_layout(layout, now, new_decider=follow.switched)
-        for w in verdict.warnings:
+        for w in verdict.warnings[:MAX_LAYOUT_WARNINGS]:
             self.get_logger().warn(w)
+        if len(verdict.warnings) > MAX_LAYOUT_WARNINGS:
+            self.get_logger().warn(f'layout generation {layout.generation}: '
+                                   f'{len(verdict.warnings) - MAX_LAYOUT_WARNINGS} more entries '
+                                   'ignored (not listed)')
         if verdict.applied:
             mine = sorted(n for n, s in self.reconciler.assignments.items() if s == self.scale)
             self.get_logger().info(f'layout generation {layout.generation} applied '
@@ -287,19 +312,19 @@ class AgentNode(Node):
         try:
             state = protocol.AgentState.from_json(msg.data, protocol.TOPIC_AGENT_STATE)
         except protocol.ProtocolError as e:
-            self.get_logger().warn(f'ignored an agent state message: {e}')
+            self._bad.warn('agent_state: malformed', f'ignored an agent state message: {e}')
             return
         if state.scale == self.scale and state.instance == self._instance:
             return                                      # our own report
         why = self._state_gate.check_from(msg.data, f'{state.scale}/{state.instance}',
                                           state.seq, state.stamp, time.time())
         if why:
-            self.get_logger().error(f'dropped an agent state claiming scale '
-                                    f'{state.scale!r:.60}: {why}', throttle_duration_sec=10.0)
+            self._bad.error('agent_state: refused', f'dropped an agent state claiming scale '
+                            f'{state.scale!r:.60}: {why}')
             return
         warning = self.reconciler.peer_state(state, time.monotonic())
         if warning:
-            self.get_logger().warn(warning)
+            self._bad.warn('agent_state: not a peer', warning)
         elif state.scale != self.scale:
             self._tick()
 
@@ -307,14 +332,12 @@ class AgentNode(Node):
         try:
             objective = protocol.Objective.from_json(msg.data, protocol.TOPIC_OBJECTIVE)
         except protocol.ProtocolError as e:
-            self.get_logger().warn(f'ignored an objective message: {e}',
-                                   throttle_duration_sec=10.0)
+            self._bad.warn('objective: malformed', f'ignored an objective message: {e}')
             return
         why = self._objective_gate.check_from(msg.data, objective.decider, objective.seq,
                                               objective.stamp, time.time())
         if why:
-            self.get_logger().error(f'dropped an objective message: {why}',
-                                    throttle_duration_sec=10.0)
+            self._bad.error('objective: refused', f'dropped an objective message: {why}')
             return
         self.reconciler.heard_master(time.monotonic())
 
@@ -350,6 +373,7 @@ class AgentNode(Node):
     def _tick(self) -> None:
         now = time.monotonic()
         sup = self.supervisor
+        self._bad.flush()
         probes = getattr(self, '_probes', None)
         if probes is not None:
             probes.poll_writers(now)
@@ -361,6 +385,12 @@ class AgentNode(Node):
             goals = {n: lc.ACTIVE if n in want else
                      lc.INACTIVE if n in self.reconciler.standby_here else lc.FINALIZED
                      for n in self._lifecycle}
+            if not self.reconciler.has_layout:
+                # Before the first layout (a restarted agent adopting its copies): a live copy
+                # keeps the state it reports, active or not, until the layout says otherwise.
+                live = {n for n in self._lifecycle if sup.state(n) in ('starting', 'running')}
+                goals.update({n: None for n in live})
+                want |= live
             want |= {n for n, g in goals.items() if g == lc.INACTIVE}
             waiting = self.reconciler.waiting
             for node, why in waiting.items():
@@ -521,6 +551,16 @@ class AgentNode(Node):
             self.get_logger().warn('second shutdown request: killing every node now')
             self.supervisor.kill_all(now)
 
+    def request_restart(self) -> None:
+        """SIGHUP: restart in place, leaving every node running (``main`` re-executes the
+        agent, which adopts them from the state file)."""
+        if self._shutdown_requested:
+            self.get_logger().warn('restart requested while shutting down: ignored')
+            return
+        self.get_logger().info('restarting in place: the nodes of this scale keep running and '
+                               'are adopted by the new agent process (same pid)')
+        self.restarting = True
+
     @property
     def finished(self) -> bool:
         return bool(self._shutdown_requested) and self.supervisor.all_stopped()
@@ -586,6 +626,7 @@ def main(args: Optional[List[str]] = None) -> int:
         return 2
     node = None
     early = []
+    restart = []
 
     def on_signal(signum, frame):
         if node is None:
@@ -593,8 +634,14 @@ def main(args: Optional[List[str]] = None) -> int:
         else:
             node.request_shutdown()
 
+    def on_restart(signum, frame):
+        restart.append(signum)
+        if node is not None:
+            node.request_restart()
+
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGHUP, on_restart)
     try:
         try:
             node = AgentNode(scale)
@@ -603,9 +650,11 @@ def main(args: Optional[List[str]] = None) -> int:
             return 2
         for _ in early[:2]:
             node.request_shutdown()
+        if restart:
+            node.request_restart()
         executor = make_executor()
         executor.add_node(node)
-        while rclpy.ok() and not node.finished:
+        while rclpy.ok() and not node.finished and not node.restarting:
             try:
                 executor.spin_once(timeout_sec=TICK_S)
             except (KeyboardInterrupt, ExternalShutdownException):
@@ -619,11 +668,42 @@ def main(args: Optional[List[str]] = None) -> int:
         pass
     finally:
         if node is not None:
-            s = node.settings
-            node.finish_offline(s.sigint_grace_s + s.sigterm_grace_s + 5.0)
+            if node.restarting:
+                try:
+                    node.supervisor.save()   # what runs now, for the new process to adopt
+                except OSError as e:         # the last start or stop recorded it already
+                    node.get_logger().error(f'cannot update the state file: {e}')
+            else:
+                s = node.settings
+                node.finish_offline(s.sigint_grace_s + s.sigterm_grace_s + 5.0)
             node.destroy_node()
         rclpy.try_shutdown()
+    if node is not None and node.restarting:
+        restart_in_place()
     return 0
+
+
+def restart_in_place() -> None:
+    """Replace this process with a new agent: same pid, same command line, the code installed
+    now. The nodes stay its children (in sessions of their own) and the new agent adopts them
+    from the state file; ``systemctl reload`` with ``ExecReload=/bin/kill -HUP $MAINPID``
+    (docs/agent.md)."""
+    # Nothing of this process but stdin, stdout and stderr may reach the new one: a DDS socket
+    # or lock file kept open would look like a live participant to the others.
+    for entry in os.listdir('/proc/self/fd'):
+        fd = int(entry)
+        if fd > 2:
+            try:
+                os.set_inheritable(fd, False)
+            except OSError:
+                pass                 # the listing's own descriptor, already closed
+    # A second SIGHUP before the new process has its handler would end it (the default
+    # action): ignored until then (an ignored signal stays ignored across exec).
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    argv = list(getattr(sys, 'orig_argv', None) or [sys.executable] + sys.argv)
+    os.execv(sys.executable, argv)
 
 
 if __name__ == '__main__':

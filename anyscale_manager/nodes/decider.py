@@ -24,6 +24,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from . import qos
+from .throttled_log import ThrottledLog
 from .. import protocol as p
 from .. import protocol_auth as auth
 from ..agent.reconcile import MAX_GENERATION_STEP
@@ -34,6 +35,7 @@ from ..runtime.constraints import ConstraintReport
 from ..runtime.cost import CostIntegrator
 from ..runtime.intake import ObservationBook
 from ..runtime.layout import LayoutError, adopt, initial_plan
+from ..runtime.liveness import LivenessWatch
 from ..runtime.plan_check import check_plan, expectations
 from ..runtime.policy import MigrationPolicy
 from ..runtime.rivals import RivalWatch
@@ -121,6 +123,8 @@ class DeciderNode(Node):
         self.started = started
         self.book = ObservationBook(self.deployment, self.settings, started)
         self.policy = MigrationPolicy(self.deployment, self.settings)
+        # Silent agents, lost scales and nodes with nowhere to go: said when they change.
+        self.liveness = LivenessWatch(self.deployment, self.settings)
         self.cost = CostIntegrator(self.deployment)
         self.expected = expectations(self.deployment, self.placements)
         self.generation = 0
@@ -129,6 +133,7 @@ class DeciderNode(Node):
         self._active: Set[Tuple[str, str]] = set()    # (kind, subject) violations announced
         self._said: Set[str] = set()                  # warnings and notes announced
         self._rejected = 0
+        self._bad = ThrottledLog(self.get_logger())   # bad input: one line per kind and 10 s
         self._links_up: Dict[str, bool] = {}     # remote scale -> last reported up
         self._link_lost = False
         self._decisions = 0
@@ -219,6 +224,7 @@ class DeciderNode(Node):
         old, self.settings = self.settings, new
         self.policy.update_settings(new)
         self.book.settings = new
+        self.liveness.settings = new
         if new.period_s != old.period_s:
             self.timer.cancel()
             self.destroy_timer(self.timer)
@@ -257,12 +263,11 @@ class DeciderNode(Node):
             handle(decoded, self._now())
         except (p.ProtocolError, ValueError, KeyError, TypeError) as e:
             self._rejected += 1
-            self.get_logger().warning(f'ignored a message on {topic}: {e}',
-                                      throttle_duration_sec=5.0)
+            self._bad.warn(topic, f'ignored a message on {topic}: {e}')
         except Exception as e:  # noqa: B902 - a message must never stop the decider
             self._rejected += 1
-            self.get_logger().error(f'ignored a message on {topic} ({type(e).__name__}: {e})',
-                                    throttle_duration_sec=5.0)
+            self._bad.error(topic + ': failed',
+                            f'ignored a message on {topic} ({type(e).__name__}: {e})')
 
     def _on_agent_state(self, msg: String) -> None:
         self._intake(msg, p.AgentState, p.TOPIC_AGENT_STATE,
@@ -295,27 +300,31 @@ class DeciderNode(Node):
             layout = p.Layout.from_json(msg.data, p.TOPIC_LAYOUT)
         except p.ProtocolError as e:
             self._rejected += 1
-            self.get_logger().warning(f'ignored a malformed layout: {e}',
-                                      throttle_duration_sec=10.0)
+            self._bad.warn('layout: malformed', f'ignored a malformed layout: {e}')
             return
         if layout.decider is not None and layout.decider.id == self.identity.id:
             return                                  # our own
         self._layouts_heard += 1
         if layout.deployment != self.deployment.name:
-            return                                  # another deployment's decider
+            # Another deployment's decider on this domain: harmless, said once a minute.
+            self._bad.warn('layout: another deployment',
+                           f'ignored a layout of deployment {layout.deployment!r:.60}, not '
+                           f'{self.deployment.name!r} (deployments should not share a ROS '
+                           'domain)', interval_s=60.0)
+            return
         why = self.gate.check(msg.data, layout, time.time())
         if why:
             self._rejected += 1
-            self.get_logger().warning(f'ignored a layout claiming to be of this deployment '
-                                      f'(generation {layout.generation}): {why}',
-                                      throttle_duration_sec=10.0)
+            self._bad.warn('layout: refused', f'ignored a layout claiming to be of this '
+                           f'deployment (generation {layout.generation}): {why}')
             return
         if layout.decider is None:
             self._rejected += 1
-            self.get_logger().warning(
+            self._bad.warn(
+                'layout: anonymous',
                 f'ignored a layout of this deployment without a decider identity (generation '
                 f'{layout.generation}: an older decider or a plain script); agents that '
-                'follow this decider ignore it too', throttle_duration_sec=10.0)
+                'follow this decider ignore it too')
             return
         now = self._now()
         self.rivals.heard(layout.decider, layout.seq, layout.stamp, now)
@@ -379,6 +388,7 @@ class DeciderNode(Node):
         return True
 
     def _tick(self) -> None:
+        self._bad.flush()
         try:
             if not self._discovered(self._now()):
                 return
@@ -411,7 +421,17 @@ class DeciderNode(Node):
                 self._event(d.kind, d.node, d.from_scale, d.to_scale, d.reason)
                 self.get_logger().info(f'{d.kind} {d.node} {d.from_scale} -> {d.to_scale}: '
                                        f'{d.reason}')
-        self._announce(report, obs.lost_scales)
+        self._announce(report)
+        for n in self.liveness.update(obs, self.policy.unplaceable, report, self.layout):
+            self._event(n.kind, n.node, n.scale, '', n.text)
+            log = self.get_logger()
+            # rclpy refuses one call site with changing severities: one call per level.
+            if n.level == 'error':
+                log.error(n.text)
+            elif n.level == 'warn':
+                log.warning(n.text)
+            else:
+                log.info(n.text)
 
         cpu_by_node: Dict[str, float] = {}
         for so in obs.scales.values():
@@ -437,11 +457,13 @@ class DeciderNode(Node):
         if report is not None and report.violations:
             level, message = p.WARN, f'{len(report.violations)} violation(s): ' + \
                 report.violations[0].reason
-        if obs.lost_scales:
-            level, message = p.WARN, 'lost: ' + ', '.join(sorted(obs.lost_scales))
+        live_level, live_message = self.liveness.summary()
+        if live_level != p.OK:
+            # A silent agent or a node with nowhere to go says more than a violation it causes.
+            level, message = live_level, live_message
         self._diagnostics(level, message, perf, integral, len(obs.running))
 
-    def _announce(self, report: Optional[ConstraintReport], lost) -> None:
+    def _announce(self, report: Optional[ConstraintReport]) -> None:
         """Events for violations as they appear and clear, and for new notes (not each turn)."""
         active = set()
         if report is not None:
@@ -453,9 +475,6 @@ class DeciderNode(Node):
         for kind, subject in sorted(self._active - active):
             self._event('cleared', '', '', '', f'{kind} on {subject} holds again')
         self._active = active
-        for scale in sorted(lost):
-            self._say_once(f'scale {scale} lost: its agent has been silent for more than '
-                           f'{self.settings.agent_timeout_s:g} s', kind='scale_lost')
         for note in self.policy.notes:
             self._say_once(note, kind='note')
 
@@ -505,6 +524,8 @@ class DeciderNode(Node):
         values = {
             'generation': self.generation, 'nodes running': running,
             'lost scales': ', '.join(sorted(self.book.lost_scales(self._now()))),
+            'silent agents': ', '.join(sorted(self.liveness.silent_since)),
+            'cannot be placed': ', '.join(sorted(self.liveness.unplaceable)),
             'migrated': ', '.join(f'{n}@{s}' for n, s in self.policy.migrated),
             'decisions': self._decisions, 'messages ignored': self._rejected,
             'perf_map': round(perf, 3), 'perf integral': round(integral, 3),

@@ -1,7 +1,11 @@
 """A stand-in for one node of a robot application: its topics, rates, message sizes and CPU.
 
 Entry point ``workload`` (``ros2 run anyscale_manager workload --name amcl --sub /scan ...``).
-Every message is a std_msgs/msg/UInt8MultiArray of ``--bytes`` bytes.
+Each output names its message type and shape, ``--pub /scan:sensor_msgs/msg/LaserScan:682``, and
+is filled with plausible content of that type (``workload_messages.py``: a laser scan, a camera
+image, odometry, a pose with covariance, a map, ...); each input names the type it subscribes
+to, ``--sub /scan:sensor_msgs/msg/LaserScan``. Without a type both are
+std_msgs/msg/UInt8MultiArray, of ``--bytes`` bytes for an output.
 
 - A sensor (no ``--sub``) publishes at ``--rate-hz``; with ``--once`` it publishes one latched
   message (a map, an initial pose) and then just stays up.
@@ -28,30 +32,38 @@ import signal
 import sys
 import time
 from dataclasses import dataclass
-from typing import Callable, List, Optional, Sequence
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.utilities import remove_ros_args
-from std_msgs.msg import UInt8MultiArray
+
+from .workload_messages import (DEFAULT_TYPE, MAX_BYTES, Endpoint, EndpointError,
+                                build_message, message_class, parse_endpoint, stamper)
 
 REFERENCE_CORE = 0.3      # one reference (robot) core as a fraction of one core of this machine
-MAX_BYTES = 16 * 1024 * 1024
 
 
 @dataclass(frozen=True)
 class WorkloadSpec:
     name: str
-    pubs: tuple
-    subs: tuple
+    outputs: Tuple[Endpoint, ...]
+    inputs: Tuple[Endpoint, ...]
     rate_hz: float
-    bytes: int
     work_ms: float
     once: bool
     reference_core: float
     lifecycle: bool = False
+
+    @property
+    def pubs(self) -> Tuple[str, ...]:
+        return tuple(e.topic for e in self.outputs)
+
+    @property
+    def subs(self) -> Tuple[str, ...]:
+        return tuple(e.topic for e in self.inputs)
 
     @property
     def is_sensor(self) -> bool:
@@ -89,26 +101,24 @@ def _non_negative(kind: str, integer: bool = False, limit: float = float('inf'))
     return parse
 
 
-def _topic(text: str) -> str:
-    if not text or any(c.isspace() for c in text):
-        raise argparse.ArgumentTypeError(f'bad topic name {text!r}')
-    return text
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog='workload',
         description='Publish and subscribe like one node of a robot application, with real '
                     'CPU work per output.')
     p.add_argument('--name', required=True, help='the ROS node name')
-    p.add_argument('--pub', action='append', type=_topic, default=[], metavar='TOPIC',
-                   help='topic to publish (repeatable)')
-    p.add_argument('--sub', action='append', type=_topic, default=[], metavar='TOPIC',
-                   help='topic to subscribe (repeatable); the first one drives the outputs')
+    p.add_argument('--pub', action='append', default=[], metavar='TOPIC[:TYPE[:SHAPE]]',
+                   help='topic to publish (repeatable), with its message type (pkg/msg/Type, '
+                        f'default {DEFAULT_TYPE}) and shape (BEAMS of a LaserScan, '
+                        'WIDTHxHEIGHT:ENCODING of an Image, ...: see workload_messages.py)')
+    p.add_argument('--sub', action='append', default=[], metavar='TOPIC[:TYPE]',
+                   help='topic to subscribe (repeatable), with its message type; the first '
+                        'one drives the outputs')
     p.add_argument('--rate-hz', type=_positive('--rate-hz'), default=10.0,
                    help='publishing rate of a sensor; the cap of a processing node')
-    p.add_argument('--bytes', type=_non_negative('--bytes', True, MAX_BYTES), default=64,
-                   help='payload size of each message')
+    p.add_argument('--bytes', type=_non_negative('--bytes', True, MAX_BYTES), default=None,
+                   help=f'payload size of the {DEFAULT_TYPE} outputs without a shape of '
+                        'their own (default 64)')
     p.add_argument('--work-ms', type=_non_negative('--work-ms', limit=60000.0), default=0.0,
                    help='CPU work per output, in ms of one reference core')
     p.add_argument('--once', action='store_true',
@@ -134,8 +144,19 @@ def parse_spec(argv: Sequence[str]) -> WorkloadSpec:
     if a.once and a.sub:
         parser.error('--once is for publishers of one message; it cannot be combined '
                      'with --sub')
-    return WorkloadSpec(name=a.name, pubs=tuple(a.pub), subs=tuple(a.sub), rate_hz=a.rate_hz,
-                        bytes=a.bytes, work_ms=a.work_ms, once=a.once,
+    endpoints = {'--pub': [], '--sub': []}
+    for option, texts in (('--pub', a.pub), ('--sub', a.sub)):
+        for text in texts:
+            try:
+                endpoints[option].append(parse_endpoint(text, option == '--pub', a.bytes))
+            except EndpointError as e:
+                parser.error(f'{option} {text}: {e}')
+    outputs = tuple(endpoints['--pub'])
+    if a.bytes is not None and all(e.msg_type != DEFAULT_TYPE for e in outputs):
+        parser.error(f'--bytes sizes {DEFAULT_TYPE} outputs and this node has none: give '
+                     'the shape of a typed output after its type (--pub TOPIC:TYPE:SHAPE)')
+    return WorkloadSpec(name=a.name, outputs=outputs, inputs=tuple(endpoints['--sub']),
+                        rate_hz=a.rate_hz, work_ms=a.work_ms, once=a.once,
                         reference_core=a.reference_core, lifecycle=a.lifecycle)
 
 
@@ -244,8 +265,10 @@ class WorkloadBehaviour:
     def _init_behaviour(self, spec: WorkloadSpec, clock: Callable[[], float]) -> None:
         self.spec = spec
         self._now = clock
-        self._msg = UInt8MultiArray()
-        self._msg.data = bytes(spec.bytes)
+        # Built once: a real driver's data arrives ready-made; only the stamp changes.
+        self._msgs = [build_message(e) for e in spec.outputs]
+        self._stampers = [stamper(e) for e in spec.outputs]
+        self._stamped = any(self._stampers)
         self.outputs = 0
         self.inputs = {topic: 0 for topic in spec.subs}
         self.checksum = 0
@@ -257,15 +280,17 @@ class WorkloadBehaviour:
 
     def describe(self) -> str:
         spec = self.spec
-        return (f'publishing {", ".join(spec.pubs) or "nothing"}'
+        return (f'publishing {", ".join(e.describe() for e in spec.outputs) or "nothing"}'
                 + (f', driven by {spec.subs[0]}' if spec.subs else '')
                 + (f', {spec.work_ms:g} ms of reference CPU work per output'
                    if spec.work_ms else ''))
 
     def _subscribe_inputs(self) -> list:
-        return [self.create_subscription(UInt8MultiArray, topic, self._make_callback(topic),
-                                         subscriber_qos(), raw=True)
-                for topic in self.spec.subs]
+        # Raw: a workload's output depends on an input's arrival, not on its content.
+        return [self.create_subscription(message_class(e.msg_type), e.topic,
+                                         self._make_callback(e.topic), subscriber_qos(),
+                                         raw=True)
+                for e in self.spec.inputs]
 
     def _make_callback(self, topic: str):
         driving = topic == self.spec.subs[0]
@@ -298,8 +323,13 @@ class WorkloadBehaviour:
         self._maybe_produce()
 
     def _publish(self) -> None:
-        for pub in self._pubs:
-            pub.publish(self._msg)
+        if self._stamped:
+            now = self.get_clock().now().to_msg()
+            for msg, stamp in zip(self._msgs, self._stampers):
+                if stamp is not None:
+                    stamp(msg, now)
+        for pub, msg in zip(self._pubs, self._msgs):
+            pub.publish(msg)
         self.outputs += 1
         if not self._first_output_logged:
             self._first_output_logged = True
@@ -313,8 +343,9 @@ class WorkloadNode(WorkloadBehaviour, Node):
                  **kwargs):
         super().__init__(spec.name, **kwargs)
         self._init_behaviour(spec, clock)
-        self._pubs = [self.create_publisher(UInt8MultiArray, t, publisher_qos(spec))
-                      for t in spec.pubs]
+        self._pubs = [self.create_publisher(message_class(e.msg_type), e.topic,
+                                            publisher_qos(spec))
+                      for e in spec.outputs]
         # One timer for an input the cap held back, armed only then: created once, since
         # creating and destroying timers under a spinning executor is a known source of rclpy
         # CPU churn and races.

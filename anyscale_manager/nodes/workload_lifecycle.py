@@ -18,9 +18,9 @@ from typing import Callable
 
 from lifecycle_msgs.srv import ChangeState
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
-from std_msgs.msg import UInt8MultiArray
 
 from .workload import OutputGate, WorkloadBehaviour, WorkloadSpec, publisher_qos
+from .workload_messages import Endpoint, message_class
 
 SUCCESS = TransitionCallbackReturn.SUCCESS
 ERROR = TransitionCallbackReturn.ERROR
@@ -78,7 +78,7 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
         return SUCCESS
 
     def _configure(self, state: LifecycleState) -> str:
-        self._pubs = [self._new_publisher(topic) for topic in self.spec.pubs]
+        self._pubs = [self._new_publisher(e) for e in self.spec.outputs]
         return f'configured: inactive, {len(self._pubs)} publisher(s) ready'
 
     def _activate(self, state: LifecycleState) -> str:
@@ -107,7 +107,7 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
             # later, inactive or not: a fresh writer has none to hand.
             for pub in self._pubs:
                 self.destroy_lifecycle_publisher(pub)
-            self._pubs = [self._new_publisher(topic) for topic in self.spec.pubs]
+            self._pubs = [self._new_publisher(e) for e in self.spec.outputs]
         return 'deactivated: no subscriptions, no timers, publishing nothing'
 
     def _cleanup(self, state: LifecycleState) -> str:
@@ -119,8 +119,9 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
         return f'shut down (from {state.label})'
 
     # --- helpers ---------------------------------------------------------------------------
-    def _new_publisher(self, topic: str):
-        return self.create_lifecycle_publisher(UInt8MultiArray, topic, publisher_qos(self.spec))
+    def _new_publisher(self, output: Endpoint):
+        return self.create_lifecycle_publisher(message_class(output.msg_type), output.topic,
+                                               publisher_qos(self.spec))
 
     def _drop_inputs_and_timers(self) -> None:
         for sub in self._input_subs:

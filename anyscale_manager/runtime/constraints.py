@@ -92,7 +92,7 @@ class ConnectionCheck:
     freq_min_hz: float
     tolerance_s: float
     below_for_s: float             # continuous time below freq_min (0 when at or above)
-    judged: bool                   # False while one of its nodes is in its grace period
+    judged: bool                   # False in a grace period or unjudged_connections
 
     @property
     def violated(self) -> bool:
@@ -244,12 +244,15 @@ class DeltaTracker:
     (the probe may have seen the drop before the reading arrived). A missing or stale reading is
     0 Hz from the moment it became missing (its stamp plus ``observation_max_age_s``; for a
     connection never reported, the tracker's first update plus that age). A fresh reading at or
-    above freq_min resets the timer.
+    above freq_min resets the timer. A connection in ``obs.unjudged_connections`` (its probe's
+    agent silent or just restarted) is not timed: its timer is reset, and a reading still
+    missing afterwards counts as missing from the last update that did not judge it.
     """
 
     def __init__(self, deployment: Deployment):
         self.deployment = deployment
         self._since: Dict[str, float] = {}       # connection -> start of its time below
+        self._unjudged_at: Dict[str, float] = {}  # connection -> last update that skipped it
         self._started: Optional[float] = None
 
     @property
@@ -265,6 +268,11 @@ class DeltaTracker:
         for c in self.deployment.connections:
             if not c.monitored:
                 continue
+            if c.name in obs.unjudged_connections:
+                self._unjudged_at[c.name] = now
+                self._since.pop(c.name, None)
+                out[c.name] = 0.0
+                continue
             reading = obs.connections.get(c.name)
             start = self._since.get(c.name)
             if reading is not None and is_fresh(reading.stamp, now, settings):
@@ -274,8 +282,8 @@ class DeltaTracker:
                     probe_start = reading.stamp - max(0.0, reading.below_for_s)
                     start = min(probe_start, now) if start is None else min(start, probe_start)
             else:
-                missing_from = (reading.stamp if reading is not None else self._started) \
-                    + max_age
+                missing_from = max((reading.stamp if reading is not None else self._started)
+                                   + max_age, self._unjudged_at.get(c.name, -math.inf))
                 if now >= missing_from:
                     start = missing_from if start is None else min(start, missing_from)
             if start is None:
@@ -336,9 +344,12 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
             below = _stateless_below_for(c, reading, now, settings, since)
         in_grace = any(grace_until.get(n, -math.inf) > now for n in (c.publisher, c.subscriber))
         both_run = c.publisher in running and c.subscriber in running
+        # A connection measured by a silent (or just restarted) agent's probe: no verdict.
+        measured = c.name not in obs.unjudged_connections
         check = ConnectionCheck(connection=c.name, rate_hz=reading.rate_hz if fresh else None,
                                 freq_min_hz=c.freq_min_hz, tolerance_s=c.tolerance_s,
-                                below_for_s=below, judged=both_run and not in_grace)
+                                below_for_s=below,
+                                judged=both_run and not in_grace and measured)
         checks[c.name] = check
         if check.violated:
             rate = f'{check.rate_hz:.2f} Hz' if fresh else 'no fresh reading (0 Hz)'

@@ -18,6 +18,7 @@ from ..protocol import (LINK_MONITOR_START_S, AgentState, ConnectionStatus, Link
 from .observations import ConnectionObs, LinkObs, Observations, ScaleObs
 
 _RANK = {'running': 2, 'starting': 1}
+MAX_IGNORED_KINDS = 100
 
 
 @dataclass(frozen=True)
@@ -34,6 +35,9 @@ class ObservationBook:
         self.settings = settings
         self.started = started
         self.master_back_at = started
+        # scale -> when its agent was heard again after a silence (a restart): its monitors
+        # start afresh and have not measured yet.
+        self.back_at: Dict[str, float] = {}
         self.agents: Dict[str, AgentSeen] = {}
         self.scales: Dict[str, ScaleObs] = {}
         self.links: Dict[str, LinkObs] = {}
@@ -48,6 +52,8 @@ class ObservationBook:
             raise ValueError(f'{where}: unknown scale {name!r:.60}')
 
     def _skip(self, what: str) -> None:
+        if what not in self.ignored and len(self.ignored) >= MAX_IGNORED_KINDS:
+            what = 'more kinds (not itemised)'     # names come from senders: bounded
         self.ignored[what] = self.ignored.get(what, 0) + 1
 
     def agent_state(self, msg: AgentState, now: float) -> None:
@@ -56,9 +62,16 @@ class ObservationBook:
             if name not in self.deployment.node_names:
                 self._skip(f'agent_state from {msg.scale}: unknown node {name[:60]}')
         before = self.agents.get(msg.scale)
-        if msg.scale == self.deployment.master.name and (
-                before is None or now - before.received > self.settings.observation_max_age_s):
+        max_age = self.settings.observation_max_age_s
+        quiet = before is None or now - before.received > max_age
+        # A new agent process (its instance id changed: restarted faster than max_age, as a
+        # re-exec does) starts its monitors afresh just as one back from a silence does.
+        restarted = before is not None and None not in (before.state.instance, msg.instance) \
+            and before.state.instance != msg.instance
+        if msg.scale == self.deployment.master.name and (quiet or restarted):
             self.master_back_at = now    # the master's agent (and its link monitor) is back
+        if restarted or (quiet and (before is not None or now - self.started > max_age)):
+            self.back_at[msg.scale] = now
         self.agents[msg.scale] = AgentSeen(msg, now)
 
     def scale_status(self, msg: ScaleStatus, now: float) -> None:
@@ -143,11 +156,51 @@ class ObservationBook:
         master = self.agents.get(self.deployment.master.name)
         quiet = master is None or now - master.received > max_age
         starting = now - self.master_back_at <= LINK_MONITOR_START_S + max_age
-        if not (quiet or starting):
-            return frozenset()
-        return frozenset(s for s in self.deployment.scale_names
-                         if s != self.deployment.master.name
-                         and (s not in self.links or now - self.links[s].stamp > max_age))
+        out = set()
+        for s in self.deployment.scale_names:
+            link = self.links.get(s)
+            if s == self.deployment.master.name or (link is not None
+                                                    and now - link.stamp <= max_age):
+                continue
+            # A stale report is the link's silence only if the monitor's host was heard after
+            # it went stale: an agent that dies can be heard last a moment after its monitor
+            # (a SIGKILLed robot agent was; the link was then judged silent before the agent).
+            stale_at = (link.stamp if link is not None else self.started) + max_age
+            if quiet or starting or master.received <= stale_at:
+                out.add(s)
+        return frozenset(out)
+
+    def silent_agents(self, now: float) -> Dict[str, float]:
+        """Scale -> seconds its agent has been silent, for agents not heard within
+        observation_max_age_s (one never heard: counted from the start of watching)."""
+        out = {}
+        for s in self.deployment.scale_names:
+            seen = self.agents.get(s)
+            silent = now - (seen.received if seen is not None else self.started)
+            if silent > self.settings.observation_max_age_s:
+                out[s] = silent
+        return out
+
+    def unjudged_connections(self, now: float, running: Mapping[str, str],
+                             desired: Optional[Mapping[str, str]] = None) -> FrozenSet[str]:
+        """Monitored connections whose probe (on the subscriber's scale: where it runs, else
+        where the layout places it) is hosted by a silent agent, or by one heard again less than
+        LINK_MONITOR_START_S plus observation_max_age_s ago (its new probes measure from
+        scratch)."""
+        max_age = self.settings.observation_max_age_s
+        silent = self.silent_agents(now)
+        out = set()
+        for c in self.deployment.connections:
+            if not c.monitored:
+                continue
+            host = running.get(c.subscriber) or (desired or {}).get(c.subscriber)
+            if host is None:
+                continue
+            back = self.back_at.get(host)
+            if host in silent or (back is not None
+                                  and now - back <= LINK_MONITOR_START_S + max_age):
+                out.add(c.name)
+        return frozenset(out)
 
     def all_agents_heard(self) -> bool:
         return all(s in self.agents for s in self.deployment.scale_names)
@@ -201,4 +254,7 @@ class ObservationBook:
                             scales=frozen_map(self.scales), links=frozen_map(self.links),
                             connections=frozen_map(self.connections(running)),
                             lost_scales=self.lost_scales(now),
-                            unjudged_links=self.unjudged_links(now))
+                            unjudged_links=self.unjudged_links(now),
+                            silent_agents=frozen_map(self.silent_agents(now)),
+                            unjudged_connections=self.unjudged_connections(now, running,
+                                                                           desired))

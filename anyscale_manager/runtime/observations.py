@@ -54,6 +54,13 @@ class Observations:
     # Remote scales whose link has no fresh report because the master's agent, which hosts the
     # link monitor, is silent or has just started: a dead agent is not a cut link.
     unjudged_links: FrozenSet[str] = frozenset()
+    # Scales whose agent has not been heard for observation_max_age_s (never heard: counted from
+    # the start of watching), with how long: nothing is placed there. Lost scales are among them.
+    silent_agents: Mapping[str, float] = field(default_factory=frozen_map)
+    # Connections measured by the probes of a silent agent, or of one heard again too recently
+    # for its new probes to have measured: neither judged nor timed (a dead agent is not a slow
+    # connection).
+    unjudged_connections: FrozenSet[str] = frozenset()
 
 
 MIGRATE = 'migrate'            # master -> remote (Algorithm 1's else branch)

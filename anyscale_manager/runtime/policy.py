@@ -18,6 +18,13 @@ a move the agents do not apply in time is undone; nodes of a lost scale are relo
 ``migration: false`` never moves out (the paper's no-migration baseline). Every decision
 carries its reason.
 
+A silent agent is not a silent link: nothing is placed on a scale whose agent is silent
+(``Observations.silent_agents``), the master included. When the master's agent is silent the
+layout is kept as it is: no move back to the master (its agent could not start the node), no
+move out of it (its agent could not stop the old copy). A node that no scale with a live agent
+and a reachable link may host is reported in ``unplaceable`` with the reason, and stays where
+the layout has it.
+
 The policy decides the desired layout; it judges by what actually runs (``obs.running``).
 """
 
@@ -56,6 +63,8 @@ class MigrationPolicy:
         self.last_report: Optional[ConstraintReport] = None
         self.below_for: Mapping[str, float] = frozen_map()
         self.notes: Tuple[str, ...] = ()               # why nothing (more) moved this step
+        # node -> why no scale with a live agent may host it (this step)
+        self.unplaceable: Mapping[str, str] = frozen_map()
         self.history: List[Tuple[float, Decision]] = []
         self._delta = DeltaTracker(deployment)
         self._seeded = False
@@ -118,7 +127,8 @@ class MigrationPolicy:
             self.reset(layout, now, running)
         notes: List[str] = []
         decisions: List[Decision] = []
-        decisions += self._settle_pending(running, now, notes)
+        self._unplaceable: Dict[str, str] = {}
+        decisions += self._settle_pending(obs, running, now, notes)
 
         self.below_for = self._delta.update(obs, self.settings)
         report = evaluate(self.deployment, self.settings, obs, self.grace_until,
@@ -126,13 +136,14 @@ class MigrationPolicy:
         self.last_report = report
 
         decisions += self._relocate_lost(obs, running, report, notes, decisions)
-        back, actionable = self._migrate_back(obs, running, report, decisions)
+        back, actionable = self._migrate_back(obs, running, report, decisions, notes)
         decisions += back
         if not actionable and not decisions:
             decisions += self._migrate_out(obs, running, report, notes)
         for d in decisions:
             self._apply(d, now)
         self.notes = tuple(notes)
+        self.unplaceable = frozen_map(self._unplaceable)
         return decisions
 
     # --- pieces -----------------------------------------------------------------------------
@@ -143,7 +154,36 @@ class MigrationPolicy:
     def _in_migrated(self, node: str) -> bool:
         return any(n == node for n, _ in self.migrated)
 
-    def _settle_pending(self, running: Mapping[str, str], now: float,
+    def _agent_silent(self, obs: Observations, scale: str) -> str:
+        """Why the agent of ``scale`` cannot take a node now ('' when it can)."""
+        if scale in obs.lost_scales:
+            return f'the agent of {scale} is lost (silent > {self.settings.agent_timeout_s:g} s)'
+        if scale in obs.silent_agents:
+            return f'the agent of {scale} is silent'
+        return ''
+
+    def _unreachable(self, obs: Observations, scale: str) -> str:
+        """Why a node cannot be placed on ``scale`` now ('' when it can): its agent is silent,
+        or no link from the master reaches it."""
+        why = self._agent_silent(obs, scale)
+        if why or scale == self.master:
+            return why
+        link = self.deployment.link_between(self.master, scale)
+        if link is None:
+            return f'no link from {self.master} to {scale}'
+        up, _, _, down = link_capacity(self.deployment, self.settings, obs, link, self.started)
+        return '' if up else down
+
+    def _hold_for_master(self, obs: Observations, node: str, notes: List[str]) -> bool:
+        """Whether a move of ``node`` back to the master waits because the master's agent is
+        silent (it could not start the node there): the layout is kept, and said why."""
+        why = self._agent_silent(obs, self.master)
+        if why:
+            notes.append(f'{node} is not brought back to {self.master}: {why}, nothing can '
+                         f'start it there; the layout is kept')
+        return bool(why)
+
+    def _settle_pending(self, obs: Observations, running: Mapping[str, str], now: float,
                         notes: List[str]) -> List[Decision]:
         out = []
         for node, (scale, asked) in list(self.pending.items()):
@@ -152,6 +192,9 @@ class MigrationPolicy:
                 # From now on a CPU reading of that scale can include the node's load.
                 self.arrived[scale] = (now, node)
             elif now - asked > self.pending_timeout_s:
+                if scale != self.master and self._in_migrated(node) \
+                        and self._hold_for_master(obs, node, notes):
+                    continue
                 del self.pending[node]
                 where = running.get(node, 'nowhere')
                 if scale != self.master and self._in_migrated(node):
@@ -167,42 +210,68 @@ class MigrationPolicy:
     def _relocate_lost(self, obs: Observations, running: Mapping[str, str],
                        report: ConstraintReport, notes: List[str],
                        already: Sequence[Decision]) -> List[Decision]:
+        """Nodes placed on a lost remote scale go where a live agent can run them (the master
+        first); the master's own nodes stay (its agent is silent: the layout is kept)."""
         lost = set(obs.lost_scales) & set(self.deployment.scale_names)
         if not lost:
             return []
-        if self.master in lost:
-            notes.append(f'the master scale {self.master} is reported lost: its nodes stay')
         out: List[Decision] = []
         moved = {d.node for d in already}
         extra_cpu: Dict[str, float] = {}
         for node, scale in list(self.desired.items()):
             if scale not in lost or scale == self.master or node in moved:
                 continue
-            target = self._relocation_target(obs, node, lost, extra_cpu)
+            target, why_not = self._relocation_target(obs, node, extra_cpu)
             if target is None:
-                notes.append(f'cannot relocate {node} from lost scale {scale}: no allowed '
-                             f'scale is available')
+                self._unplaceable[node] = why_not
                 continue
             extra_cpu[target] = extra_cpu.get(target, 0.0) + self.deployment.node(node).cpu
             out.append(Decision(RELOCATE, node, scale, target,
-                                f'scale {scale} lost (its agent is silent); {node} placed '
+                                f'{self._lost_reason(obs, report, scale)}; {node} placed '
                                 f'on {target}'))
         return out
 
-    def _relocation_target(self, obs: Observations, node: str, lost: set,
-                           extra_cpu: Mapping[str, float]) -> Optional[str]:
-        allowed = [s for s in self.deployment.allowed_scales(node) if s not in lost]
-        if not allowed:
-            return None
-        if self.master in allowed:
-            return self.master
+    def _lost_reason(self, obs: Observations, report: ConstraintReport, scale: str) -> str:
+        """Why ``scale`` is lost, telling a silent agent behind a live link from a cut link."""
+        silent = obs.silent_agents.get(scale)
+        text = (f'scale {scale} lost: its agent has been silent'
+                + ('' if silent is None else f' for {silent:.1f} s')
+                + f' (> agent_timeout_s {self.settings.agent_timeout_s:g} s)')
+        link = self.deployment.link_between(self.master, scale)
+        load = report.links.get(link.name) if link is not None else None
+        if load is None:
+            return text
+        if not load.up:
+            return (f'{text}, and {load.reason or f"link {link.name} down"}: a cut link and a '
+                    f'dead agent look alike from {self.master}')
+        if load.observed:
+            return (f'{text} while link {link.name} is up: the agent, not the link, is gone, '
+                    f'and its nodes may be gone with it')
+        return text
+
+    def _relocation_target(self, obs: Observations, node: str,
+                           extra_cpu: Mapping[str, float]) -> Tuple[Optional[str], str]:
+        """(scale, '') where a node of a lost scale goes, or (None, why no scale may host it)."""
+        allowed = self.deployment.allowed_scales(node)
+        usable, refused = [], []
+        for scale in allowed:
+            why = self._unreachable(obs, scale)
+            if not why:
+                usable.append(scale)
+            else:
+                refused.append(why)                 # each reason names its scale
+        if not usable:
+            return None, (f'allowed scales {", ".join(allowed)} have no live agent or are '
+                          f'unreachable ({"; ".join(refused)})')
+        if self.master in usable:
+            return self.master, ''
         cpu = self.deployment.node(node).cpu
-        for scale in self._scales_by_power(allowed):
+        for scale in self._scales_by_power(usable):
             used, _ = scale_cpu(self.deployment, self.settings, obs, scale)
-            usable = self.deployment.scale(scale).capacity_cpu * self.settings.cpu_headroom
-            if used + extra_cpu.get(scale, 0.0) + cpu <= usable:
-                return scale
-        return self._scales_by_power(allowed)[0]
+            usable_cpu = self.deployment.scale(scale).capacity_cpu * self.settings.cpu_headroom
+            if used + extra_cpu.get(scale, 0.0) + cpu <= usable_cpu:
+                return scale, ''
+        return self._scales_by_power(usable)[0], ''
 
     def _scales_by_power(self, names: Sequence[str]) -> List[str]:
         order = {s.name: i for i, s in enumerate(self.deployment.scales)}
@@ -211,9 +280,12 @@ class MigrationPolicy:
         return [s.name for s in scales]
 
     def _migrate_back(self, obs: Observations, running: Mapping[str, str],
-                      report: ConstraintReport, already: Sequence[Decision]
-                      ) -> Tuple[List[Decision], bool]:
-        """Algorithm 1's violation branch. Returns the moves and whether any was called for."""
+                      report: ConstraintReport, already: Sequence[Decision],
+                      notes: List[str]) -> Tuple[List[Decision], bool]:
+        """Algorithm 1's violation branch. Returns the moves and whether any was called for.
+
+        While the master's agent is silent a move back is called for but not made (nothing
+        could start the node there): the layout is kept, and the notes say why."""
         taken = {d.node for d in already}
         out: List[Decision] = []
         actionable = False
@@ -223,6 +295,8 @@ class MigrationPolicy:
             if node in taken or node not in migrated:
                 return
             taken.add(node)
+            if self._hold_for_master(obs, node, notes):
+                return
             out.append(Decision(MIGRATE_BACK, node, self.desired.get(node, running.get(node)),
                                 self.master, reason))
 
@@ -235,8 +309,13 @@ class MigrationPolicy:
             beyond = [n for n in migrated if self.desired.get(n) in far or running.get(n) in far]
             if beyond:
                 actionable = True
+                reason = load.reason or f'link {link_name} down'
+                quiet = [e for e in far if e in obs.silent_agents]
+                if quiet:
+                    reason += (f' and the agent of {", ".join(quiet)} is silent too: a cut link '
+                               f'and a dead agent look alike from {self.master}')
                 for n in beyond:
-                    back(n, load.reason or f'link {link_name} down')
+                    back(n, reason)
         for v in report.of_kind(LINK_DOWN, FREQUENCY):
             culprits = [n for n in v.nodes if n in migrated]
             actionable = actionable or bool(culprits)
@@ -300,6 +379,11 @@ class MigrationPolicy:
         """Algorithm 1's else branch: at most one node (or coresidence group) moves out."""
         now = obs.now
         if not self.settings.migration:
+            return []
+        why = self._agent_silent(obs, self.master)
+        if why:
+            notes.append(f'no move out: {why}, nothing could stop the copy left on '
+                         f'{self.master}')
             return []
         if self.pending:
             notes.append('waiting for ' + ', '.join(
@@ -387,8 +471,9 @@ class MigrationPolicy:
         the scale not observed since the start, or its CPU not measured since the last node
         moved there started running)."""
         d, s = self.deployment, self.settings
-        if scale in obs.lost_scales:
-            return False, 'scale lost'
+        silent = self._agent_silent(obs, scale)
+        if silent:
+            return False, silent
         if any(scale not in d.allowed_scales(n) for n in unit):
             return False, 'not allowed there'
         link = d.link_between(self.master, scale)

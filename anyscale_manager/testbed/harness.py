@@ -30,7 +30,8 @@ from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import psutil
 
-from .. import config_files, protocol
+from .. import config_files, protocol, protocol_auth
+from ..agent import shm
 from ..agent.catalogue import ENV_NODE, ENV_SCALE
 from ..model.loader import load_deployment
 from ..model.types import Deployment
@@ -105,6 +106,14 @@ class Testbed:
         # The agents' reports as heard on the laptop (netns mode only): the laptop's own are
         # there while the link is cut, when the robot hears nothing of them.
         self.laptop_view = Record(self.deployment)
+        if self.deployment.security.key_file:
+            # The observers' records check signatures as the agents do: a forged or replayed
+            # layout or state is not taken for what the system did.
+            try:
+                key = protocol_auth.load_key(self.deployment.security.key_file)
+            except protocol_auth.KeyFileError as e:
+                raise HarnessError(str(e)) from None
+            self.record.key = self.laptop_view.key = key
         self.lock = threading.Lock()
         self.t0 = time.monotonic()
         self._observers: List[Proc] = []
@@ -121,6 +130,8 @@ class Testbed:
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self, ready_timeout_s: float = 90.0) -> 'Testbed':
+        # The agents clear these before each node they start; the harness before its own.
+        self.cleanup_notes += shm.remove_broken_port_files()
         try:
             self._start(ready_timeout_s)
         except BaseException:
@@ -155,8 +166,9 @@ class Testbed:
         self.record.link_set(self.t0, True, self._rate_kbps)
         if not self.options.link_up_at_start and self.network is not None:
             self.cut()
-        self._start_observer('robot', self.record,
-                             sorted({c.topic for c in self.deployment.connections}))
+        self._start_observer('robot', self.record, sorted(
+            {f'{c.topic}:{c.msg_type}' if c.msg_type else c.topic
+             for c in self.deployment.connections}))
         if self.network is not None:
             self._start_observer('laptop', self.laptop_view, [],
                                  project=[protocol.TOPIC_AGENT_STATE])
@@ -286,7 +298,8 @@ class Testbed:
     def _start_observer(self, scale: str, record: Record, topics: Sequence[str],
                         project: Optional[Sequence[str]] = None) -> None:
         """An observer on ``scale`` (outside its quota) whose lines fill ``record``: the
-        arrivals of ``topics`` and the project topics (all, or only ``project``)."""
+        arrivals of ``topics`` (``TOPIC[:TYPE]``) and the project topics (all, or only
+        ``project``)."""
         argv = [self.options.python, '-m', 'anyscale_manager.testbed.observer']
         for topic in topics:
             argv += ['--topic', topic]
@@ -315,13 +328,23 @@ class Testbed:
         self.mark(f'agent {scale} started (pid {proc.popen.pid})')
         return proc
 
-    def start_decider(self) -> Proc:
+    def start_decider(self, name: str = 'decider') -> Proc:
+        """The decider; under another ``name``, a second one (started by mistake)."""
         argv = [self.options.python, '-m', 'anyscale_manager.nodes.decider']
         argv += self._deployment_args()
-        for name, value in sorted(self.options.decider_parameters.items()):
-            argv += ['-p', f'{name}:={value}']
-        proc = self._spawn('decider', 'robot', argv)
-        self.mark(f'decider started (pid {proc.popen.pid})')
+        for param, value in sorted(self.options.decider_parameters.items()):
+            argv += ['-p', f'{param}:={value}']
+        proc = self._spawn(name, 'robot', argv)
+        self.mark(f'{name} started (pid {proc.popen.pid})')
+        return proc
+
+    def start_tool(self, name: str, scale: str, argv: Sequence[str],
+                   quota: bool = False) -> Proc:
+        """A process that is not part of the system (a hostile publisher, say) in ``scale``'s
+        namespace, with a test-bed ROS environment and a log in the run's logs folder. The
+        caller ends it: one still running at ``stop()`` is a leftover."""
+        proc = self._spawn(name, scale, argv, quota=quota)
+        self.mark(f'{name} started on the {scale} (pid {proc.popen.pid})')
         return proc
 
     def kill(self, name: str, sig: int = signal.SIGKILL, timeout_s: float = 10.0) -> int:

@@ -1,15 +1,19 @@
 """The harness's eyes: an rclpy node that prints what it sees as JSON lines on stdout.
 
-    python -m anyscale_manager.testbed.observer [--topic /amcl_pose ...] [--project TOPIC ...]
+    python -m anyscale_manager.testbed.observer [--topic /amcl_pose[:TYPE] ...]
+                                                [--project TOPIC ...]
 
 Started by the harness inside the robot's namespace (next to the decider), outside any CPU
 quota; a second one, with ``--project /anyscale/agent_state`` only, listens on the laptop, so that
 the laptop agent's reports are heard while the link is cut. It subscribes to every project
 topic (or only those given with ``--project``) and, raw, to the given data topics, and writes one
 JSON object per line: ``{"t": <monotonic>, "topic": ..., "data": <the String's JSON text>}`` for
-project messages and ``{"t": ..., "arrivals": {topic: [monotonic, ...]}}`` every 0.2 s for the
-data topics. CLOCK_MONOTONIC is the same in every network namespace, so the harness can put
-these times next to its own (link cuts, kills). It parses nothing: judging is the harness's job.
+project messages and ``{"t": ..., "arrivals": {topic: [monotonic, ...]}, "seqs": {topic: [n,
+...]}}`` every 0.2 s for the data topics (``seqs``: each message's publication sequence number,
+-1 where the middleware gives none; every DDS writer counts its own from 1, so two copies of a
+node publishing at once show as two interleaved series). CLOCK_MONOTONIC is the same in every
+network namespace, so the harness can put these times next to its own (link cuts, kills). It
+parses nothing: judging is the harness's job.
 """
 
 import argparse
@@ -22,10 +26,11 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.utilities import remove_ros_args
-from std_msgs.msg import String, UInt8MultiArray
+from std_msgs.msg import String
 
 from .. import protocol as p
 from ..nodes import qos
+from ..nodes.workload_messages import DEFAULT_TYPE, message_class
 
 LATCHED = qos.LATCHED_READER
 RELIABLE = qos.EVENTS
@@ -41,15 +46,20 @@ FLUSH_S = 0.2
 class Observer(Node):
     def __init__(self, data_topics: List[str], out=sys.stdout,
                  project_topics: Optional[List[str]] = None):
+        """``data_topics``: ``TOPIC[:TYPE]`` each (the type a raw subscription needs to match
+        its writers; std_msgs/msg/UInt8MultiArray when left out)."""
         super().__init__('anyscale_testbed_observer')
         self._out = out
+        types = dict((t.split(':', 1) + [DEFAULT_TYPE])[:2] for t in data_topics)
+        data_topics = list(types)
         self._arrivals: Dict[str, List[float]] = {t: [] for t in data_topics}
+        self._seqs: Dict[str, List[int]] = {t: [] for t in data_topics}
         for topic, profile in PROJECT_TOPICS.items():
             if project_topics is None or topic in project_topics:
                 self.create_subscription(String, topic, self._project(topic), profile)
         for topic in data_topics:
-            self.create_subscription(UInt8MultiArray, topic, self._data(topic), BEST_EFFORT,
-                                     raw=True)
+            self.create_subscription(message_class(types[topic]), topic, self._data(topic),
+                                     BEST_EFFORT, raw=True)
         self.create_timer(FLUSH_S, self._flush)
         self._write({'t': time.monotonic(), 'ready': True})
 
@@ -63,22 +73,26 @@ class Observer(Node):
         return callback
 
     def _data(self, topic: str):
-        def callback(_raw: bytes) -> None:
+        def callback(_raw: bytes, info) -> None:
             self._arrivals[topic].append(time.monotonic())
+            seq = info.get('publication_sequence_number') if isinstance(info, dict) else None
+            self._seqs[topic].append(seq if isinstance(seq, int) else -1)
         return callback
 
     def _flush(self) -> None:
         batch = {t: a for t, a in self._arrivals.items() if a}
         if batch:
-            self._write({'t': time.monotonic(), 'arrivals': batch})
+            self._write({'t': time.monotonic(), 'arrivals': batch,
+                         'seqs': {t: self._seqs[t] for t in batch}})
             for topic in batch:
                 self._arrivals[topic] = []
+                self._seqs[topic] = []
 
 
 def main(args: Optional[List[str]] = None) -> int:
     argv = sys.argv if args is None else args
     parser = argparse.ArgumentParser(prog='observer')
-    parser.add_argument('--topic', action='append', default=[])
+    parser.add_argument('--topic', action='append', default=[], metavar='TOPIC[:TYPE]')
     parser.add_argument('--project', action='append', choices=sorted(PROJECT_TOPICS),
                         help='listen to only these project topics (default: all of them)')
     a = parser.parse_args(remove_ros_args(argv)[1:])

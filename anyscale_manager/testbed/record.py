@@ -13,6 +13,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from .. import protocol as p
 from ..model.types import Connection, Deployment
+from ..protocol_auth import check_signature
 from ..runtime.rates import RateWindow
 
 MIGRATION_KINDS = ('migrate', 'migrate_back')
@@ -46,11 +47,19 @@ class Record:
     events: List[Tuple[float, p.Event]] = field(default_factory=list)
     objectives: List[Tuple[float, p.Objective]] = field(default_factory=list)
     arrivals: Dict[str, List[float]] = field(default_factory=dict)
+    # Each arrival's publication sequence number (-1: not given), when the observer sends them.
+    arrival_seqs: Dict[str, List[int]] = field(default_factory=dict)
     link_truth: List[Tuple[float, bool, float]] = field(default_factory=list)
     marks: List[Tuple[float, str]] = field(default_factory=list)
     problems: List[str] = field(default_factory=list)
     observer_ready: Optional[float] = None
     heard_until: float = -math.inf     # the observer's clock at its latest line: judge no later
+    # The deployment's key, when it has one: layouts, agent states and objectives that fail
+    # its check, or repeat a sender's sequence number (a replay), are kept apart in
+    # ``refused`` (time, topic, why) instead of being taken for what the system did.
+    key: Optional[bytes] = None
+    refused: List[Tuple[float, str, str]] = field(default_factory=list)
+    _last_seq: Dict[Tuple[str, str], int] = field(default_factory=dict, repr=False)
 
     # --- intake -------------------------------------------------------------------------------
     def ingest_line(self, line: str) -> None:
@@ -73,8 +82,14 @@ class Record:
             self.observer_ready = t
             return
         if 'arrivals' in obj:
+            seqs = obj.get('seqs') or {}
             for topic, times in obj['arrivals'].items():
                 self.arrivals.setdefault(topic, []).extend(float(x) for x in times)
+                numbers = seqs.get(topic)
+                if not isinstance(numbers, list) or len(numbers) != len(times):
+                    numbers = [-1] * len(times)
+                self.arrival_seqs.setdefault(topic, []).extend(
+                    x if isinstance(x, int) else -1 for x in numbers)
             return
         topic, data = obj.get('topic'), obj.get('data')
         try:
@@ -82,12 +97,31 @@ class Record:
         except p.ProtocolError as e:
             self.problems.append(str(e))
 
+    def _authentic(self, t: float, topic: str, data: str, sender: Optional[str],
+                   seq: Optional[int]) -> bool:
+        """With a key: whether a signed message is genuine and new (else kept in refused)."""
+        if self.key is None:
+            return True
+        why = check_signature(self.key, data)
+        last = self._last_seq.get((topic, sender or ''))
+        if not why and (seq is None or (last is not None and seq <= last)):
+            why = f'sequence {seq} not above {last} (a replay)'
+        if why:
+            self.refused.append((t, topic, why))
+            return False
+        self._last_seq[(topic, sender or '')] = seq
+        return True
+
     def _project(self, t: float, topic: str, data: str) -> None:
         if topic == p.TOPIC_LAYOUT:
-            self.layouts.append((t, p.Layout.from_json(data, topic)))
+            layout = p.Layout.from_json(data, topic)
+            sender = layout.decider.id if layout.decider is not None else None
+            if self._authentic(t, topic, data, sender, layout.seq):
+                self.layouts.append((t, layout))
         elif topic == p.TOPIC_AGENT_STATE:
             state = p.AgentState.from_json(data, topic)
-            self.agent_states.setdefault(state.scale, []).append((t, state))
+            if self._authentic(t, topic, data, state.instance, state.seq):
+                self.agent_states.setdefault(state.scale, []).append((t, state))
         elif topic == p.TOPIC_SCALE_STATUS:
             status = p.ScaleStatus.from_json(data, topic)
             self.scale_status.setdefault(status.scale, []).append((t, status))
@@ -100,7 +134,9 @@ class Record:
         elif topic == p.TOPIC_EVENTS:
             self.events.append((t, p.Event.from_json(data, topic)))
         elif topic == p.TOPIC_OBJECTIVE:
-            self.objectives.append((t, p.Objective.from_json(data, topic)))
+            objective = p.Objective.from_json(data, topic)
+            if self._authentic(t, topic, data, objective.decider, objective.seq):
+                self.objectives.append((t, objective))
 
     def link_set(self, t: float, up: bool, rate_kbps: float) -> None:
         self.link_truth.append((t, up, rate_kbps))

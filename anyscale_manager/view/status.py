@@ -273,7 +273,12 @@ def _node_rows(book: StatusBook, now: float, running, standby) -> List[str]:
         where, state, at = running.get(n.name, ('-', 'not reported', now))
         if now - at > d.decider.agent_timeout_s:
             state += f', {stale_mark(now - at)}'
-        mark = '' if wanted.get(n.name, where) == where else '  (moving)'
+        target = wanted.get(n.name, where)
+        mark = '' if target == where else '  (moving)'
+        if mark and target in book.agents \
+                and now - book.agents[target][1] > d.decider.agent_timeout_s:
+            # Nothing can start it there (the decider says so in an 'unplaceable' event).
+            mark = f'  (not placed: agent of {target} silent)'
         rows.append([n.name, wanted.get(n.name, '-'), where + mark, state,
                      ', '.join(sorted(standby.get(n.name, ()))) or '-'])
     return _table(rows)

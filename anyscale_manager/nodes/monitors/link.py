@@ -15,6 +15,7 @@ from ...model.types import Deployment
 from ...runtime.rates import BandwidthEstimate, HeartbeatTracker, crossing_connections, used_kbps
 from .common import HEARTBEAT_QOS, LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, status
 from .throughput import ProbeServer, probe_throughput
+from ..throttled_log import ThrottledLog
 
 WATCHDOG_SLACK_S = 0.002
 # What a tracker judges over, in seconds rather than beats, so that a faster beat sees a cut
@@ -63,6 +64,11 @@ class LinkMonitor:
         self._period = period_of(settings.heartbeat_rate_hz, 'heartbeat_rate_hz')
         self._group = MutuallyExclusiveCallbackGroup()
         self._log = node.get_logger()
+        self._bad = ThrottledLog(self._log)
+        # Names from senders are keys below only when the deployment knows them (memory).
+        self._known_scales = set(deployment.scale_names)
+        self._known_nodes = set(deployment.node_names)
+        self._known_connections = {c.name for c in deployment.connections}
         self._timers = []
         self._subs = []
         self._server: Optional[ProbeServer] = None
@@ -117,11 +123,11 @@ class LinkMonitor:
         self._probe_port = settings.bandwidth_probe_port
 
     def _decode(self, cls, msg: String, topic: str):
+        self._bad.flush()
         try:
             return cls.from_json(msg.data, topic)
         except p.ProtocolError as e:
-            self._log.warning(f'link monitor: ignoring a bad message: {e}',
-                              throttle_duration_sec=10.0)
+            self._bad.warn(topic, f'link monitor: ignoring a bad message: {e}')
             return None
 
     def _on_echo(self, msg: String) -> None:
@@ -137,15 +143,17 @@ class LinkMonitor:
     def _on_connections(self, msg: String) -> None:
         now = time.monotonic()
         report = self._decode(p.ConnectionStatus, msg, p.TOPIC_CONNECTION_STATUS)
-        if report is None:
+        if report is None or report.scale not in self._known_scales:
             return
         for name, reading in report.connections.items():
-            self._readings[(report.scale, name)] = (reading.bytes_per_s, now)
+            if name in self._known_connections:
+                self._readings[(report.scale, name)] = (reading.bytes_per_s, now)
 
     def _on_agent_state(self, msg: String) -> None:
         state = self._decode(p.AgentState, msg, p.TOPIC_AGENT_STATE)
-        if state is not None:
-            self._running[state.scale] = {n: state.scale for n in state.running()}
+        if state is not None and state.scale in self._known_scales:
+            self._running[state.scale] = {n: state.scale for n in state.running()
+                                          if n in self._known_nodes}
 
     def used_kbps(self, remote: str, now: float) -> float:
         """kbit/s of the connections measured crossing the link to ``remote`` now."""
