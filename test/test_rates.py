@@ -472,6 +472,16 @@ def test_a_link_that_looks_congested_is_probed_at_once_but_not_too_often():
     assert not est.due(14.0, True, 4000.0, suspect=True)
     assert est.due(15.0, True, 4000.0, suspect=True)
     assert not est.due(39.0, True, 100.0) and est.due(40.0, True, 100.0)
+    # A congestion that begins after the last attempt is probed at once, within the gap
+    # (the last figure predates it), but not twice for the same congestion, and not within
+    # min_gap_s of the last attempt.
+    est.started(20.0)
+    est.record(20.5, 50000.0, used_kbps=6000.0)
+    assert not est.due(21.0, True, 6000.0, suspect=True, suspect_since=20.0)     # before
+    assert not est.due(20.8, True, 6000.0, suspect=True, suspect_since=20.7)     # min gap
+    assert est.due(21.2, True, 6000.0, suspect=True, suspect_since=20.7)
+    est.started(21.2)
+    assert not est.due(22.5, True, 4000.0, suspect=True, suspect_since=20.7)
     # A link back from an outage is measured again at once.
     est.started(40.0)
     assert not est.due(41.0, True, 0.0)

@@ -50,14 +50,15 @@ def test_all_on_master_holds(d):
 
 def test_required_against_available_bandwidth_per_link(d):
     running = dict(master_layout(d), amcl='laptop', ar='laptop')
-    assert required_kbps(d, running) == {'wifi': pytest.approx(200 + 6 + 6000 + 62)}
+    # laser -> amcl, amcl -> ekf, camera -> ar, ar -> navigation cross the link
+    assert required_kbps(d, running) == {'wifi': pytest.approx(224 + 15 + 6096 + 61)}
     report = evaluate(d, d.decider, fresh_obs(d, running=running,
                                               link=LinkObs(up=True, stamp=10.0,
                                                            available_kbps=5000.0)))
     load = report.links['wifi']
     assert load.available_kbps == 5000.0
     assert load.usable_kbps == pytest.approx(5000.0 * d.decider.bandwidth_margin)
-    assert load.required_kbps == pytest.approx(6268)
+    assert load.required_kbps == pytest.approx(6396)
     assert not load.ok and not report.bandwidth_ok
     (v,) = report.of_kind(BANDWIDTH)
     assert v.subject == 'wifi' and set(v.nodes) == {'amcl', 'ar'} and 'kbit/s' in v.reason

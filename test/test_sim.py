@@ -157,7 +157,7 @@ def test_world_rate_depends_on_the_scale_and_its_cpu(testbed):
     assert world.output_hz['amcl'] == 5.0                   # 2 Hz x gain 3.5, capped at opt
     assert world.speed_mps() == pytest.approx(0.4)
     obs = world.observe()
-    assert obs.links['laptop'].used_kbps == pytest.approx(206.0)
+    assert obs.links['laptop'].used_kbps == pytest.approx(224.0 + 15.0)   # laser in, pose out
     assert obs.scales['laptop'].cpu_by_node['amcl'] == 50.0
     # an overloaded master: every node there gets a proportional share and slows down
     heavy = dataclasses.replace(testbed.deployment.master, capacity_cpu=76.5)

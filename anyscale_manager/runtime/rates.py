@@ -364,30 +364,38 @@ class BandwidthEstimate:
     ran, since a bulk TCP flow only gets what the (unyielding, UDP) ROS traffic leaves it.
     A link suspected full (its queue growing, see ``HeartbeatTracker``) is probed at once, busy
     or not, but at most every ``urgent_gap_s``: what a probe measures there is what the link
-    still carries, whereas the queue alone may be a scheduling delay on a loaded scale.
+    still carries, whereas the queue alone may be a scheduling delay on a loaded scale. A
+    suspicion that began (``suspect_since``) after the last attempt is probed at once even
+    within that gap (but not within ``min_gap_s`` of it): the last figure predates the change,
+    so a routine probe taken just before a throttle cannot hold back the one that sees it.
     """
 
     def __init__(self, interval_s: float, nominal_kbps: float, busy_fraction: float = 0.75,
-                 urgent_gap_s: float = 5.0):
+                 urgent_gap_s: float = 5.0, min_gap_s: float = 1.0):
         self.interval_s = _positive(interval_s, 'interval_s')
         self.nominal_kbps = _positive(nominal_kbps, 'nominal_kbps')
         if not 0.0 < busy_fraction <= 1.0:
             raise ValueError(f'busy_fraction must be in (0, 1], got {busy_fraction!r}')
         self.busy_fraction = busy_fraction
         self.urgent_gap_s = _positive(urgent_gap_s, 'urgent_gap_s')
+        self.min_gap_s = _positive(min_gap_s, 'min_gap_s')
         self.available_kbps: Optional[float] = None
         self.measured_at: Optional[float] = None
         self.last_attempt: Optional[float] = None
         self.failures = 0
         self.last_error = ''
 
-    def due(self, now: float, link_up: bool, used_kbps: float, suspect: bool = False) -> bool:
-        """Whether to probe now; ``suspect``: the link looks full (see the class)."""
+    def due(self, now: float, link_up: bool, used_kbps: float, suspect: bool = False,
+            suspect_since: Optional[float] = None) -> bool:
+        """Whether to probe now; ``suspect``: the link looks full, since ``suspect_since``
+        (see the class)."""
         if not link_up:
             return False
         since = math.inf if self.last_attempt is None else now - self.last_attempt
         if suspect:
-            return since >= self.urgent_gap_s
+            new = suspect_since is not None and self.last_attempt is not None \
+                and self.last_attempt < suspect_since
+            return since >= self.urgent_gap_s or (new and since >= self.min_gap_s)
         if since < self.interval_s:
             return False
         reference = self.available_kbps if self.available_kbps is not None \

@@ -45,6 +45,7 @@ class _Remote:
     was_up: bool = False
     probing: bool = False
     congested: bool = False
+    congested_since: Optional[float] = None   # when the link began to look congested
     delay_s: Optional[float] = None
     quiet_since: float = -math.inf     # beats sent earlier say nothing of congestion
     started: float = 0.0               # when this monitor began beating to it
@@ -184,7 +185,8 @@ class LinkMonitor:
             beat = p.Heartbeat(scale=self._scale.name, target=name, seq=seq, sent=now)
             self._beat_pub.publish(String(data=beat.to_json()))
             if remote.bandwidth is not None and not remote.probing \
-                    and remote.bandwidth.due(now, remote.beats.up(now), used, remote.congested):
+                    and remote.bandwidth.due(now, remote.beats.up(now), used, remote.congested,
+                                             remote.congested_since):
                 remote.bandwidth.started(now)
                 remote.probing = True
                 remote.quiet_since = math.inf      # the probe fills the queue on purpose
@@ -208,6 +210,7 @@ class LinkMonitor:
         else:
             congested = delay > self._congestion_s
         if congested != remote.congested:
+            remote.congested_since = now if congested else None
             if congested:
                 self._log.warning(
                     f'link to {remote.scale.name} looks congested: queueing delay '
