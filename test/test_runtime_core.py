@@ -378,6 +378,18 @@ def test_the_decider_does_not_count_standby_copies(d):
     assert book.running(2.0) == {'amcl': 'robot'}
 
 
+def test_a_starting_standby_copy_is_not_where_the_node_serves(d):
+    # At boot every scale starts a copy of a standby node: the laptop's, still starting, must
+    # not be adopted as where AMCL runs (the robot's active copy is), nor AR placed at all.
+    book = ObservationBook(d, d.decider, started=0.0)
+    book.agent_state(agent('robot', 0, amcl='running', ar='starting', laser='starting'), 1.0)
+    book.agent_state(agent('laptop', 0, amcl='starting', ar='starting'), 1.0)
+    standby = [n for n in d.node_names if d.standby_scales(n)]
+    assert set(standby) == {'amcl', 'ar'}
+    assert book.running(2.0, active_only=standby) == {'amcl': 'robot', 'laser': 'robot'}
+    assert book.running(2.0)['ar'] in ('robot', 'laptop')      # a plain node's start counts
+
+
 def link(up=True, kbps=None):
     return p.LinkStatus(master='robot', remote='laptop', stamp=0.0, up=up, rtt_ms=1.0, loss=0.0,
                         bandwidth_available_kbps=kbps, bandwidth_available_age_s=None,

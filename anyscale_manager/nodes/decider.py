@@ -234,7 +234,11 @@ class DeciderNode(Node):
 
     # --- first layout -------------------------------------------------------------------------
     def _start(self, now: float) -> None:
-        running = self.book.running(now)
+        # Adopt where nodes serve: a standby node's copies all start at boot, so only its
+        # active copy counts (a starting one adopted the laptop's fresh standby copies).
+        with_standby = [n for n in self.deployment.node_names
+                        if self.deployment.standby_scales(n)]
+        running = self.book.running(now, active_only=with_standby)
         layout, notes = adopt(self.deployment, self.planned, running)
         # Above what the agents applied, so that their comparisons across scales stay sane;
         # agents take a new decider's first layout whatever its number, so near the bound

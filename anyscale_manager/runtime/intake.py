@@ -10,7 +10,7 @@ are skipped.
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Deque, Dict, FrozenSet, Mapping, Optional, Tuple
+from typing import Collection, Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
 from ..protocol import (LINK_MONITOR_START_S, AgentState, ConnectionStatus, LinkStatus,
@@ -209,12 +209,14 @@ class ObservationBook:
     def max_generation(self) -> int:
         return max((a.state.generation for a in self.agents.values()), default=0)
 
-    def running(self, now: float, desired: Optional[Mapping[str, str]] = None
-                ) -> Dict[str, str]:
+    def running(self, now: float, desired: Optional[Mapping[str, str]] = None,
+                active_only: Collection[str] = ()) -> Dict[str, str]:
         """node -> scale where it actually runs, from the agents not lost.
 
         A node reported on two scales (a move in progress) counts where it is 'running' rather
-        than 'starting', then where the layout wants it.
+        than 'starting', then where the layout wants it. For the nodes in ``active_only`` only a
+        'running' copy counts: a node with standby copies has one starting on every scale it
+        may run on, and a copy starting says nothing of where it will serve.
         """
         lost = self.lost_scales(now)
         known = set(self.deployment.node_names)
@@ -223,7 +225,7 @@ class ObservationBook:
             if scale in lost:
                 continue
             for name, report in seen.state.running().items():
-                if name not in known:
+                if name not in known or (name in active_only and report.state != 'running'):
                     continue
                 wanted = 1 if desired is not None and desired.get(name) == scale else 0
                 rank = (_RANK.get(report.state, 0), wanted, scale)

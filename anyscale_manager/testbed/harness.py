@@ -328,13 +328,14 @@ class Testbed:
         self.mark(f'agent {scale} started (pid {proc.popen.pid})')
         return proc
 
-    def start_decider(self, name: str = 'decider') -> Proc:
-        """The decider; under another ``name``, a second one (started by mistake)."""
+    def start_decider(self, name: str = 'decider', quota: bool = True) -> Proc:
+        """The decider; under another ``name``, a second one (started by mistake);
+        ``quota=False``: outside the robot's CPU quota."""
         argv = [self.options.python, '-m', 'anyscale_manager.nodes.decider']
         argv += self._deployment_args()
         for param, value in sorted(self.options.decider_parameters.items()):
             argv += ['-p', f'{param}:={value}']
-        proc = self._spawn(name, 'robot', argv)
+        proc = self._spawn(name, 'robot', argv, quota=quota)
         self.mark(f'{name} started (pid {proc.popen.pid})')
         return proc
 
