@@ -3,7 +3,7 @@
 Pure: a deployment in, one line per warning out, each naming what, where, and what to do.
 """
 
-from typing import List
+from typing import Dict, List
 
 from . import types as t
 
@@ -23,6 +23,34 @@ def cold_move_budget_s(d: t.Deployment) -> float:
 UNSIGNED = ('layouts are not signed: anyone on the ROS domain can move or stop the managed '
             'nodes. Write a key with anyscale-manager keygen PATH, copy it to every scale '
             '(mode 0600) and set security.key_file (docs/decider.md, security)')
+
+
+def _machine_of(host: str) -> str:
+    """A scale's host as a machine: every loopback name is this machine."""
+    h = host.strip().lower()
+    if h in ('localhost', 'ip6-localhost', 'ip6-loopback', '::1', '0:0:0:0:0:0:0:1') \
+            or h.startswith('127.') or h.endswith('.localhost'):
+        return 'localhost'
+    return h
+
+
+def single_machine(d: t.Deployment) -> str:
+    """What the file says when two or more of its scales name one host (``localhost``, the
+    default, for all of them: how every user starts), else ''."""
+    by_machine: Dict[str, List[str]] = {}
+    for s in d.scales:
+        by_machine.setdefault(_machine_of(s.host), []).append(s.name)
+    groups = [(machine, scales) for machine, scales in by_machine.items() if len(scales) > 1]
+    if not groups:
+        return ''
+    where = '; '.join(f'{", ".join(scales)} on {machine}' for machine, scales in groups)
+    return (f'single machine: scales {where} (scales.<s>.host). When their agents run on one '
+            'machine (they tell it by its boot id, whatever the file says), the decider says '
+            "single-machine mode: each scale's CPU is its own agent's processes (the agent, its "
+            "monitors, its nodes), not the machine's, unless a cgroup quota confines the scale, "
+            'so a load one scale causes never moves a node back from the other; and the link '
+            'between them is loopback, whose measured bandwidth (memory copies) is capped at '
+            "the link's bandwidth_kbps (docs/monitoring.md)")
 
 
 def warnings(d: t.Deployment) -> List[str]:

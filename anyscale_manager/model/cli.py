@@ -1,9 +1,10 @@
 """anyscale-manager validate FILE...: check deployments and print a readable summary."""
 
 import sys
+import textwrap
 from typing import List, Tuple
 
-from .advice import warnings
+from .advice import single_machine, warnings
 from .launch_check import launch_problems
 from .loader import DeploymentError, did_you_mean, load_deployment
 from .types import Deployment
@@ -69,6 +70,9 @@ def summary(d: Deployment) -> str:
             lines.append(f'    {c.name:<20} {c.publisher} -> {c.subscriber} on {c.topic}: '
                          f'min {_fmt(c.freq_min_hz)} Hz, opt {_fmt(c.freq_opt_hz)} Hz, '
                          f'tolerance {_fmt(c.tolerance_s)} s, {c.bandwidth_kbps:g} kbit/s')
+    shared = single_machine(d)
+    if shared:
+        lines += textwrap.wrap(shared, 99, initial_indent='  ', subsequent_indent='    ')
     return '\n'.join(lines)
 
 

@@ -39,9 +39,11 @@ from .. import protocol_auth as auth
 from ..agent import lifecycle as lc
 from ..agent.authority import describe, Follower
 from ..agent.catalogue import build_catalogue, Entry
+from ..agent.host import this_host
 from ..agent.reconcile import Reconciler
 from ..agent.supervisor import Supervisor
 from ..model.loader import DeploymentError, load_from_parameters
+from ..runtime.hosts import HostBook
 
 try:
     from . import monitors as _monitors
@@ -134,6 +136,10 @@ class AgentNode(Node):
         self._objective_gate = auth.Gate(key, d.security.replay_window_s)
         self._instance = secrets.token_hex(8)
         self._seq = 0
+        # The machine this agent runs on, and the one each other scale's agent reports: on a
+        # shared machine the scale monitor measures this agent's own processes.
+        self._host_id, self._host_name = this_host()
+        self._hosts = HostBook()
         self._bad = ThrottledLog(self.get_logger())    # bad input: one line per kind and 10 s
         self._follower = Follower(d.decider.lease_s)
         state_dir = self.settings.state_dir or os.path.join(_ros_home(), 'anyscale_manager')
@@ -240,7 +246,9 @@ class AgentNode(Node):
                                    'this agent supervises nodes only')
             return
         d, scale = self.deployment, self.scale
-        builders = (('ScaleMonitor', lambda cls: cls(self, d, scale, pids=self._serving_pids)),
+        builders = (('ScaleMonitor', lambda cls: cls(self, d, scale, pids=self._serving_pids,
+                                                     own_pids=self._supervised_pids,
+                                                     shared_with=self._shared_with)),
                     ('LinkMonitor', lambda cls: cls(self, d, scale)),
                     ('ProbeManager', lambda cls: cls(self, d, scale,
                                                      watch_node=self._handover_node())))
@@ -326,6 +334,7 @@ class AgentNode(Node):
         if warning:
             self._bad.warn('agent_state: not a peer', warning)
         elif state.scale != self.scale:
+            self._hosts.heard(state.scale, state.host_id, state.host, time.monotonic())
             self._tick()
 
     def _on_objective(self, msg: String) -> None:
@@ -364,6 +373,15 @@ class AgentNode(Node):
                 if d.state == lc.ACTIVE or (d.known and d.goal == lc.ACTIVE and not d.failed):
                     out.add(name)
         return out
+
+    def _supervised_pids(self) -> List[int]:
+        """Every live process this agent supervises: serving, standby or stopping copies."""
+        return list(self.supervisor.pids().values())
+
+    def _shared_with(self) -> tuple:
+        """The other scales whose agents, heard within agent_timeout_s, run on this machine."""
+        return self._hosts.sharing(self.scale, self._host_id, time.monotonic(),
+                                   self.deployment.decider.agent_timeout_s)
 
     def _serving_pids(self) -> Dict[str, int]:
         """The pids of the copies that serve: an inactive standby copy's CPU is not its node's."""
@@ -531,7 +549,8 @@ class AgentNode(Node):
                                               exit_reason=reason, lifecycle=label)
         return protocol.AgentState(scale=self.scale, generation=self.reconciler.generation,
                                    stamp=time.time(), nodes=nodes,
-                                   decider=self._follower.followed_id, instance=self._instance)
+                                   decider=self._follower.followed_id, instance=self._instance,
+                                   host_id=self._host_id or None, host=self._host_name or None)
 
     def _publish_state(self) -> None:
         state = self.report()

@@ -33,6 +33,7 @@ from ..model.loader import DeploymentError, load_from_parameters
 from ..model.types import HYSTERESIS_SCOPES, INITIAL_LAYOUTS, DeciderSettings, Deployment
 from ..runtime.constraints import ConstraintReport
 from ..runtime.cost import CostIntegrator
+from ..runtime.hosts import SingleMachineWatch
 from ..runtime.intake import ObservationBook
 from ..runtime.layout import LayoutError, adopt, initial_plan
 from ..runtime.liveness import LivenessWatch
@@ -125,6 +126,8 @@ class DeciderNode(Node):
         self.policy = MigrationPolicy(self.deployment, self.settings)
         # Silent agents, lost scales and nodes with nowhere to go: said when they change.
         self.liveness = LivenessWatch(self.deployment, self.settings)
+        # Scales whose agents report one machine (single-machine mode): said when it changes.
+        self.machines = SingleMachineWatch(self.deployment.scale_names)
         self.cost = CostIntegrator(self.deployment)
         self.expected = expectations(self.deployment, self.placements)
         self.generation = 0
@@ -426,6 +429,7 @@ class DeciderNode(Node):
                 self.get_logger().info(f'{d.kind} {d.node} {d.from_scale} -> {d.to_scale}: '
                                        f'{d.reason}')
         self._announce(report)
+        self._single_machine()
         for n in self.liveness.update(obs, self.policy.unplaceable, report, self.layout):
             self._event(n.kind, n.node, n.scale, '', n.text)
             log = self.get_logger()
@@ -458,6 +462,8 @@ class DeciderNode(Node):
             self._say_once(w)
 
         level, message = p.OK, 'constraints hold'
+        if self.machines.groups:
+            message += f' (single-machine mode: {self.machines.summary()})'
         if report is not None and report.violations:
             level, message = p.WARN, f'{len(report.violations)} violation(s): ' + \
                 report.violations[0].reason
@@ -481,6 +487,15 @@ class DeciderNode(Node):
         self._active = active
         for note in self.policy.notes:
             self._say_once(note, kind='note')
+
+    def _single_machine(self) -> None:
+        """One line, one event, when scales start or stop sharing one machine."""
+        hosts = {scale: (seen.state.host_id or '', seen.state.host or '')
+                 for scale, seen in self.book.agents.items()}
+        text = self.machines.update(hosts)
+        if text:
+            self.get_logger().info(text)
+            self._event('single_machine', '', '', '', text)
 
     def _say_once(self, text: str, kind: str = 'warning') -> None:
         if text in self._said:
@@ -534,6 +549,7 @@ class DeciderNode(Node):
             'decisions': self._decisions, 'messages ignored': self._rejected,
             'perf_map': round(perf, 3), 'perf integral': round(integral, 3),
             'migration': self.settings.migration,
+            'single machine': self.machines.summary() or 'no',
             'decider': self.identity.describe(),
             'layouts signed': self.key is not None,
         }

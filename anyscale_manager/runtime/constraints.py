@@ -5,6 +5,12 @@ freq_min with its tolerance Δ; every scale's CPU against its capacity (times a 
 link's required bandwidth (the connections the running layout makes cross it) against what it
 has available (times a margin). Judged on what actually runs (``Observations.running``).
 
+A link's available bandwidth is the link monitor's measurement capped at the link's nominal
+``bandwidth_kbps`` (``capped_kbps``): an active probe between two scales of one machine runs
+over loopback and measures memory copies (23 456 370 kbit/s against a nominal 54 000 was
+seen), which no decision should rest on. A reason built on a capped figure says so
+(``LinkLoad.cap_note``).
+
 Freshness: an observation older than ``observation_max_age_s`` counts as missing. A missing link
 report is a down link; a missing connection reading is a rate of 0 Hz; a missing scale report
 falls back to the nominal CPU of the nodes running there. Something never observed is missing
@@ -55,17 +61,31 @@ class LinkLoad:
     up: bool
     observed: bool                 # a fresh observation backs ``up`` and ``available_kbps``
     nominal_kbps: float
-    available_kbps: float          # measured, else nominal; 0 when down
+    available_kbps: float          # measured capped at nominal, else nominal; 0 when down
     usable_kbps: float             # available x bandwidth_margin
     required_kbps: float
     connections: Tuple[str, ...]   # the connections crossing it
     reason: str = ''               # why it counts as down, when it does
+    measured_kbps: Optional[float] = None   # the monitor's figure behind available, uncapped
 
     @property
     def ok(self) -> bool:
         if self.required_kbps <= 0:
             return True
         return self.up and self.required_kbps <= self.usable_kbps
+
+    @property
+    def capped(self) -> bool:
+        """The measurement was above the nominal: available is the nominal."""
+        return self.measured_kbps is not None and self.measured_kbps > self.nominal_kbps
+
+    @property
+    def cap_note(self) -> str:
+        """' (measured X kbit/s, capped at the nominal Y)' when capped, else ''."""
+        if not self.capped:
+            return ''
+        return (f' (measured {self.measured_kbps:.0f} kbit/s, above the nominal: capped at '
+                f'{self.nominal_kbps:.0f})')
 
 
 @dataclass(frozen=True)
@@ -160,6 +180,18 @@ def crossing(deployment: Deployment, running: Mapping[str, str]
     return on_link, unlinked
 
 
+def capped_kbps(measured_kbps: float, nominal_kbps: float) -> float:
+    """What a link is taken to have: its measurement, never above its nominal (loopback)."""
+    return max(0.0, min(measured_kbps, nominal_kbps))
+
+
+def measured_kbps(deployment: Deployment, obs: Observations, link: Link) -> Optional[float]:
+    """The link monitor's last bandwidth figure for a link, uncapped (None: none)."""
+    key = link_observation_key(deployment, link)
+    lo = obs.links.get(key) if key is not None else None
+    return None if lo is None else lo.available_kbps
+
+
 def required_kbps(deployment: Deployment, running: Mapping[str, str]) -> Dict[str, float]:
     """Bandwidth each link must carry under ``running`` (kbit/s, both directions summed)."""
     on_link, _ = crossing(deployment, running)
@@ -170,8 +202,9 @@ def link_capacity(deployment: Deployment, settings: DeciderSettings, obs: Observ
                   link: Link, since: Optional[float] = None) -> Tuple[bool, bool, float, str]:
     """(up, observed, available_kbps, why_down) for one link, from the latest observation.
 
-    Links that do not touch the master have no observation: they count as up at their nominal
-    bandwidth (nothing measures them).
+    Available is the measurement capped at the nominal (``capped_kbps``), the nominal while
+    nothing was measured. Links that do not touch the master have no observation: they count as
+    up at their nominal bandwidth (nothing measures them).
     """
     key = link_observation_key(deployment, link)
     if key is None:
@@ -183,7 +216,7 @@ def link_capacity(deployment: Deployment, settings: DeciderSettings, obs: Observ
         # cut (nothing comes back for it) nor a link to move out over (not observed).
         last = lo.available_kbps if lo is not None and lo.available_kbps is not None \
             else link.bandwidth_kbps
-        return True, False, max(0.0, last), ''
+        return True, False, capped_kbps(last, link.bandwidth_kbps), ''
     if lo is None:
         silent = math.inf if since is None else obs.now - since
         if silent > max_age:
@@ -198,7 +231,7 @@ def link_capacity(deployment: Deployment, settings: DeciderSettings, obs: Observ
     if not lo.up:
         return False, True, 0.0, f'link {link.name} to {key} reported down'
     available = link.bandwidth_kbps if lo.available_kbps is None else lo.available_kbps
-    return True, True, max(0.0, available), ''
+    return True, True, capped_kbps(available, link.bandwidth_kbps), ''
 
 
 def node_cpu(deployment: Deployment, settings: DeciderSettings, obs: Observations,
@@ -400,7 +433,8 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
                         nominal_kbps=link.bandwidth_kbps, available_kbps=available,
                         usable_kbps=available * settings.bandwidth_margin,
                         required_kbps=required, connections=tuple(c.name for c in conns),
-                        reason=why)
+                        reason=why,
+                        measured_kbps=measured_kbps(deployment, obs, link) if up else None)
         links[link.name] = load
         far = [e for e in link.ends if e != master] if master in link.ends else list(link.ends)
         hosted_far = tuple(n for n, where in running.items() if where in far)
@@ -415,7 +449,8 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
                 BANDWIDTH, link.name,
                 f'link {link.name}: required {required:.0f} kbit/s > usable '
                 f'{load.usable_kbps:.0f} kbit/s ({available:.0f} available x margin '
-                f'{settings.bandwidth_margin:g})', _off_master(deployment, running, names)))
+                f'{settings.bandwidth_margin:g}){load.cap_note}',
+                _off_master(deployment, running, names)))
     for c, a, b in unlinked:
         violations.append(Violation(
             BANDWIDTH, c.name, f'connection {c.name} joins {a} and {b}, which share no link',

@@ -14,7 +14,12 @@ CPU seconds spent per wall second, which may be above 1 on several cores.
 """
 
 import math
-from typing import Dict, Mapping, Optional, Tuple
+from typing import Dict, Iterable, List, Mapping, Optional, Tuple
+
+# Where a scale's CPU comes from (ScaleStatus.cpu_source).
+CGROUP = 'cgroup'           # its cgroup's usage, when a CPU quota confines the scale
+MACHINE = 'machine'         # the whole machine's busy time: the scale is alone on it
+PROCESSES = 'processes'     # its agent's process tree: the machine is shared (single-machine)
 
 
 def reference_percent(core_seconds_per_s: float, capacity_cpu: float,
@@ -71,6 +76,36 @@ def quota_cores_v2(cpu_max_text: str) -> Optional[float]:
     except ValueError:
         return None
     return quota / period if quota > 0 and period > 0 else None
+
+
+def cpu_source(quota_confined: bool, shares_machine: bool) -> str:
+    """The rule: a cgroup quota confines the scale -> its cgroup (the test-bed's scales, even on
+    one machine); else, another scale's agent on this machine -> the agent's process tree
+    (single-machine mode: the machine's busy time is every scale's); else the machine."""
+    if quota_confined:
+        return CGROUP
+    return PROCESSES if shares_machine else MACHINE
+
+
+def own_cpu_seconds(table: Mapping[int, Tuple[int, float]], roots: Iterable[int]
+                    ) -> Dict[int, float]:
+    """pid -> cumulative CPU seconds of every process in the trees of ``roots`` (the agent, and
+    the nodes it supervises: an adopted node is no child of the agent), each pid once.
+
+    ``table``: pid -> (parent pid, cumulative CPU seconds) of every live process. A root that is
+    gone is left out; processes outside the trees (another scale's, a user's) never count.
+    """
+    children: Dict[int, List[int]] = {}
+    for child, (parent, _) in table.items():
+        children.setdefault(parent, []).append(child)
+    out: Dict[int, float] = {}
+    todo = [pid for pid in roots if pid in table]
+    while todo:
+        pid = todo.pop()
+        if pid not in out:
+            out[pid] = table[pid][1]
+            todo.extend(children.get(pid, ()))
+    return out
 
 
 class CpuCounter:

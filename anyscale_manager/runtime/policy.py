@@ -361,7 +361,8 @@ class MigrationPolicy:
                 break
             actionable = True
             back(best, f'link {link_name}: required {required:.0f} kbit/s > usable '
-                       f'{usable:.0f} kbit/s; {best} frees {best_gain:.0f} kbit/s')
+                       f'{usable:.0f} kbit/s{report.links[link_name].cap_note}; {best} frees '
+                       f'{best_gain:.0f} kbit/s')
             hypothetical[best] = self.master
         return out, actionable
 
@@ -502,8 +503,9 @@ class MigrationPolicy:
                 return False, f'link {name} down'
             if need > load.usable_kbps:
                 return False, (f'link {name} would need {need:.0f} kbit/s > usable '
-                               f'{load.usable_kbps:.0f}')
-            detail.append(f'link {name} {need:.0f}/{load.usable_kbps:.0f} kbit/s')
+                               f'{load.usable_kbps:.0f}{load.cap_note}')
+            detail.append(f'link {name} {need:.0f}/{load.usable_kbps:.0f} kbit/s'
+                          f'{load.cap_note}')
         return True, f'CPU {used:.0f} + {cpu:.0f} <= {usable:.0f}' + \
             ''.join('; ' + x for x in detail)
 

@@ -10,6 +10,8 @@ A measured bandwidth above the link's nominal (an active probe over loopback mea
 copies) is shown capped at the nominal and says so. The layout's age is the time since its
 generation (or its assignments) changed, as this view witnessed it; the decider re-stamps each
 re-publication, so the message's own stamp says when it was last sent, not when it was made.
+Scales whose agents report one machine are said (single-machine mode, ``runtime.hosts``), and a
+scale's CPU measured as its agent's own processes is marked ``own processes``.
 """
 
 from dataclasses import dataclass, field
@@ -17,6 +19,7 @@ from typing import Dict, List, Optional, Tuple
 
 from .. import protocol as p
 from ..model.types import Deployment
+from ..runtime.hosts import describe, shared_groups
 
 # A measured bandwidth older than this many probe intervals: probes fail or cannot run.
 BANDWIDTH_STALE_INTERVALS = 2.0
@@ -167,6 +170,18 @@ def _objective_line(book: StatusBook, now: float) -> str:
     return text
 
 
+def _single_machine_line(book: StatusBook) -> str:
+    """'single-machine mode: robot, laptop on host vm (...)', or '' when no scales share one."""
+    hosts = {s: a.host_id or '' for s, (a, _) in book.agents.items()}
+    names = {s: a.host or '' for s, (a, _) in book.agents.items()}
+    groups = shared_groups(hosts, book.deployment.scale_names)
+    if not groups:
+        return ''
+    return ('single-machine mode: ' + '; '.join(describe(g, names) for g in groups)
+            + " (each scale's CPU: its own processes unless a cgroup quota confines it; "
+            'a loopback bandwidth is capped at the nominal)')
+
+
 def _scale_rows(book: StatusBook, now: float) -> List[str]:
     d = book.deployment
     rows = [['SCALE', 'ROLE', 'CPU USED / CAPACITY', 'AGENT']]
@@ -176,6 +191,8 @@ def _scale_rows(book: StatusBook, now: float) -> List[str]:
             st, at = book.scales[s.name]
             cpu = f'{st.cpu_total:.0f} / {s.capacity_cpu:.0f} ' \
                   f'({st.cpu_total / s.capacity_cpu:.0%})'
+            if st.cpu_source == 'processes':
+                cpu += ' own processes'
             if now - at > d.decider.observation_max_age_s:
                 cpu += ' ' + stale_mark(now - at)
         agent = 'not heard'
@@ -287,7 +304,9 @@ def _node_rows(book: StatusBook, now: float, running, standby) -> List[str]:
 def render(book: StatusBook, now: float) -> str:
     """The status view as text, its figures judged at ``now`` (the clock of ``take``)."""
     lines = [f'deployment {book.deployment.name}', _layout_line(book, now),
-             _objective_line(book, now), '']
+             _objective_line(book, now)]
+    shared = _single_machine_line(book)
+    lines += [shared, ''] if shared else ['']
     running, standby = _placement(book)
     lines += _scale_rows(book, now) + ['']
     lines += _link_rows(book, now) + ['']

@@ -1,9 +1,10 @@
-"""ScaleMonitor: the CPU of a scale (its cgroup under a quota, else the machine) and of
-the nodes serving on it."""
+"""ScaleMonitor: the CPU of a scale (its cgroup under a quota; else, when another scale's agent
+runs on this machine, its agent's process tree; else the machine) and of the nodes serving on
+it."""
 
 import os
 import time
-from typing import Callable, Dict, Mapping, Optional, Tuple
+from typing import Callable, Dict, Iterable, Mapping, Optional, Sequence, Tuple
 
 import psutil
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -45,6 +46,7 @@ class _SystemCpu:
                 self.usage_scale = 1e-6
         if self.cgroup_usage_path is None:
             quota = None
+        self.quota_confined = self.cgroup_usage_path is not None
         self.cores = cpu_math.effective_cores(psutil.cpu_count(logical=True) or 1, quota)
 
     @staticmethod
@@ -88,17 +90,33 @@ def _read(path: str) -> str:
 
 
 class ScaleMonitor:
-    """Publishes protocol.ScaleStatus on TOPIC_SCALE_STATUS and a scale DiagnosticStatus."""
+    """Publishes protocol.ScaleStatus on TOPIC_SCALE_STATUS and a scale DiagnosticStatus.
+
+    ``pids``: the serving nodes' pids (their CPU by node). ``own_pids``: every process the
+    agent supervises (standby copies, adopted nodes); ``shared_with``: the other scales whose
+    agents run on this machine. While ``shared_with`` names one and no cgroup quota confines
+    this scale, its CPU is the process tree of this agent and of ``own_pids``
+    (``runtime.cpu.cpu_source``): the machine's busy time would be every scale's.
+    """
 
     def __init__(self, node, deployment: Deployment, scale: str,
-                 pids: Callable[[], Mapping[str, int]]):
+                 pids: Callable[[], Mapping[str, int]],
+                 own_pids: Optional[Callable[[], Iterable[int]]] = None,
+                 shared_with: Optional[Callable[[], Sequence[str]]] = None):
         self._node = node
         self._scale = scale_of(deployment, scale)
         self._pids = pids
+        self._own_pids = own_pids or (lambda: ())
+        self._shared_with = shared_with or (lambda: ())
         period = period_of(deployment.monitoring.scale_rate_hz, 'scale_rate_hz')
+        self._period = period
+        self._sampled_at = -float('inf')
         self._system = _SystemCpu(os.getpid())
         self._total = cpu_math.CpuCounter()
         self._procs = cpu_math.ProcessGroupCpu()
+        self._own = cpu_math.ProcessGroupCpu()
+        self.source = cpu_math.CGROUP if self._system.quota_confined else cpu_math.MACHINE
+        self.sharing: Tuple[str, ...] = ()
         self._out = Publishers(node, p.TOPIC_SCALE_STATUS)
         self._group = MutuallyExclusiveCallbackGroup()
         self.last: Optional[p.ScaleStatus] = None
@@ -108,9 +126,40 @@ class ScaleMonitor:
             f'scale monitor for {self._scale.name}: {self._system.cores:g} CPUs worth '
             f'{self._scale.capacity_cpu:g} reference-core percent, from {self._system.source}')
 
+    def _choose_source(self) -> None:
+        """Single-machine mode or not, from the other agents' reports; said when it changes."""
+        try:
+            sharing = tuple(self._shared_with())
+        except Exception as e:  # the agent's callback; never let it kill the monitor
+            self._node.get_logger().warning(f'scale monitor: shared_with() failed: {e}',
+                                            throttle_duration_sec=10.0)
+            sharing = self.sharing
+        source = cpu_math.cpu_source(self._system.quota_confined, bool(sharing))
+        if (source, sharing) == (self.source, self.sharing):
+            return
+        name = self._scale.name
+        others = ', '.join(sharing)
+        if source == cpu_math.PROCESSES:
+            text = (f'scale {name} shares this machine with {others}: single-machine mode, '
+                    f"the CPU of {name} is its agent's own processes (pid {os.getpid()}, its "
+                    "monitors and the nodes it supervises), not the machine's")
+        elif sharing:
+            text = (f'scale {name} shares this machine with {others}; a CPU quota confines '
+                    f'it, so its CPU is its cgroup usage ({self._system.source})')
+        else:
+            where = 'its cgroup usage' if source == cpu_math.CGROUP else 'the whole machine'
+            text = (f'scale {name} no longer shares this machine with another scale: its CPU '
+                    f'is {where} again ({self._system.source})')
+        self._node.get_logger().info(text)
+        self.source, self.sharing = source, sharing
+
     def _sample(self) -> Tuple[Optional[float], Dict[str, float]]:
-        now = time.monotonic()
-        busy = self._system.busy_seconds()
+        now = self._sampled_at = time.monotonic()
+        self._choose_source()
+        own = self.source == cpu_math.PROCESSES
+        if own:
+            self._total = cpu_math.CpuCounter()     # primed afresh when the mode ends
+        busy = None if own else self._system.busy_seconds()
         total = None if busy is None else self._total.update(now, busy)
         try:
             pids = dict(self._pids())
@@ -121,7 +170,21 @@ class ScaleMonitor:
         # One pass over /proc for every node (a process tree per node): walking each node's
         # tree with psutil rescans /proc once per node, which was half the agent's CPU.
         leaders = {name: pid for name, pid in pids.items() if isinstance(pid, int) and pid > 0}
-        samples = procs.tree_cpu_seconds(procs.process_table(), leaders) if leaders else {}
+        table = procs.process_table() if leaders or own else {}
+        samples = procs.tree_cpu_seconds(table, leaders) if leaders else {}
+        if own:
+            try:
+                roots = {os.getpid(), *(pid for pid in self._own_pids()
+                                        if isinstance(pid, int) and pid > 0)}
+            except Exception as e:  # the agent's callback; never let it kill the monitor
+                self._node.get_logger().warning(f'scale monitor: own_pids() failed: {e}',
+                                                throttle_duration_sec=10.0)
+                roots = {os.getpid()}
+            # The first sample after a switch only primes the counter: no reading then.
+            total = self._own.update(now, {'scale': cpu_math.own_cpu_seconds(table, roots)}
+                                     ).get('scale')
+        else:
+            self._own = cpu_math.ProcessGroupCpu()
         return total, self._procs.update(now, samples)
 
     def _ref(self, core_seconds_per_s: float) -> float:
@@ -129,6 +192,12 @@ class ScaleMonitor:
                                           self._system.cores)
 
     def _tick(self) -> None:
+        if time.monotonic() - self._sampled_at < 0.5 * self._period:
+            # A timer that fired late fires its next call early, and over a few milliseconds
+            # one of the kernel's 10 ms CPU ticks reads as a whole core: a scale of three light
+            # processes, read in steps of 4 of its 200 at 4 Hz, once read 86 (an interval of
+            # about 50 ms). The next tick measures the longer interval.
+            return
         total, by_node = self._sample()
         if total is None:
             return
@@ -139,14 +208,15 @@ class ScaleMonitor:
             capacity_cpu=capacity,
             cpu_by_node={name: self._ref(v) for name, v in sorted(by_node.items())},
             mem_percent=float(psutil.virtual_memory().percent),
-            load_1m=float(os.getloadavg()[0]))
+            load_1m=float(os.getloadavg()[0]), cpu_source=self.source)
         self.last = message
         self._out.send(message)
         level = p.WARN if cpu_total >= 0.9 * capacity else p.OK
         text = (f'CPU {cpu_total:.0f} of {capacity:.0f}' +
                 (' (near capacity)' if level == p.WARN else ''))
         values = {'cpu_total': cpu_total, 'capacity_cpu': capacity,
-                  'mem_percent': message.mem_percent, 'load_1m': message.load_1m}
+                  'mem_percent': message.mem_percent, 'load_1m': message.load_1m,
+                  'cpu_source': self.source, 'shares_machine_with': ', '.join(self.sharing)}
         values.update({f'cpu.{k}': v for k, v in message.cpu_by_node.items()})
         self._out.send_diagnostics([status(f'anyscale/scale/{self._scale.name}', level, text,
                                            self._scale.host, values)])
