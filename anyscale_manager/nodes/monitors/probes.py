@@ -11,7 +11,7 @@ executor's dispatch was 110 us per message against 8 us for a take (bench_probe_
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Dict, Iterable, Optional, Set, Tuple
+from typing import Dict, Iterable, Iterator, Optional, Set, Tuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
@@ -185,16 +185,10 @@ class ProbeManager:
             if subscription is None:
                 continue
             try:
-                with subscription.handle:
-                    for _ in range(DRAIN_LIMIT):
-                        taken = subscription.handle.take_message(subscription.msg_type, True)
-                        if taken is None:
-                            break
-                        info = taken[1] if len(taken) > 1 else None
-                        received_ns = (info.get('received_timestamp', 0)
-                                       if isinstance(info, dict) else 0)
-                        at = received_ns / 1e9 - offset_s if received_ns else now
-                        window.add(min(at, now), len(taken[0]))
+                for raw, info in _taken(subscription, DRAIN_LIMIT):
+                    received_ns = info.get('received_timestamp', 0)
+                    at = received_ns / 1e9 - offset_s if received_ns else now
+                    window.add(min(at, now), len(raw))
             except Exception:   # destroyed meanwhile: its topic is no longer probed
                 continue
 
@@ -204,14 +198,8 @@ class ProbeManager:
             watched = [(p.watch, p.writers) for p in self._topics.values() if p.watch is not None]
         for subscription, writers in watched:
             try:
-                with subscription.handle:
-                    for _ in range(limit):
-                        taken = subscription.handle.take_message(subscription.msg_type, True)
-                        if taken is None:
-                            break
-                        info = taken[1] if len(taken) > 1 else None
-                        writers.add(now, info.get('publication_sequence_number')
-                                    if isinstance(info, dict) else None)
+                for _raw, info in _taken(subscription, limit):
+                    writers.add(now, info.get('publication_sequence_number'))
             except Exception:   # destroyed meanwhile: its topic is no longer probed
                 continue
 
@@ -285,6 +273,18 @@ class ProbeManager:
             self._probes.clear()
         self._reader.destroy_node()
         self._out.destroy()
+
+
+def _taken(subscription, limit: int) -> Iterator[Tuple[bytes, dict]]:
+    """Each message a raw subscription holds, at most ``limit``: (serialised message, its
+    message info, {} where the middleware gives none), taken under the handle."""
+    with subscription.handle:
+        for _ in range(limit):
+            taken = subscription.handle.take_message(subscription.msg_type, True)
+            if taken is None:
+                return
+            info = taken[1] if len(taken) > 1 else None
+            yield taken[0], info if isinstance(info, dict) else {}
 
 
 def clock_offset_s(attempts: int = 5) -> float:
