@@ -26,7 +26,6 @@ from typing import Any, Dict, List, Optional, Sequence
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 
@@ -65,10 +64,6 @@ UNSIGNED = ('layouts are not signed and anyone on this ROS domain can move or st
 
 class AgentError(RuntimeError):
     """A reason the agent cannot run, said in one line."""
-
-
-def latched_qos() -> QoSProfile:
-    return qos.LATCHED
 
 
 def scale_from_args(args: Sequence[str]) -> Optional[str]:
@@ -183,11 +178,14 @@ class AgentNode(Node):
         self._published_view: Dict[str, tuple] = {}
         self._last_waiting: Dict[str, str] = {}
 
-        qos = latched_qos()
-        self._state_pub = self.create_publisher(String, protocol.TOPIC_AGENT_STATE, qos)
-        self.create_subscription(String, protocol.TOPIC_LAYOUT, self._on_layout, qos)
+        self._state_pub = self.create_publisher(String, protocol.TOPIC_AGENT_STATE, qos.LATCHED)
+        # Several writers on each (every agent; a rival decider): a reader of depth 1 keeps one
+        # sample for all of them, and a peer's report that lands beside another is lost until
+        # its next heartbeat (a stop_before_start move then waited one report period).
+        self.create_subscription(String, protocol.TOPIC_LAYOUT, self._on_layout,
+                                 qos.LATCHED_READER)
         self.create_subscription(String, protocol.TOPIC_AGENT_STATE, self._on_agent_state,
-                                 latched_qos())
+                                 qos.LATCHED_READER)
         if scale != d.master.name:
             # The decider's output at each of its steps: word from the master scale, which a
             # remote scale cut off from it no longer gets (see Reconciler).

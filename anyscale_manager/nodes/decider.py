@@ -158,7 +158,7 @@ class DeciderNode(Node):
         self.publishing = False
         self.pub_layout = self.pub_events = self.pub_objective = self.pub_plan = None
         self.pub_diag = None
-        self.create_subscription(String, p.TOPIC_LAYOUT, self._on_layout, LATCHED)
+        self.create_subscription(String, p.TOPIC_LAYOUT, self._on_layout, qos.LATCHED_READER)
         self.create_subscription(String, p.TOPIC_AGENT_STATE, self._on_agent_state,
                                  AGENT_STATE_QOS)
         self.create_subscription(String, p.TOPIC_SCALE_STATUS, self._on_scale_status,

@@ -7,6 +7,9 @@ dispatches from C++. It is new in Jazzy's rclpy (``rclpy.experimental``); where 
 the default one is used.
 """
 
+from typing import Optional
+
+from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
 
 try:
@@ -15,10 +18,10 @@ except ImportError:         # an older Jazzy rclpy
     EventsExecutor = None
 
 
-def make_executor() -> Executor:
+def make_executor(context: Optional[Context] = None) -> Executor:
     if EventsExecutor is not None:
-        return EventsExecutor()
-    return SingleThreadedExecutor()
+        return EventsExecutor(context=context)
+    return SingleThreadedExecutor(context=context)
 
 
 __all__ = ['make_executor']

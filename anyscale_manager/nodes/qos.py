@@ -11,9 +11,10 @@ def _profile(depth: int, reliable: bool, latched: bool = False) -> QoSProfile:
                                   else DurabilityPolicy.VOLATILE))
 
 
-# Latched state (the layout; each agent's state): a late joiner gets the last value.
+# Writing latched state (the layout; each agent's state): a late joiner gets the last value.
 LATCHED = _profile(1, reliable=True, latched=True)
-# Reading a latched topic with several writers (one state per agent): room for each.
+# Reading a latched topic: it has several writers (each agent; a rival decider), and a reader's
+# depth is shared by all of them: room for each, and for a burst of one.
 LATCHED_READER = _profile(20, reliable=True, latched=True)
 # Periodic status topics: reliable so a decider misses no reading; any subscriber matches.
 STATUS = _profile(10, reliable=True)

@@ -1,0 +1,89 @@
+"""An agent hears every peer's latched report, however many land at once.
+
+The agent_state topic has one writer per agent (and the layout topic one per decider). A reader
+whose history is shared by all of them must keep a sample of each: with room for one, the
+reports that arrive together replace each other before the agent takes them, and the agent
+learns of a peer only at its next heartbeat (a stop_before_start move then waited one report
+period for the losing copy's deactivation). Here an agent starts after two peers have latched
+their reports: it must know both without either publishing again.
+"""
+
+import os
+import sys
+import time
+
+import rclpy
+import yaml
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from anyscale_manager import protocol as p
+from anyscale_manager import protocol_auth as auth
+from anyscale_manager.nodes import qos
+from anyscale_manager.nodes.agent import AgentNode
+from anyscale_manager.nodes.executor import make_executor
+
+DEADLINE_S = 15.0
+
+
+def write_deployment(tmp_path):
+    talker = {'command': [sys.executable, '-c', 'import time; time.sleep(60)']}
+    scale = {'capacity_cpu': 100.0}
+    data = {'/**': {'ros__parameters': {
+        'deployment': {'name': f'agent_peers_{os.getpid()}'},
+        'scales': {'names': ['a', 'b', 'c'],
+                   'a': dict(scale, role='master', kind='robot'),
+                   'b': dict(scale, role='remote', kind='server'),
+                   'c': dict(scale, role='remote', kind='server')},
+        'nodes': {'names': ['worker'], 'worker': {'launch': talker, 'cpu': 1.0}},
+        'decider': {'agent_timeout_s': 60.0},
+        'monitoring': {'bandwidth_probe_interval_s': 86400.0,
+                       'bandwidth_probe_port': 40000 + os.getpid() % 20000},
+        'agent': {'state_dir': str(tmp_path / 'state'), 'log_dir': str(tmp_path / 'log')},
+    }}}
+    path = tmp_path / 'deployment.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return str(path), data['/**']['ros__parameters']['deployment']['name']
+
+
+def test_an_agent_starting_late_hears_every_peers_latched_report(tmp_path):
+    path, name = write_deployment(tmp_path)
+    peers_ctx, agent_ctx = rclpy.Context(), rclpy.Context()
+    rclpy.init(context=peers_ctx)
+    rclpy.init(context=agent_ctx)
+    peers = Node('agent_peers_harness', context=peers_ctx)
+    agent = None
+    try:
+        # Two peers' agents, each with its own writer, as each agent has.
+        writers = []
+        for scale in ('b', 'c'):
+            pub = peers.create_publisher(String, p.TOPIC_AGENT_STATE, qos.LATCHED)
+            state = p.AgentState(scale=scale, generation=0, stamp=time.time(), nodes={},
+                                 instance=f'{scale}-instance', seq=1)
+            pub.publish(String(data=auth.seal(None, state)))
+            writers.append(pub)
+        agent = AgentNode('a', context=agent_ctx,
+                          cli_args=['--ros-args', '--params-file', path])
+        assert agent.deployment.name == name
+        # Both reports reach the agent's reader before it takes anything (nothing spins it
+        # until then): the case of reports landing together.
+        end = time.monotonic() + DEADLINE_S
+        while time.monotonic() < end and not all(w.get_subscription_count() for w in writers):
+            time.sleep(0.02)
+        assert all(w.get_subscription_count() for w in writers), 'the agent never matched'
+        executor = make_executor(agent_ctx)
+        executor.add_node(agent)
+        try:
+            while time.monotonic() < end and set(agent.reconciler.peers) != {'b', 'c'}:
+                executor.spin_once(timeout_sec=0.05)
+        finally:
+            executor.remove_node(agent)
+            executor.shutdown()
+        assert set(agent.reconciler.peers) == {'b', 'c'}, (
+            f'the agent heard only {sorted(agent.reconciler.peers)} of the two latched reports')
+    finally:
+        if agent is not None:
+            agent.destroy_node()
+        peers.destroy_node()
+        rclpy.try_shutdown(context=agent_ctx)
+        rclpy.try_shutdown(context=peers_ctx)
