@@ -27,6 +27,10 @@ scale (``lifecycle: true``, ``standby: true``); a move is an activation, with no
 (started and matched then do not apply). It fails with the agents' own words when the package's
 agent does not support lifecycle nodes.
 
+Without --standby the talker is then also started directly, with no agent, as many times, the
+agents and their nodes still running: process start -> first message received here is what the
+node's own start and DDS discovery cost, the part of a cold move that is not the agent's.
+
 Agent CPU: the agent process alone (its children excluded), once idle with ten catalogue nodes
 stopped and once supervising ten running talkers at 1 Hz; monitors hosted by the agent are
 included when the monitors module is present; --cpu-seconds 0 skips it.
@@ -360,11 +364,50 @@ def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
             b.publish(gen + 1, {node: 'a'})
             gen += 1
             b.spin_until(lambda: False, 0.5)
+        if not standby:
+            results['bare'] = bare_starts(b, moves, jitter_s, rng, topic + '/bare', tmp)
     finally:
         for a in b.agents:
             stop_agent(a)
         b.close()
     return results
+
+
+def bare_starts(b, count, jitter_s, rng, topic, tmp):
+    """The same talker started here ``count`` times with no agent involved, the agents and
+    their nodes still running: process start -> first message received, its own start."""
+    b.listen(topic)
+    first, matched = [], []
+    log = open(os.path.join(tmp, 'bare_talker.out'), 'ab')
+    try:
+        for _ in range(count):
+            b.spin_until(lambda: False, rng.uniform(0.0, jitter_s))
+            b.heard.clear()
+            b.matched.clear()
+            t0 = time.monotonic()
+            proc = subprocess.Popen([sys.executable, '-c', TALKER, '--ros-args', '-r',
+                                     '__node:=bench_bare_talker',
+                                     '-p', f'topic:={topic}', '-p', 'rate_hz:=10.0'],
+                                    stdout=log, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL)
+            tag = f'? {proc.pid}'
+            try:
+                if not b.spin_until(lambda: any(d == tag for _, d in b.heard), 60.0):
+                    raise RuntimeError('a talker started without an agent was never heard')
+                first.append(min(t for t, d in b.heard if d == tag) - t0)
+                seen = [t for t, tp in b.matched if tp == topic]
+                if seen:
+                    matched.append(min(seen) - t0)
+            finally:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+    finally:
+        log.close()
+    return {'first': first, 'matched': matched, 'started': [], 'ready': []}
 
 
 def start_time(pid):
@@ -471,6 +514,11 @@ def main():
                 if s:
                     print(f'move latency ({kind}{label}, {len(s)} moves, layout published -> '
                           f'{labels[stage]}): {figures(s)}')
+        for stage in ('first', 'matched'):
+            s = moves.get('bare', {}).get(stage)
+            if s:
+                print(f'the same talker started without an agent, beside the same processes '
+                      f'({len(s)} starts, process started -> {labels[stage]}): {figures(s)}')
         if args.cpu_seconds > 0:
             idle, busy = bench_cpu(tmp, args.cpu_seconds)
             print(f'agent CPU over {args.cpu_seconds:g} s (percent of one core): idle '
