@@ -6,105 +6,30 @@ and re-published on change (a move out, then the remote agent's end brings the n
 
 import os
 import signal
-import sys
-import time
 
 import psutil
 import pytest
-import rclpy
-import yaml
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
-from processes import LoggedProcess
-
-LATCHED = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
-BIN = os.path.dirname(sys.executable)
+import home_away as ha
+from home_away import runs
 
 
 def write_deployment(tmp_path):
-    def workload(name):
-        # the package's workload node: a real ROS node the agent sees in the graph (readiness)
-        return {'command': [os.path.join(BIN, 'workload'), '--name', name, '--pub',
-                            f'/decider_agent_{os.getpid()}/{name}', '--rate-hz', '2.0']}
-    data = {'/**': {'ros__parameters': {
-        'deployment': {'name': f'decider_agent_{os.getpid()}'},
-        'scales': {'names': ['home', 'away'],
-                   'home': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100000.0,
-                            'cores': 2, 'clock_ghz': 1.0, 'gain': 1.0},
-                   'away': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100000.0,
-                            'cores': 4, 'clock_ghz': 2.0, 'gain': 3.0}},
-        'links': {'names': ['net'],
-                  'net': {'ends': ['home', 'away'], 'bandwidth_kbps': 100000.0,
-                          'medium': 'wired'}},
-        'nodes': {'names': ['worker', 'pinned'],
-                  'worker': {'launch': workload('worker'), 'cpu': 1.0},
-                  'pinned': {'launch': workload('pinned'), 'cpu': 1.0, 'residence': ['home']}},
-        # Both scales are this one machine: each scale monitor reports the whole machine's
-        # load (other tests included) against its capacity, so no headroom is kept.
-        'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 1.0, 'agent_timeout_s': 3.0,
-                    'observation_max_age_s': 3.0, 'hysteresis_s': 60.0},
-        # The link is loopback and never fails here: a missed echo is one agent not scheduled on
-        # a loaded machine (once seen in CI: the worker moved home for it). Not this test's
-        # subject, so the link is judged down only after 3 s of silence.
-        'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
-                       'scale_rate_hz': 4.0,
-                       'bandwidth_probe_interval_s': 86400.0,
-                       'bandwidth_probe_port': 40000 + os.getpid() % 20000},
-        'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,
-                  'restart_backoff_s': 0.2, 'restart_backoff_max_s': 2.0,
-                  'heartbeat_rate_hz': 4.0, 'state_dir': str(tmp_path / 'state'),
-                  'log_dir': str(tmp_path / 'log')},
-    }}}
-    path = tmp_path / 'deployment.yaml'
-    path.write_text(yaml.safe_dump(data))
-    return str(path)
+    return ha.write_deployment(tmp_path, f'decider_agent_{os.getpid()}',
+                               ha.worker_and_pinned(f'/decider_agent_{os.getpid()}'))
 
 
 @pytest.fixture
 def listener():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = Node('decider_agent_listener', context=ctx)
-    seen = {'layouts': [], 'states': {}, 'events': []}
-    node.create_subscription(String, p.TOPIC_LAYOUT,
-                             lambda m: seen['layouts'].append(p.Layout.from_json(m.data)),
-                             LATCHED)
-
-    def state(m):
-        s = p.AgentState.from_json(m.data)
-        seen['states'][s.scale] = s
-    node.create_subscription(String, p.TOPIC_AGENT_STATE, state, LATCHED)
-    node.create_subscription(String, p.TOPIC_EVENTS,
-                             lambda m: seen['events'].append(p.Event.from_json(m.data)), 100)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    yield ex, seen
-    ex.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
+    with ha.listening('decider_agent_listener') as heard:
+        yield heard
 
 
 def wait(ex, cond, timeout, what, procs=()):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.05)
-        if cond():
-            return
-        if any(pr.proc.poll() is not None for name, pr in procs if name == 'decider'):
-            break
-    logs = '\n'.join(f'--- {name}\n{pr.text()[-3000:]}' for name, pr in procs)
-    raise AssertionError(f'timed out after {timeout} s waiting for {what}\n{logs}')
-
-
-def runs(seen, scale, node):
-    s = seen['states'].get(scale)
-    r = s.nodes.get(node) if s else None
-    return r is not None and r.state == 'running'
+    """Until ``cond()``; the decider's end ends the wait (agents are stopped on purpose)."""
+    ha.wait(ex, cond, timeout, what, procs, watch=('decider',))
 
 
 def test_layout_applied_reported_back_and_republished(tmp_path, ros_env, listener):
@@ -112,16 +37,9 @@ def test_layout_applied_reported_back_and_republished(tmp_path, ros_env, listene
     deployment = write_deployment(tmp_path)
     procs = []
     try:
-        for scale in ('home', 'away'):
-            procs.append((f'agent_{scale}', LoggedProcess(
-                tmp_path / f'agent_{scale}.out', [os.path.join(BIN, 'agent'), '--ros-args',
-                                                  '--params-file', deployment,
-                                                  '-p', f'scale:={scale}'], ros_env)))
-        procs.append(('decider', LoggedProcess(
-            tmp_path / 'decider.out', [os.path.join(BIN, 'decider'), '--ros-args',
-                                       '--params-file', deployment], ros_env)))
+        ha.start_agents(procs, tmp_path, ros_env, deployment)
+        decider = ha.start(procs, tmp_path, ros_env, deployment, 'decider')
         agents = dict(procs[:2])
-        decider = procs[2][1]
 
         wait(ex, lambda: seen['layouts'], 40.0, 'the first layout', procs)
         first = seen['layouts'][0]         # latched: the newest one when we matched
@@ -162,53 +80,14 @@ def test_layout_applied_reported_back_and_republished(tmp_path, ros_env, listene
 def write_chain_deployment(tmp_path):
     """sensor (home) -> worker (migratable) -> pinned (home): the home agent's probe measures
     worker -> pinned, so when that agent dies the connection's readings stop with it."""
-    topic = f'/decider_liveness_{os.getpid()}'
-
-    def workload(name, *args):
-        return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args]}
-    connection = {'msg_type': 'std_msgs/msg/UInt8MultiArray', 'bandwidth_kbps': 1.0}
-    data = {'/**': {'ros__parameters': {
-        'deployment': {'name': f'decider_liveness_{os.getpid()}'},
-        'scales': {'names': ['home', 'away'],
-                   'home': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100000.0,
-                            'cores': 2, 'clock_ghz': 1.0},
-                   'away': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100000.0,
-                            'cores': 4, 'clock_ghz': 2.0, 'gain': 3.0}},
-        'links': {'names': ['net'],
-                  'net': {'ends': ['home', 'away'], 'bandwidth_kbps': 100000.0,
-                          'medium': 'wired'}},
-        'nodes': {'names': ['sensor', 'worker', 'pinned'],
-                  'sensor': {'launch': workload('sensor', '--pub', topic + '/s',
-                                                '--rate-hz', '4.0'),
-                             'cpu': 1.0, 'residence': ['home']},
-                  'worker': {'launch': workload('worker', '--sub', topic + '/s', '--pub',
-                                                topic + '/w', '--rate-hz', '4.0'), 'cpu': 1.0},
-                  'pinned': {'launch': workload('pinned', '--sub', topic + '/w', '--pub',
-                                                topic + '/p', '--rate-hz', '4.0'),
-                             'cpu': 1.0, 'residence': ['home']}},
-        'connections': {'names': ['sensor_worker', 'worker_pinned'],
-                        'sensor_worker': dict(connection, topic=topic + '/s',
-                                              publisher='sensor', subscriber='worker'),
-                        # Without the agent's liveness, its probe's silence would read as 0 Hz
-                        # past Δ after max_age + Δ = 8 s, well before the scale is lost (12 s).
-                        # Δ also covers the chain's cold start on a loaded machine.
-                        'worker_pinned': dict(connection, topic=topic + '/w',
-                                              publisher='worker', subscriber='pinned',
-                                              freq_min_hz=0.5, tolerance_s=6.0)},
-        'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 4.0,
-                    'agent_timeout_s': 12.0, 'observation_max_age_s': 2.0,
-                    'hysteresis_s': 60.0},
-        'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 8,
-                       'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
-                       'bandwidth_probe_port': 40000 + (os.getpid() + 7) % 20000},
-        'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,
-                  'restart_backoff_s': 0.2, 'restart_backoff_max_s': 2.0,
-                  'heartbeat_rate_hz': 4.0, 'state_dir': str(tmp_path / 'state'),
-                  'log_dir': str(tmp_path / 'log')},
-    }}}
-    path = tmp_path / 'liveness.yaml'
-    path.write_text(yaml.safe_dump(data))
-    return str(path)
+    # Without the agent's liveness, its probe's silence would read as 0 Hz past Δ after
+    # max_age + Δ = 8 s, well before the scale is lost (12 s). Δ also covers the chain's cold
+    # start on a loaded machine.
+    graph = ha.chain(f'/decider_liveness_{os.getpid()}', 4.0, freq_min_hz=0.5, tolerance_s=6.0)
+    return ha.write_deployment(
+        tmp_path, f'decider_liveness_{os.getpid()}', graph,
+        decider={'grace_s': 4.0, 'agent_timeout_s': 12.0, 'observation_max_age_s': 2.0},
+        monitoring={'heartbeat_misses_down': 8}, port_offset=7, file_name='liveness.yaml')
 
 
 def test_a_killed_master_agent_is_not_a_cut_link(tmp_path, ros_env, listener):
@@ -222,18 +101,15 @@ def test_a_killed_master_agent_is_not_a_cut_link(tmp_path, ros_env, listener):
     procs = []
 
     def agent(scale):
-        return LoggedProcess(tmp_path / f'agent_{scale}_{len(procs)}.out',
-                             [os.path.join(BIN, 'agent'), '--ros-args', '--params-file',
-                              deployment, '-p', f'scale:={scale}'], ros_env)
+        return ha.start([], tmp_path, ros_env, deployment, f'agent_{scale}_{len(procs)}',
+                        '-p', f'scale:={scale}')
 
     def events(kind, scale):
         return [e for e in seen['events'] if e.kind == kind and e.from_scale == scale]
     try:
         procs.append(('agent_home', agent('home')))
         procs.append(('agent_away', agent('away')))
-        procs.append(('decider', LoggedProcess(
-            tmp_path / 'decider.out', [os.path.join(BIN, 'decider'), '--ros-args',
-                                       '--params-file', deployment], ros_env)))
+        ha.start(procs, tmp_path, ros_env, deployment, 'decider')
         wait(ex, lambda: runs(seen, 'away', 'worker') and not runs(seen, 'home', 'worker')
              and runs(seen, 'home', 'pinned') and runs(seen, 'home', 'sensor'), 60.0,
              'worker running away, sensor and pinned home', procs)

@@ -11,7 +11,6 @@
 import json
 import os
 import signal
-import sys
 import time
 
 import pytest
@@ -23,10 +22,9 @@ from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
 from anyscale_manager import protocol_auth as auth
-from processes import LoggedProcess
-from test_decider_agent import LATCHED, runs, write_deployment
-
-BIN = os.path.dirname(sys.executable)
+from anyscale_manager.nodes import qos
+from home_away import runs, start, start_agents, wait
+from test_decider_agent import write_deployment
 
 
 @pytest.fixture
@@ -44,8 +42,8 @@ def world():
         s = p.AgentState.from_json(m.data)
         if s.instance != 'f00d':          # the test's own forgery
             seen['states'][s.scale] = s
-    node.create_subscription(String, p.TOPIC_LAYOUT, layout, LATCHED)
-    node.create_subscription(String, p.TOPIC_AGENT_STATE, state, LATCHED)
+    node.create_subscription(String, p.TOPIC_LAYOUT, layout, qos.LATCHED_READER)
+    node.create_subscription(String, p.TOPIC_AGENT_STATE, state, qos.LATCHED_READER)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     procs = []
@@ -68,30 +66,6 @@ def deployment(tmp_path, key=False):
         with open(path, 'w') as f:
             yaml.safe_dump(data, f)
     return path
-
-
-def start(procs, tmp_path, ros_env, path, name, *args):
-    exe = 'decider' if name.startswith('decider') else 'agent'
-    proc = LoggedProcess(tmp_path / f'{name}.out',
-                         [os.path.join(BIN, exe), '--ros-args', '--params-file', path, *args],
-                         ros_env)
-    procs.append((name, proc))
-    return proc
-
-
-def start_agents(procs, tmp_path, ros_env, path):
-    return {scale: start(procs, tmp_path, ros_env, path, f'agent_{scale}', '-p',
-                         f'scale:={scale}') for scale in ('home', 'away')}
-
-
-def wait(ex, cond, timeout, what, procs):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.05)
-        if cond():
-            return
-    logs = '\n'.join(f'--- {name}\n{pr.text()[-3000:]}' for name, pr in procs)
-    raise AssertionError(f'timed out after {timeout} s waiting for {what}\n{logs}')
 
 
 def until_logged(ex, send, agents, why, timeout=30.0):
@@ -143,7 +117,7 @@ def test_a_second_decider_exits_2_naming_the_first(tmp_path, ros_env, world):
     # Without a key, a plain script's layout (no decider identity) is refused while the
     # followed decider lives, and nothing moves.
     pids = {s: {n: r.pid for n, r in seen['states'][s].nodes.items()} for s in agents}
-    forger = node.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
+    forger = node.create_publisher(String, p.TOPIC_LAYOUT, qos.LATCHED)
     forger.publish(String(data=json.dumps({
         'generation': 10 ** 15, 'deployment': seen['layouts'][-1].deployment,
         'assignments': {'worker': 'home', 'pinned': 'home'}, 'reason': 'forged',
@@ -211,7 +185,7 @@ def test_with_a_key_layouts_move_nodes_and_forged_or_replayed_ones_do_not(tmp_pa
     pids = serving(seen, agents)
     generations = {s: seen['states'][s].generation for s in agents}
 
-    forger = node.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
+    forger = node.create_publisher(String, p.TOPIC_LAYOUT, qos.LATCHED)
     forged = json.loads(seen['raw'][-1])
     forged.update(generation=10 ** 15, assignments={'worker': 'home', 'pinned': 'home'},
                   seq=forged['seq'] + 1000, stamp=time.time())
@@ -231,7 +205,7 @@ def test_with_a_key_layouts_move_nodes_and_forged_or_replayed_ones_do_not(tmp_pa
     # by the other agent and by the decider, and the worker is not brought home for it.
     fake = p.AgentState(scale='away', generation=generations['away'], stamp=time.time(),
                         nodes={}, decider=me, instance='f00d', seq=1)
-    states = node.create_publisher(String, p.TOPIC_AGENT_STATE, LATCHED)
+    states = node.create_publisher(String, p.TOPIC_AGENT_STATE, qos.LATCHED)
 
     def forge_state():
         fake.seq += 1

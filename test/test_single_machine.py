@@ -15,18 +15,12 @@ from dataclasses import replace
 
 import psutil
 import pytest
-import rclpy
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
-from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
 from anyscale_manager.agent.host import this_host
 from anyscale_manager.model.advice import single_machine
 from anyscale_manager.model.loader import load_deployment
-from anyscale_manager.nodes import qos
 from anyscale_manager.runtime import cpu
 from anyscale_manager.runtime.constraints import BANDWIDTH, capped_kbps, evaluate, link_capacity
 from anyscale_manager.runtime.hosts import (HostBook, SingleMachineWatch, identity_from,
@@ -37,9 +31,9 @@ from anyscale_manager.runtime.observations import (MIGRATE, MIGRATE_BACK, Connec
 from anyscale_manager.runtime.policy import MigrationPolicy
 from anyscale_manager.view.status import StatusBook, render
 from conftest import REPO, TESTBED
-from processes import LoggedProcess
+import home_away as ha
+from home_away import runs
 
-BIN = os.path.dirname(sys.executable)
 LOOPBACK_KBPS = 23456370.0        # what an active probe measured over loopback in the issue
 
 
@@ -282,119 +276,24 @@ NOMINAL_KBPS = 54000.0
 
 
 def write_deployment(tmp_path):
-    topic = f'/single_machine_{os.getpid()}'
-
-    def workload(name, *args):
-        return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args]}
-    connection = {'bandwidth_kbps': 100.0, 'msg_type': 'std_msgs/msg/UInt8MultiArray'}
-    data = {'/**': {'ros__parameters': {
-        'deployment': {'name': f'single_machine_{os.getpid()}'},
-        # No host: both default to localhost, as a user's first file.
-        'scales': {'names': ['home', 'away'],
-                   'home': {'role': 'master', 'kind': 'robot', 'capacity_cpu': CAPACITY,
-                            'cores': 2, 'clock_ghz': 1.0},
-                   'away': {'role': 'remote', 'kind': 'server', 'capacity_cpu': CAPACITY,
-                            'cores': 4, 'clock_ghz': 2.0, 'gain': 3.0}},
-        'links': {'names': ['net'],
-                  'net': {'ends': ['home', 'away'], 'bandwidth_kbps': NOMINAL_KBPS,
-                          'medium': 'wired'}},
-        # sensor (home) -> worker (migratable) -> pinned (home): a node that subscribes to
-        # nothing would be a data provider, pinned to the master.
-        'nodes': {'names': ['sensor', 'worker', 'pinned'],
-                  'sensor': {'launch': workload('sensor', '--pub', topic + '/s',
-                                                '--rate-hz', '2.0'),
-                             'cpu': 1.0, 'residence': ['home']},
-                  'worker': {'launch': workload('worker', '--sub', topic + '/s', '--pub',
-                                                topic + '/w', '--rate-hz', '2.0'), 'cpu': 1.0},
-                  'pinned': {'launch': workload('pinned', '--sub', topic + '/w', '--pub',
-                                                topic + '/p', '--rate-hz', '2.0'),
-                             'cpu': 1.0, 'residence': ['home']}},
-        'connections': {'names': ['sensor_worker', 'worker_pinned'],
-                        'sensor_worker': dict(connection, topic=topic + '/s',
-                                              publisher='sensor', subscriber='worker'),
-                        'worker_pinned': dict(connection, topic=topic + '/w',
-                                              publisher='worker', subscriber='pinned')},
-        'decider': {'cpu_headroom': HEADROOM, 'period_s': 0.25, 'grace_s': 1.0,
-                    'agent_timeout_s': 4.0, 'observation_max_age_s': 3.0,
-                    'hysteresis_s': 60.0},
-        # The link is loopback and never fails here: a missed echo is an agent not scheduled
-        # on a loaded machine, not this test's subject. One throughput probe, at the start.
-        'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
-                       'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
-                       'bandwidth_probe_duration_s': 0.3,
-                       'bandwidth_probe_port': 40000 + (os.getpid() + 13) % 20000},
-        'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,
-                  'restart_backoff_s': 0.2, 'restart_backoff_max_s': 2.0,
-                  'heartbeat_rate_hz': 4.0, 'state_dir': str(tmp_path / 'state'),
-                  'log_dir': str(tmp_path / 'log')},
-    }}}
-    path = tmp_path / 'deployment.yaml'
-    path.write_text(yaml.safe_dump(data))
-    return str(path)
+    """No host for either scale: both default to localhost, as a user's first file."""
+    graph = ha.chain(f'/single_machine_{os.getpid()}', 2.0, {'bandwidth_kbps': 100.0})
+    return ha.write_deployment(
+        tmp_path, f'single_machine_{os.getpid()}', graph, capacity_cpu=CAPACITY,
+        link_kbps=NOMINAL_KBPS,
+        decider={'cpu_headroom': HEADROOM, 'agent_timeout_s': 4.0},
+        monitoring={'bandwidth_probe_duration_s': 0.3}, port_offset=13)
 
 
 @pytest.fixture
 def listener():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = Node('single_machine_listener', context=ctx)
-    seen = {'layouts': [], 'states': {}, 'events': [], 'scales': [], 'links': [],
-            'objectives': 0, 'diagnostics': {}}
-
-    def keep(key, cls):
-        def take(m):
-            seen[key].append((time.monotonic(), cls.from_json(m.data)))
-        return take
-
-    def agent_state(m):
-        s = p.AgentState.from_json(m.data)
-        seen['states'][s.scale] = s
-
-    def objective(m):
-        seen['objectives'] += 1
-
-    def diagnostics(m):
-        for status in m.status:
-            if status.name.startswith('anyscale_decider'):
-                seen['diagnostics'] = {kv.key: kv.value for kv in status.values}
-                seen['diagnostics']['message'] = status.message
-    node.create_subscription(String, p.TOPIC_LAYOUT,
-                             lambda m: seen['layouts'].append(p.Layout.from_json(m.data)),
-                             qos.LATCHED_READER)
-    node.create_subscription(String, p.TOPIC_AGENT_STATE, agent_state, qos.LATCHED_READER)
-    node.create_subscription(String, p.TOPIC_EVENTS,
-                             lambda m: seen['events'].append(p.Event.from_json(m.data)),
-                             qos.EVENTS)
-    node.create_subscription(String, p.TOPIC_SCALE_STATUS, keep('scales', p.ScaleStatus),
-                             qos.MONITOR_READER)
-    node.create_subscription(String, p.TOPIC_LINK_STATUS, keep('links', p.LinkStatus),
-                             qos.MONITOR_READER)
-    node.create_subscription(String, p.TOPIC_OBJECTIVE, objective, 10)
-    node.create_subscription(DiagnosticArray, p.TOPIC_DIAGNOSTICS, diagnostics, 50)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    yield ex, seen
-    ex.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
+    with ha.listening('single_machine_listener') as heard:
+        yield heard
 
 
 def wait(ex, cond, timeout, what, procs=()):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.05)
-        if cond():
-            return
-        if any(pr.proc.poll() is not None for name, pr in procs):
-            break
-    logs = '\n'.join(f'--- {name}\n{pr.text()[-3000:]}' for name, pr in procs)
-    raise AssertionError(f'timed out after {timeout} s waiting for {what}\n{logs}')
-
-
-def runs(seen, scale, node):
-    s = seen['states'].get(scale)
-    r = s.nodes.get(node) if s else None
-    return r is not None and r.state == 'running'
+    """Until ``cond()``; any process's end ends the wait."""
+    ha.wait(ex, cond, timeout, what, procs, watch=[name for name, _ in procs])
 
 
 @pytest.mark.timeout(240)
@@ -411,11 +310,7 @@ def test_a_load_outside_both_scales_moves_nothing_back(tmp_path, ros_env, listen
                    os.path.join(REPO, 'config', 'fastdds_discovery.xml'))
     procs, hog = [], None
     try:
-        for scale in ('home', 'away'):
-            procs.append((f'agent_{scale}', LoggedProcess(
-                tmp_path / f'agent_{scale}.out', [os.path.join(BIN, 'agent'), '--ros-args',
-                                                  '--params-file', deployment,
-                                                  '-p', f'scale:={scale}'], env)))
+        ha.start_agents(procs, tmp_path, env, deployment)
         # Each agent hears the other and measures its own processes from then on.
         wait(ex, lambda: {'home', 'away'} <= {s.scale for _, s in seen['scales'][-8:]
                                               if s.cpu_source == 'processes'},
@@ -429,9 +324,7 @@ def test_a_load_outside_both_scales_moves_nothing_back(tmp_path, ros_env, listen
                         if ls.bandwidth_available_kbps)
         assert measured > NOMINAL_KBPS, measured
 
-        procs.append(('decider', LoggedProcess(
-            tmp_path / 'decider.out', [os.path.join(BIN, 'decider'), '--ros-args',
-                                       '--params-file', deployment], env)))
+        ha.start(procs, tmp_path, env, deployment, 'decider')
         wait(ex, lambda: runs(seen, 'away', 'worker') and not runs(seen, 'home', 'worker')
              and runs(seen, 'home', 'pinned') and runs(seen, 'home', 'sensor'), 90.0,
              'the worker running away', procs)
