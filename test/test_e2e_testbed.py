@@ -48,6 +48,16 @@ def bed():
         assert not [n for n in netns.list_namespaces() if n.startswith(tb_tag(tb))]
 
 
+def link_log(tb, lines=6):
+    """The robot link monitor's last verdicts (a down one says what it rests on)."""
+    try:
+        with open(os.path.join(tb.run_dir, 'logs', 'agent_robot.log'), errors='replace') as f:
+            said = [line.strip() for line in f if 'link to laptop is' in line]
+    except OSError as e:
+        return f'(no agent log: {e})'
+    return '\n'.join(said[-lines:])
+
+
 def tb_tag(tb):
     return f'{netns.NAME_PREFIX}-{os.getpid()}-'
 
@@ -447,7 +457,8 @@ def test_7_a_remote_stay_longer_than_two_dds_leases_then_a_cut(bed):
         moves = [(round(t - t_out, 1), e.kind, e.node, e.reason[:80])
                  for t, e in bed.record.moves(since=t_out)]
         after = copies(bed.record)
-    assert moves == [], f'moves during the remote stay: {moves}'
+    assert moves == [], f'moves during the remote stay: {moves}; robot link monitor: ' \
+        f'{link_log(bed)}'
     assert after == before, f'live copies changed during the stay:\n{before}\n{after}'
     assert_within_delta(bed, t_out, t_end, f'{REMOTE_STAY_S:g} s on the laptop')
     try:
@@ -555,7 +566,7 @@ def test_9_c_a_standby_copy_killed_comes_back_inactive_and_nothing_else_moves(be
     changed = {k: (before.get(k), after.get(k)) for k in set(before) | set(after)
                if before.get(k) != after.get(k)}
     print(f'robot AMCL copy {pid} killed; {new.pid} inactive {t_back - t_kill:.1f} s later')
-    assert moves == [], f'moves after the kill: {moves}'
+    assert moves == [], f'moves after the kill: {moves}; robot link monitor: {link_log(bed)}'
     assert where == {n: (LAPTOP,) for n in MOVING}, where
     assert set(changed) == {('amcl', ROBOT)}, f'copies changed: {changed}'
     assert new.pid != pid and new.restarts > victim.restarts, (victim, new)

@@ -241,6 +241,20 @@ def test_link_goes_down_after_misses_and_up_on_echo(rate_hz, misses):
     assert hb.up(t + rtt)
 
 
+def test_a_down_verdict_says_what_it_rests_on():
+    period, misses, rtt = 0.1, 3, 0.002
+    hb = HeartbeatTracker(period, misses)
+    assert hb.silence(0.0) == 'no echo yet (0 beats sent)'
+    now = _beats(hb, 0.0, 10, lambda k: rtt, period)
+    last_echo = now - period + rtt
+    for at in (0.0, 0.1, 0.28):                       # the third beat went out late
+        hb.next_beat(now + at)
+    t = now + 0.29
+    assert not hb.up(t)
+    assert hb.silence(t) == (f'no echo for {t - last_echo:.2f} s, 3 beats unanswered, sent '
+                             '0.10-0.18 s apart (period 0.1 s)')
+
+
 def test_a_stall_of_the_judging_process_is_not_a_cut():
     period, misses, rtt = 0.25, 3, 0.01
     hb = HeartbeatTracker(period, misses)

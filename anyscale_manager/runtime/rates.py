@@ -251,6 +251,21 @@ class HeartbeatTracker:
         return self.last_echo is not None and (now - self.last_echo <= self.timeout_s
                                                or self._sent_since_echo < self.misses_down)
 
+    def silence(self, now: float) -> str:
+        """What a down verdict rests on, in words: how long without an echo, how many beats went
+        unanswered, and how regularly they were sent (beats far apart mean this process was not
+        scheduled, not that the link lost them)."""
+        if self.last_echo is None:
+            return f'no echo yet ({self._sent_since_echo} beats sent)'
+        text = (f'no echo for {now - self.last_echo:.2f} s, {self._sent_since_echo} beats '
+                'unanswered')
+        pending = sorted(t for t in self._sent.values() if t > self.last_echo)
+        gaps = [b - a for a, b in zip(pending, pending[1:])]
+        if gaps:
+            text += (f', sent {min(gaps):.2f}-{max(gaps):.2f} s apart (period '
+                     f'{self.period_s:g} s)')
+        return text
+
     def loss(self, now: float) -> float:
         self._expire(now)
         if not self._fates:

@@ -258,7 +258,9 @@ class LinkMonitor:
                     remote.quiet_since = max(remote.quiet_since, now)
                     if remote.bandwidth is not None:
                         remote.bandwidth.remeasure()
-                self._log.info(f'link to {remote.scale.name} is {"up" if up else "DOWN"}')
+                self._log.info(f'link to {remote.scale.name} is up' if up else
+                               f'link to {remote.scale.name} is DOWN: '
+                               f'{remote.beats.silence(now)}')
                 self._publish(remote, now, self.used_kbps(remote.scale.name, now))
 
     def _publish(self, remote: _Remote, now: float, used: float) -> None:
