@@ -1,4 +1,4 @@
-"""Test-wide settings: DDS stays on loopback, in a domain of this run's own."""
+"""Test-wide settings and fixtures: DDS stays on loopback, in a domain of this run's own."""
 
 import os
 import random
@@ -52,3 +52,13 @@ def testbed_path():
 @pytest.fixture
 def python():
     return sys.executable
+
+
+@pytest.fixture
+def make_sup(tmp_path):
+    """make(entries, settings=FAST, state=True, log_dir=None, state_path=None): a supervisor;
+    nothing any of them started outlives the test (supervision.py)."""
+    from supervision import Supervisors
+    supervisors = Supervisors(tmp_path)
+    yield supervisors.make
+    supervisors.kill_all()

@@ -11,67 +11,15 @@ import pytest
 
 from anyscale_manager import protocol
 from anyscale_manager.agent import procs
-from anyscale_manager.agent.catalogue import (base_environment, build_catalogue, ENV_INSTANCE,
-                                              ENV_NODE, ENV_SCALE, Entry, format_parameter)
+from anyscale_manager.agent.catalogue import (build_catalogue, ENV_INSTANCE, ENV_NODE, ENV_SCALE,
+                                              Entry, format_parameter)
 from anyscale_manager.agent.reconcile import HEAR_PATIENCE_S, Reconciler
-from anyscale_manager.agent.supervisor import Supervisor
 from anyscale_manager.model import types as t
 from anyscale_manager.model.loader import load_mapping
+from supervision import drive, FAST, gone, py_entry, SLEEPER, wait_for
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 FIXTURES = os.path.join(HERE, 'fixtures')
-FAST = t.AgentSettings(sigint_grace_s=0.3, sigterm_grace_s=0.3, readiness_timeout_s=0.5,
-                       restart_backoff_s=0.2, restart_backoff_max_s=1.0)
-
-
-def wait_for(cond, timeout=10.0, step=None, period=0.02):
-    """Poll ``cond`` (after ``step``) until true or the deadline; return its last value."""
-    end = time.monotonic() + timeout
-    while True:
-        if step is not None:
-            step()
-        value = cond()
-        if value or time.monotonic() > end:
-            return value
-        time.sleep(period)
-
-
-def gone(pid):
-    try:
-        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
-    except psutil.NoSuchProcess:
-        return True
-
-
-def py_entry(name, code, env=None):
-    base = base_environment(os.environ)
-    base.update(env or {})
-    base[ENV_NODE] = name
-    return Entry(name=name, argv=(sys.executable, '-c', code), env=base, ros_name=name)
-
-
-SLEEPER = 'import time\nwhile True: time.sleep(1)'
-
-
-@pytest.fixture
-def make_sup(tmp_path):
-    made = []
-
-    def make(entries, settings=FAST, state=True):
-        sup = Supervisor({e.name: e for e in entries}, settings, str(tmp_path / 'log'),
-                         state_path=str(tmp_path / 'state.json') if state else '',
-                         identity={'deployment': 'd', 'scale': 's'})
-        made.append(sup)
-        return sup
-
-    yield make
-    for sup in made:   # nothing a test started outlives it
-        sup.kill_all(time.monotonic())
-        wait_for(sup.all_stopped, 10.0, step=lambda s=sup: s.step(time.monotonic()))
-
-
-def drive(sup, cond, timeout=10.0, visible=lambda e: False):
-    return wait_for(cond, timeout, step=lambda: sup.step(time.monotonic(), visible))
 
 
 # --- catalogue ----------------------------------------------------------------------------

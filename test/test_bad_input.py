@@ -21,23 +21,19 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
-from anyscale_manager.agent.catalogue import (base_environment, build_catalogue, ENV_NODE,
-                                              Entry)
+from anyscale_manager.agent.catalogue import base_environment, build_catalogue, Entry
 from anyscale_manager.agent.supervisor import MAX_STATE_BYTES, Supervisor
-from anyscale_manager.model import types as t
 from anyscale_manager.model.loader import load_deployment, load_mapping
 from anyscale_manager.nodes import qos
 from anyscale_manager.nodes.throttled_log import MAX_KINDS, ThrottledLog
 from anyscale_manager.runtime.intake import MAX_IGNORED_KINDS, ObservationBook
 from conftest import TESTBED
 from processes import LoggedProcess
+from supervision import drive, FAST, py_entry, SLEEPER
 from test_decider_agent import write_deployment
 from test_protocol import sample_messages
 
 BIN = os.path.dirname(sys.executable)
-FAST = t.AgentSettings(sigint_grace_s=0.3, sigterm_grace_s=0.3, readiness_timeout_s=0.5,
-                       restart_backoff_s=0.2, restart_backoff_max_s=1.0)
-SLEEPER = 'import time\nwhile True: time.sleep(1)'
 
 # Every project topic and the message it carries (/diagnostics is typed: not JSON).
 DECODERS = {
@@ -191,39 +187,6 @@ def test_throttled_log_keeps_a_bounded_number_of_kinds():
 
 # --- the agent's state file ---------------------------------------------------------------------
 
-@pytest.fixture
-def make_sup(tmp_path):
-    made = []
-
-    def make(entries, log_dir=None, state_path=None):
-        sup = Supervisor({e.name: e for e in entries}, FAST,
-                         str(log_dir or tmp_path / 'log'),
-                         state_path=str(state_path or tmp_path / 'state' / 'agent.json'),
-                         identity={'deployment': 'd', 'scale': 's'})
-        made.append(sup)
-        return sup
-
-    yield make
-    for sup in made:   # nothing a test started outlives it
-        sup.kill_all(time.monotonic())
-        drive(sup, sup.all_stopped)
-
-
-def py_entry(name, code):
-    env = base_environment(os.environ)
-    env[ENV_NODE] = name
-    return Entry(name=name, argv=(sys.executable, '-c', code), env=env, ros_name=name)
-
-
-def drive(sup, cond, timeout=10.0):
-    end = time.monotonic() + timeout
-    while True:
-        sup.step(time.monotonic())
-        if cond() or time.monotonic() > end:
-            return cond()
-        time.sleep(0.02)
-
-
 def live_record(pid):
     return {'pid': pid, 'started': psutil.Process(pid).create_time(), 'instance': 'x',
             'argv': ['x'], 'restarts': 0}
@@ -249,7 +212,7 @@ STATE_FILES = [
 @pytest.mark.parametrize('label, content, words', STATE_FILES, ids=[c[0] for c in STATE_FILES])
 def test_a_bad_state_file_adopts_nothing_and_is_kept_aside(make_sup, label, content, words):
     sup = make_sup([py_entry('n', SLEEPER)])
-    os.makedirs(os.path.dirname(sup.state_path))
+    os.makedirs(os.path.dirname(sup.state_path), exist_ok=True)
     with open(sup.state_path, 'w', encoding='utf-8', errors='surrogateescape') as f:
         f.write(content())
     notes = sup.adopt(time.monotonic(), time.time())
@@ -272,7 +235,7 @@ def test_a_bad_state_record_is_ignored_alone(make_sup, record):
     sleeper = subprocess.Popen([sys.executable, '-c', SLEEPER])
     try:
         sup = make_sup([py_entry('n', SLEEPER)])
-        os.makedirs(os.path.dirname(sup.state_path))
+        os.makedirs(os.path.dirname(sup.state_path), exist_ok=True)
         with open(sup.state_path, 'w') as f:
             # json writes Infinity and NaN as Python's reader accepts them.
             f.write(state_text({'bad': record, 'n': live_record(sleeper.pid)}))
