@@ -178,11 +178,12 @@ def start_agent(path, scale, tmp):
     return proc
 
 
-def stop_agent(proc):
+def stop_process(proc, timeout_s=30.0):
+    """SIGINT, then SIGKILL past ``timeout_s``."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
     try:
-        proc.wait(30)
+        proc.wait(timeout_s)
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
@@ -270,7 +271,7 @@ def percentile(values, q):
     return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
 
 
-STAGES = ('started', 'matched', 'first', 'ready')
+STAGES = ('started', 'matched', 'first', 'ready', 'after_match')
 
 
 def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
@@ -350,6 +351,8 @@ def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
                     seen = [t for t, tp in b.matched if tp == topics[node]]
                     if seen:
                         samples['matched'].append(min(seen) - t0)
+                        samples['after_match'].append(samples['first'][-1]
+                                                      - samples['matched'][-1])
 
                 def settled():
                     old = b.states.get('a' if where == 'b' else 'b')
@@ -368,7 +371,7 @@ def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
             results['bare'] = bare_starts(b, moves, jitter_s, rng, topic + '/bare', tmp)
     finally:
         for a in b.agents:
-            stop_agent(a)
+            stop_process(a)
         b.close()
     return results
 
@@ -377,7 +380,7 @@ def bare_starts(b, count, jitter_s, rng, topic, tmp):
     """The same talker started here ``count`` times with no agent involved, the agents and
     their nodes still running: process start -> first message received, its own start."""
     b.listen(topic)
-    first, matched = [], []
+    first, matched, after = [], [], []
     log = open(os.path.join(tmp, 'bare_talker.out'), 'ab')
     try:
         for _ in range(count):
@@ -398,16 +401,13 @@ def bare_starts(b, count, jitter_s, rng, topic, tmp):
                 seen = [t for t, tp in b.matched if tp == topic]
                 if seen:
                     matched.append(min(seen) - t0)
+                    after.append(first[-1] - matched[-1])
             finally:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+                stop_process(proc, 10.0)
     finally:
         log.close()
-    return {'first': first, 'matched': matched, 'started': [], 'ready': []}
+    return {'first': first, 'matched': matched, 'after_match': after, 'started': [],
+            'ready': []}
 
 
 def start_time(pid):
@@ -448,7 +448,7 @@ def bench_cpu(tmp, seconds):
         b.spin_until(lambda: False, 3.0)
         busy = cpu_of(agent.pid, seconds)
     finally:
-        stop_agent(agent)
+        stop_process(agent)
         b.close()
     return idle, busy
 
@@ -514,6 +514,14 @@ def main():
                 if s:
                     print(f'move latency ({kind}{label}, {len(s)} moves, layout published -> '
                           f'{labels[stage]}): {figures(s)}')
+            s = moves[node]['after_match']
+            if s:
+                print(f'move ({label}, {len(s)} moves): this consumer matched the new copy -> '
+                      f'its first message: {figures(s)}')
+        s = moves.get('bare', {}).get('after_match')
+        if s:
+            print(f'the same talker started without an agent ({len(s)} starts): this consumer '
+                  f'matched it -> its first message: {figures(s)}')
         for stage in ('first', 'matched'):
             s = moves.get('bare', {}).get(stage)
             if s:

@@ -221,16 +221,23 @@ def concurrent_spans(streams: Sequence[Sequence[Tuple[float, float]]]
     return out
 
 
-@dataclass
-class Duplicate:
-    node: str
-    topic: str
+class _Span:
+    """A span of time with ``start`` and ``end`` (fields of the dataclass that uses it)."""
+
     start: float
     end: float
 
     @property
     def length_s(self) -> float:
         return self.end - self.start
+
+
+@dataclass
+class Duplicate(_Span):
+    node: str
+    topic: str
+    start: float
+    end: float
 
 
 def duplicates(arrivals: Mapping[str, Sequence[float]], seqs: Mapping[str, Sequence[int]],
@@ -256,14 +263,10 @@ def duplicates(arrivals: Mapping[str, Sequence[float]], seqs: Mapping[str, Seque
 # --- a node that runs nowhere -----------------------------------------------------------------
 
 @dataclass
-class Nowhere:
+class Nowhere(_Span):
     node: str
     start: float
     end: float
-
-    @property
-    def length_s(self) -> float:
-        return self.end - self.start
 
 
 def _serving(report) -> bool:
