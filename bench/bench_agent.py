@@ -2,15 +2,26 @@
 """Agent figures: move latency between two agents, and the agent's own CPU.
 
     python bench/bench_agent.py [--moves 20] [--cpu-seconds 20] [--domain-id N]
-        [--jitter-s 3.0] [--standby] [--no-profile]
+        [--jitter-s 3.0] [--standby] [--no-profile] [--scales netns|loopback]
 
-Move latency: two agents (scales a and b) on this machine; a small rclpy talker (10 Hz) is moved
-back and forth by publishing a new layout; the time runs from the layout's publication to the
-first message from the talker started on the new scale (told apart by its scale tag and pid),
-received here, a consumer on neither scale. Measured for both move orders. On the way:
+Move latency: two agents (scales a and b); a small rclpy talker (10 Hz) is moved back and forth
+by publishing a new layout; the time runs from the layout's publication to the first message
+from the talker started on the new scale (told apart by its scale tag and pid) at a consumer on
+the other scale. Measured for both move orders. Where the scales run (bench/scales.py):
+
+- netns (the default where this machine can build them, as root): scale a in the test-bed's
+  "robot" network namespace, b in its "laptop" one, joined by a veth link shaped at 54 Mbit/s,
+  DDS over UDP on the link as between two computers; this process (on a) and a listener process
+  on b are the consumers, and each move is timed at the one on the scale the copy left (the
+  one on its own scale is printed too);
+- loopback: both agents on this machine's loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST),
+  timed here, a consumer on neither scale. Fast DDS discovers on loopback by unicast to 32
+  ports and is slower to match a new participant there than over a link.
+
+On the way:
 
 - started: the new copy's process was created (its start time in /proc, 10 ms resolution);
-- matched: this consumer's subscription matched a new writer (DDS discovery of the new copy,
+- matched: the consumer's subscription matched a new writer (DDS discovery of the new copy,
   its participant first; a message can arrive only after this);
 - first message: the headline figure;
 - ready: the gaining agent reports the new copy running and ready (it sees it in its graph).
@@ -28,16 +39,17 @@ scale (``lifecycle: true``, ``standby: true``); a move is an activation, with no
 agent does not support lifecycle nodes.
 
 Without --standby the talker is then also started directly, with no agent, as many times, the
-agents and their nodes still running: process start -> first message received here is what the
-node's own start and DDS discovery cost, the part of a cold move that is not the agent's.
+agents and their nodes still running (with namespaces, on b and a in turn, heard on the other):
+process start -> first message is what the node's own start and DDS discovery cost, the part of
+a cold move that is not the agent's.
 
 Agent CPU: the agent process alone (its children excluded), once idle with ten catalogue nodes
 stopped and once supervising ten running talkers at 1 Hz; monitors hosted by the agent are
 included when the monitors module is present; --cpu-seconds 0 skips it.
-DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in the given domain. The
-packaged discovery profile (config/fastdds_discovery.xml), or a Fast DDS profile the environment
-names (FASTRTPS_DEFAULT_PROFILES_FILE for Jazzy's Fast DDS 2.x, FASTDDS_DEFAULT_PROFILES_FILE for
-3.x), applies to this process, the agents and, through them, the talkers; it is printed.
+DDS stays on loopback or the bench's own namespaces, in the given domain. The packaged
+discovery profile (config/fastdds_discovery.xml), or a Fast DDS profile the environment names
+(FASTRTPS_DEFAULT_PROFILES_FILE for Jazzy's Fast DDS 2.x, FASTDDS_DEFAULT_PROFILES_FILE for 3.x),
+applies to this process, the agents and, through them, the talkers; it is printed.
 --no-profile leaves the packaged one out.
 """
 
@@ -54,6 +66,7 @@ import time
 
 import psutil
 import yaml
+from scales import Listener, Loopback, Namespaces, choose, run_inside
 
 TALKER = r'''
 import os, sys
@@ -168,12 +181,12 @@ def talker(topic, rate_hz, source=TALKER, **extra):
                  'cpu': 1.0}, **extra)
 
 
-def start_agent(path, scale, tmp):
+def start_agent(path, scale, tmp, where):
     exe = os.path.join(os.path.dirname(sys.executable), 'agent')
     log = os.path.join(tmp, f'agent_{scale}.out')
     out = open(log, 'ab')
-    proc = subprocess.Popen([exe, '--ros-args', '--params-file', path, '-p', f'scale:={scale}'],
-                            stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+    proc = where.popen(scale, [exe, '--ros-args', '--params-file', path, '-p', f'scale:={scale}'],
+                       stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     proc.log_path = log
     return proc
 
@@ -271,10 +284,43 @@ def percentile(values, q):
     return ordered[lo] + (ordered[hi] - ordered[lo]) * (k - lo)
 
 
-STAGES = ('started', 'matched', 'first', 'ready', 'after_match')
+STAGES = ('started', 'matched', 'first', 'first_same', 'ready', 'after_match')
 
 
-def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
+class Consumers:
+    """Who hears a copy started on a scale. Loopback: this process, on neither scale. With
+    namespaces: the consumer on the other scale (the figure) and the one on the same scale."""
+
+    def __init__(self, bench, listener=None):
+        self.bench, self.listener = bench, listener
+
+    def _on(self, scale):
+        if scale == 'b':
+            return self.listener.heard, self.listener.matched
+        return self.bench.heard, self.bench.matched
+
+    def other(self, scale):
+        return self._on('a') if self.listener is None else self._on('b' if scale == 'a' else 'a')
+
+    def same(self, scale):
+        return None if self.listener is None else self._on(scale)
+
+    def heard(self, scale, tag):
+        """(time the other scale's consumer first heard ``tag``, the same scale's), or None."""
+        out = []
+        for lists in (self.other(scale), self.same(scale)):
+            if lists is not None:
+                times = [t for t, d in list(lists[0]) if d == tag]
+                out.append(min(times) if times else None)
+        return tuple(out)
+
+    def matched(self, scale, topic, since):
+        """When the other scale's consumer first matched a writer on ``topic`` after ``since``."""
+        times = [t for t, tp in list(self.other(scale)[1]) if tp == topic and t >= since]
+        return min(times) if times else None
+
+
+def bench_moves(tmp, moves, place, jitter_s=3.0, standby=False):
     """{node: {stage: [seconds after the layout, one per move]}} for both move orders."""
     topic = '/bench_agent/chatter'
     extra = {'lifecycle': True, 'standby': True} if standby else {}
@@ -283,14 +329,21 @@ def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
              'sbs2': talker(topic + '/stop_first', 10.0, source,
                             move_order='stop_before_start', **extra)}
     path = deployment(tmp, nodes)
+    topics = {'sbs': topic + '/sbs', 'sbs2': topic + '/stop_first', 'bare': topic + '/bare'}
     b = Bench('bench_agent')
-    b.listen(topic + '/sbs')
-    b.listen(topic + '/stop_first')
-    topics = {'sbs': topic + '/sbs', 'sbs2': topic + '/stop_first'}
-    b.agents = [start_agent(path, 'a', tmp), start_agent(path, 'b', tmp)]
+    for t in topics.values():
+        b.listen(t)
+    b.agents = [start_agent(path, 'a', tmp, place), start_agent(path, 'b', tmp, place)]
+    listener = None
     rng = random.Random(1)
     results = {}
     try:
+        if place.here is not None:
+            listener = Listener(place, list(topics.values()), os.path.join(tmp, 'listener.out'))
+            if not b.spin_until(listener.ready.is_set, 60.0):
+                raise RuntimeError('the listener on scale b never started:\n'
+                                   + tail(listener.log_path))
+        consumers = Consumers(b, listener)
         gen = 0
         for node in ('sbs', 'sbs2'):
             gen += 1
@@ -298,6 +351,10 @@ def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
             if not b.spin_until(lambda: any(d.startswith('a ') for _, d in b.heard), 60.0):
                 raise RuntimeError(f'the talker {node} never published on scale a; agent a:\n'
                                    + tail(b.agents[0].log_path))
+            first_tag = next(d for _, d in b.heard if d.startswith('a '))
+            if not b.spin_until(lambda: None not in consumers.heard('a', first_tag), 60.0):
+                raise RuntimeError(f'the consumer on scale b never heard {node} on scale a; '
+                                   'its log:\n' + (tail(listener.log_path) if listener else ''))
             if standby and not b.spin_until(
                     lambda: getattr(b.states.get('b'), 'nodes', {}).get(node) is not None
                     and b.states['b'].nodes[node].state == 'standby', 30.0):
@@ -328,7 +385,8 @@ def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
 
                 def moved():
                     rep = new_copy()
-                    return rep is not None and any(d == f'{where} {rep.pid}' for _, d in b.heard)
+                    return rep is not None \
+                        and None not in consumers.heard(where, f'{where} {rep.pid}')
 
                 def ready_new():
                     r = b.states.get(where)
@@ -341,18 +399,19 @@ def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
                 if not b.spin_until(ready_new, 60.0):
                     raise RuntimeError(f'move {gen} of {node} to {where} never completed')
                 rep = b.states[where].nodes[node]
-                first = min(t for t, d in b.heard if d == f'{where} {rep.pid}')
-                samples['first'].append(first - t0)
+                firsts = consumers.heard(where, f'{where} {rep.pid}')
+                samples['first'].append(firsts[0] - t0)
+                if len(firsts) > 1:
+                    samples['first_same'].append(firsts[1] - t0)
                 samples['ready'].append(ready_at[0])
                 if not standby:
                     started = start_time(rep.pid)
                     if started is not None:
                         samples['started'].append(started - boot0)
-                    seen = [t for t, tp in b.matched if tp == topics[node]]
-                    if seen:
-                        samples['matched'].append(min(seen) - t0)
-                        samples['after_match'].append(samples['first'][-1]
-                                                      - samples['matched'][-1])
+                    seen = consumers.matched(where, topics[node], t0)
+                    if seen is not None:
+                        samples['matched'].append(seen - t0)
+                        samples['after_match'].append(firsts[0] - seen)
 
                 def settled():
                     old = b.states.get('a' if where == 'b' else 'b')
@@ -368,46 +427,51 @@ def bench_moves(tmp, moves, jitter_s=3.0, standby=False):
             gen += 1
             b.spin_until(lambda: False, 0.5)
         if not standby:
-            results['bare'] = bare_starts(b, moves, jitter_s, rng, topic + '/bare', tmp)
+            results['bare'] = bare_starts(b, consumers, place, moves, jitter_s, rng,
+                                          topics['bare'], tmp)
     finally:
         for a in b.agents:
             stop_process(a)
+        if listener is not None:
+            listener.close(stop_process)
         b.close()
     return results
 
 
-def bare_starts(b, count, jitter_s, rng, topic, tmp):
-    """The same talker started here ``count`` times with no agent involved, the agents and
-    their nodes still running: process start -> first message received, its own start."""
-    b.listen(topic)
-    first, matched, after = [], [], []
+def bare_starts(b, consumers, place, count, jitter_s, rng, topic, tmp):
+    """The same talker started ``count`` times with no agent involved (on the scales in turn,
+    heard on the other one), the agents and their nodes still running: process start -> first
+    message received, its own start."""
+    out = {s: [] for s in STAGES}
     log = open(os.path.join(tmp, 'bare_talker.out'), 'ab')
     try:
-        for _ in range(count):
+        for i in range(count):
             b.spin_until(lambda: False, rng.uniform(0.0, jitter_s))
             b.heard.clear()
             b.matched.clear()
+            scale = 'b' if i % 2 == 0 else 'a'
             t0 = time.monotonic()
-            proc = subprocess.Popen([sys.executable, '-c', TALKER, '--ros-args', '-r',
-                                     '__node:=bench_bare_talker',
-                                     '-p', f'topic:={topic}', '-p', 'rate_hz:=10.0'],
-                                    stdout=log, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL)
+            proc = place.popen(scale, [sys.executable, '-c', TALKER, '--ros-args', '-r',
+                                       '__node:=bench_bare_talker',
+                                       '-p', f'topic:={topic}', '-p', 'rate_hz:=10.0'],
+                               stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
             tag = f'? {proc.pid}'
             try:
-                if not b.spin_until(lambda: any(d == tag for _, d in b.heard), 60.0):
+                if not b.spin_until(lambda: None not in consumers.heard(scale, tag), 60.0):
                     raise RuntimeError('a talker started without an agent was never heard')
-                first.append(min(t for t, d in b.heard if d == tag) - t0)
-                seen = [t for t, tp in b.matched if tp == topic]
-                if seen:
-                    matched.append(min(seen) - t0)
-                    after.append(first[-1] - matched[-1])
+                firsts = consumers.heard(scale, tag)
+                out['first'].append(firsts[0] - t0)
+                if len(firsts) > 1:
+                    out['first_same'].append(firsts[1] - t0)
+                seen = consumers.matched(scale, topic, t0)
+                if seen is not None:
+                    out['matched'].append(seen - t0)
+                    out['after_match'].append(firsts[0] - seen)
             finally:
                 stop_process(proc, 10.0)
     finally:
         log.close()
-    return {'first': first, 'matched': matched, 'after_match': after, 'started': [],
-            'ready': []}
+    return out
 
 
 def start_time(pid):
@@ -427,12 +491,12 @@ def cpu_of(pid, seconds):
     return 100.0 * ((c1.user - c0.user) + (c1.system - c0.system)) / (t1 - t0)
 
 
-def bench_cpu(tmp, seconds):
+def bench_cpu(tmp, seconds, place):
     names = [f'n{i}' for i in range(10)]
     nodes = {n: talker(f'/bench_agent/cpu/{n}', 1.0) for n in names}
     path = deployment(tmp, nodes, name='bench_agent_cpu')
     b = Bench('bench_agent_cpu')
-    agent = start_agent(path, 'a', tmp)
+    agent = start_agent(path, 'a', tmp, place)
     b.agents = [agent]
     try:
         b.publish(1, {n: 'b' for n in names})     # every node placed elsewhere: idle agent
@@ -472,35 +536,53 @@ def main():
     parser.add_argument('--no-profile', action='store_true',
                         help="without the packaged config/fastdds_discovery.xml (Fast DDS's "
                              'defaults, or the profile the environment names)')
+    parser.add_argument('--scales', choices=('netns', 'loopback'),
+                        help='where the two scales run (default: netns when this machine can '
+                             'build network namespaces, else loopback; see above)')
+    parser.add_argument('--inside', metavar='TAG', help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.moves < 1 or args.jitter_s < 0 or args.cpu_seconds < 0:
         parser.error('--moves must be >= 1, --jitter-s and --cpu-seconds >= 0')
+    if args.inside is None:
+        mode, why = choose(args.scales)
+        print(f'scales: {mode} ({why})', flush=True)
+        if mode == 'netns':
+            return run_inside([sys.executable, os.path.abspath(__file__)] + sys.argv[1:],
+                              args.domain_id, not args.no_profile)
     os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    os.environ.pop('ROS_STATIC_PEERS', None)
     from anyscale_manager import config_files
-    if not args.no_profile:
-        os.environ.update(config_files.with_discovery_profile(os.environ))
-    try:
-        import anyscale_manager.nodes.monitors  # noqa: F401
-        monitors = 'with its monitors'
-    except ImportError:
-        monitors = 'without monitors (module absent)'
-    import anyscale_manager
-    profile = ', '.join(f'{v}={os.environ[v]}' for v in config_files.PROFILE_VARS
-                        if os.environ.get(v)) \
-        or 'none (Fast DDS defaults)'
-    load = ' '.join(f'{x:.2f}' for x in os.getloadavg())
-    print(f'machine: {os.cpu_count()} CPUs, load average {load}; ROS_DOMAIN_ID={args.domain_id};'
-          f' agent {monitors}; package {os.path.dirname(anyscale_manager.__file__)}; '
-          f'DDS profile: {profile}')
-    labels = {'started': 'the gaining agent started the new copy',
-              'matched': 'this consumer matched the new copy (DDS discovery)',
-              'first': 'first message from the new copy',
-              'ready': 'new agent reports it running and ready'}
     with tempfile.TemporaryDirectory(prefix='bench_agent_') as tmp:
+        if args.inside is None:
+            place = Loopback()
+            place.prepare_environment()
+            if not args.no_profile:
+                os.environ.update(config_files.with_discovery_profile(os.environ))
+        else:
+            place = Namespaces(args.inside, args.domain_id, os.path.join(tmp, 'ros_log'),
+                               profile=not args.no_profile)
         try:
-            moves = bench_moves(tmp, args.moves, args.jitter_s, args.standby)
+            import anyscale_manager.nodes.monitors  # noqa: F401
+            monitors = 'with its monitors'
+        except ImportError:
+            monitors = 'without monitors (module absent)'
+        import anyscale_manager
+        profile = ', '.join(f'{v}={os.environ[v]}' for v in config_files.PROFILE_VARS
+                            if os.environ.get(v)) \
+            or 'none (Fast DDS defaults)'
+        load = ' '.join(f'{x:.2f}' for x in os.getloadavg())
+        print(f'machine: {os.cpu_count()} CPUs, load average {load}; ROS_DOMAIN_ID='
+              f'{args.domain_id}; agent {monitors}; package '
+              f'{os.path.dirname(anyscale_manager.__file__)}; DDS profile: {profile}')
+        print(f'scales: {place.describe()}')
+        other = ' at a consumer on the other scale' if place.here else ''
+        who = 'the consumer on the other scale' if place.here else 'this consumer'
+        labels = {'started': 'the gaining agent started the new copy',
+                  'matched': f'{who} matched the new copy (DDS discovery)',
+                  'first': f'first message from the new copy{other}',
+                  'first_same': 'first message from the new copy at a consumer on its own scale',
+                  'ready': 'new agent reports it running and ready'}
+        try:
+            moves = bench_moves(tmp, args.moves, place, args.jitter_s, args.standby)
         except RuntimeError as e:
             hint = (' (--standby needs agents that keep lifecycle standby copies: '
                     'nodes.<name>.lifecycle and .standby in the deployment)'
@@ -509,26 +591,27 @@ def main():
             return 1
         kind = 'standby activation, ' if args.standby else ''
         for node, label in (('sbs', 'start_before_stop'), ('sbs2', 'stop_before_start')):
-            for stage in ('first', 'ready', 'started', 'matched'):
+            for stage in ('first', 'first_same', 'ready', 'started', 'matched'):
                 s = moves[node][stage]
                 if s:
                     print(f'move latency ({kind}{label}, {len(s)} moves, layout published -> '
                           f'{labels[stage]}): {figures(s)}')
             s = moves[node]['after_match']
             if s:
-                print(f'move ({label}, {len(s)} moves): this consumer matched the new copy -> '
-                      f'its first message: {figures(s)}')
-        s = moves.get('bare', {}).get('after_match')
+                print(f'move ({label}, {len(s)} moves): {who} matched the new copy -> its '
+                      f'first message: {figures(s)}')
+        bare = moves.get('bare', {})
+        s = bare.get('after_match')
         if s:
-            print(f'the same talker started without an agent ({len(s)} starts): this consumer '
+            print(f'the same talker started without an agent ({len(s)} starts): {who} '
                   f'matched it -> its first message: {figures(s)}')
-        for stage in ('first', 'matched'):
-            s = moves.get('bare', {}).get(stage)
+        for stage in ('first', 'first_same', 'matched'):
+            s = bare.get(stage)
             if s:
                 print(f'the same talker started without an agent, beside the same processes '
                       f'({len(s)} starts, process started -> {labels[stage]}): {figures(s)}')
         if args.cpu_seconds > 0:
-            idle, busy = bench_cpu(tmp, args.cpu_seconds)
+            idle, busy = bench_cpu(tmp, args.cpu_seconds, place)
             print(f'agent CPU over {args.cpu_seconds:g} s (percent of one core): idle '
                   f'{idle:.1f} %, supervising ten running nodes {busy:.1f} %')
     load = ' '.join(f'{x:.2f}' for x in os.getloadavg())
