@@ -305,12 +305,13 @@ class Consumers:
     def same(self, scale):
         return None if self.listener is None else self._on(scale)
 
-    def heard(self, scale, tag):
-        """(time the other scale's consumer first heard ``tag``, the same scale's), or None."""
+    def heard(self, scale, tag, since):
+        """(when the other scale's consumer first heard ``tag`` after ``since``, the same
+        scale's), None where not yet."""
         out = []
         for lists in (self.other(scale), self.same(scale)):
             if lists is not None:
-                times = [t for t, d in list(lists[0]) if d == tag]
+                times = [t for t, d in list(lists[0]) if d == tag and t >= since]
                 out.append(min(times) if times else None)
         return tuple(out)
 
@@ -352,7 +353,7 @@ def bench_moves(tmp, moves, place, jitter_s=3.0, standby=False):
                 raise RuntimeError(f'the talker {node} never published on scale a; agent a:\n'
                                    + tail(b.agents[0].log_path))
             first_tag = next(d for _, d in b.heard if d.startswith('a '))
-            if not b.spin_until(lambda: None not in consumers.heard('a', first_tag), 60.0):
+            if not b.spin_until(lambda: None not in consumers.heard('a', first_tag, 0.0), 60.0):
                 raise RuntimeError(f'the consumer on scale b never heard {node} on scale a; '
                                    'its log:\n' + (tail(listener.log_path) if listener else ''))
             if standby and not b.spin_until(
@@ -386,7 +387,7 @@ def bench_moves(tmp, moves, place, jitter_s=3.0, standby=False):
                 def moved():
                     rep = new_copy()
                     return rep is not None \
-                        and None not in consumers.heard(where, f'{where} {rep.pid}')
+                        and None not in consumers.heard(where, f'{where} {rep.pid}', t0)
 
                 def ready_new():
                     r = b.states.get(where)
@@ -399,7 +400,7 @@ def bench_moves(tmp, moves, place, jitter_s=3.0, standby=False):
                 if not b.spin_until(ready_new, 60.0):
                     raise RuntimeError(f'move {gen} of {node} to {where} never completed')
                 rep = b.states[where].nodes[node]
-                firsts = consumers.heard(where, f'{where} {rep.pid}')
+                firsts = consumers.heard(where, f'{where} {rep.pid}', t0)
                 samples['first'].append(firsts[0] - t0)
                 if len(firsts) > 1:
                     samples['first_same'].append(firsts[1] - t0)
@@ -457,9 +458,9 @@ def bare_starts(b, consumers, place, count, jitter_s, rng, topic, tmp):
                                stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
             tag = f'? {proc.pid}'
             try:
-                if not b.spin_until(lambda: None not in consumers.heard(scale, tag), 60.0):
+                if not b.spin_until(lambda: None not in consumers.heard(scale, tag, t0), 60.0):
                     raise RuntimeError('a talker started without an agent was never heard')
-                firsts = consumers.heard(scale, tag)
+                firsts = consumers.heard(scale, tag, t0)
                 out['first'].append(firsts[0] - t0)
                 if len(firsts) > 1:
                     out['first_same'].append(firsts[1] - t0)

@@ -27,14 +27,11 @@ from rclpy.executors import ExternalShutdownException
 from std_msgs.msg import String
 rclpy.init()
 node = rclpy.create_node('bench_listener')
-seen = set()
 
 
 def subscribe(topic):
     def heard(msg):
-        if msg.data not in seen:
-            seen.add(msg.data)
-            print(f'heard {time.monotonic():.6f} {topic} {msg.data}', flush=True)
+        print(f'heard {time.monotonic():.6f} {topic} {msg.data}', flush=True)
 
     def matched(event):
         if event.current_count_change > 0:
@@ -151,7 +148,7 @@ class Listener:
     """A consumer on scale b: the LISTENER program's lines, read by a thread."""
 
     def __init__(self, scales: Namespaces, topics: Sequence[str], log_path: str):
-        self.heard: List[Tuple[float, str]] = []       # (monotonic time, data), first of each
+        self.heard: List[Tuple[float, str]] = []       # (monotonic time, data) of every message
         self.matched: List[Tuple[float, str]] = []     # (monotonic time, topic)
         self.ready = threading.Event()
         self.log_path = log_path
