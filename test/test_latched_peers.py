@@ -1,11 +1,13 @@
-"""An agent hears every peer's latched report, however many land at once.
+"""An agent hears every peer's latched report, and a decider every rival's latched layout,
+however many land at once.
 
 The agent_state topic has one writer per agent (and the layout topic one per decider). A reader
 whose history is shared by all of them must keep a sample of each: with room for one, the
 reports that arrive together replace each other before the agent takes them, and the agent
 learns of a peer only at its next heartbeat (a stop_before_start move then waited one report
 period for the losing copy's deactivation). Here an agent starts after two peers have latched
-their reports: it must know both without either publishing again.
+their reports, and a deciding decider takes two rival deciders' layouts only once both are in
+its reader: each must know both without either publishing again.
 """
 
 import os
@@ -14,6 +16,7 @@ import time
 
 import rclpy
 import yaml
+from rclpy.duration import Duration
 from rclpy.node import Node
 from std_msgs.msg import String
 
@@ -21,12 +24,13 @@ from anyscale_manager import protocol as p
 from anyscale_manager import protocol_auth as auth
 from anyscale_manager.nodes import qos
 from anyscale_manager.nodes.agent import AgentNode
+from anyscale_manager.nodes.decider import DeciderNode
 from anyscale_manager.nodes.executor import make_executor
 
 DEADLINE_S = 15.0
 
 
-def write_deployment(tmp_path):
+def write_deployment(tmp_path, decider=None):
     talker = {'command': [sys.executable, '-c', 'import time; time.sleep(60)']}
     scale = {'capacity_cpu': 100.0}
     data = {'/**': {'ros__parameters': {
@@ -36,7 +40,7 @@ def write_deployment(tmp_path):
                    'b': dict(scale, role='remote', kind='server'),
                    'c': dict(scale, role='remote', kind='server')},
         'nodes': {'names': ['worker'], 'worker': {'launch': talker, 'cpu': 1.0}},
-        'decider': {'agent_timeout_s': 60.0},
+        'decider': dict({'agent_timeout_s': 60.0}, **(decider or {})),
         'monitoring': {'bandwidth_probe_interval_s': 86400.0,
                        'bandwidth_probe_port': 40000 + os.getpid() % 20000},
         'agent': {'state_dir': str(tmp_path / 'state'), 'log_dir': str(tmp_path / 'log')},
@@ -65,12 +69,15 @@ def test_an_agent_starting_late_hears_every_peers_latched_report(tmp_path):
         agent = AgentNode('a', context=agent_ctx,
                           cli_args=['--ros-args', '--params-file', path])
         assert agent.deployment.name == name
-        # Both reports reach the agent's reader before it takes anything (nothing spins it
-        # until then): the case of reports landing together.
+        # Nothing spins the agent until both reports are in its reader: the case of reports
+        # landing together.
         end = time.monotonic() + DEADLINE_S
         while time.monotonic() < end and not all(w.get_subscription_count() for w in writers):
             time.sleep(0.02)
         assert all(w.get_subscription_count() for w in writers), 'the agent never matched'
+        # Both samples acknowledged by the agent's reader: both in its history, none taken yet.
+        assert all(w.wait_for_all_acked(Duration(seconds=DEADLINE_S)) for w in writers), \
+            'the agent never acknowledged both samples'
         executor = make_executor(agent_ctx)
         executor.add_node(agent)
         try:
@@ -87,3 +94,53 @@ def test_an_agent_starting_late_hears_every_peers_latched_report(tmp_path):
         peers.destroy_node()
         rclpy.try_shutdown(context=agent_ctx)
         rclpy.try_shutdown(context=peers_ctx)
+
+
+def test_a_deciding_decider_hears_every_rivals_layout_landing_together(tmp_path):
+    path, name = write_deployment(tmp_path, decider={'discovery_s': 0.2})
+    rivals_ctx, decider_ctx = rclpy.Context(), rclpy.Context()
+    rclpy.init(context=rivals_ctx)
+    rclpy.init(context=decider_ctx)
+    rivals = Node('decider_rivals_harness', context=rivals_ctx)
+    decider = executor = None
+    try:
+        decider = DeciderNode(context=decider_ctx, cli_args=['--ros-args', '--params-file', path])
+        executor = make_executor(decider_ctx)
+        executor.add_node(decider)
+        end = time.monotonic() + DEADLINE_S
+        while time.monotonic() < end and not decider.publishing:
+            executor.spin_once(timeout_sec=0.05)
+        assert decider.publishing, 'the decider never started deciding'
+        # Two rival deciders of this deployment, started after it (they are the ones to stop),
+        # each with its own latched writer, publish while nothing spins the decider.
+        writers = [rivals.create_publisher(String, p.TOPIC_LAYOUT, qos.LATCHED) for _ in (1, 2)]
+        while time.monotonic() < end and not all(w.get_subscription_count() for w in writers):
+            time.sleep(0.02)
+        assert all(w.get_subscription_count() for w in writers), 'the decider never matched'
+        for k, pub in enumerate(writers, 1):
+            who = p.DeciderIdentity(id=f'rival-{k}', host='test', pid=k, started=time.time())
+            layout = p.Layout(generation=k, deployment=name, assignments={'worker': 'a'},
+                              reason='test', stamp=time.time(), decider=who, seq=1)
+            pub.publish(String(data=auth.seal(None, layout)))
+        # Both samples acknowledged by the decider's reader: both in its history, none taken.
+        assert all(w.wait_for_all_acked(Duration(seconds=DEADLINE_S)) for w in writers), \
+            'the decider never acknowledged both layouts'
+        seen = set()
+
+        def heard():
+            seen.update(r.id for r in decider.rivals.younger(time.monotonic(), time.time()))
+            return seen
+
+        while time.monotonic() < end and heard() != {'rival-1', 'rival-2'}:
+            executor.spin_once(timeout_sec=0.05)
+        assert heard() == {'rival-1', 'rival-2'}, (
+            f'the decider heard only {sorted(heard())} of the two latched layouts '
+            f'({decider._layouts_heard} layouts taken, {decider._rejected} refused)')
+    finally:
+        if executor is not None:
+            executor.shutdown()
+        if decider is not None:
+            decider.destroy_node()
+        rivals.destroy_node()
+        rclpy.try_shutdown(context=decider_ctx)
+        rclpy.try_shutdown(context=rivals_ctx)
