@@ -181,11 +181,11 @@ def talker(topic, rate_hz, source=TALKER, **extra):
                  'cpu': 1.0}, **extra)
 
 
-def start_agent(path, scale, tmp, where):
+def start_agent(path, scale, tmp, place):
     exe = os.path.join(os.path.dirname(sys.executable), 'agent')
     log = os.path.join(tmp, f'agent_{scale}.out')
     out = open(log, 'ab')
-    proc = where.popen(scale, [exe, '--ros-args', '--params-file', path, '-p', f'scale:={scale}'],
+    proc = place.popen(scale, [exe, '--ros-args', '--params-file', path, '-p', f'scale:={scale}'],
                        stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
     proc.log_path = log
     return proc
