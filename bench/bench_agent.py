@@ -66,7 +66,7 @@ import time
 
 import psutil
 import yaml
-from scales import Listener, Loopback, Namespaces, choose, run_inside
+from scales import SPIN, Listener, Loopback, Namespaces, choose, run_inside
 
 TALKER = r'''
 import os, sys
@@ -82,14 +82,7 @@ pub = node.create_publisher(String, node.get_parameter('topic').value, 10)
 tag = os.environ.get('ANYSCALE_AGENT_SCALE', '?') + ' ' + str(os.getpid())
 node.create_timer(1.0 / node.get_parameter('rate_hz').value,
                   lambda: pub.publish(String(data=tag)))
-try:
-    rclpy.spin(node)
-except (KeyboardInterrupt, ExternalShutdownException):
-    pass
-finally:
-    node.destroy_node()
-    rclpy.try_shutdown()
-'''
+''' + SPIN
 
 # A lifecycle talker as docs/lifecycle.md asks: the publisher from configure, the timer only
 # while active, one message at once on activation (it serves at once, not one period later).
@@ -148,14 +141,7 @@ class Talker(LifecycleNode):
 
 rclpy.init(args=sys.argv)
 node = Talker()
-try:
-    rclpy.spin(node)
-except (KeyboardInterrupt, ExternalShutdownException):
-    pass
-finally:
-    node.destroy_node()
-    rclpy.try_shutdown()
-'''
+''' + SPIN
 
 
 def deployment(tmp, nodes, name='bench_agent'):

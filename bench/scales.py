@@ -19,6 +19,19 @@ import sys
 import threading
 from typing import List, Optional, Sequence, Tuple
 
+# The end of the small programs bench_agent and the listener run with ``python -c``: spin ``node``
+# until SIGINT or shutdown, then leave cleanly.
+SPIN = r'''
+try:
+    rclpy.spin(node)
+except (KeyboardInterrupt, ExternalShutdownException):
+    pass
+finally:
+    node.destroy_node()
+    rclpy.try_shutdown()
+'''
+
+
 LISTENER = r'''
 import sys, time
 import rclpy
@@ -44,20 +57,12 @@ def subscribe(topic):
 for topic in sys.argv[1:]:
     subscribe(topic)
 print('ready', flush=True)
-try:
-    rclpy.spin(node)
-except (KeyboardInterrupt, ExternalShutdownException):
-    pass
-finally:
-    node.destroy_node()
-    rclpy.try_shutdown()
-'''
+''' + SPIN
 
 
 class Loopback:
     """Every process on this machine's loopback; the bench's process hears every copy."""
 
-    name = 'loopback'
     here = None                 # the bench's process is on neither scale
 
     def describe(self) -> str:
@@ -75,7 +80,6 @@ class Loopback:
 class Namespaces:
     """Scale ``a`` in the robot namespace (with the bench's process), ``b`` in the laptop one."""
 
-    name = 'netns'
     here = 'a'
     NAMESPACE = {'a': 'robot', 'b': 'laptop'}
 
@@ -90,9 +94,6 @@ class Namespaces:
                 f'{self.net.link.rate_kbps / 1000:g} Mbit/s, DDS over UDP on the link; '
                 'consumers: this process on a, a listener on b; a figure is taken at the '
                 'consumer on the scale the new copy did not start on')
-
-    def prepare_environment(self) -> None:
-        pass                      # run_inside gave this process scale a's environment
 
     def env(self, scale: str) -> dict:
         return scale_env(self.net, self.NAMESPACE[scale], self.domain_id, self.log_dir,
