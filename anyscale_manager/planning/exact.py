@@ -27,12 +27,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Tuple
 
-try:
-    import highspy
-except ImportError:  # optional on a plain ROS install: only the exact solver needs it
-    highspy = None
 import numpy as np
 
+from .highs import highspy, quiet_highs
 from .instance import Instance
 from .knapsack import best_settings
 
@@ -510,8 +507,7 @@ def solve_exact(inst: Instance, time_limit_s: float) -> ExactResult:
     if built is None:
         built = _build_general(m, inst)
     offset, extract = built
-    h = highspy.Highs()
-    h.setOptionValue('output_flag', False)
+    h = quiet_highs()
     h.setOptionValue('time_limit', float(time_limit_s))
     h.setOptionValue('mip_rel_gap', 0.0)
     h.setOptionValue('mip_abs_gap', ABS_GAP)

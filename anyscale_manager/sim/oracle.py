@@ -20,12 +20,8 @@ import math
 from dataclasses import dataclass
 from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
-try:
-    import highspy
-except ImportError:  # optional: the branch-and-bound oracle needs nothing
-    highspy = None
-
 from ..model.types import Deployment
+from ..planning.highs import highspy, quiet_highs
 from .model import NodeProfile, node_rate, quality
 
 COST_EPSILON = 1e-3     # the cost function only breaks ties between equal qualities
@@ -199,8 +195,7 @@ class Assignment:
 
     def _milp(self, cands: Mapping[str, Sequence[str]], usable: Mapping[str, LinkBudget],
               val) -> Dict[str, str]:
-        h = highspy.Highs()
-        h.silent()
+        h = quiet_highs()
         h.setOptionValue('mip_rel_gap', 0.0)
         x = {}
         for n in self.nodes:
