@@ -357,9 +357,13 @@ class LinkStatus(Message):
 class ConnectionReading(Message):
     rate_hz: float
     bytes_per_s: float
-    below_for_s: float        # continuous time below freq_min (0 when at or above)
+    below_for_s: float        # the open stretch below freq_min (runtime/delta.py; 0 if none)
     level: int                # OK / WARN (below, within tolerance) / ERROR (past tolerance)
-    SCHEMA = {'rate_hz': float, 'bytes_per_s': float, 'below_for_s': float, 'level': int}
+    # The longest stretch below that ended since the previous reading (None or 0: none), so
+    # that a stretch past Δ that ended between two readings is still reported.
+    ended_below_s: Optional[float] = None
+    SCHEMA = {'rate_hz': float, 'bytes_per_s': float, 'below_for_s': float, 'level': int,
+              'ended_below_s': ('optional', float)}
 
     def validate(self, where: str) -> None:
         if self.level not in (OK, WARN, ERROR, STALE):

@@ -94,7 +94,7 @@ def reaction(args):
             end = tb.now()
             with tb.lock:
                 r = tb.record
-                observed = r.delta_violations(t_cut, end, 'robot', window_s=window)
+                observed = r.delta_violations(t_cut, end, 'robot')
                 reported = [v for v in r.reported_violations(t_cut, end, [c.name for c in conns])
                             if v.source == 'robot']
                 timeline = r.timeline(t_cut, end)

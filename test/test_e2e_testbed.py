@@ -134,10 +134,9 @@ def delta_check(tb, start, end):
     longest time each was read below (for the log)."""
     tb.wait_for(lambda r: r.heard_until >= end + 0.5, 10.0,
                 "the observer's lines past the judged span")
-    window = tb.deployment.monitoring.probe_window_s
     with tb.lock:
-        found = tb.record.delta_violations(start, end, ROBOT, window_s=window)
-        longest = tb.record.longest_below(start, end, ROBOT, window_s=window)
+        found = tb.record.delta_violations(start, end, ROBOT)
+        longest = tb.record.longest_below(start, end, ROBOT)
     return found, {k: v for k, v in longest.items() if v > 0}
 
 

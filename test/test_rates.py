@@ -5,11 +5,9 @@ import random
 
 import pytest
 
-from anyscale_manager.protocol import ERROR, OK, WARN
 from anyscale_manager.runtime import cpu
 from anyscale_manager.runtime.rates import (BandwidthEstimate, HeartbeatTracker, RateWindow,
-                                            WriterStreams,
-                                            ToleranceTracker, crossing_connections,
+                                            WriterStreams, crossing_connections,
                                             steady_throughput_bps, used_kbps)
 
 
@@ -141,66 +139,6 @@ def test_bytes_per_second_follows_message_size():
     last = feed(w, 10.0, 0.0, 5.0, nbytes=1000)
     last = feed(w, 10.0, last + 0.1, last + 5.0, nbytes=3000)
     assert w.bytes_per_s(last) == pytest.approx(30000.0, rel=1e-9)
-
-
-# --- ToleranceTracker --------------------------------------------------------------------------
-
-@pytest.mark.parametrize('tolerance_s', [0.0, 1.0, 2.0])
-def test_delta_levels(tolerance_s):
-    t = ToleranceTracker(freq_min_hz=5.0, tolerance_s=tolerance_s)
-    assert t.update(0.0, 10.0).level == OK
-    assert t.update(1.0, 5.0).level == OK          # at freq_min is fine
-    v = t.update(2.0, 4.9)
-    assert v.below_for_s == 0.0
-    assert v.level == (ERROR if tolerance_s == 0 else WARN)
-    v = t.update(2.0 + tolerance_s / 2, 0.0)        # even at 0 Hz, still within Δ
-    assert v.below_for_s == pytest.approx(tolerance_s / 2)
-    assert v.level == (ERROR if tolerance_s == 0 else WARN)
-    v = t.update(2.0 + tolerance_s, 1.0)
-    assert v.level == ERROR and v.below_for_s == pytest.approx(tolerance_s)
-    v = t.update(10.0, 6.0)                          # recovery resets
-    assert (v.level, v.below_for_s) == (OK, 0.0)
-    v = t.update(11.0, 1.0)
-    assert v.below_for_s == 0.0                      # counts from the new drop
-
-
-def test_delta_is_continuous_time_below_not_cumulative():
-    t = ToleranceTracker(freq_min_hz=5.0, tolerance_s=2.0)
-    for k in range(20):                              # 1.5 s below, 0.5 s ok, repeatedly
-        base = 2.0 * k
-        t.update(base, 1.0)
-        assert t.update(base + 1.5, 1.0).level == WARN
-        assert t.update(base + 2.0 - 1e-3, 9.0).level == OK
-
-
-def test_unmonitored_connection_is_always_ok():
-    t = ToleranceTracker(None, None)
-    assert t.update(0.0, 0.0) == t.update(100.0, 0.0)
-    assert t.update(100.0, 0.0).level == OK
-
-
-@pytest.mark.parametrize('fmin, tol', [(-1.0, 1.0), (1.0, -0.5), (math.nan, 1.0)])
-def test_tolerance_tracker_rejects_bad_thresholds(fmin, tol):
-    with pytest.raises(ValueError):
-        ToleranceTracker(fmin, tol)
-
-
-def test_window_and_tracker_together_on_a_stopping_topic():
-    w = RateWindow(2.0)
-    t = ToleranceTracker(freq_min_hz=5.0, tolerance_s=2.0)
-    last = feed(w, 10.0, 0.0, 5.0)
-    levels = {}
-    now = 0.0
-    while now < last + 6.0:
-        levels[round(now, 2)] = t.update(now, w.rate_hz(now)).level
-        now += 0.25
-    assert levels[4.0] == OK
-    # The window-averaged rate falls below 5 Hz (half its rate) about half a window after the
-    # stop (observed every 0.25 s), then Δ runs.
-    first_warn = min(k for k, v in levels.items() if v == WARN)
-    first_error = min(k for k, v in levels.items() if v == ERROR)
-    assert last + 0.9 < first_warn <= last + 1.1 + 0.25
-    assert first_error - first_warn == pytest.approx(2.0, abs=0.26)
 
 
 # --- HeartbeatTracker --------------------------------------------------------------------------

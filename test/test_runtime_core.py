@@ -94,11 +94,11 @@ def test_down_link_with_nothing_beyond_is_no_violation(d):
 def test_frequency_violation_needs_more_than_delta(d):
     running = dict(master_layout(d), amcl='laptop')
     conns = {c.name: ConnectionObs(rate_hz=c.freq_opt_hz, stamp=10.0) for c in d.connections}
-    conns['laser_amcl'] = ConnectionObs(rate_hz=1.0, stamp=10.0, below_for_s=1.9)
+    conns['laser_amcl'] = ConnectionObs(rate_hz=1.0, stamp=10.0, below_for_s=1.9, below=True)
     report = evaluate(d, d.decider, fresh_obs(d, running=running, conns=conns))
     assert report.frequency_ok
     assert report.connections['laser_amcl'].below_for_s == pytest.approx(1.9)
-    conns['laser_amcl'] = ConnectionObs(rate_hz=1.0, stamp=10.0, below_for_s=2.1)
+    conns['laser_amcl'] = ConnectionObs(rate_hz=1.0, stamp=10.0, below_for_s=2.1, below=True)
     report = evaluate(d, d.decider, fresh_obs(d, running=running, conns=conns))
     (v,) = report.of_kind(FREQUENCY)
     assert v.subject == 'laser_amcl' and v.nodes == ('amcl',)
@@ -153,12 +153,12 @@ def test_delta_tracker_from_observation_times(d):
 
     assert at(0.0)['laser_amcl'] == 0.0
     # below, with the probe saying it has been below for 0.4 s already: the earlier start wins
-    below = at(1.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=1.0, below_for_s=0.4))
+    below = at(1.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=1.0, below_for_s=0.4, below=True))
     assert below['laser_amcl'] == pytest.approx(0.4)
-    below = at(2.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=2.0, below_for_s=0.1))
+    below = at(2.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=2.0, below_for_s=0.1, below=True))
     assert below['laser_amcl'] == pytest.approx(1.4)
     # the reading stops arriving: the timer keeps running
-    below = at(5.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=2.0, below_for_s=0.1))
+    below = at(5.0, laser_amcl=ConnectionObs(rate_hz=1.0, stamp=2.0, below_for_s=0.1, below=True))
     assert below['laser_amcl'] == pytest.approx(4.4)
     # recovered
     assert at(6.0)['laser_amcl'] == 0.0

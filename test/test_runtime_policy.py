@@ -122,7 +122,8 @@ class BedTrace:
             if probe_home != self.master and not truly_up:
                 continue                     # the reading cannot reach the decider
             below = t - self._below_since[c.name] if c.name in self._below_since else 0.0
-            self._last_reading[c.name] = ConnectionObs(rate_hz=rate, stamp=t, below_for_s=below)
+            self._last_reading[c.name] = ConnectionObs(rate_hz=rate, stamp=t, below_for_s=below,
+                                                       below=c.name in self._below_since)
         for s in self.d.scale_names:
             if s != self.master and not truly_up:
                 continue

@@ -12,6 +12,7 @@ import pytest
 
 from anyscale_manager import protocol as p
 from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.runtime.delta import STALL_ALLOWANCE_S
 from anyscale_manager.testbed import netns
 from anyscale_manager.testbed import schedule as sched
 from anyscale_manager.testbed.record import Record
@@ -475,8 +476,11 @@ def test_delta_violations_judge_the_connections_into_the_scale(record):
     # The other topics never arrive here: every connection into the robot on them is past Δ.
     heard = ('amcl_ekf', 'camera_ar', 'odometry_ekf')
     found = record.delta_violations(2.0, 58.0, 'robot')
-    assert [(v.connection, round(v.start, 1)) for v in found if v.connection in heard] == [
-        ('amcl_ekf', 11.3), ('camera_ar', 42.0), ('odometry_ekf', 51.0)]
+    # Each stretch starts 1/freq_min + the stall allowance after the last message heard.
+    assert [(v.connection, round(v.start, 2)) for v in found if v.connection in heard] == [
+        ('amcl_ekf', round(9.8 + 0.5 + STALL_ALLOWANCE_S, 2)),
+        ('camera_ar', round(40.0 - 1 / 30 + 1.0 + STALL_ALLOWANCE_S, 2)),
+        ('odometry_ekf', round(49.9 + 0.2 + STALL_ALLOWANCE_S, 2))]
     assert {v.connection for v in found} - set(heard) == {
         'laser_navigation', 'ar_navigation', 'ekf_navigation', 'odometer_odometry'}
     longest = record.longest_below(2.0, 58.0, 'robot')

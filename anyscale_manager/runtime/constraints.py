@@ -272,12 +272,13 @@ def _off_master(deployment: Deployment, running: Mapping[str, str],
 class DeltaTracker:
     """Continuous time each monitored connection has spent below its freq_min.
 
-    Driven by observation times, not a wall clock. A fresh reading below freq_min starts (or
-    continues) the timer, and the probe's own ``below_for_s`` can only move its start earlier
-    (the probe may have seen the drop before the reading arrived). A missing or stale reading is
+    Driven by observation times, not a wall clock. A fresh reading its probe judged below
+    freq_min (runtime/delta.py) starts (or continues) the timer, and the probe's own
+    ``below_for_s`` can only move its start earlier (the probe saw the drop before the reading
+    arrived). A missing or stale reading is
     0 Hz from the moment it became missing (its stamp plus ``observation_max_age_s``; for a
-    connection never reported, the tracker's first update plus that age). A fresh reading at or
-    above freq_min resets the timer. A connection in ``obs.unjudged_connections`` (its probe's
+    connection never reported, the tracker's first update plus that age). A fresh reading not
+    judged below resets the timer. A connection in ``obs.unjudged_connections`` (its probe's
     agent silent or just restarted) is not timed: its timer is reset, and a reading still
     missing afterwards counts as missing from the last update that did not judge it.
     """
@@ -309,7 +310,7 @@ class DeltaTracker:
             reading = obs.connections.get(c.name)
             start = self._since.get(c.name)
             if reading is not None and is_fresh(reading.stamp, now, settings):
-                if reading.rate_hz >= c.freq_min_hz:
+                if not reading.below:
                     start = None
                 else:
                     probe_start = reading.stamp - max(0.0, reading.below_for_s)
@@ -332,7 +333,7 @@ def _stateless_below_for(c: Connection, reading: Optional[ConnectionObs], now: f
                          settings: DeciderSettings, since: Optional[float]) -> float:
     max_age = settings.observation_max_age_s
     if reading is not None and is_fresh(reading.stamp, now, settings):
-        if reading.rate_hz >= c.freq_min_hz:
+        if not reading.below:
             return 0.0
         return max(0.0, reading.below_for_s + (now - reading.stamp))
     if reading is not None:

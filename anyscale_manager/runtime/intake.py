@@ -13,8 +13,8 @@ from dataclasses import dataclass
 from typing import Collection, Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
-from ..protocol import (LINK_MONITOR_START_S, AgentState, ConnectionStatus, LinkStatus,
-                        ScaleStatus)
+from ..protocol import (ERROR, LINK_MONITOR_START_S, WARN, AgentState, ConnectionStatus,
+                        LinkStatus, ScaleStatus)
 from .observations import ConnectionObs, LinkObs, Observations, ScaleObs
 
 _RANK = {'running': 2, 'starting': 1}
@@ -130,7 +130,8 @@ class ObservationBook:
                 continue
             self.readings[(msg.scale, name)] = ConnectionObs(
                 rate_hz=r.rate_hz, stamp=now, below_for_s=r.below_for_s,
-                bytes_per_s=max(0.0, r.bytes_per_s))
+                bytes_per_s=max(0.0, r.bytes_per_s),
+                below=r.level in (WARN, ERROR) or r.below_for_s > 0.0)
 
     # --- views --------------------------------------------------------------------------------
     def agent_fresh(self, scale: str, now: float) -> bool:

@@ -37,8 +37,9 @@ class ConnectionObs:
 
     rate_hz: float
     stamp: float
-    below_for_s: float = 0.0                 # as tracked by the probe
+    below_for_s: float = 0.0                 # the probe's open stretch below freq_min
     bytes_per_s: float = 0.0
+    below: bool = False                      # the probe's verdict (runtime/delta.py)
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""Pure statistics of the monitors: rate windows, Δ tracking, heartbeats, bandwidth.
+"""Pure statistics of the monitors: rate windows, heartbeats, writers, bandwidth (the Δ rule
+is runtime/delta.py).
 
 Nothing here reads a clock or touches ROS: every method takes ``now`` (seconds on one monotonic
 clock of the caller's choosing), so the same classes run in the probes, in the simulator and in
@@ -7,10 +8,7 @@ unit tests with a hand-written clock.
 
 import math
 from collections import deque
-from dataclasses import dataclass
 from typing import Deque, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
-
-from ..protocol import ERROR, OK, WARN
 
 
 def _positive(value: float, what: str) -> float:
@@ -119,48 +117,6 @@ class RateWindow:
         self._times.clear()
         self._sizes.clear()
         self._bytes = 0
-
-
-@dataclass(frozen=True)
-class Verdict:
-    """One connection's judgement at one instant."""
-
-    rate_hz: float
-    below_for_s: float
-    level: int
-
-
-class ToleranceTracker:
-    """The ICAR Δ rule for one connection.
-
-    ``below_for_s`` is the continuous time the rate has been below ``freq_min_hz``, measured from
-    the first observation below it and reset to 0 by the first observation at or above it. The
-    level is OK at or above freq_min, WARN while below it for less than Δ, and ERROR once it has
-    been below for Δ or longer (so Δ = 0 means ERROR at the first observation below). Without a
-    freq_min (an unmonitored connection) the level is always OK.
-    """
-
-    def __init__(self, freq_min_hz: Optional[float], tolerance_s: Optional[float]):
-        if freq_min_hz is not None and (not math.isfinite(freq_min_hz) or freq_min_hz < 0):
-            raise ValueError(f'freq_min_hz must be >= 0, got {freq_min_hz!r}')
-        if tolerance_s is not None and (not math.isfinite(tolerance_s) or tolerance_s < 0):
-            raise ValueError(f'tolerance_s must be >= 0, got {tolerance_s!r}')
-        self.freq_min_hz = freq_min_hz
-        self.tolerance_s = tolerance_s
-        self._below_since: Optional[float] = None
-
-    def update(self, now: float, rate_hz: float) -> Verdict:
-        if self.freq_min_hz is None or rate_hz >= self.freq_min_hz:
-            self._below_since = None
-            return Verdict(rate_hz, 0.0, OK)
-        if self._below_since is None or now < self._below_since:
-            self._below_since = now
-        below = now - self._below_since
-        tolerance = self.tolerance_s if self.tolerance_s is not None else math.inf
-        return Verdict(rate_hz, below, ERROR if below >= tolerance else WARN)
-
-    def reset(self) -> None:
-        self._below_since = None
 
 
 class HeartbeatTracker:

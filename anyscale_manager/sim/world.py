@@ -171,7 +171,7 @@ class World:
             since = self._below_since[c.name]
             connections[c.name] = ConnectionObs(
                 rate_hz=self.connection_hz[c.name], stamp=t,
-                below_for_s=0.0 if since is None else t - since)
+                below_for_s=0.0 if since is None else t - since, below=since is not None)
         return Observations(now=t, running=frozen_map(self.placement), scales=frozen_map(scales),
                             links=frozen_map(links), connections=frozen_map(connections),
                             lost_scales=self.lost_scales())

@@ -195,8 +195,7 @@ def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> di
         violations = record.reported_violations(t0, t1, serving_only=True)
         # The same rule judged on what the harness's observer heard at the master scale (a
         # reader no agent started).
-        observed = record.delta_violations(t0, t1, testbed.deployment.master.name,
-                                           window_s=testbed.deployment.monitoring.probe_window_s)
+        observed = record.delta_violations(t0, t1, testbed.deployment.master.name)
         return {
             'mode': testbed.mode, 'mode_reason': testbed.mode_reason,
             'duration_s': round(t1 - t0, 2), 'schedule': [str(s) for s in steps],

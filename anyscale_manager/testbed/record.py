@@ -14,6 +14,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 from .. import protocol as p
 from ..model.types import Connection, Deployment
 from ..protocol_auth import check_signature
+from ..runtime.delta import below_spans
 from ..runtime.rates import RateWindow
 
 MIGRATION_KINDS = ('migrate', 'migrate_back')
@@ -263,37 +264,22 @@ class Record:
         i = bisect_right([x[0] for x in history], t)
         return history[i - 1] if i else None
 
-    def below_spans(self, conn: Connection, start: float, end: float, step_s: float = 0.1,
-                    window_s: float = 2.0) -> List[Tuple[float, float]]:
-        """Spans in [start, end] where the observer's rate of the connection's topic was below
-        its freq_min, read every step_s as the probes read it (a span still open at ``end``
-        closes there)."""
+    def below_spans(self, conn: Connection, start: float, end: float
+                    ) -> List[Tuple[float, float]]:
+        """Stretches in [start, end] where the observer's subscriber lived below the
+        connection's freq_min, by the package's one Δ rule (runtime/delta.py) on its own
+        arrival times (a stretch still open at ``end`` closes there)."""
         if not conn.monitored:
             return []
-        out: List[Tuple[float, float]] = []
-        below_start: Optional[float] = None
-        t = start
-        while t <= end + 1e-9:
-            if self.topic_rate(conn.topic, t, window_s) < conn.freq_min_hz:
-                if below_start is None:
-                    below_start = t
-            elif below_start is not None:
-                out.append((below_start, t))
-                below_start = None
-            t += step_s
-        if below_start is not None:
-            out.append((below_start, end))
-        return out
+        return below_spans(self.arrivals.get(conn.topic, []), conn.freq_min_hz, start, end)
 
-    def observed_violations(self, conn: Connection, start: float, end: float,
-                            step_s: float = 0.1, window_s: float = 2.0,
-                            slack_s: float = 0.0) -> List[Violation]:
-        """Spans where the observer's rate of the connection's topic stayed below freq_min for
-        longer than Δ + slack_s: the project's Δ rule (a span lasts from the first reading
-        below to the first one back at or above; Δ = 0 tolerates no reading below)."""
+    def observed_violations(self, conn: Connection, start: float, end: float
+                            ) -> List[Violation]:
+        """Stretches where the observer lived below the connection's freq_min for longer than
+        its Δ (Δ = 0 tolerates no stretch at all)."""
         return [Violation(conn.name, a, b, conn.tolerance_s, 'observer')
-                for a, b in self.below_spans(conn, start, end, step_s, window_s)
-                if b - a > conn.tolerance_s + slack_s]
+                for a, b in self.below_spans(conn, start, end)
+                if b - a > conn.tolerance_s]
 
     def into(self, conn: Connection, scale: str, t: float) -> bool:
         """Whether the connection flowed into ``scale`` at t: its subscriber may run only
@@ -305,26 +291,26 @@ class Record:
         return scale in self.where(sub, t) or (
             layout is not None and layout.assignments.get(sub) == scale)
 
-    def delta_violations(self, start: float, end: float, scale: str = 'robot',
-                         window_s: float = 2.0) -> List[Violation]:
+    def delta_violations(self, start: float, end: float, scale: str = 'robot'
+                         ) -> List[Violation]:
         """Every monitored connection into ``scale`` (where the observer listens) that stayed
         below its freq_min for longer than its Δ in [start, end], measured by the observer, a
         reader no agent started; a connection counts while its subscriber served on ``scale``
         when Δ ran out."""
         out: List[Violation] = []
         for conn in self.deployment.connections:
-            for v in self.observed_violations(conn, start, end, window_s=window_s):
+            for v in self.observed_violations(conn, start, end):
                 if self.into(conn, scale, min(v.end, v.start + v.tolerance_s)):
                     out.append(v)
         return sorted(out, key=lambda v: v.start)
 
-    def longest_below(self, start: float, end: float, scale: str = 'robot',
-                      window_s: float = 2.0) -> Dict[str, float]:
+    def longest_below(self, start: float, end: float, scale: str = 'robot'
+                      ) -> Dict[str, float]:
         """connection -> the longest time the observer read it below freq_min in [start, end],
         for the monitored connections into ``scale`` (what the Δ judgement saw, for logs)."""
         out: Dict[str, float] = {}
         for conn in self.deployment.connections:
-            spans = [b - a for a, b in self.below_spans(conn, start, end, window_s=window_s)
+            spans = [b - a for a, b in self.below_spans(conn, start, end)
                      if self.into(conn, scale, a)]
             if conn.monitored:
                 out[conn.name] = round(max(spans, default=0.0), 2)

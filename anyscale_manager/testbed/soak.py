@@ -543,13 +543,12 @@ class Soak:
 
     def judge(self) -> Dict[str, object]:
         d = self.d
-        window = d.monitoring.probe_window_s
         with self.tb.lock:
             r, laptop = self.tb.record, self.tb.laptop_view
             publishers = {c.topic: c.publisher for c in d.connections}
             dups, overlap = chaos.duplicates(r.arrivals, r.arrival_seqs, publishers, self.t0,
                                              self.t_end, OVERLAP_BOUND_S)
-            violations = r.delta_violations(self.t0, self.t_end, 'robot', window_s=window)
+            violations = r.delta_violations(self.t0, self.t_end, 'robot')
             outputs = {c.publisher: c.topic for c in d.connections}
             nodes = [n.name for n in d.nodes if n.managed]
             histories = [r.agent_states.get(s, []) for s in d.scale_names]

@@ -11,14 +11,15 @@ executor's dispatch was 110 us per message against 8 us for a take (bench_probe_
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Dict, Iterable, Iterator, Optional, Set, Tuple
+from typing import Dict, Iterable, Iterator, Optional, Tuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
 from ... import protocol as p
 from ...model.types import Connection, Deployment
-from ...runtime.rates import RateWindow, ToleranceTracker, WriterStreams
+from ...runtime.delta import DeltaJudge
+from ...runtime.rates import RateWindow, WriterStreams
 from .common import PROBE_QOS, Publishers, import_message_class, period_of, scale_of, status
 
 TYPE_RESOLVE_PERIOD_S = 1.0
@@ -41,7 +42,7 @@ class _TopicProbe:
     writers: WriterStreams = field(default_factory=WriterStreams)
     problem: str = ''          # why there is no subscription yet
     fatal: bool = False        # the type cannot be used here: no reading at all
-    users: Set[str] = field(default_factory=set)
+    judges: Dict[str, DeltaJudge] = field(default_factory=dict)   # connection -> its Δ judge
 
 
 class ProbeManager:
@@ -66,7 +67,7 @@ class ProbeManager:
         RateWindow(self._window_s)       # validates the window before anything is created
         period = period_of(settings.probe_publish_rate_hz, 'probe_publish_rate_hz')
         self._topics: Dict[str, _TopicProbe] = {}
-        self._probes: Dict[str, Tuple[Connection, ToleranceTracker]] = {}
+        self._probes: Dict[str, Connection] = {}
         self._out = Publishers(node, p.TOPIC_CONNECTION_STATUS)
         self._group = MutuallyExclusiveCallbackGroup()
         self._lock = threading.Lock()
@@ -95,12 +96,12 @@ class ProbeManager:
         wanted = {n: self._deployment.connection(n) for n in names}
         with self._lock:
             for name in [n for n in self._probes if n not in wanted]:
-                conn, _ = self._probes.pop(name)
+                conn = self._probes.pop(name)
                 self._release(conn.topic, name)
             for name, conn in wanted.items():
                 if name in self._probes:
                     continue
-                self._probes[name] = (conn, ToleranceTracker(conn.freq_min_hz, conn.tolerance_s))
+                self._probes[name] = conn
                 self._attach(conn)
 
     def _resolve(self, topic: str) -> str:
@@ -120,14 +121,15 @@ class ProbeManager:
             self._node.get_logger().warning(
                 f'connection {conn.name}: declares {conn.msg_type} on {topic}, another '
                 f'connection on it declares {probe.declared_type}; probing with the latter')
-        probe.users.add(conn.name)
+        probe.judges[conn.name] = DeltaJudge(conn.freq_min_hz, conn.tolerance_s,
+                                             started=time.monotonic(), window_s=self._window_s)
         self._ensure_watch(probe)
 
     def _ensure_watch(self, probe: _TopicProbe) -> None:
         if self._watch_node is None or probe.watch is not None or probe.msg_class is None:
             return
         if not any(self._deployment.connection(n).publisher in self._migratable
-                   for n in probe.users):
+                   for n in probe.judges):
             return
         probe.watch = self._watch_node.create_subscription(
             probe.msg_class, probe.topic, lambda _msg: None, PROBE_QOS, raw=True)
@@ -137,8 +139,8 @@ class ProbeManager:
         probe = self._topics.get(topic)
         if probe is None:
             return
-        probe.users.discard(name)
-        if not probe.users:
+        probe.judges.pop(name, None)
+        if not probe.judges:
             if probe.subscription is not None:
                 self._reader.destroy_subscription(probe.subscription)
             if probe.watch is not None:
@@ -187,8 +189,10 @@ class ProbeManager:
             try:
                 for raw, info in _taken(subscription, DRAIN_LIMIT):
                     received_ns = info.get('received_timestamp', 0)
-                    at = received_ns / 1e9 - offset_s if received_ns else now
-                    window.add(min(at, now), len(raw))
+                    at = min(received_ns / 1e9 - offset_s if received_ns else now, now)
+                    window.add(at, len(raw))
+                    for judge in probe.judges.values():
+                        judge.add(at)
             except Exception:   # destroyed meanwhile: its topic is no longer probed
                 continue
 
@@ -209,7 +213,7 @@ class ProbeManager:
         None when this scale does not watch it. Needs ``poll_writers`` called often."""
         with self._lock:
             conn = self._probes.get(name)
-            probe = self._topics.get(self._resolve(conn[0].topic)) if conn else None
+            probe = self._topics.get(self._resolve(conn.topic)) if conn else None
             if probe is None or probe.watch is None:
                 return None
             return probe.writers.joined_since(since)
@@ -219,16 +223,18 @@ class ProbeManager:
         out = {}
         with self._lock:
             self._drain_locked()
-            for name, (conn, tracker) in sorted(self._probes.items()):
+            for name, conn in sorted(self._probes.items()):
                 probe = self._topics[self._resolve(conn.topic)]
                 if probe.fatal:
                     continue
-                rate = probe.window.rate_hz(now)
-                verdict = tracker.update(now, rate)
+                verdict = probe.judges[name].verdict(now)
+                # A topic silent past 1/freq_min reads 0 Hz at once (the window would decay).
+                rate = 0.0 if verdict.silent else probe.window.rate_hz(now)
                 reading = p.ConnectionReading(rate_hz=rate,
                                               bytes_per_s=probe.window.bytes_per_s(now),
                                               below_for_s=verdict.below_for_s,
-                                              level=verdict.level)
+                                              level=verdict.level,
+                                              ended_below_s=verdict.ended_below_s)
                 out[name] = (reading, probe.problem)
         return out
 
@@ -242,7 +248,7 @@ class ProbeManager:
         statuses = []
         with self._lock:
             probes = sorted(self._probes.items())
-        for name, (conn, _) in probes:
+        for name, conn in probes:
             values = {'topic': conn.topic, 'publisher': conn.publisher,
                       'subscriber': conn.subscriber, 'freq_min_hz': conn.freq_min_hz,
                       'tolerance_s': conn.tolerance_s}
