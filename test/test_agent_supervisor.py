@@ -3,7 +3,9 @@
 import json
 import os
 import signal
+import subprocess
 import sys
+import threading
 import time
 
 import psutil
@@ -13,6 +15,7 @@ from anyscale_manager import protocol
 from anyscale_manager.agent import procs
 from anyscale_manager.agent.catalogue import (build_catalogue, ENV_INSTANCE, ENV_NODE, ENV_SCALE,
                                               Entry, format_parameter)
+from anyscale_manager.agent.exits import ExitWatcher
 from anyscale_manager.agent.reconcile import HEAR_PATIENCE_S, Reconciler
 from anyscale_manager.model import types as t
 from anyscale_manager.model.loader import load_mapping
@@ -217,7 +220,7 @@ def test_grandchildren_do_not_survive(make_sup, tmp_path, how):
     assert gone(parent)
 
 
-def test_crash_is_reported_and_restarted_with_backoff(make_sup):
+def test_crash_is_reported_and_restarted_at_once_the_first_time(make_sup):
     sup = make_sup([py_entry('n', SLEEPER)])
     sup.start('n', time.monotonic())
     first = sup.pids()['n']
@@ -246,10 +249,45 @@ def test_backoff_doubles_up_to_the_maximum(make_sup):
 
     assert wait_for(lambda: len(starts) >= 5, 15.0, step=step)
     gaps = [b[0] - a[0] for a, b in zip(starts, starts[1:])]
-    # 0.1, 0.2, 0.4, 0.4 s of backoff plus the time the process takes to exit.
-    assert gaps[1] >= 0.2 and gaps[2] >= 0.4 and gaps[3] >= 0.4
+    # No backoff for the first crash, then 0.1, 0.2, 0.4 s, plus the time the process takes to
+    # exit: a crash loop is held back.
+    assert gaps[1] >= 0.1 and gaps[2] >= 0.2 and gaps[3] >= 0.4
     assert sup.reports()['n'].exit_reason == 'exited with status 3' or \
         sup.reports()['n'].state == 'starting'
+
+
+def test_a_long_healthy_run_makes_the_next_crash_a_first_one(make_sup):
+    sup = make_sup([py_entry('n', SLEEPER)])      # restart_backoff_max_s 1.0: a healthy run
+    sup.start('n', time.monotonic())
+    assert drive(sup, lambda: sup.reports()['n'].state == 'running')
+    for expected_delay in (0.0, 0.2):
+        pid = sup.pids()['n']
+        os.kill(pid, signal.SIGKILL)
+        assert drive(sup, lambda: sup.reports()['n'].state == 'backoff')
+        assert any(f'restarting in {expected_delay:g} s' in text for _, text in sup.events)
+        sup.events.clear()
+        assert drive(sup, lambda: sup.pids().get('n', pid) != pid, timeout=5.0)
+    assert drive(sup, lambda: sup.reports()['n'].state == 'running')
+    healthy_since = time.monotonic()      # running as long as restart_backoff_max_s, and more
+    assert drive(sup, lambda: time.monotonic() - healthy_since > 1.2, timeout=5.0)
+    os.kill(sup.pids()['n'], signal.SIGKILL)
+    assert drive(sup, lambda: sup.reports()['n'].state == 'backoff')
+    assert any('restarting in 0 s' in text for _, text in sup.events)
+
+
+def test_an_exit_wakes_the_watcher_without_polling():
+    woken = threading.Event()
+    watcher = ExitWatcher(woken.set)
+    proc = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(0.3)'])
+    try:
+        assert watcher.watch(proc.pid)
+        assert not woken.is_set()
+        assert woken.wait(10.0)
+        assert proc.wait(5.0) == 0          # watching reaps nothing: the supervisor does
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not watcher.watch(proc.pid)      # gone: nothing to watch
 
 
 def test_unstartable_entry_fails_without_spawning(make_sup):

@@ -2,6 +2,7 @@
 
 import os
 import signal
+import subprocess
 import time
 from typing import Dict, List, Mapping, Optional, Tuple
 
@@ -166,3 +167,23 @@ def environ_value(pid: int, name: str, exec_wait_s: float = 0.0) -> Optional[str
         if value is not None or time.monotonic() >= deadline:
             return value
         time.sleep(0.02)
+
+
+def stop_popen(proc: 'subprocess.Popen', sigint_grace_s: float,
+               sigterm_grace_s: float) -> Optional[int]:
+    """Stop a child started in a session of its own (``start_new_session=True``) as ROS expects:
+    SIGINT to its session, then SIGTERM after ``sigint_grace_s``, then SIGKILL after
+    ``sigterm_grace_s``; returns its exit status (None if even SIGKILL did not end it)."""
+    for sig, grace in ((signal.SIGINT, sigint_grace_s), (signal.SIGTERM, sigterm_grace_s),
+                       (signal.SIGKILL, 5.0)):
+        if proc.poll() is not None:
+            break
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            pass
+        try:
+            proc.wait(grace)
+        except subprocess.TimeoutExpired:
+            continue
+    return proc.poll()

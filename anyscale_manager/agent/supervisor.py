@@ -87,6 +87,9 @@ class Supervisor:
         self._dirty = False
         self._save_failures = 0                   # writes of the state file failed in a row
         self.shm_dir = shm.SHM_DIR                # where Fast DDS keeps its port files
+        # Called with each pid started or adopted: the agent watches it (agent/exits.py) so that
+        # an exit wakes the next step at once instead of waiting for the tick.
+        self.watch_exit: Callable[[int], object] = lambda pid: None
 
     # --- queries --------------------------------------------------------------------------
     @property
@@ -129,7 +132,7 @@ class Supervisor:
             if name in wanted:
                 if not p.wanted:
                     p.wanted = True
-                    p.backoff_s = self.settings.restart_backoff_s
+                    p.backoff_s = 0.0
                     if p.state in ('stopped', 'failed', 'backoff'):
                         self._spawn(p, now)
             elif p.wanted:
@@ -211,7 +214,8 @@ class Supervisor:
                     p.ready = True
                     p.exit_reason = ''
                 if now - p.running_since >= self.settings.restart_backoff_max_s:
-                    p.backoff_s = self.settings.restart_backoff_s
+                    # A long healthy run: its next crash is not part of a loop.
+                    p.backoff_s = 0.0
         elif p.state == 'stopping':
             self._step_stopping(p, now)
         elif p.state in ('backoff', 'failed'):
@@ -322,6 +326,7 @@ class Supervisor:
             if log is not None:
                 log.close()
         p.pid = p.popen.pid
+        self.watch_exit(p.pid)
         p.started = procs.create_time(p.pid) or 0.0
         p.adopted = False
         p.strays = ()
@@ -341,6 +346,10 @@ class Supervisor:
         self._event('error', f'{p.entry.name}: {reason}')
 
     def _next_backoff(self, p: _Proc) -> float:
+        """The delay before this restart, and the next one's: none for the first crash (of a
+        new node, or after a healthy run of ``restart_backoff_max_s``), then
+        ``restart_backoff_s`` doubling up to ``restart_backoff_max_s``: a crash loop is held
+        back, a single crash costs only the restart."""
         delay = max(p.backoff_s, 0.0)
         low = self.settings.restart_backoff_s
         p.backoff_s = min(max(delay * 2, low), self.settings.restart_backoff_max_s)
@@ -520,12 +529,13 @@ class Supervisor:
         p.instance = instance
         p.popen = None
         p.adopted = True
+        self.watch_exit(pid)
         if rec.get('standby'):
             # Recorded frozen (SIGSTOP) by an agent of an earlier version: it must run to stop.
             procs.signal_session(pid, signal.SIGCONT, procs.descendants(pid))
         restarts = rec.get('restarts', 0)
         p.restarts = restarts if isinstance(restarts, int) and 0 <= restarts < 2 ** 31 else 0
-        p.backoff_s = self.settings.restart_backoff_s
+        p.backoff_s = 0.0
         p.ready_deadline = now + self.settings.readiness_timeout_s
         self._set(p, 'starting', now, ready=False, reason='')
         # Report the process's own start time on the caller's clock.

@@ -38,6 +38,7 @@ from .. import protocol_auth as auth
 from ..agent import lifecycle as lc
 from ..agent.authority import describe, Follower
 from ..agent.catalogue import build_catalogue, Entry
+from ..agent.exits import ExitWatcher
 from ..agent.host import this_host
 from ..agent.reconcile import Reconciler
 from ..agent.supervisor import Supervisor
@@ -55,6 +56,7 @@ TICK_S = 0.1
 # While a node is stopping the loop runs this often: a stop_before_start move waits until the
 # old copy is seen gone here (and reported) before the other scale starts the new one.
 STOPPING_TICK_S = 0.02
+EXIT_WAKE_S = 0.001          # the one-shot wake after a node exits (agent/exits.py)
 SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 # A layout that names unknown nodes or scales is logged entry by entry up to this many.
 MAX_LAYOUT_WARNINGS = 5
@@ -166,6 +168,13 @@ class AgentNode(Node):
         self._lifecycle_pid: Dict[str, int] = {}
         self._finalize_since: Dict[str, float] = {}
         self._wall_offset = time.time() - time.monotonic()
+        # A node's exit wakes a step at once (agent/exits.py): a crash is reported, and a
+        # standby copy elsewhere can take over, without waiting for the tick. The wake is a
+        # one-shot timer reset from the watcher's thread (the events executor has no guard
+        # conditions); it fires within a millisecond.
+        self._exit_wake = self.create_timer(EXIT_WAKE_S, self._on_exit)
+        self._exit_wake.cancel()
+        self.supervisor.watch_exit = ExitWatcher(self._exit_wake.reset).watch
         for note in self.supervisor.adopt(time.monotonic(), time.time()):
             if note.startswith('state file'):       # unreadable, or not this agent's
                 self.get_logger().warn(f'adoption: {note}')
@@ -385,6 +394,10 @@ class AgentNode(Node):
         """The pids of the copies that serve: an inactive standby copy's CPU is not its node's."""
         serving = self._serving()
         return {n: pid for n, pid in self.supervisor.pids().items() if n in serving}
+
+    def _on_exit(self) -> None:
+        self._exit_wake.cancel()
+        self._tick()
 
     def _tick(self) -> None:
         now = time.monotonic()

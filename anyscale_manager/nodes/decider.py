@@ -139,6 +139,7 @@ class DeciderNode(Node):
         self._bad = ThrottledLog(self.get_logger())   # bad input: one line per kind and 10 s
         self._links_up: Dict[str, bool] = {}     # remote scale -> last reported up
         self._link_lost = False
+        self._crash_heard = False
         self._decisions = 0
         self.host = socket.gethostname()
         self.identity = p.DeciderIdentity(id=secrets.token_hex(8), host=self.host[:256],
@@ -279,6 +280,11 @@ class DeciderNode(Node):
     def _on_agent_state(self, msg: String) -> None:
         self._intake(msg, p.AgentState, p.TOPIC_AGENT_STATE,
                      lambda state, now: self._agent_state(state, now, msg.data))
+        if self._crash_heard:
+            # A serving copy just crashed: a standby copy elsewhere can take over before the
+            # connections it feeds notice, so decide now rather than at the next period.
+            self._crash_heard = False
+            self._tick()
 
     def _agent_state(self, state: p.AgentState, now: float, text: str = '') -> None:
         why = self.state_gate.check_from(text, f'{state.scale}/{state.instance}', state.seq,
@@ -286,6 +292,10 @@ class DeciderNode(Node):
         if why:
             raise p.ProtocolError(f'agent state claiming scale {state.scale!r:.60}: {why}')
         self.book.agent_state(state, now)
+        if self.layout is not None and any(
+                self.book.crashes.get((state.scale, node), (None,))[0] == now
+                for node, scale in self.policy.desired.items() if scale == state.scale):
+            self._crash_heard = True
         # An agent that follows another decider (one that just stopped: for one lease; or a
         # forger's anonymous layout) is said once. No re-publication above its generation:
         # out-counting generations is how two deciders fought.

@@ -15,9 +15,12 @@ from typing import Collection, Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 from ..model.types import DeciderSettings, Deployment, frozen_map
 from ..protocol import (ERROR, LINK_MONITOR_START_S, WARN, AgentState, ConnectionStatus,
                         LinkStatus, ScaleStatus)
-from .observations import ConnectionObs, LinkObs, Observations, ScaleObs
+from .observations import ConnectionObs, CopyObs, LinkObs, Observations, ScaleObs
 
 _RANK = {'running': 2, 'starting': 1}
+# A copy in one of these states is not running against its will: it exited, or was killed to
+# be restarted, and waits for its restart.
+DOWN_STATES = ('backoff', 'failed', 'crashed')
 MAX_IGNORED_KINDS = 100
 
 
@@ -45,6 +48,9 @@ class ObservationBook:
         # scale -> the fresh per-node CPU readings, oldest first: (received, node -> CPU)
         self.cpu_history: Dict[str, Deque[Tuple[float, Mapping[str, float]]]] = {}
         self.ignored: Dict[str, int] = {}                           # what was skipped, counted
+        # (scale, node) -> (when its copy there was heard to stop against its will, why), kept
+        # until that copy serves again: a restart in place may have begun by the next report.
+        self.crashes: Dict[Tuple[str, str], Tuple[float, str]] = {}
 
     # --- intake -------------------------------------------------------------------------------
     def _scale(self, name: str, where: str) -> None:
@@ -72,7 +78,36 @@ class ObservationBook:
             self.master_back_at = now    # the master's agent (and its link monitor) is back
         if restarted or (quiet and (before is not None or now - self.started > max_age)):
             self.back_at[msg.scale] = now
+        self._note_crashes(msg, before.state if before is not None else None, now)
         self.agents[msg.scale] = AgentSeen(msg, now)
+
+    def _note_crashes(self, msg: AgentState, before: Optional[AgentState], now: float) -> None:
+        for name, report in msg.nodes.items():
+            key = (msg.scale, name)
+            old = before.nodes.get(name) if before is not None else None
+            if report.state == 'running' and report.ready:
+                self.crashes.pop(key, None)
+            elif report.state in DOWN_STATES and (old is None or old.state not in DOWN_STATES):
+                self.crashes[key] = (now, report.exit_reason)
+            elif old is not None and report.restarts > old.restarts and key not in self.crashes:
+                # Restarted between two reports: the crash itself was not heard.
+                self.crashes[key] = (now, report.exit_reason or 'restarted')
+
+    def copies(self, now: float) -> Dict[str, Dict[str, CopyObs]]:
+        """node -> scale -> its copy there, from the agents not lost."""
+        lost = self.lost_scales(now)
+        out: Dict[str, Dict[str, CopyObs]] = {}
+        for scale, seen in self.agents.items():
+            if scale in lost:
+                continue
+            for name, report in seen.state.nodes.items():
+                if name not in self.deployment.node_names:
+                    continue
+                crash = self.crashes.get((scale, name))
+                out.setdefault(name, {})[scale] = CopyObs(
+                    report.state, report.ready, None if crash is None else crash[0],
+                    crash[1] if crash is not None else report.exit_reason)
+        return out
 
     def scale_status(self, msg: ScaleStatus, now: float) -> None:
         self._scale(msg.scale, 'scale_status.scale')
@@ -260,4 +295,6 @@ class ObservationBook:
                             unjudged_links=self.unjudged_links(now),
                             silent_agents=frozen_map(self.silent_agents(now)),
                             unjudged_connections=self.unjudged_connections(now, running,
-                                                                           desired))
+                                                                           desired),
+                            copies=frozen_map({n: frozen_map(c)
+                                               for n, c in self.copies(now).items()}))

@@ -43,6 +43,18 @@ class ConnectionObs:
 
 
 @dataclass(frozen=True)
+class CopyObs:
+    """One copy of a node on one scale, as its agent reports it."""
+
+    state: str                          # the agent's report: running, standby, backoff, ...
+    ready: bool = False
+    # When the decider heard that this copy stopped serving against its will (it exited, or was
+    # restarted), and why; None when it has not since it last served.
+    crashed_at: Optional[float] = None
+    exit_reason: str = ''
+
+
+@dataclass(frozen=True)
 class Observations:
     """A frozen snapshot of everything the decider knows at time ``now`` (its own clock)."""
 
@@ -62,11 +74,15 @@ class Observations:
     # for its new probes to have measured: neither judged nor timed (a dead agent is not a slow
     # connection).
     unjudged_connections: FrozenSet[str] = frozenset()
+    # node -> scale -> its copy there, from the agents not lost (standby and crashed copies
+    # included, unlike ``running``).
+    copies: Mapping[str, Mapping[str, CopyObs]] = field(default_factory=frozen_map)
 
 
 MIGRATE = 'migrate'            # master -> remote (Algorithm 1's else branch)
 MIGRATE_BACK = 'migrate_back'  # remote -> master (Algorithm 1's violation branch)
 RELOCATE = 'relocate'          # a node of a lost scale placed elsewhere
+FAILOVER = 'failover'          # a crashed serving copy replaced by a standby copy elsewhere
 
 
 @dataclass(frozen=True)

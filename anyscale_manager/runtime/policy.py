@@ -36,7 +36,7 @@ from ..model.types import DeciderSettings, Deployment, frozen_map
 from .constraints import (CPU, FREQUENCY, LINK_DOWN, ConstraintReport, DeltaTracker, evaluate,
                           is_fresh, link_capacity, node_cpu, required_kbps, scale_cpu)
 from .layout import adopt, default_scale, master_layout
-from .observations import MIGRATE, MIGRATE_BACK, RELOCATE, Decision, Observations
+from .observations import FAILOVER, MIGRATE, MIGRATE_BACK, RELOCATE, Decision, Observations
 
 
 class MigrationPolicy:
@@ -66,6 +66,9 @@ class MigrationPolicy:
         # node -> why no scale with a live agent may host it (this step)
         self.unplaceable: Mapping[str, str] = frozen_map()
         self.history: List[Tuple[float, Decision]] = []
+        # (node, scale) -> when its copy there crashed and was failed over: one failover per
+        # crash, and no failover back to that scale within the hysteresis T.
+        self.crashed: Dict[Tuple[str, str], float] = {}
         self._delta = DeltaTracker(deployment)
         self._seeded = False
 
@@ -129,6 +132,7 @@ class MigrationPolicy:
         decisions: List[Decision] = []
         self._unplaceable: Dict[str, str] = {}
         decisions += self._settle_pending(obs, running, now, notes)
+        decisions += self._failover(obs, running, notes)
 
         self.below_for = self._delta.update(obs, self.settings)
         report = evaluate(self.deployment, self.settings, obs, self.grace_until,
@@ -206,6 +210,83 @@ class MigrationPolicy:
                     notes.append(f'{node} not yet running on {scale} {now - asked:.1f} s after '
                                  f'it was asked (runs {where})')
         return out
+
+    def _failover(self, obs: Observations, running: Mapping[str, str],
+                  notes: List[str]) -> List[Decision]:
+        """A serving copy that crashed hands over to a standby copy on another scale.
+
+        The node's copy on the scale the layout places it stopped against its will (its agent
+        reported it exited or restarted, ``CopyObs.crashed_at``) and the node serves nowhere
+        else: the first inactive standby copy, on the most powerful scale that can host it now
+        (live agent, link up, CPU, bandwidth, residence), is activated there by a new layout;
+        the crashed scale's agent restarts its own copy as a standby. With no such copy the
+        node is restarted in place by its agent (nothing to decide). A scale whose copy crashed
+        within the hysteresis T is not failed over to: a node does not bounce between a
+        crashing copy and a healthy one.
+        """
+        now = obs.now
+        out: List[Decision] = []
+        report = None
+        for node, scale in sorted(self.desired.items()):
+            copies = obs.copies.get(node)
+            here = copies.get(scale) if copies else None
+            if here is None or here.crashed_at is None:
+                continue
+            if self.crashed.get((node, scale), -math.inf) >= here.crashed_at:
+                continue                                   # this crash was answered
+            if running.get(node) not in (None, scale) or node in self.pending:
+                continue
+            self.crashed[(node, scale)] = here.crashed_at
+            standby = [s for s, c in copies.items() if s != scale and c.state == 'standby']
+            if not standby:
+                if self.deployment.standby_scales(node):
+                    notes.append(f'{node} crashed on {scale} ({here.exit_reason}); no standby '
+                                 f'copy ready elsewhere: restarted in place')
+                continue
+            if report is None:
+                report = evaluate(self.deployment, self.settings, obs, self.grace_until,
+                                  since=self.started)
+            cpu = node_cpu(self.deployment, self.settings, obs, node)
+            target, refused = None, []
+            for s in self._scales_by_power(standby):
+                when = self.crashed.get((node, s))
+                if when is not None and now - when < self.settings.hysteresis_s:
+                    refused.append(f'{s}: its copy crashed {now - when:.1f} s ago, within '
+                                   f'T = {self.settings.hysteresis_s:g} s')
+                    continue
+                ok, why = self._can_host_copy(obs, running, report, node, cpu, s)
+                if not ok:
+                    refused.append(f'{s}: {why}')
+                    continue
+                target = s
+                break
+            if target is None:
+                notes.append(f'{node} crashed on {scale} ({here.exit_reason}); restarted in '
+                             f'place: no standby copy may take over ({"; ".join(refused)})')
+                continue
+            out.append(Decision(FAILOVER, node, scale, target,
+                                f'{node} crashed on {scale} ({here.exit_reason}); its standby '
+                                f'copy on {target} takes over'))
+        return out
+
+    def _can_host_copy(self, obs: Observations, running: Mapping[str, str],
+                       report: ConstraintReport, node: str, cpu: float,
+                       scale: str) -> Tuple[bool, str]:
+        """Whether a standby copy on ``scale`` may serve now. What cannot be told yet (a link
+        or CPU not observed since the start) does not hold a failover back: the copy is there,
+        and the alternative is a cold restart."""
+        if scale == self.master:
+            why = self._agent_silent(obs, scale)
+            if why:
+                return False, why
+            used, _ = scale_cpu(self.deployment, self.settings, obs, scale)
+            usable = self.deployment.scale(scale).capacity_cpu * self.settings.cpu_headroom
+            if used + cpu > usable:
+                return False, f'CPU {used:.0f} + {cpu:.0f} > usable {usable:.0f}'
+            return True, ''
+        without = {n: s for n, s in running.items() if n != node}
+        ok, why = self._can_host(obs, without, report, (node,), cpu, scale)
+        return ok is not False, why
 
     def _relocate_lost(self, obs: Observations, running: Mapping[str, str],
                        report: ConstraintReport, notes: List[str],

@@ -1,0 +1,239 @@
+"""A crashed node, judged at a consumer of our own: failover of a lifecycle node to its standby
+copy on the other scale, and a plain node restarted in place.
+
+    python bench/bench_failover.py [--kills 20] [--in-place-kills 10] [--rate-hz 20]
+                                   [--domain-id N]
+
+Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
+beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
+the given domain). The deployment: sensor (home) -> worker (a lifecycle workload with a standby
+copy on both scales) -> pinned (home, a plain workload), every output at --rate-hz.
+
+- Failover: SIGKILL of the worker's serving copy, wherever it serves, --kills times (each after
+  the hysteresis has passed and the stream has been steady for a second): the longest gap a
+  subscriber of this bench heard on the worker's output. (The killed copy is gone before the
+  standby serves: two senders cannot overlap here.)
+- In place: SIGKILL of pinned (no standby copy, it may run only home) after a healthy run,
+  --in-place-kills times: the longest gap on its output (process start, discovery, first input).
+Prints one line per kill, then p50/p95/max of each figure.
+"""
+
+import argparse
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import yaml
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+BIN = os.path.dirname(sys.executable)
+HYSTERESIS_S = 4.0
+HEALTHY_RUN_S = 3.0      # restart_backoff_max_s: a node up this long crashes as a first crash
+
+
+def deployment(folder, topic, rate_hz):
+    def workload(name, *args):
+        return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args,
+                            '--rate-hz', str(rate_hz)]}
+    conn = {'msg_type': 'std_msgs/msg/UInt8MultiArray', 'bandwidth_kbps': 1.0,
+            'freq_min_hz': rate_hz / 2, 'tolerance_s': 1.0}
+    params = {
+        'deployment': {'name': f'bench_failover_{os.getpid()}'},
+        'scales': {'names': ['home', 'away'],
+                   'home': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100000.0,
+                            'cores': 2, 'clock_ghz': 1.0},
+                   'away': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100000.0,
+                            'cores': 4, 'clock_ghz': 2.0, 'gain': 3.0}},
+        'links': {'names': ['net'], 'net': {'ends': ['home', 'away'],
+                                            'bandwidth_kbps': 100000.0, 'medium': 'wired'}},
+        'nodes': {'names': ['sensor', 'worker', 'pinned'],
+                  'sensor': {'launch': workload('sensor', '--pub', topic + '/s'), 'cpu': 1.0,
+                             'residence': ['home']},
+                  'worker': {'launch': workload('worker', '--sub', topic + '/s', '--pub',
+                                                topic + '/w', '--lifecycle'),
+                             'cpu': 1.0, 'lifecycle': True, 'standby': True,
+                             'move_order': 'start_before_stop'},
+                  'pinned': {'launch': workload('pinned', '--sub', topic + '/w', '--pub',
+                                                topic + '/p'),
+                             'cpu': 1.0, 'residence': ['home']}},
+        'connections': {'names': ['sensor_worker', 'worker_pinned'],
+                        'sensor_worker': dict(conn, topic=topic + '/s', publisher='sensor',
+                                              subscriber='worker'),
+                        'worker_pinned': dict(conn, topic=topic + '/w', publisher='worker',
+                                              subscriber='pinned')},
+        'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 1.0,
+                    'agent_timeout_s': 3.0, 'observation_max_age_s': 3.0,
+                    'hysteresis_s': HYSTERESIS_S},
+        'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
+                       'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
+                       'bandwidth_probe_port': 40000 + os.getpid() % 20000},
+        'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,
+                  'restart_backoff_s': 0.5, 'restart_backoff_max_s': HEALTHY_RUN_S,
+                  'state_dir': os.path.join(folder, 'state'),
+                  'log_dir': os.path.join(folder, 'log')},
+    }
+    path = os.path.join(folder, 'deployment.yaml')
+    with open(path, 'w') as f:
+        yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
+    return path
+
+
+def stats(values):
+    values = sorted(values)
+    if not values:
+        return 'none'
+    p95 = values[min(len(values) - 1, int(round(0.95 * (len(values) - 1))))]
+    return (f'p50 {statistics.median(values):.3f} s, p95 {p95:.3f} s, max {values[-1]:.3f} s '
+            f'(n = {len(values)})')
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--kills', type=int, default=20)
+    ap.add_argument('--in-place-kills', type=int, default=10)
+    ap.add_argument('--rate-hz', type=float, default=20.0)
+    ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '44')))
+    args = ap.parse_args()
+    os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from std_msgs.msg import String, UInt8MultiArray
+
+    from anyscale_manager import protocol as p
+    from anyscale_manager.nodes import qos
+    from anyscale_manager.agent.procs import stop_popen
+
+    topic = f'/bench_failover_{os.getpid()}'
+    rclpy.init()
+    node = rclpy.create_node('bench_failover_consumer')
+    lock = threading.Lock()
+    heard = {'/w': [], '/p': []}      # arrival times
+    states, events = {}, []
+
+    def keep(suffix):
+        def take(_raw):
+            with lock:
+                heard[suffix].append(time.monotonic())
+        return take
+    for suffix in heard:
+        node.create_subscription(UInt8MultiArray, topic + suffix, keep(suffix), qos.PROBE,
+                                 raw=True)
+
+    def state(m):
+        s = p.AgentState.from_json(m.data)
+        with lock:
+            states[s.scale] = s
+    node.create_subscription(String, p.TOPIC_AGENT_STATE, state, qos.LATCHED_READER)
+    node.create_subscription(String, p.TOPIC_EVENTS,
+                             lambda m: events.append(p.Event.from_json(m.data)), qos.EVENTS)
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    stop = threading.Event()
+    spinner = threading.Thread(target=lambda: [executor.spin_once(timeout_sec=0.05)
+                                               for _ in iter(stop.is_set, True)], daemon=True)
+    spinner.start()
+
+    def copy(scale, name):
+        with lock:
+            s = states.get(scale)
+        return s.nodes.get(name) if s else None
+
+    def serving():
+        """(scale serving the worker, the other scale) when the other keeps a standby."""
+        for here, other in (('home', 'away'), ('away', 'home')):
+            a, b = copy(here, 'worker'), copy(other, 'worker')
+            if a and b and a.state == 'running' and a.ready and b.state == 'standby':
+                return here, a
+        return None
+
+    def wait(cond, timeout_s, what):
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            value = cond()
+            if value:
+                return value
+            time.sleep(0.05)
+        raise RuntimeError(f'timed out after {timeout_s} s waiting for {what}')
+
+    def steady(suffix, seconds):
+        with lock:
+            n = len(heard[suffix])
+        wait(lambda: len(heard[suffix]) >= n + seconds * args.rate_hz, 20.0,
+             f'{seconds} s of {suffix}')
+
+    def judge(suffix, t0, t1):
+        with lock:
+            times = [t for t in heard[suffix] if t0 - 1.0 <= t <= t1]
+        gap = max((b - a for a, b in zip(times, times[1:]) if b > t0), default=float('nan'))
+        return gap
+
+    procs = []
+    with tempfile.TemporaryDirectory() as folder:
+        path = deployment(folder, topic, args.rate_hz)
+        env = dict(os.environ, PYTHONUNBUFFERED='1')
+
+        def start(exe, *extra):
+            log = open(os.path.join(folder, f'{exe}{len(procs)}.out'), 'w')
+            procs.append(subprocess.Popen([os.path.join(BIN, exe), '--ros-args',
+                                           '--params-file', path, *extra], env=env,
+                                          stdout=log, stderr=subprocess.STDOUT,
+                                          start_new_session=True))
+        failover, in_place = [], []
+        try:
+            start('agent', '-p', 'scale:=home')
+            start('agent', '-p', 'scale:=away')
+            start('decider')
+            wait(serving, 90.0, 'the worker serving with a standby on the other scale')
+            print(f'ROS_DOMAIN_ID={args.domain_id}; outputs at {args.rate_hz:g} Hz; '
+                  f'hysteresis {HYSTERESIS_S:g} s')
+            for k in range(args.kills):
+                time.sleep(HYSTERESIS_S)          # so the copy that crashed last may serve
+                where, victim = wait(serving, 60.0, 'a serving copy and a standby')
+                steady('/w', 1.0)
+                t0 = time.monotonic()
+                os.kill(victim.pid, signal.SIGKILL)
+                now_at, _ = wait(lambda: (serving() if (serving() or ('', None))[0]
+                                          not in ('', where) else None), 30.0,
+                                 'the standby copy serving')
+                steady('/w', 1.0)
+                gap = judge('/w', t0, time.monotonic())
+                kinds = [e.kind for e in events if e.node == 'worker' and e.stamp > 0]
+                failover.append(gap)
+                print(f'failover {k + 1:2}: {where} -> {now_at}, longest gap {gap:.3f} s, '
+                      f'failover events so far {kinds.count("failover")}', flush=True)
+            for k in range(args.in_place_kills):
+                victim = wait(lambda: (copy('home', 'pinned') if copy('home', 'pinned') and
+                                       copy('home', 'pinned').state == 'running' else None),
+                              30.0, 'pinned running')
+                time.sleep(HEALTHY_RUN_S + 0.5)     # a healthy run: its crash is a first one
+                steady('/p', 1.0)
+                t0 = time.monotonic()
+                os.kill(victim.pid, signal.SIGKILL)
+                wait(lambda: copy('home', 'pinned') and copy('home', 'pinned').pid not in
+                     (0, victim.pid), 30.0, 'pinned restarted')
+                steady('/p', 1.0)
+                gap = judge('/p', t0, time.monotonic())
+                in_place.append(gap)
+                print(f'in place {k + 1:2}: longest gap {gap:.3f} s', flush=True)
+        finally:
+            for proc in reversed(procs):
+                stop_popen(proc, 5.0, 5.0)
+            stop.set()
+            spinner.join(2.0)
+            executor.shutdown()
+            node.destroy_node()
+            rclpy.try_shutdown()
+    print(f'failover to a standby copy, longest gap at the consumer: {stats(failover)}')
+    print(f'plain node restarted in place, longest gap: {stats(in_place)}')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
