@@ -42,6 +42,7 @@ class Entry:
     problem: str = ''           # why it cannot be started ('' = it can)
     lifecycle: bool = False
     services: str = ''          # a lifecycle copy's service namespace: '/amcl/robot'
+    nice: int = 0               # the node's own niceness, added to agent.node_nice
 
     @property
     def startable(self) -> bool:
@@ -192,5 +193,5 @@ def build_catalogue(deployment: t.Deployment, scale: str,
                                ros_name=ros_full_name(node), move_order=node.move_order,
                                problem=problem, lifecycle=node.lifecycle,
                                services=lifecycle_services(node, scale) if node.lifecycle
-                               else '')
+                               else '', nice=node.nice)
     return out

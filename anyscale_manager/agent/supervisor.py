@@ -311,10 +311,14 @@ class Supervisor:
             # signalled as one.
             # node_nice: the node runs below the agent and the decider, so a node that takes
             # all the CPU it gets (a CPU-bound one on a weak robot) cannot starve the monitors,
-            # heartbeats and probes that judge it. nice(1) execs the node: same pid.
+            # heartbeats and probes that judge it. A node's own nice adds to it: a heavy node
+            # yields to the light ones that share its scale and must keep their rate (a
+            # critical odometry chain beside a CPU-bound localiser). nice(1) execs the node:
+            # same pid.
             argv = list(entry.argv)
-            if self.settings.node_nice:
-                argv = ['nice', '-n', str(self.settings.node_nice)] + argv
+            niceness = min(19, self.settings.node_nice + entry.nice)
+            if niceness:
+                argv = ['nice', '-n', str(niceness)] + argv
             p.popen = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL,
                                        stdout=subprocess.DEVNULL if log is None else log,
                                        stderr=subprocess.STDOUT,

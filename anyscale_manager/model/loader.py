@@ -454,6 +454,7 @@ def _read_node(name: str, sec: _Section) -> t.Node:
         standby=standby is not False,
         standby_on=standby if isinstance(standby, tuple) else (),
         settings=settings,
+        nice=sec.integer('nice', 0, low=0, high=19),
     )
     sec.done()
     return _settled(node)

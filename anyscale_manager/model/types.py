@@ -120,6 +120,7 @@ class Node:
     standby: bool = False             # keep an inactive copy on every scale it may run on...
     standby_on: Tuple[str, ...] = ()  # ...or only on these (empty: all of them)
     settings: Optional[Settings] = None
+    nice: int = 0                     # niceness added to agent.node_nice for this node alone
 
     @property
     def configurable(self) -> bool:
