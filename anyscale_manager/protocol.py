@@ -22,8 +22,6 @@ TOPIC_LINK_STATUS = PREFIX + '/link_status'        # link monitor (in the master
 # long: before the remote has discovered it, silence says nothing of the link.
 LINK_MONITOR_START_S = 3.0
 TOPIC_CONNECTION_STATUS = PREFIX + '/connection_status'  # probes (in each agent)
-TOPIC_HEARTBEAT = PREFIX + '/heartbeat'            # master agent -> remote agents
-TOPIC_HEARTBEAT_ECHO = PREFIX + '/heartbeat_echo'  # remote agents -> master agent
 TOPIC_EVENTS = PREFIX + '/events'                  # decider decisions with reasons
 TOPIC_OBJECTIVE = PREFIX + '/objective'            # decider cost function
 TOPIC_PLAN_CHECK = PREFIX + '/plan_check'          # decider plan-against-reality report
@@ -345,12 +343,17 @@ class LinkStatus(Message):
     bandwidth_used_kbps: float                   # measured traffic of crossing connections
     queueing_delay_ms: Optional[float] = None    # RTT beyond the base; None = not judged yet
     congested: bool = False                      # queueing delay past congestion_delay_ms: probed
+    # What the remote scale's warden says of its agent (agent/warden.py: alive, restarting,
+    # gone, fenced) and for how long; None while the link is down or before its first echo.
+    peer_agent: Optional[str] = None
+    peer_agent_for_s: Optional[float] = None
     SCHEMA = {'master': str, 'remote': str, 'stamp': float, 'up': bool,
               'rtt_ms': ('optional', float), 'loss': float,
               'bandwidth_available_kbps': ('optional', float),
               'bandwidth_available_age_s': ('optional', float),
               'bandwidth_used_kbps': float, 'queueing_delay_ms': ('optional', float),
-              'congested': bool}
+              'congested': bool, 'peer_agent': ('optional', str),
+              'peer_agent_for_s': ('optional', float)}
 
 
 @dataclass
@@ -383,15 +386,6 @@ class ConnectionStatus(Message):
     def to_dict(self) -> Dict[str, Any]:
         return {'scale': self.scale, 'stamp': self.stamp,
                 'connections': {k: asdict(v) for k, v in self.connections.items()}}
-
-
-@dataclass
-class Heartbeat(Message):
-    scale: str        # the sender
-    target: str       # the scale it is meant for ('' = every remote)
-    seq: int
-    sent: float       # the master's monotonic clock, echoed back unchanged
-    SCHEMA = {'scale': str, 'target': str, 'seq': int, 'sent': float}
 
 
 @dataclass
@@ -461,6 +455,6 @@ class PlanCheck(Message):
 
 __all__ = [
     'AgentState', 'ConnectionReading', 'ConnectionStatus', 'DeciderIdentity', 'ERROR', 'Event',
-    'Heartbeat', 'Layout', 'LinkStatus', 'MAX_GENERATION', 'Message', 'NodeReport', 'OK',
+    'Layout', 'LinkStatus', 'MAX_GENERATION', 'Message', 'NodeReport', 'OK',
     'Objective', 'PlanCheck', 'PlanNode', 'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
 ]

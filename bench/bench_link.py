@@ -50,6 +50,16 @@ def child(args) -> int:
     rclpy.init()
     node = rclpy.create_node(f'bench_link_{args.role}')
     monitor = LinkMonitor(node, d, args.role)
+    if args.role != 'robot':
+        # The laptop's warden answers the heartbeats (in a thread here, a process of its own
+        # beside a real agent).
+        import tempfile
+        import threading
+        from anyscale_manager.agent import warden
+        state = os.path.join(tempfile.mkdtemp(), 'agent.json')
+        threading.Thread(target=warden.main, daemon=True, args=([
+            '--state', state, '--scale', args.role, '--deployment', d.name, '--host',
+            hosts[args.role], '--port', str(warden.warden_port(d, args.role))],)).start()
     if args.role == 'robot':
         node.create_subscription(String, p.TOPIC_LINK_STATUS, lambda m: print(
             f'status {time.monotonic():.6f} {m.data}', flush=True), STATUS_QOS)

@@ -39,8 +39,7 @@ BIN = os.path.dirname(sys.executable)
 DECODERS = {
     p.TOPIC_LAYOUT: p.Layout, p.TOPIC_AGENT_STATE: p.AgentState,
     p.TOPIC_SCALE_STATUS: p.ScaleStatus, p.TOPIC_LINK_STATUS: p.LinkStatus,
-    p.TOPIC_CONNECTION_STATUS: p.ConnectionStatus, p.TOPIC_HEARTBEAT: p.Heartbeat,
-    p.TOPIC_HEARTBEAT_ECHO: p.Heartbeat, p.TOPIC_EVENTS: p.Event,
+    p.TOPIC_CONNECTION_STATUS: p.ConnectionStatus, p.TOPIC_EVENTS: p.Event,
     p.TOPIC_OBJECTIVE: p.Objective, p.TOPIC_PLAN_CHECK: p.PlanCheck,
 }
 VALID = {type(m): m for m in sample_messages()}
@@ -492,7 +491,7 @@ def test_decider_and_agents_survive_hostile_messages_on_every_topic(tmp_path, ro
         pubs = {}
         for topic in DECODERS:
             profile = qos.LATCHED if topic in (p.TOPIC_LAYOUT, p.TOPIC_AGENT_STATE) else \
-                qos.HEARTBEAT if 'heartbeat' in topic else qos.STATUS
+                qos.STATUS
             pubs[topic] = node.create_publisher(String, topic, profile)
         # Every topic but the decider's events and plan check has a reader in the project.
         wait(lambda: all(pub.get_subscription_count() for topic, pub in pubs.items()

@@ -15,6 +15,7 @@ from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import String, UInt8MultiArray
 
 from anyscale_manager import protocol as p
+from anyscale_manager.agent import warden
 from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.testbed import harness, netns
 from anyscale_manager.nodes.monitors import (LATCHED_QOS, STATUS_QOS, LinkMonitor,
@@ -376,16 +377,24 @@ def test_scale_monitor_survives_a_failing_pids_callback(ros, deployment):
 
 # --- link monitor ------------------------------------------------------------------------------
 
-def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment):
+def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment, python, tmp_path,
+                                                    request):
     make, executor = ros
     listener = Listener(make('listener'), p.TOPIC_LINK_STATUS, p.LinkStatus)
     master = LinkMonitor(make('agent_robot'), deployment, 'robot')
-    remote = LinkMonitor(make('agent_laptop'), deployment, 'laptop')
+    remote = LinkMonitor(make('agent_laptop'), deployment, 'laptop')   # the probe server
+    # The laptop's warden answers the heartbeats; no agent has written its state file, so it
+    # reports the agent gone, then fenced (nothing to stop).
+    echo = subprocess.Popen(
+        [python, '-m', 'anyscale_manager.agent.warden', '--state', str(tmp_path / 'a.json'),
+         '--scale', 'laptop', '--deployment', deployment.name, '--host', '127.0.0.1',
+         '--port', str(warden.warden_port(deployment, 'laptop')), '--adopt-grace', '0.2'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    request.addfinalizer(lambda: (echo.kill(), echo.wait()))
     feeder = make('feeder')
     # Where nodes run and what the probes measured: laser (robot) -> amcl (laptop) crosses.
     state_pub = feeder.create_publisher(String, p.TOPIC_AGENT_STATE, LATCHED_QOS)
     conn_pub = feeder.create_publisher(String, p.TOPIC_CONNECTION_STATUS, STATUS_QOS)
-    echo_pub = feeder.create_publisher(String, p.TOPIC_HEARTBEAT_ECHO, 10)
     running = p.NodeReport(state='running', pid=1, since=0.0, restarts=0, ready=True,
                            exit_reason='')
     for scale, nodes in (('robot', ['laser', 'navigation']), ('laptop', ['amcl'])):
@@ -398,8 +407,6 @@ def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment):
         'laser_navigation': p.ConnectionReading(rate_hz=10.0, bytes_per_s=25000.0,
                                                 below_for_s=0.0, level=p.OK)})
     feeder.create_timer(0.2, lambda: conn_pub.publish(String(data=readings.to_json())))
-    # A hostile echo is ignored without harm.
-    feeder.create_timer(0.3, lambda: echo_pub.publish(String(data='{"scale": 1}')))
 
     def measured():
         m = listener.messages[-1] if listener.messages else None
@@ -415,6 +422,8 @@ def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment):
     assert status.bandwidth_used_kbps == pytest.approx(200.0)
     assert status.bandwidth_available_kbps > 10000.0            # loopback is fast
     assert 0.0 <= status.bandwidth_available_age_s < 5.0
+    spin_until(executor, lambda: listener.messages[-1].peer_agent == 'fenced', 5.0,
+               "the warden's word on the (absent) agent")
     diag = listener.last_status('anyscale/link/wifi')
     assert diag is not None and diag.hardware_id == '127.0.0.1'
 
@@ -430,7 +439,9 @@ def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment):
     assert all(m.up for m in listener.messages[before:]), [
         m.up for m in listener.messages[before:]]
 
-    remote.destroy()                                            # the remote stops answering
+    echo.kill()                                                 # the remote stops answering
+    echo.wait()
+    remote.destroy()
     cut = time.monotonic()
     spin_until(executor, lambda: listener.messages and not listener.messages[-1].up, 5.0,
                'the link reported down')

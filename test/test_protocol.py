@@ -16,7 +16,6 @@ def sample_messages():
         p.ScaleStatus('robot', 1.0, 55.0, 200.0, {'amcl': 50.0}, 40.0, 0.5),
         p.LinkStatus('robot', 'laptop', 1.0, True, 2.5, 0.0, 20000.0, 3.0, 150.0),
         p.ConnectionStatus('robot', 1.0, {'laser_amcl': p.ConnectionReading(9.9, 2.5e4, 0.0, 0)}),
-        p.Heartbeat('robot', 'laptop', 7, 12.25),
         p.Event(1.0, 'migrate', 'amcl', 'robot', 'laptop', 'most CPU-hungry', 5),
         p.Objective(1.0, 225.0, 1000.0, 10.0),
         p.PlanCheck(1.0, {'amcl_1': p.PlanNode(2.5, 2.4, 50.0, 48.0, -0.04)}, -0.04,

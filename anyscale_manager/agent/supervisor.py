@@ -90,6 +90,11 @@ class Supervisor:
         # Called with each pid started or adopted: the agent watches it (agent/exits.py) so that
         # an exit wakes the next step at once instead of waiting for the tick.
         self.watch_exit: Callable[[int], object] = lambda pid: None
+        # What the scale's warden reads of this agent (agent/warden.py): who it is, and whether
+        # it restarts in place now or has stopped every node and left.
+        self.agent_started = procs.create_time(os.getpid())
+        self.restarting = False
+        self.stopped = False
 
     # --- queries --------------------------------------------------------------------------
     @property
@@ -421,7 +426,9 @@ class Supervisor:
                 nodes[name] = {'pid': p.pid, 'started': p.started, 'instance': p.instance,
                                'argv': list(p.entry.argv), 'restarts': p.restarts,
                                'stopping': p.state == 'stopping'}
-        data = dict(self.identity, version=STATE_VERSION, agent_pid=os.getpid(), nodes=nodes)
+        data = dict(self.identity, version=STATE_VERSION, agent_pid=os.getpid(), nodes=nodes,
+                    agent_started=self.agent_started, restarting=self.restarting,
+                    stopped=self.stopped)
         tmp = f'{self.state_path}.{os.getpid()}.tmp'
         try:
             os.makedirs(os.path.dirname(self.state_path) or '.', exist_ok=True)

@@ -719,6 +719,9 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
         'restart_backoff_max_s': dict(low=0, high=86400),
         'heartbeat_rate_hz': dict(low=0, high=1000, low_open=True),
         'node_nice': dict(low=0, high=19),
+        'adopt_grace_s': dict(low=0, high=3600),
+        'restart_grace_s': dict(low=0, high=3600),
+        'fence_grace_s': dict(low=0, high=60),
     })
     security = _dataclass_settings(root, 'security', t.SecuritySettings, {
         'replay_window_s': dict(low=0, high=86400, low_open=True),

@@ -192,6 +192,12 @@ class AgentSettings:
     restart_backoff_max_s: float = 30.0
     heartbeat_rate_hz: float = 2.0
     node_nice: int = 0                    # niceness added to every node the agent starts
+    # The warden (agent/warden.py) stops this agent's nodes when the agent is gone this long
+    # with no successor (restart_grace_s after it said it restarts in place), SIGKILL after
+    # fence_grace_s: the bound within which a dead agent's nodes are gone.
+    adopt_grace_s: float = 1.0
+    restart_grace_s: float = 10.0
+    fence_grace_s: float = 0.5
     state_dir: str = ''                   # '' = ~/.ros/anyscale_manager
     log_dir: str = ''                     # '' = ~/.ros/log/anyscale_manager
 

@@ -39,6 +39,7 @@ from ..agent import lifecycle as lc
 from ..agent.authority import describe, Follower
 from ..agent.catalogue import build_catalogue, Entry
 from ..agent.exits import ExitWatcher
+from ..agent.warden import spawn as spawn_warden, warden_port
 from ..agent.host import this_host
 from ..agent.reconcile import Reconciler
 from ..agent.supervisor import Supervisor
@@ -205,12 +206,28 @@ class AgentNode(Node):
         self._stopping_timer.cancel()
         self.create_timer(1.0 / self.settings.heartbeat_rate_hz, self._publish_state)
         self._start_monitors()
+        self._start_warden(stem)
         self.get_logger().info(
             f'agent for scale {scale!r} of {d.name!r}: catalogue '
             f'{", ".join(self.catalogue) or "(empty)"}; logs in {self.log_dir}')
         if key is None:
             self.get_logger().warn(f'security.key_file is not set: {UNSIGNED}')
         self._tick()
+
+    def _start_warden(self, stem: str) -> None:
+        """The scale's warden (agent/warden.py): the heartbeat echo and the fencing of these
+        nodes, in a process that outlives this one. One per state file: an agent restarted
+        in place, or by systemd, finds it running."""
+        s, d = self.settings, self.deployment
+        self.supervisor.save()       # who this agent is, before the warden reads it
+        port = warden_port(d, self.scale)
+        pid = spawn_warden(stem + '.json', self.scale, d.name, d.scale(self.scale).host, port,
+                           s.adopt_grace_s, s.restart_grace_s, s.fence_grace_s,
+                           os.path.join(self.log_dir, 'warden.log'))
+        if pid is not None:
+            self.get_logger().info(f'warden started: pid {pid}, heartbeats on UDP '
+                                   f'{d.scale(self.scale).host}:{port} (log '
+                                   f'{os.path.join(self.log_dir, "warden.log")})')
 
     def _take_lock(self, path: str) -> None:
         """One agent per scale and machine: a second one would start every node twice."""
@@ -590,6 +607,9 @@ class AgentNode(Node):
         self.get_logger().info('restarting in place: the nodes of this scale keep running and '
                                'are adopted by the new agent process (same pid)')
         self.restarting = True
+        # The warden waits restart_grace_s for the new process, not adopt_grace_s.
+        self.supervisor.restarting = True
+        self.supervisor.save()
 
     @property
     def finished(self) -> bool:
@@ -602,6 +622,9 @@ class AgentNode(Node):
         while not self.supervisor.all_stopped() and time.monotonic() < end:
             self.supervisor.step(time.monotonic())
             time.sleep(0.05)
+        if self.supervisor.all_stopped():
+            self.supervisor.stopped = True      # the warden has nothing left to guard
+            self.supervisor.save()
 
     def destroy_node(self) -> None:
         for monitor in self._monitors:

@@ -140,6 +140,7 @@ class DeciderNode(Node):
         self._links_up: Dict[str, bool] = {}     # remote scale -> last reported up
         self._link_lost = False
         self._crash_heard = False
+        self._fenced: Dict[str, bool] = {}       # remote scale -> its warden said 'fenced'
         self._decisions = 0
         self.host = socket.gethostname()
         self.identity = p.DeciderIdentity(id=secrets.token_hex(8), host=self.host[:256],
@@ -371,6 +372,10 @@ class DeciderNode(Node):
         self._links_up[status.remote] = status.up
         if was_up and not status.up and self.layout is not None:
             self._link_lost = True
+        fenced = status.up and status.peer_agent == 'fenced'
+        if fenced and not self._fenced.get(status.remote) and self.layout is not None:
+            self._link_lost = True      # its nodes are stopped: place them elsewhere now
+        self._fenced[status.remote] = fenced
 
     def _on_connection_status(self, msg: String) -> None:
         self._intake(msg, p.ConnectionStatus, p.TOPIC_CONNECTION_STATUS,

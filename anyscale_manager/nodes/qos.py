@@ -20,8 +20,6 @@ LATCHED_READER = _profile(20, reliable=True, latched=True)
 STATUS = _profile(10, reliable=True)
 # Decisions and other logs a listener should not miss in a burst.
 EVENTS = _profile(100, reliable=True)
-# Heartbeats must be best effort: a reliable writer would retransmit and hide the loss.
-HEARTBEAT = _profile(10, reliable=False)
 # Reading monitors: best effort matches reliable and best-effort publishers alike.
 MONITOR_READER = _profile(20, reliable=False)
 # Probes: best effort and volatile reach every publisher; the probes drain their subscriptions

@@ -151,7 +151,7 @@ class ObservationBook:
             raise ValueError(f'link_status.bandwidth_available_kbps: negative ({available})')
         self.links[msg.remote] = LinkObs(up=msg.up, stamp=now, available_kbps=available,
                                          used_kbps=max(0.0, msg.bandwidth_used_kbps),
-                                         rtt_ms=msg.rtt_ms)
+                                         rtt_ms=msg.rtt_ms, peer_agent=msg.peer_agent)
 
     def connection_status(self, msg: ConnectionStatus, now: float) -> None:
         self._scale(msg.scale, 'connection_status.scale')
@@ -174,15 +174,27 @@ class ObservationBook:
         return seen is not None and now - seen.received <= self.settings.agent_timeout_s
 
     def lost_scales(self, now: float) -> FrozenSet[str]:
-        """Scales whose agent has been silent for agent_timeout_s (or never spoke in that time)."""
+        """Scales whose agent has been silent for agent_timeout_s (or never spoke in that time),
+        and those whose warden says it stopped their dead agent's nodes (at once: nothing of
+        theirs runs any more)."""
         timeout = self.settings.agent_timeout_s
-        lost = set()
+        lost = set(self._peer_agent(now, ('fenced',)))
         for s in self.deployment.scale_names:
             seen = self.agents.get(s)
             last = seen.received if seen is not None else self.started
             if now - last > timeout:
                 lost.add(s)
         return frozenset(lost)
+
+    def fencing(self, now: float) -> FrozenSet[str]:
+        """Remote scales whose warden says their agent is gone or restarting, its nodes not yet
+        stopped (``Observations.fencing``)."""
+        return self._peer_agent(now, ('gone', 'restarting'))
+
+    def _peer_agent(self, now: float, states: Tuple[str, ...]) -> FrozenSet[str]:
+        max_age = self.settings.observation_max_age_s
+        return frozenset(s for s, link in self.links.items()
+                         if link.up and link.peer_agent in states and now - link.stamp <= max_age)
 
     def unjudged_links(self, now: float) -> FrozenSet[str]:
         """Remote scales whose link report is missing or stale while the master's agent, the
@@ -297,4 +309,5 @@ class ObservationBook:
                             unjudged_connections=self.unjudged_connections(now, running,
                                                                            desired),
                             copies=frozen_map({n: frozen_map(c)
-                                               for n, c in self.copies(now).items()}))
+                                               for n, c in self.copies(now).items()}),
+                            fencing=self.fencing(now))

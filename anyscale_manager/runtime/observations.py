@@ -29,6 +29,8 @@ class LinkObs:
     available_kbps: Optional[float] = None   # None = not measured yet: use the nominal
     used_kbps: float = 0.0
     rtt_ms: Optional[float] = None
+    # What the remote scale's warden says of its agent (alive, restarting, gone, fenced).
+    peer_agent: Optional[str] = None
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,10 @@ class Observations:
     # node -> scale -> its copy there, from the agents not lost (standby and crashed copies
     # included, unlike ``running``).
     copies: Mapping[str, Mapping[str, CopyObs]] = field(default_factory=frozen_map)
+    # Remote scales whose agent is gone or restarting while their warden, heard over a live
+    # link, has not stopped their nodes yet: those may still serve, so none of them is placed
+    # elsewhere (never two copies).
+    fencing: FrozenSet[str] = frozenset()
 
 
 MIGRATE = 'migrate'            # master -> remote (Algorithm 1's else branch)

@@ -299,8 +299,12 @@ class MigrationPolicy:
         out: List[Decision] = []
         moved = {d.node for d in already}
         extra_cpu: Dict[str, float] = {}
+        for scale in sorted((lost & set(obs.fencing)) - {self.master}):
+            notes.append(f'the nodes of {scale} stay placed there: its agent is gone and its '
+                         'warden has not stopped them yet (never two copies serving)')
         for node, scale in list(self.desired.items()):
-            if scale not in lost or scale == self.master or node in moved:
+            if scale not in lost or scale == self.master or node in moved \
+                    or scale in obs.fencing:
                 continue
             target, why_not = self._relocation_target(obs, node, extra_cpu)
             if target is None:

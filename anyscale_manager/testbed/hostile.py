@@ -33,8 +33,7 @@ GARBAGE = (
     '{"generation": Infinity, "deployment": "x"}',
 )
 PROJECT_TOPICS = (p.TOPIC_LAYOUT, p.TOPIC_AGENT_STATE, p.TOPIC_SCALE_STATUS,
-                  p.TOPIC_LINK_STATUS, p.TOPIC_CONNECTION_STATUS, p.TOPIC_OBJECTIVE,
-                  p.TOPIC_HEARTBEAT, p.TOPIC_HEARTBEAT_ECHO)
+                  p.TOPIC_LINK_STATUS, p.TOPIC_CONNECTION_STATUS, p.TOPIC_OBJECTIVE)
 LABELS = {'layout_anonymous': 2.0, 'layout_own_key': 2.0, 'layout_stolen_identity': 2.0,
           'layout_replay': 2.0, 'layout_other_deployment': 1.0, 'state_forged': 2.0,
           'state_replay': 1.5, 'objective_forged': 1.0, 'malformed': 5.0}
@@ -178,8 +177,7 @@ def main(args: Optional[List[str]] = None) -> int:
     sent: Dict[str, int] = {}
     try:
         node = Node('anyscale_hostile')
-        profiles = {p.TOPIC_LAYOUT: qos.LATCHED, p.TOPIC_AGENT_STATE: qos.LATCHED,
-                    p.TOPIC_HEARTBEAT: qos.HEARTBEAT, p.TOPIC_HEARTBEAT_ECHO: qos.HEARTBEAT}
+        profiles = {p.TOPIC_LAYOUT: qos.LATCHED, p.TOPIC_AGENT_STATE: qos.LATCHED}
         pubs = {t: node.create_publisher(String, t, profiles.get(t, qos.STATUS))
                 for t in PROJECT_TOPICS}
         for topic in (p.TOPIC_LAYOUT, p.TOPIC_AGENT_STATE):

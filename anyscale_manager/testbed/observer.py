@@ -30,6 +30,7 @@ from std_msgs.msg import String
 
 from .. import protocol as p
 from ..nodes import qos
+from ..nodes.monitors.probes import clock_offset_s
 from ..nodes.workload_messages import DEFAULT_TYPE, message_class
 
 LATCHED = qos.LATCHED_READER
@@ -53,6 +54,7 @@ class Observer(Node):
         types = dict((t.split(':', 1) + [DEFAULT_TYPE])[:2] for t in data_topics)
         data_topics = list(types)
         self._arrivals: Dict[str, List[float]] = {t: [] for t in data_topics}
+        self._offset_s = clock_offset_s()     # system clock minus monotonic, renewed each flush
         self._seqs: Dict[str, List[int]] = {t: [] for t in data_topics}
         for topic, profile in PROJECT_TOPICS.items():
             if project_topics is None or topic in project_topics:
@@ -74,16 +76,26 @@ class Observer(Node):
 
     def _data(self, topic: str):
         def callback(_raw: bytes, info) -> None:
-            self._arrivals[topic].append(time.monotonic())
+            # Each message at its DDS reception time, as the probes place it: this process
+            # runs its callbacks late and in bursts when the machine is busy, and a burst
+            # stamped at callback time would show gaps no subscriber lived through.
+            now = time.monotonic()
+            received_ns = info.get('received_timestamp', 0) if isinstance(info, dict) else 0
+            at = received_ns / 1e9 - self._offset_s if received_ns else now
+            self._arrivals[topic].append(min(at, now))
             seq = info.get('publication_sequence_number') if isinstance(info, dict) else None
             self._seqs[topic].append(seq if isinstance(seq, int) else -1)
         return callback
 
     def _flush(self) -> None:
+        self._offset_s = clock_offset_s()
         batch = {t: a for t, a in self._arrivals.items() if a}
         if batch:
-            self._write({'t': time.monotonic(), 'arrivals': batch,
-                         'seqs': {t: self._seqs[t] for t in batch}})
+            # In reception order (DDS threads may hand over two messages out of order).
+            order = {t: sorted(range(len(a)), key=a.__getitem__) for t, a in batch.items()}
+            self._write({'t': time.monotonic(),
+                         'arrivals': {t: [batch[t][i] for i in order[t]] for t in batch},
+                         'seqs': {t: [self._seqs[t][i] for i in order[t]] for t in batch}})
             for topic in batch:
                 self._arrivals[topic] = []
                 self._seqs[topic] = []

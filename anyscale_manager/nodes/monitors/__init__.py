@@ -10,13 +10,13 @@ Each monitor has a module of its own: ``scale`` (ScaleMonitor), ``probes`` (Prob
 ``link`` (LinkMonitor) with ``throughput`` (its TCP probe), and ``common`` (what they share).
 """
 
-from .common import (DIAGNOSTICS_QOS, HEARTBEAT_QOS, LATCHED_QOS, PROBE_QOS, STATUS_QOS,
+from .common import (DIAGNOSTICS_QOS, LATCHED_QOS, PROBE_QOS, STATUS_QOS,
                      import_message_class)
 from .link import LinkMonitor
 from .probes import ProbeManager
 from .scale import ScaleMonitor
 from .throughput import ProbeServer, probe_throughput
 
-__all__ = ['DIAGNOSTICS_QOS', 'HEARTBEAT_QOS', 'LATCHED_QOS', 'PROBE_QOS', 'STATUS_QOS',
+__all__ = ['DIAGNOSTICS_QOS', 'LATCHED_QOS', 'PROBE_QOS', 'STATUS_QOS',
            'import_message_class', 'LinkMonitor', 'ProbeManager', 'ScaleMonitor', 'ProbeServer',
            'probe_throughput']

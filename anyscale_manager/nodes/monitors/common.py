@@ -14,7 +14,6 @@ from ...model.types import Deployment
 
 PROBE_QOS = qos.PROBE
 STATUS_QOS = qos.STATUS
-HEARTBEAT_QOS = qos.HEARTBEAT
 LATCHED_QOS = qos.LATCHED_READER
 DIAGNOSTICS_QOS = STATUS_QOS
 _TYPE_RE = re.compile(r'^([A-Za-z_][A-Za-z0-9_]*)/(?:(msg)/)?([A-Za-z_][A-Za-z0-9_]*)$')

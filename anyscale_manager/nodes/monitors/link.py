@@ -1,7 +1,15 @@
 """LinkMonitor: heartbeats, RTT, loss, up/down and bandwidth of the link to each remote
-scale."""
+scale.
 
+The heartbeats are UDP datagrams to each remote scale's warden (agent/warden.py), a process
+that outlives the agent: its answer proves the link, and says how the scale's agent is (alive,
+restarting, gone, fenced). A dead or restarting agent is therefore never taken for a cut link,
+and a cut link (no answer) is never taken for a dead agent.
+"""
+
+import collections
 import math
+import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -11,13 +19,16 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from std_msgs.msg import String
 
 from ... import protocol as p
+from ...agent import warden
 from ...model.types import Deployment
 from ...runtime.rates import BandwidthEstimate, HeartbeatTracker, crossing_connections, used_kbps
-from .common import HEARTBEAT_QOS, LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, status
+from .common import LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, status
 from .throughput import ProbeServer, probe_throughput
 from ..throttled_log import ThrottledLog
 
 WATCHDOG_SLACK_S = 0.002
+ECHO_WAKE_S = 0.001            # the one-shot wake of the executor after an echo arrives
+RESOLVE_RETRY_S = 5.0
 # What a tracker judges over, in seconds rather than beats, so that a faster beat sees a cut
 # sooner without making the queueing-delay verdict twitchier: a scale starved of CPU for a few
 # tenths of a second delays a few beats, a full link delays all of them.
@@ -51,11 +62,16 @@ class _Remote:
     started: float = 0.0               # when this monitor began beating to it
     watchdog: object = None
     result: Optional[Tuple[float, Optional[float], str, float]] = None  # done, bps, error, used
+    address: Optional[Tuple[str, int]] = None   # the warden's, resolved
+    resolved_at: float = -math.inf
+    peer_agent: Optional[str] = None            # what its warden last said of its agent
+    peer_for_s: float = 0.0                     # ... and for how long, when it said so
+    peer_at: float = 0.0
 
 
 class LinkMonitor:
     """Master: heartbeats, RTT, loss, up/down and bandwidth of the link to each remote.
-    Remote: echoes the heartbeats addressed to it and serves the throughput probe."""
+    Remote: serves the throughput probe (its warden answers the heartbeats)."""
 
     def __init__(self, node, deployment: Deployment, scale: str):
         self._node = node
@@ -98,11 +114,21 @@ class LinkMonitor:
                 started=time.monotonic())
         self._readings: Dict[Tuple[str, str], Tuple[float, float]] = {}  # (scale, conn) -> B/s, at
         self._running: Dict[str, Dict[str, str]] = {}          # scale -> node -> scale
-        self._beat_pub = self._node.create_publisher(String, p.TOPIC_HEARTBEAT, HEARTBEAT_QOS)
         self._out = Publishers(self._node, p.TOPIC_LINK_STATUS)
-        self._subs.append(self._node.create_subscription(
-            String, p.TOPIC_HEARTBEAT_ECHO, self._on_echo, HEARTBEAT_QOS,
-            callback_group=self._group))
+        # Echoes are read by a thread of their own, stamped as they arrive, and handed to the
+        # executor by a one-shot timer (the events executor has no guard conditions).
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind(('', 0))
+        self._sock.settimeout(0.5)
+        self._echoes: collections.deque = collections.deque(maxlen=1000)
+        self._closing = False
+        self._echo_wake = self._node.create_timer(ECHO_WAKE_S, self._on_echoes,
+                                                  callback_group=self._group)
+        self._echo_wake.cancel()
+        self._timers.append(self._echo_wake)
+        self._receiver = threading.Thread(target=self._receive, daemon=True,
+                                          name='anyscale-echoes')
+        self._receiver.start()
         self._subs.append(self._node.create_subscription(
             String, p.TOPIC_CONNECTION_STATUS, self._on_connections, STATUS_QOS,
             callback_group=self._group))
@@ -131,15 +157,40 @@ class LinkMonitor:
             self._bad.warn(topic, f'link monitor: ignoring a bad message: {e}')
             return None
 
-    def _on_echo(self, msg: String) -> None:
-        now = time.monotonic()
-        echo = self._decode(p.Heartbeat, msg, p.TOPIC_HEARTBEAT_ECHO)
-        if echo is None or echo.target != self._scale.name:
-            return
-        remote = self._remotes.get(echo.scale)
-        if remote is not None and remote.beats.echo(now, echo.seq) is not None:
+    def _receive(self) -> None:
+        while not self._closing:
+            try:
+                data, _ = self._sock.recvfrom(warden.MAX_DATAGRAM + 1)
+            except socket.timeout:
+                continue
+            except OSError:
+                if self._closing:
+                    return
+                time.sleep(0.05)
+                continue
+            at = time.monotonic()
+            echo = warden.parse_echo(data, self._deployment.name)
+            if echo is None:
+                self._bad.warn('heartbeat echo', 'link monitor: ignoring a datagram that is '
+                                                 'not an echo of this deployment')
+                continue
+            self._echoes.append((at,) + echo)
+            try:
+                self._echo_wake.reset()
+            except Exception:   # being destroyed
+                return
+
+    def _on_echoes(self) -> None:
+        self._echo_wake.cancel()
+        self._bad.flush()
+        while self._echoes:
+            at, scale, seq, agent, for_s = self._echoes.popleft()
+            remote = self._remotes.get(scale)
+            if remote is None or remote.beats.echo(at, seq) is None:
+                continue
+            remote.peer_agent, remote.peer_for_s, remote.peer_at = agent, for_s, at
             remote.watchdog.reset()
-            self._check()
+        self._check()
 
     def _on_connections(self, msg: String) -> None:
         now = time.monotonic()
@@ -182,8 +233,7 @@ class LinkMonitor:
             used = self.used_kbps(name, now)
             self._judge_congestion(remote, now, used)   # on the beats already sent
             seq = remote.beats.next_beat(now)
-            beat = p.Heartbeat(scale=self._scale.name, target=name, seq=seq, sent=now)
-            self._beat_pub.publish(String(data=beat.to_json()))
+            self._send_beat(remote, seq, now)
             if remote.bandwidth is not None and not remote.probing \
                     and remote.bandwidth.due(now, remote.beats.up(now), used, remote.congested,
                                              remote.congested_since):
@@ -195,6 +245,24 @@ class LinkMonitor:
             self._publish(remote, now, used)
         # A late beat can be the one that completes misses_down unanswered (see HeartbeatTracker)
         self._check()
+
+    def _send_beat(self, remote: _Remote, seq: int, now: float) -> None:
+        name = remote.scale.name
+        if remote.address is None and now - remote.resolved_at >= RESOLVE_RETRY_S:
+            remote.resolved_at = now
+            try:
+                remote.address = (socket.gethostbyname(remote.scale.host),
+                                  warden.warden_port(self._deployment, name))
+            except OSError as e:
+                self._log.warning(f'link to {name}: cannot resolve {remote.scale.host!r} '
+                                  f'({e}); retrying every {RESOLVE_RETRY_S:g} s',
+                                  throttle_duration_sec=60.0)
+        if remote.address is None:
+            return
+        try:
+            self._sock.sendto(warden.beat(self._deployment.name, name, seq), remote.address)
+        except OSError:
+            pass        # no route (a cut link): the missing echo says so
 
     def _judge_congestion(self, remote: _Remote, now: float, used: float) -> None:
         """A link whose queue holds the heartbeats looks full: it is probed at once (see
@@ -278,7 +346,10 @@ class LinkMonitor:
                                bandwidth_available_age_s=age, bandwidth_used_kbps=used,
                                queueing_delay_ms=None if remote.delay_s is None
                                else remote.delay_s * 1000.0,
-                               congested=remote.congested and up)
+                               congested=remote.congested and up,
+                               peer_agent=remote.peer_agent if up else None,
+                               peer_agent_for_s=(remote.peer_for_s + now - remote.peer_at)
+                               if up and remote.peer_agent is not None else None)
         self.last[remote.scale.name] = message
         self._out.send(message)
         reference = available if available is not None else (
@@ -306,11 +377,6 @@ class LinkMonitor:
 
     # remote side ----------------------------------------------------------------------------
     def _start_remote(self, settings) -> None:
-        self._echo_pub = self._node.create_publisher(String, p.TOPIC_HEARTBEAT_ECHO,
-                                                     HEARTBEAT_QOS)
-        self._subs.append(self._node.create_subscription(
-            String, p.TOPIC_HEARTBEAT, self._on_beat, HEARTBEAT_QOS,
-            callback_group=self._group))
         try:
             self._server = ProbeServer(self._scale.host, settings.bandwidth_probe_port,
                                        self._log)
@@ -319,23 +385,15 @@ class LinkMonitor:
                             f'{settings.bandwidth_probe_port} not started: {e}; the master '
                             f'will use the nominal bandwidth of this link')
 
-    def _on_beat(self, msg: String) -> None:
-        beat = self._decode(p.Heartbeat, msg, p.TOPIC_HEARTBEAT)
-        if beat is None or beat.target not in ('', self._scale.name):
-            return
-        echo = p.Heartbeat(scale=self._scale.name, target=beat.scale, seq=beat.seq,
-                           sent=beat.sent)
-        self._echo_pub.publish(String(data=echo.to_json()))
-
     def destroy(self) -> None:
         for timer in self._timers:
             self._node.destroy_timer(timer)
         for sub in self._subs:
             self._node.destroy_subscription(sub)
         if self._scale.is_master:
-            self._node.destroy_publisher(self._beat_pub)
+            self._closing = True
+            self._sock.close()
+            self._receiver.join(1.0)
             self._out.destroy()
-        else:
-            self._node.destroy_publisher(self._echo_pub)
         if self._server is not None:
             self._server.close()

@@ -1,0 +1,303 @@
+"""The warden: one small process per scale that outlives its agent.
+
+    python -m anyscale_manager.agent.warden --state FILE --scale NAME --deployment NAME
+        --host HOST --port PORT [--adopt-grace S] [--restart-grace S] [--fence-grace S]
+
+The agent starts it (once: a second warden of the same state file exits at once) and it does
+two things an agent cannot do for itself, because both must hold while the agent is dead or
+replacing itself:
+
+- **The heartbeat echo.** The master's link monitor sends a UDP datagram to every remote
+  scale's warden (``warden_port``) and times the answer: the link's round trip, loss, queueing
+  delay and up/down. The answer also says how the scale's agent is (``alive``, ``restarting``,
+  ``gone`` or ``fenced``, and for how long), so a dead or restarting agent is never taken for a
+  cut link, and a cut link is still one (no answer at all).
+- **Fencing.** A node must not outlive its agent unsupervised. The warden reads the agent's
+  state file (its pid and start time, and every node it runs); when the agent is gone and no
+  successor has written that file within ``adopt_grace_s`` (``restart_grace_s`` after the agent
+  said it restarts in place), it stops those nodes: SIGINT to each session, SIGKILL after
+  ``fence_grace_s``. The decider places them elsewhere only once the echo says ``fenced``
+  (docs/agent.md, fencing): never two copies serving. An agent that stops cleanly says so in
+  its state file, and the warden leaves.
+
+No ROS here: a plain process with a UDP socket, a few megabytes.
+"""
+
+import argparse
+import json
+import os
+import select
+import signal
+import socket
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, List, Optional, Tuple
+
+ALIVE, RESTARTING, GONE, FENCED = 'alive', 'restarting', 'gone', 'fenced'
+AGENT_STATES = (ALIVE, RESTARTING, GONE, FENCED)
+LOOP_S = 0.05
+MISSING_S = 5.0          # a state folder removed this long ago: the deployment is gone
+MAX_DATAGRAM = 512
+
+
+def warden_port(deployment: Any, scale: str) -> int:
+    """The UDP port of ``scale``'s warden: one per scale after the bandwidth probe's, so that
+    every scale of a deployment may share one machine."""
+    base = deployment.monitoring.bandwidth_probe_port
+    return base + 1 + list(deployment.scale_names).index(scale)
+
+
+@dataclass
+class AgentView:
+    """What the state file says of the agent."""
+
+    pid: int = 0
+    started: Optional[float] = None
+    restarting: bool = False
+    stopped: bool = False
+    nodes: Tuple[Tuple[int, float], ...] = ()    # (pid, start time) of each node it runs
+
+
+class Verdict:
+    """The warden's judgement of its agent, with the clock passed in (tested without
+    processes). ``step`` returns True when the nodes must be fenced now."""
+
+    def __init__(self, adopt_grace_s: float, restart_grace_s: float):
+        self.adopt_grace_s = adopt_grace_s
+        self.restart_grace_s = restart_grace_s
+        self.state = ALIVE
+        self.since = 0.0
+        self._gone_at: Optional[float] = None
+        self._announced = False
+
+    def step(self, now: float, alive: bool, restarting: bool) -> bool:
+        if alive:
+            self._gone_at = None
+            self._announced = restarting
+            self._set(RESTARTING if restarting else ALIVE, now)
+            return False
+        if self.state == FENCED:
+            return False
+        if self._gone_at is None:
+            self._gone_at = now
+            self._announced = self._announced or restarting
+            self._set(RESTARTING if self._announced else GONE, now)
+        grace = self.restart_grace_s if self._announced else self.adopt_grace_s
+        if now - self._gone_at >= grace:
+            self._set(FENCED, now)
+            return True
+        return False
+
+    def _set(self, state: str, now: float) -> None:
+        if state != self.state:
+            self.state, self.since = state, now
+
+
+def read_state(path: str) -> Optional[AgentView]:
+    """The agent's state file, or None if it cannot be read now (being replaced, absent)."""
+    try:
+        with open(path, encoding='utf-8') as f:
+            data = json.load(f)
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict):
+        return None
+    nodes = []
+    for rec in (data.get('nodes') or {}).values():
+        if isinstance(rec, dict) and isinstance(rec.get('pid'), int) \
+                and isinstance(rec.get('started'), (int, float)):
+            nodes.append((rec['pid'], float(rec['started'])))
+    pid = data.get('agent_pid')
+    started = data.get('agent_started')
+    return AgentView(pid=pid if isinstance(pid, int) else 0,
+                     started=float(started) if isinstance(started, (int, float)) else None,
+                     restarting=data.get('restarting') is True,
+                     stopped=data.get('stopped') is True, nodes=tuple(nodes))
+
+
+def answer(request: bytes, deployment: str, scale: str, state: str,
+           for_s: float) -> Optional[bytes]:
+    """The echo of one heartbeat datagram, or None for anything that is not one addressed to
+    this scale of this deployment."""
+    if len(request) > MAX_DATAGRAM:
+        return None
+    try:
+        beat = json.loads(request.decode('utf-8'))
+    except (UnicodeDecodeError, ValueError):
+        return None
+    if not isinstance(beat, dict) or beat.get('d') != deployment or beat.get('to') != scale:
+        return None
+    seq = beat.get('seq')
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+        return None
+    reply = {'d': deployment, 'from': scale, 'seq': seq, 'agent': state,
+             'for_s': round(max(0.0, for_s), 3)}
+    return json.dumps(reply, separators=(',', ':')).encode()
+
+
+def parse_echo(data: bytes, deployment: str) -> Optional[Tuple[str, int, str, float]]:
+    """(scale, seq, agent state, for how long) of an echo, or None if it is not one."""
+    if len(data) > MAX_DATAGRAM:
+        return None
+    try:
+        echo = json.loads(data.decode('utf-8'))
+    except (UnicodeDecodeError, ValueError):
+        return None
+    if not isinstance(echo, dict) or echo.get('d') != deployment:
+        return None
+    scale, seq, state, for_s = (echo.get('from'), echo.get('seq'), echo.get('agent'),
+                                echo.get('for_s'))
+    if not isinstance(scale, str) or not isinstance(seq, int) or isinstance(seq, bool) \
+            or state not in AGENT_STATES or not isinstance(for_s, (int, float)):
+        return None
+    return scale, seq, state, float(for_s)
+
+
+def beat(deployment: str, scale: str, seq: int) -> bytes:
+    return json.dumps({'d': deployment, 'to': scale, 'seq': seq},
+                      separators=(',', ':')).encode()
+
+
+def fence(nodes: Tuple[Tuple[int, float], ...], grace_s: float,
+          say: Callable[[str], None]) -> int:
+    """Stop every node still alive (same pid and start time): SIGINT to its session, SIGKILL
+    after ``grace_s``. Returns how many were stopped."""
+    from . import procs
+    live = [(pid, started) for pid, started in nodes if procs.alive(pid, started)]
+    for pid, _ in live:
+        procs.signal_session(pid, signal.SIGINT)
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and any(procs.alive(p, s) for p, s in live):
+        time.sleep(0.02)
+    for pid, started in live:
+        if procs.alive(pid, started) or procs.session_members(pid):
+            procs.signal_session(pid, signal.SIGKILL)
+    say(f'fenced {len(live)} node process(es): ' + ', '.join(str(p) for p, _ in live))
+    return len(live)
+
+
+def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
+    from . import procs
+    lock_path = args.state + '.warden'
+    import fcntl
+    lock = open(lock_path, 'a+')
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        say(f'another warden guards {args.state}: leaving')
+        return 0
+    lock.seek(0)
+    lock.truncate()
+    lock.write(f'{os.getpid()}\n')
+    lock.flush()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        sock.bind((args.host, args.port))
+    except OSError as e:
+        say(f'cannot listen for heartbeats on UDP {args.host}:{args.port} ({e.strerror or e}): '
+            f'another process holds the port; give scale {args.scale} a free one '
+            '(monitoring.bandwidth_probe_port sets the base)')
+        return 2
+    sock.setblocking(False)
+    verdict = Verdict(args.adopt_grace, args.restart_grace)
+    view = AgentView()
+    mtime = None
+    missing_since: Optional[float] = None
+    say(f'guarding scale {args.scale} ({args.state}); heartbeats on UDP '
+        f'{args.host}:{args.port}')
+    while True:
+        now = time.monotonic()
+        try:
+            stat = os.stat(args.state)
+            missing_since = None
+            if stat.st_mtime_ns != mtime:
+                fresh = read_state(args.state)
+                if fresh is not None:
+                    view, mtime = fresh, stat.st_mtime_ns
+        except OSError:
+            missing_since = now if missing_since is None else missing_since
+            if not os.path.isdir(os.path.dirname(args.state) or '.') \
+                    and now - missing_since > MISSING_S:
+                say('the state folder is gone: nothing left to guard, leaving')
+                return 0
+        alive = view.pid > 0 and (procs.alive(view.pid, view.started) if view.started
+                                  else procs.create_time(view.pid) is not None)
+        if view.stopped and not alive:
+            say('the agent stopped cleanly (its nodes with it): leaving')
+            return 0
+        before = verdict.state
+        if verdict.step(now, alive, view.restarting):
+            say(f'agent pid {view.pid} gone for {now - verdict._gone_at:.2f} s with no '
+                'successor: stopping its nodes')
+            fence(view.nodes, args.fence_grace, say)
+        elif verdict.state != before:
+            say(f'agent pid {view.pid}: {verdict.state}')
+        ready, _, _ = select.select([sock], [], [], LOOP_S)
+        while ready:
+            try:
+                data, peer = sock.recvfrom(MAX_DATAGRAM + 1)
+            except (BlockingIOError, InterruptedError):
+                break
+            reply = answer(data, args.deployment, args.scale, verdict.state,
+                           time.monotonic() - verdict.since)
+            if reply is not None:
+                try:
+                    sock.sendto(reply, peer)
+                except OSError:
+                    pass
+            ready, _, _ = select.select([sock], [], [], 0)
+
+
+def spawn(state_path: str, scale: str, deployment: str, host: str, port: int,
+          adopt_grace_s: float, restart_grace_s: float, fence_grace_s: float,
+          log_path: str) -> Optional[int]:
+    """Start the warden of this state file unless one runs; its pid, or None if one did."""
+    import fcntl
+    import subprocess
+    try:
+        with open(state_path + '.warden', 'a+') as f:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(f, fcntl.LOCK_UN)
+    except BlockingIOError:
+        return None
+    argv = [sys.executable, '-m', 'anyscale_manager.agent.warden', '--state', state_path,
+            '--scale', scale, '--deployment', deployment, '--host', host, '--port', str(port),
+            '--adopt-grace', str(adopt_grace_s), '--restart-grace', str(restart_grace_s),
+            '--fence-grace', str(fence_grace_s)]
+    with open(log_path, 'ab') as log:
+        proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log,
+                                stderr=subprocess.STDOUT, start_new_session=True,
+                                close_fds=True)
+    return proc.pid
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    ap = argparse.ArgumentParser(prog='anyscale_manager.agent.warden',
+                                 description=__doc__.split('\n')[0])
+    ap.add_argument('--state', required=True, help="the agent's state file")
+    ap.add_argument('--scale', required=True)
+    ap.add_argument('--deployment', required=True)
+    ap.add_argument('--host', required=True)
+    ap.add_argument('--port', type=int, required=True)
+    ap.add_argument('--adopt-grace', type=float, default=1.0)
+    ap.add_argument('--restart-grace', type=float, default=10.0)
+    ap.add_argument('--fence-grace', type=float, default=0.5)
+    args = ap.parse_args(argv)
+
+    def say(text: str) -> None:
+        print(f'[warden {args.scale}] {time.strftime("%H:%M:%S")} {text}', flush=True)
+    try:
+        return run(args, say)
+    except KeyboardInterrupt:
+        return 0
+
+
+if __name__ == '__main__':
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)     # the agent's reload is not ours
+    sys.exit(main())
+
+
+__all__ = ['AGENT_STATES', 'ALIVE', 'FENCED', 'GONE', 'RESTARTING', 'AgentView', 'Verdict',
+           'answer', 'beat', 'fence', 'main', 'parse_echo', 'read_state', 'spawn',
+           'warden_port']

@@ -1,0 +1,154 @@
+"""The warden (agent/warden.py): its judgement of the agent with a hand-written clock, its
+echo's wire format, and, with real processes, fencing the nodes of a SIGKILLed agent."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from anyscale_manager.agent import procs, warden
+
+SLEEPER = 'import time\nwhile True: time.sleep(1)'
+
+
+def test_a_dead_agent_is_fenced_after_the_adopt_grace():
+    v = warden.Verdict(adopt_grace_s=1.0, restart_grace_s=10.0)
+    assert not v.step(0.0, alive=True, restarting=False) and v.state == warden.ALIVE
+    assert not v.step(1.0, alive=False, restarting=False) and v.state == warden.GONE
+    assert not v.step(1.9, alive=False, restarting=False)
+    assert v.step(2.0, alive=False, restarting=False) and v.state == warden.FENCED
+    assert not v.step(3.0, alive=False, restarting=False)      # fenced once
+    assert not v.step(4.0, alive=True, restarting=False) and v.state == warden.ALIVE
+
+
+def test_an_announced_restart_gets_the_restart_grace_and_a_successor_stops_the_clock():
+    v = warden.Verdict(adopt_grace_s=1.0, restart_grace_s=10.0)
+    v.step(0.0, alive=True, restarting=True)
+    assert v.state == warden.RESTARTING
+    assert not v.step(1.0, alive=False, restarting=True)
+    assert not v.step(5.0, alive=False, restarting=True) and v.state == warden.RESTARTING
+    assert not v.step(6.0, alive=True, restarting=False) and v.state == warden.ALIVE
+    v.step(7.0, alive=False, restarting=False)                   # this one is not announced
+    assert v.step(8.0, alive=False, restarting=False) and v.state == warden.FENCED
+
+
+def test_the_echo_answers_only_its_own_beats():
+    reply = warden.answer(warden.beat('d', 'laptop', 7), 'd', 'laptop', warden.GONE, 0.25)
+    assert warden.parse_echo(reply, 'd') == ('laptop', 7, warden.GONE, 0.25)
+    assert warden.answer(warden.beat('other', 'laptop', 7), 'd', 'laptop', 'alive', 0) is None
+    assert warden.answer(warden.beat('d', 'robot', 7), 'd', 'laptop', 'alive', 0) is None
+    for junk in (b'', b'{', b'[]', b'\xff', b'{"d": "d", "to": "laptop", "seq": -1}',
+                 b'{"d": "d", "to": "laptop", "seq": true}', b'x' * 600):
+        assert warden.answer(junk, 'd', 'laptop', 'alive', 0.0) is None
+        assert warden.parse_echo(junk, 'd') is None
+    assert warden.parse_echo(reply, 'other') is None
+
+
+def start_warden(tmp_path, port, adopt_grace='0.3'):
+    return subprocess.Popen(
+        [sys.executable, '-m', 'anyscale_manager.agent.warden', '--state',
+         str(tmp_path / 'agent.json'), '--scale', 'laptop', '--deployment', 'd', '--host',
+         '127.0.0.1', '--port', str(port), '--adopt-grace', adopt_grace, '--fence-grace', '0.3'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+
+def ask(port, seq, timeout_s=5.0):
+    """Beat the warden until it answers; its echo."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.settimeout(0.2)
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end:
+            s.sendto(warden.beat('d', 'laptop', seq), ('127.0.0.1', port))
+            try:
+                return warden.parse_echo(s.recv(1024), 'd')
+            except socket.timeout:
+                continue
+    raise AssertionError(f'no echo from the warden on UDP {port}')
+
+
+def free_udp_port():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def wait_for(cond, timeout_s, what):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if cond():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f'timed out after {timeout_s} s waiting for {what}')
+
+
+@pytest.mark.timeout(60)
+def test_the_nodes_of_a_killed_agent_are_stopped_and_the_echo_says_so(tmp_path):
+    agent = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
+    node = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
+    port = free_udp_port()
+    guard = None
+    try:
+        wait_for(lambda: procs.create_time(node.pid) and procs.create_time(agent.pid), 5.0,
+                 'the processes')
+        state = {'agent_pid': agent.pid, 'agent_started': procs.create_time(agent.pid),
+                 'nodes': {'n': {'pid': node.pid, 'started': procs.create_time(node.pid)}}}
+        (tmp_path / 'agent.json').write_text(json.dumps(state))
+        guard = start_warden(tmp_path, port)
+        assert ask(port, 1)[2] == warden.ALIVE
+        agent.kill()
+        agent.wait()
+        killed = time.monotonic()
+        wait_for(lambda: node.poll() is not None, 10.0, 'the node stopped by the warden')
+        took = time.monotonic() - killed
+        assert node.returncode == -signal.SIGINT or node.returncode in (1, -signal.SIGKILL)
+        assert took >= 0.3                       # not before the adopt grace
+        assert ask(port, 2)[2] == warden.FENCED
+        # A second warden of the same state file leaves at once.
+        again = start_warden(tmp_path, free_udp_port())
+        assert again.wait(10.0) == 0 and 'another warden' in again.stdout.read()
+    finally:
+        for proc in (agent, node, guard):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+@pytest.mark.timeout(60)
+def test_a_successor_within_the_grace_keeps_the_nodes(tmp_path):
+    node = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
+    first = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
+    port = free_udp_port()
+    guard = second = None
+    try:
+        wait_for(lambda: procs.create_time(node.pid) and procs.create_time(first.pid), 5.0,
+                 'the processes')
+
+        def write(agent_pid, restarting=False):
+            state = {'agent_pid': agent_pid, 'agent_started': procs.create_time(agent_pid),
+                     'restarting': restarting,
+                     'nodes': {'n': {'pid': node.pid, 'started': procs.create_time(node.pid)}}}
+            tmp = tmp_path / 'agent.json.tmp'
+            tmp.write_text(json.dumps(state))
+            os.replace(tmp, tmp_path / 'agent.json')
+        write(first.pid, restarting=True)           # it says it restarts in place
+        guard = start_warden(tmp_path, port)
+        assert ask(port, 1)[2] == warden.RESTARTING
+        first.kill()
+        first.wait()
+        time.sleep(1.0)                             # longer than the adopt grace (0.3 s)
+        assert node.poll() is None and ask(port, 2)[2] == warden.RESTARTING
+        second = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
+        wait_for(lambda: procs.create_time(second.pid), 5.0, 'the successor')
+        write(second.pid)
+        wait_for(lambda: ask(port, 3)[2] == warden.ALIVE, 5.0, 'the successor seen alive')
+        assert node.poll() is None
+    finally:
+        for proc in (node, first, second, guard):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
