@@ -265,6 +265,7 @@ def spawn(state_path: str, scale: str, deployment: str, host: str, port: int,
             '--scale', scale, '--deployment', deployment, '--host', host, '--port', str(port),
             '--adopt-grace', str(adopt_grace_s), '--restart-grace', str(restart_grace_s),
             '--fence-grace', str(fence_grace_s)]
+    os.makedirs(os.path.dirname(log_path) or '.', exist_ok=True)
     with open(log_path, 'ab') as log:
         proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log,
                                 stderr=subprocess.STDOUT, start_new_session=True,

@@ -221,9 +221,17 @@ class AgentNode(Node):
         s, d = self.settings, self.deployment
         self.supervisor.save()       # who this agent is, before the warden reads it
         port = warden_port(d, self.scale)
-        pid = spawn_warden(stem + '.json', self.scale, d.name, d.scale(self.scale).host, port,
-                           s.adopt_grace_s, s.restart_grace_s, s.fence_grace_s,
-                           os.path.join(self.log_dir, 'warden.log'))
+        log = os.path.join(self.log_dir, 'warden.log')
+        try:
+            pid = spawn_warden(stem + '.json', self.scale, d.name, d.scale(self.scale).host,
+                               port, s.adopt_grace_s, s.restart_grace_s, s.fence_grace_s, log)
+        except OSError as e:
+            # The nodes still run and are supervised; what is lost is said.
+            self.get_logger().error(
+                f'cannot start the warden ({e.strerror or e}; log {log}): the master hears no '
+                'heartbeat from this scale (its link counts as down) and nothing stops these '
+                'nodes if this agent dies')
+            return
         if pid is not None:
             self.get_logger().info(f'warden started: pid {pid}, heartbeats on UDP '
                                    f'{d.scale(self.scale).host}:{port} (log '
