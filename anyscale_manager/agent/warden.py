@@ -281,7 +281,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument('--deployment', required=True)
     ap.add_argument('--host', required=True)
     ap.add_argument('--port', type=int, required=True)
-    ap.add_argument('--adopt-grace', type=float, default=1.0)
+    ap.add_argument('--adopt-grace', type=float, default=5.0)
     ap.add_argument('--restart-grace', type=float, default=10.0)
     ap.add_argument('--fence-grace', type=float, default=0.5)
     args = ap.parse_args(argv)

@@ -195,7 +195,7 @@ class AgentSettings:
     # The warden (agent/warden.py) stops this agent's nodes when the agent is gone this long
     # with no successor (restart_grace_s after it said it restarts in place), SIGKILL after
     # fence_grace_s: the bound within which a dead agent's nodes are gone.
-    adopt_grace_s: float = 1.0
+    adopt_grace_s: float = 5.0          # covers a supervisor's restart of the agent
     restart_grace_s: float = 10.0
     fence_grace_s: float = 0.5
     state_dir: str = ''                   # '' = ~/.ros/anyscale_manager
