@@ -509,3 +509,19 @@ def test_link_monitor_trackers_judge_congestion_over_a_second_at_any_beat_rate()
         strict.echo(now + rtt, seq)
         now += 0.1
     assert strict.queueing_delay_s(now + 0.3) > 0.05
+
+
+def test_beats_sent_in_one_burst_after_a_stall_are_no_cut():
+    """The judging process was not scheduled for a second: its beat timer catches up with
+    three beats at once, and the echoes of the beats before the stall wait in its queue. Down
+    only once beats spread over their periods have gone unanswered."""
+    period, misses, rtt = 0.1, 3, 0.002
+    hb = HeartbeatTracker(period, misses)
+    now = _beats(hb, 0.0, 10, lambda k: rtt, period)
+    stalled_until = now + 1.2
+    for _ in range(3):
+        hb.next_beat(stalled_until)
+    assert hb.up(stalled_until + 0.01)
+    for k in range(1, 3):                       # beats go on, still unanswered: a cut
+        hb.next_beat(stalled_until + k * period)
+    assert not hb.up(stalled_until + 2 * period + 0.01)

@@ -30,6 +30,7 @@ import select
 import signal
 import socket
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, List, Optional, Tuple
@@ -204,6 +205,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     view = AgentView()
     mtime = None
     missing_since: Optional[float] = None
+    fencing: Optional[threading.Thread] = None
     say(f'guarding scale {args.scale} ({args.state}); heartbeats on UDP '
         f'{args.host}:{args.port}')
     while True:
@@ -228,18 +230,23 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             return 0
         before = verdict.state
         if verdict.step(now, alive, view.restarting):
-            say(f'agent pid {view.pid} gone for {now - verdict._gone_at:.2f} s with no '
-                'successor: stopping its nodes')
-            fence(view.nodes, args.fence_grace, say)
+            say(f'agent pid {view.pid} gone with no successor: stopping its nodes')
+            # In a thread: the heartbeats are answered meanwhile (a warden that stops
+            # answering would make the link look cut).
+            fencing = threading.Thread(target=fence, args=(view.nodes, args.fence_grace, say),
+                                       daemon=True)
+            fencing.start()
         elif verdict.state != before:
             say(f'agent pid {view.pid}: {verdict.state}')
+        # 'fenced' only once the nodes are stopped.
+        state = GONE if fencing is not None and fencing.is_alive() else verdict.state
         ready, _, _ = select.select([sock], [], [], LOOP_S)
         while ready:
             try:
                 data, peer = sock.recvfrom(MAX_DATAGRAM + 1)
             except (BlockingIOError, InterruptedError):
                 break
-            reply = answer(data, args.deployment, args.scale, verdict.state,
+            reply = answer(data, args.deployment, args.scale, state,
                            time.monotonic() - verdict.since)
             if reply is not None:
                 try:

@@ -163,6 +163,9 @@ class HeartbeatTracker:
         self._last: Deque[list] = deque(maxlen=recent)   # [seq, sent, rtt or None]
         self._next_seq = 0
         self._sent_since_echo = 0
+        # Send times of the beats since the last echo (the last few): a beat is evidence of
+        # silence only once it has had a period to be answered.
+        self._pending_times: Deque[float] = deque(maxlen=max(8, 2 * misses_down))
         self.last_echo: Optional[float] = None
         self.last_rtt_s: Optional[float] = None
 
@@ -176,6 +179,7 @@ class HeartbeatTracker:
         self._next_seq += 1
         self._sent[seq] = now
         self._sent_since_echo += 1
+        self._pending_times.append(now)
         self._last.append([seq, now, None])
         self._expire(now)
         return seq
@@ -195,6 +199,7 @@ class HeartbeatTracker:
         if self.last_echo is None or now >= self.last_echo:
             self.last_echo = now
             self._sent_since_echo = 0
+            self._pending_times.clear()
         return rtt
 
     def _expire(self, now: float) -> None:
@@ -204,8 +209,15 @@ class HeartbeatTracker:
             self._fates.append(False)
 
     def up(self, now: float) -> bool:
-        return self.last_echo is not None and (now - self.last_echo <= self.timeout_s
-                                               or self._sent_since_echo < self.misses_down)
+        """Down once no echo came for ``misses_down`` periods and ``misses_down`` beats were
+        sent since, spread over at least half their periods: beats sent in one burst by a
+        process that was not scheduled (its timer catching up) prove nothing yet."""
+        if self.last_echo is None:
+            return False
+        if now - self.last_echo <= self.timeout_s or self._sent_since_echo < self.misses_down:
+            return True
+        times = self._pending_times
+        return times[-1] - times[0] < 0.5 * (self.misses_down - 1) * self.period_s
 
     def silence(self, now: float) -> str:
         """What a down verdict rests on, in words: how long without an echo, how many beats went

@@ -1,0 +1,136 @@
+"""A remote agent killed, or restarted in place, with the real decider, agents and wardens as
+processes over real DDS: never two copies serving, and a restart is not a cut."""
+
+import os
+import signal
+import time
+
+import psutil
+import pytest
+from std_msgs.msg import UInt8MultiArray
+
+import home_away as ha
+from home_away import runs
+from anyscale_manager.nodes import qos
+
+RATE_HZ = 10.0
+
+
+@pytest.fixture
+def listener():
+    with ha.listening('fencing_listener') as heard:
+        yield heard
+
+
+def deployment(tmp_path, topic):
+    return ha.write_deployment(tmp_path, f'fencing_{os.getpid()}', ha.chain(topic, RATE_HZ),
+                               decider={'hysteresis_s': 60.0},
+                               agent={'adopt_grace_s': 0.5, 'fence_grace_s': 0.5})
+
+
+def wardens_of(procs):
+    """The warden processes the agents started (children of no test process)."""
+    out = []
+    for proc in psutil.process_iter(['cmdline']):
+        cmd = proc.info['cmdline'] or []
+        if 'anyscale_manager.agent.warden' in cmd and any(
+                str(a).startswith(str(procs)) for a in cmd):
+            out.append(proc)
+    return out
+
+
+def stop_wardens(tmp_path):
+    for proc in wardens_of(tmp_path):
+        proc.kill()
+
+
+def away_worker(seen):
+    s = seen['states'].get('away')
+    r = s.nodes.get('worker') if s else None
+    return r.pid if r is not None and r.state == 'running' else None
+
+
+@pytest.mark.timeout(180)
+def test_a_killed_remote_agents_nodes_are_fenced_before_they_run_elsewhere(
+        tmp_path, ros_env, listener):
+    ex, seen = listener
+    topic = f'/fencing_{os.getpid()}'
+    path = deployment(tmp_path, topic)
+    heard = []          # (arrival, publication sequence number) on the worker's output
+    sub = ex.get_nodes()[0].create_subscription(
+        UInt8MultiArray, topic + '/w',
+        lambda _raw, info: heard.append((time.monotonic(),
+                                         info.get('publication_sequence_number', -1))),
+        qos.PROBE, raw=True)
+    procs = []
+    try:
+        agents = ha.start_agents(procs, tmp_path, ros_env, path)
+        ha.start(procs, tmp_path, ros_env, path, 'decider')
+        ha.wait(ex, lambda: away_worker(seen) and not runs(seen, 'home', 'worker'), 90.0,
+                'the worker running on away only', procs)
+        old = psutil.Process(away_worker(seen))
+        links_down_before = sum(1 for _, s in seen['links'] if not s.up)
+        agents['away'].proc.kill()                 # SIGKILL: no chance to stop its nodes
+        killed = time.monotonic()
+        ha.wait(ex, lambda: not old.is_running() or old.status() == psutil.STATUS_ZOMBIE,
+                10.0, 'the warden to stop the dead agent\'s worker', procs)
+        fenced_at = time.monotonic()
+        ha.wait(ex, lambda: runs(seen, 'home', 'worker'), 30.0, 'the worker running home',
+                procs)
+        ha.wait(ex, lambda: any(t > fenced_at for t, _ in heard), 20.0,
+                'the home copy heard', procs)
+        # The old copy was stopped before the new one was placed: the layout that brought
+        # the worker home came after the warden said 'fenced', and the link never went down.
+        assert any(s.peer_agent == 'fenced' for _, s in seen['links'])
+        assert sum(1 for _, s in seen['links'] if not s.up) == links_down_before
+        home = [e for e in seen['events'] if e.node == 'worker' and e.to_scale == 'home']
+        assert home and 'lost' in home[-1].reason, home
+        first_new = min(t for t, _ in heard if t > killed and t > fenced_at - 0.05)
+        last_old = max((t for t, _ in heard if t < fenced_at), default=killed)
+        assert last_old <= first_new
+        print(f'worker stopped {fenced_at - killed:.2f} s after its agent was killed; home '
+              f'copy heard {first_new - killed:.2f} s after')
+    finally:
+        ex.get_nodes()[0].destroy_subscription(sub)
+        for name, pr in reversed(procs):
+            pr.stop()
+        stop_wardens(tmp_path)
+
+
+@pytest.mark.timeout(180)
+def test_a_remote_agent_restarted_in_place_is_not_a_cut(tmp_path, ros_env, listener):
+    ex, seen = listener
+    topic = f'/fencing_hup_{os.getpid()}'
+    path = deployment(tmp_path, topic)
+    heard = []
+    sub = ex.get_nodes()[0].create_subscription(
+        UInt8MultiArray, topic + '/w', lambda _raw: heard.append(time.monotonic()), qos.PROBE,
+        raw=True)
+    procs = []
+    try:
+        agents = ha.start_agents(procs, tmp_path, ros_env, path)
+        ha.start(procs, tmp_path, ros_env, path, 'decider')
+        ha.wait(ex, lambda: away_worker(seen) and not runs(seen, 'home', 'worker'), 90.0,
+                'the worker running on away only', procs)
+        pid = away_worker(seen)
+        generation = seen['layouts'][-1].generation
+        events = len(seen['events'])
+        instance = seen['states']['away'].instance
+        agents['away'].proc.send_signal(signal.SIGHUP)
+        hup = time.monotonic()
+        ha.wait(ex, lambda: seen['states']['away'].instance != instance
+                and away_worker(seen) == pid, 30.0, 'the new agent adopting the worker', procs)
+        ha.wait(ex, lambda: len([t for t in heard if t > time.monotonic() - 1.0]) >= RATE_HZ / 2,
+                10.0, 'the output steady after the restart', procs)
+        assert all(s.up for t, s in seen['links'] if t >= hup)
+        assert seen['layouts'][-1].generation == generation
+        assert not [e for e in seen['events'][events:] if e.node == 'worker']
+        assert seen['states']['away'].nodes['worker'].restarts == 0
+        gaps = [b - a for a, b in zip(heard, heard[1:]) if b > hup]
+        print(f'longest gap at the consumer across the restart: {max(gaps):.3f} s')
+        assert max(gaps) < 1.0 / RATE_HZ + 0.5
+    finally:
+        ex.get_nodes()[0].destroy_subscription(sub)
+        for name, pr in reversed(procs):
+            pr.stop()
+        stop_wardens(tmp_path)
