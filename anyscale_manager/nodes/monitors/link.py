@@ -7,7 +7,6 @@ restarting, gone, fenced). A dead or restarting agent is therefore never taken f
 and a cut link (no answer) is never taken for a dead agent.
 """
 
-import collections
 import math
 import socket
 import threading
@@ -26,8 +25,7 @@ from .common import LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, st
 from .throughput import ProbeServer, probe_throughput
 from ..throttled_log import ThrottledLog
 
-WATCHDOG_SLACK_S = 0.002
-ECHO_WAKE_S = 0.001            # the one-shot wake of the executor after an echo arrives
+CHECKS_PER_BEAT = 4            # up/down judged this many times per heartbeat period
 RESOLVE_RETRY_S = 5.0
 # What a tracker judges over, in seconds rather than beats, so that a faster beat sees a cut
 # sooner without making the queueing-delay verdict twitchier: a scale starved of CPU for a few
@@ -60,7 +58,6 @@ class _Remote:
     delay_s: Optional[float] = None
     quiet_since: float = -math.inf     # beats sent earlier say nothing of congestion
     started: float = 0.0               # when this monitor began beating to it
-    watchdog: object = None
     result: Optional[Tuple[float, Optional[float], str, float]] = None  # done, bps, error, used
     address: Optional[Tuple[str, int]] = None   # the warden's, resolved
     resolved_at: float = -math.inf
@@ -91,6 +88,7 @@ class LinkMonitor:
         self._server: Optional[ProbeServer] = None
         self._remotes: Dict[str, _Remote] = {}
         self._lock = threading.Lock()
+        self._beats_lock = threading.RLock()    # the trackers: the echo thread and the executor
         self.last: Dict[str, p.LinkStatus] = {}
         if self._scale.is_master:
             self._start_master(settings)
@@ -115,17 +113,13 @@ class LinkMonitor:
         self._readings: Dict[Tuple[str, str], Tuple[float, float]] = {}  # (scale, conn) -> B/s, at
         self._running: Dict[str, Dict[str, str]] = {}          # scale -> node -> scale
         self._out = Publishers(self._node, p.TOPIC_LINK_STATUS)
-        # Echoes are read by a thread of their own, stamped as they arrive, and handed to the
-        # executor by a one-shot timer (the events executor has no guard conditions).
+        # Echoes are read by a thread of their own and stamped as they arrive (the trackers are
+        # shared under _beats_lock); the executor judges up and down CHECKS_PER_BEAT times a
+        # period, so a cut is published within a quarter period of the rule being met.
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind(('', 0))
         self._sock.settimeout(0.5)
-        self._echoes: collections.deque = collections.deque(maxlen=1000)
         self._closing = False
-        self._echo_wake = self._node.create_timer(ECHO_WAKE_S, self._on_echoes,
-                                                  callback_group=self._group)
-        self._echo_wake.cancel()
-        self._timers.append(self._echo_wake)
         self._receiver = threading.Thread(target=self._receive, daemon=True,
                                           name='anyscale-echoes')
         self._receiver.start()
@@ -137,13 +131,8 @@ class LinkMonitor:
             callback_group=self._group))
         self._timers.append(self._node.create_timer(self._period, self._beat,
                                                     callback_group=self._group))
-        # A watchdog per remote, re-armed by every echo, fires just after misses_down periods
-        # of silence: a cut is published at that instant, not at the next periodic check.
-        for remote in self._remotes.values():
-            remote.watchdog = self._node.create_timer(
-                remote.beats.timeout_s + WATCHDOG_SLACK_S, self._check,
-                callback_group=self._group)
-            self._timers.append(remote.watchdog)
+        self._timers.append(self._node.create_timer(self._period / CHECKS_PER_BEAT,
+                                                    self._check, callback_group=self._group))
         self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
         self._probe_duration = settings.bandwidth_probe_duration_s
         self._congestion_s = settings.congestion_delay_ms / 1000.0
@@ -174,23 +163,13 @@ class LinkMonitor:
                 self._bad.warn('heartbeat echo', 'link monitor: ignoring a datagram that is '
                                                  'not an echo of this deployment')
                 continue
-            self._echoes.append((at,) + echo)
-            try:
-                self._echo_wake.reset()
-            except Exception:   # being destroyed
-                return
-
-    def _on_echoes(self) -> None:
-        self._echo_wake.cancel()
-        self._bad.flush()
-        while self._echoes:
-            at, scale, seq, agent, for_s = self._echoes.popleft()
+            scale, seq, agent, for_s = echo
             remote = self._remotes.get(scale)
-            if remote is None or remote.beats.echo(at, seq) is None:
+            if remote is None:
                 continue
-            remote.peer_agent, remote.peer_for_s, remote.peer_at = agent, for_s, at
-            remote.watchdog.reset()
-        self._check()
+            with self._beats_lock:
+                if remote.beats.echo(at, seq) is not None:
+                    remote.peer_agent, remote.peer_for_s, remote.peer_at = agent, for_s, at
 
     def _on_connections(self, msg: String) -> None:
         now = time.monotonic()
@@ -226,6 +205,10 @@ class LinkMonitor:
         return used_kbps(fresh, names)
 
     def _beat(self) -> None:
+        with self._beats_lock:
+            self._beat_locked()
+
+    def _beat_locked(self) -> None:
         self._check()
         now = time.monotonic()
         for name, remote in self._remotes.items():
@@ -315,6 +298,11 @@ class LinkMonitor:
             remote.bandwidth.record(done, bps * 8.0 / 1000.0, used)
 
     def _check(self) -> None:
+        with self._beats_lock:
+            self._check_locked()
+
+    def _check_locked(self) -> None:
+        self._bad.flush()
         now = time.monotonic()
         for remote in self._remotes.values():
             up = remote.beats.up(now)
