@@ -73,7 +73,7 @@ def test_a_killed_remote_agents_nodes_are_fenced_before_they_run_elsewhere(
         agents['away'].proc.kill()                 # SIGKILL: no chance to stop its nodes
         killed = time.monotonic()
         ha.wait(ex, lambda: not old.is_running() or old.status() == psutil.STATUS_ZOMBIE,
-                10.0, 'the warden to stop the dead agent\'s worker', procs)
+                10.0, "the warden to stop the dead agent's worker", procs)
         fenced_at = time.monotonic()
         ha.wait(ex, lambda: runs(seen, 'home', 'worker'), 30.0, 'the worker running home',
                 procs)

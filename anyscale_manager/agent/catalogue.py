@@ -43,6 +43,7 @@ class Entry:
     lifecycle: bool = False
     services: str = ''          # a lifecycle copy's service namespace: '/amcl/robot'
     nice: int = 0               # the node's own niceness, added to agent.node_nice
+    critical: bool = False      # pinned by a tolerance-0 connection: not niced by node_nice
 
     @property
     def startable(self) -> bool:
@@ -179,6 +180,7 @@ def build_catalogue(deployment: t.Deployment, scale: str,
     environ = os.environ if environ is None else environ
     base = base_environment(environ)
     out = {}
+    critical = set(deployment.critical_nodes)
     for node in deployment.nodes:
         if not node.managed or not node.launch.startable:
             continue
@@ -193,5 +195,5 @@ def build_catalogue(deployment: t.Deployment, scale: str,
                                ros_name=ros_full_name(node), move_order=node.move_order,
                                problem=problem, lifecycle=node.lifecycle,
                                services=lifecycle_services(node, scale) if node.lifecycle
-                               else '', nice=node.nice)
+                               else '', nice=node.nice, critical=node.name in critical)
     return out

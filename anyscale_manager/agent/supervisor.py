@@ -316,12 +316,12 @@ class Supervisor:
             # signalled as one.
             # node_nice: the node runs below the agent and the decider, so a node that takes
             # all the CPU it gets (a CPU-bound one on a weak robot) cannot starve the monitors,
-            # heartbeats and probes that judge it. A node's own nice adds to it: a heavy node
-            # yields to the light ones that share its scale and must keep their rate (a
-            # critical odometry chain beside a CPU-bound localiser). nice(1) execs the node:
-            # same pid.
+            # heartbeats and probes that judge it. A critical node (in a tolerance-0
+            # connection: it may never be below its minimum) is not niced by node_nice: on a
+            # saturated scale it runs beside the agent, ahead of the heavy nodes that may move.
+            # A node's own nice adds to the rest. nice(1) execs the node: same pid.
             argv = list(entry.argv)
-            niceness = min(19, self.settings.node_nice + entry.nice)
+            niceness = min(19, (0 if entry.critical else self.settings.node_nice) + entry.nice)
             if niceness:
                 argv = ['nice', '-n', str(niceness)] + argv
             p.popen = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL,
