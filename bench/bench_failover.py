@@ -1,8 +1,9 @@
-"""A crashed node, judged at a consumer of our own: failover of a lifecycle node to its standby
-copy on the other scale, and a plain node restarted in place.
+"""Faults of a node or an agent, judged at a consumer of our own: failover of a crashed
+lifecycle node to its standby copy, a plain node restarted in place, agents restarted in place
+(SIGHUP), a remote agent SIGKILLed (fencing).
 
-    python bench/bench_failover.py [--kills 20] [--in-place-kills 10] [--rate-hz 20]
-                                   [--domain-id N]
+    python bench/bench_failover.py [--kills 20] [--in-place-kills 10] [--hups 10]
+                                   [--agent-kills 10] [--rate-hz 20] [--domain-id N]
 
 Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
 beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
@@ -15,7 +16,12 @@ copy on both scales) -> pinned (home, a plain workload), every output at --rate-
   standby serves: two senders cannot overlap here.)
 - In place: SIGKILL of pinned (no standby copy, it may run only home) after a healthy run,
   --in-place-kills times: the longest gap on its output (process start, discovery, first input).
-Prints one line per kill, then p50/p95/max of each figure.
+- SIGHUP of each agent (restart in place), --hups times each: moves, node restarts and link
+  down reports while it restarts, and the longest gap on the worker's output.
+- SIGKILL of the away agent while the worker serves there, --agent-kills times (a new agent is
+  started after each): the time until its worker process is gone (its warden's fencing), how
+  long the old and the new copy were both heard, and the longest gap.
+Prints one line per fault, then p50/p95/max of each figure.
 """
 
 import argparse
@@ -28,6 +34,7 @@ import tempfile
 import threading
 import time
 
+import psutil
 import yaml
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -96,6 +103,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--kills', type=int, default=20)
     ap.add_argument('--in-place-kills', type=int, default=10)
+    ap.add_argument('--hups', type=int, default=10, help='SIGHUPs of each agent')
+    ap.add_argument('--agent-kills', type=int, default=10,
+                    help='SIGKILLs of the remote agent while the worker serves there')
     ap.add_argument('--rate-hz', type=float, default=20.0)
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '44')))
     args = ap.parse_args()
@@ -115,7 +125,7 @@ def main() -> int:
     node = rclpy.create_node('bench_failover_consumer')
     lock = threading.Lock()
     heard = {'/w': [], '/p': []}      # arrival times
-    states, events = {}, []
+    states, events, links = {}, [], []
 
     def keep(suffix):
         def take(_raw):
@@ -132,7 +142,12 @@ def main() -> int:
             states[s.scale] = s
     node.create_subscription(String, p.TOPIC_AGENT_STATE, state, qos.LATCHED_READER)
     node.create_subscription(String, p.TOPIC_EVENTS,
-                             lambda m: events.append(p.Event.from_json(m.data)), qos.EVENTS)
+                             lambda m: events.append((time.monotonic(),
+                                                      p.Event.from_json(m.data))), qos.EVENTS)
+    node.create_subscription(String, p.TOPIC_LINK_STATUS,
+                             lambda m: links.append((time.monotonic(),
+                                                     p.LinkStatus.from_json(m.data))),
+                             qos.MONITOR_READER)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     stop = threading.Event()
@@ -185,7 +200,10 @@ def main() -> int:
                                            '--params-file', path, *extra], env=env,
                                           stdout=log, stderr=subprocess.STDOUT,
                                           start_new_session=True))
+            return procs[-1]
         failover, in_place = [], []
+        hups = {'home': [], 'away': []}      # (moves, restarts, links down, longest gap)
+        fenced, overlap, agent_gap = [], [], []
         try:
             start('agent', '-p', 'scale:=home')
             start('agent', '-p', 'scale:=away')
@@ -204,7 +222,7 @@ def main() -> int:
                                  'the standby copy serving')
                 steady('/w', 1.0)
                 gap = judge('/w', t0, time.monotonic())
-                kinds = [e.kind for e in events if e.node == 'worker' and e.stamp > 0]
+                kinds = [e.kind for _, e in events if e.node == 'worker']
                 failover.append(gap)
                 print(f'failover {k + 1:2}: {where} -> {now_at}, longest gap {gap:.3f} s, '
                       f'failover events so far {kinds.count("failover")}', flush=True)
@@ -222,6 +240,57 @@ def main() -> int:
                 gap = judge('/p', t0, time.monotonic())
                 in_place.append(gap)
                 print(f'in place {k + 1:2}: longest gap {gap:.3f} s', flush=True)
+            agents = {'home': procs[0], 'away': procs[1]}
+            for k in range(args.hups):
+                for scale in ('home', 'away'):
+                    wait(serving, 60.0, 'a serving copy and a standby')
+                    steady('/w', 1.0)
+                    with lock:
+                        instance = states[scale].instance
+                        restarts = {s: {n: r.restarts for n, r in st.nodes.items()}
+                                    for s, st in states.items()}
+                    t0 = time.monotonic()
+                    os.kill(agents[scale].pid, signal.SIGHUP)
+                    wait(lambda: states[scale].instance != instance, 30.0,
+                         f'the {scale} agent back after SIGHUP')
+                    steady('/w', 2.0)
+                    t1 = time.monotonic()
+                    with lock:
+                        moved = sum(1 for t, e in events if t0 <= t <= t1)
+                        down = sum(1 for t, s in links if t0 <= t <= t1 and not s.up)
+                        again = sum(r.restarts - restarts.get(s, {}).get(n, r.restarts)
+                                    for s, st in states.items() for n, r in st.nodes.items())
+                    gap = judge('/w', t0, t1)
+                    hups[scale].append((moved, again, down, gap))
+                    print(f'SIGHUP {scale} {k + 1:2}: moves {moved}, node restarts {again}, '
+                          f'link down reports {down}, longest gap {gap:.3f} s', flush=True)
+            for k in range(args.agent_kills):
+                time.sleep(HYSTERESIS_S)
+                wait(lambda: (serving() or ('',))[0] == 'away', 120.0,
+                     'the worker serving on away')
+                steady('/w', 1.0)
+                victim = psutil.Process(copy('away', 'worker').pid)
+                t0 = time.monotonic()
+                agents['away'].kill()
+                agents['away'].wait()
+                wait(lambda: not victim.is_running()
+                     or victim.status() == psutil.STATUS_ZOMBIE, 60.0,
+                     "the warden stopping the dead agent's worker")
+                t_fenced = time.monotonic()
+                wait(lambda: copy('home', 'worker') and copy('home', 'worker').state ==
+                     'running', 30.0, 'the worker serving home')
+                steady('/w', 1.0)
+                with lock:
+                    times = [t for t in heard['/w'] if t >= t0 - 1.0]
+                last_old = max((t for t in times if t <= t_fenced), default=t0)
+                first_new = min((t for t in times if t > t_fenced), default=float('nan'))
+                gap = judge('/w', t0, time.monotonic())
+                fenced.append(t_fenced - t0)
+                overlap.append(max(0.0, last_old - first_new))
+                agent_gap.append(gap)
+                print(f'agent kill {k + 1:2}: its worker stopped {t_fenced - t0:.2f} s after, '
+                      f'longest gap {gap:.3f} s', flush=True)
+                agents['away'] = start('agent', '-p', 'scale:=away')
         finally:
             for proc in reversed(procs):
                 stop_popen(proc, 5.0, 5.0)
@@ -232,6 +301,14 @@ def main() -> int:
             rclpy.try_shutdown()
     print(f'failover to a standby copy, longest gap at the consumer: {stats(failover)}')
     print(f'plain node restarted in place, longest gap: {stats(in_place)}')
+    for scale, rows in hups.items():
+        if rows:
+            print(f'SIGHUP of the {scale} agent ({len(rows)}): moves {sum(r[0] for r in rows)}, '
+                  f'node restarts {sum(r[1] for r in rows)}, link down reports '
+                  f'{sum(r[2] for r in rows)}; longest gap {stats([r[3] for r in rows])}')
+    if fenced:
+        print(f'remote agent SIGKILLed: its worker stopped after {stats(fenced)}; two senders '
+              f'heard at once {stats(overlap)}; longest gap {stats(agent_gap)}')
     return 0
 
 

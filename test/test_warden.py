@@ -90,13 +90,17 @@ def wait_for(cond, timeout_s, what):
 def test_the_nodes_of_a_killed_agent_are_stopped_and_the_echo_says_so(tmp_path):
     agent = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
     node = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
+    pinned = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
     port = free_udp_port()
     guard = None
     try:
-        wait_for(lambda: procs.create_time(node.pid) and procs.create_time(agent.pid), 5.0,
-                 'the processes')
+        wait_for(lambda: procs.create_time(node.pid) and procs.create_time(agent.pid)
+                 and procs.create_time(pinned.pid), 5.0, 'the processes')
         state = {'agent_pid': agent.pid, 'agent_started': procs.create_time(agent.pid),
-                 'nodes': {'n': {'pid': node.pid, 'started': procs.create_time(node.pid)}}}
+                 'nodes': {'n': {'pid': node.pid, 'started': procs.create_time(node.pid),
+                                 'fence': True},
+                           'pinned': {'pid': pinned.pid, 'fence': False,
+                                      'started': procs.create_time(pinned.pid)}}}
         (tmp_path / 'agent.json').write_text(json.dumps(state))
         guard = start_warden(tmp_path, port)
         assert ask(port, 1)[2] == warden.ALIVE
@@ -108,11 +112,12 @@ def test_the_nodes_of_a_killed_agent_are_stopped_and_the_echo_says_so(tmp_path):
         assert node.returncode == -signal.SIGINT or node.returncode in (1, -signal.SIGKILL)
         assert took >= 0.3                       # not before the adopt grace
         assert ask(port, 2)[2] == warden.FENCED
+        assert pinned.poll() is None          # no other copy could meet it: left running
         # A second warden of the same state file leaves at once.
         again = start_warden(tmp_path, free_udp_port())
         assert again.wait(10.0) == 0 and 'another warden' in again.stdout.read()
     finally:
-        for proc in (agent, node, guard):
+        for proc in (agent, node, pinned, guard):
             if proc is not None and proc.poll() is None:
                 proc.kill()
                 proc.wait()
@@ -131,7 +136,8 @@ def test_a_successor_within_the_grace_keeps_the_nodes(tmp_path):
         def write(agent_pid, restarting=False):
             state = {'agent_pid': agent_pid, 'agent_started': procs.create_time(agent_pid),
                      'restarting': restarting,
-                     'nodes': {'n': {'pid': node.pid, 'started': procs.create_time(node.pid)}}}
+                     'nodes': {'n': {'pid': node.pid, 'started': procs.create_time(node.pid),
+                                     'fence': True}}}
             tmp = tmp_path / 'agent.json.tmp'
             tmp.write_text(json.dumps(state))
             os.replace(tmp, tmp_path / 'agent.json')

@@ -95,6 +95,10 @@ class Supervisor:
         self.agent_started = procs.create_time(os.getpid())
         self.restarting = False
         self.stopped = False
+        # The nodes the warden stops when this agent dies: those a decider could start
+        # elsewhere (on the master scale none: the decider keeps its layout while the master's
+        # agent is silent, and a node only this scale may run has no other copy to meet).
+        self.fenceable: frozenset = frozenset()
 
     # --- queries --------------------------------------------------------------------------
     @property
@@ -425,7 +429,8 @@ class Supervisor:
             if p.state in ACTIVE and p.pid:
                 nodes[name] = {'pid': p.pid, 'started': p.started, 'instance': p.instance,
                                'argv': list(p.entry.argv), 'restarts': p.restarts,
-                               'stopping': p.state == 'stopping'}
+                               'stopping': p.state == 'stopping',
+                               'fence': name in self.fenceable}
         data = dict(self.identity, version=STATE_VERSION, agent_pid=os.getpid(), nodes=nodes,
                     agent_started=self.agent_started, restarting=self.restarting,
                     stopped=self.stopped)

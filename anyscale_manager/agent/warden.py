@@ -57,7 +57,7 @@ class AgentView:
     started: Optional[float] = None
     restarting: bool = False
     stopped: bool = False
-    nodes: Tuple[Tuple[int, float], ...] = ()    # (pid, start time) of each node it runs
+    nodes: Tuple[Tuple[int, float], ...] = ()    # (pid, start time) of each node to fence
 
 
 class Verdict:
@@ -106,7 +106,7 @@ def read_state(path: str) -> Optional[AgentView]:
         return None
     nodes = []
     for rec in (data.get('nodes') or {}).values():
-        if isinstance(rec, dict) and isinstance(rec.get('pid'), int) \
+        if isinstance(rec, dict) and isinstance(rec.get('pid'), int) and rec.get('fence') \
                 and isinstance(rec.get('started'), (int, float)):
             nodes.append((rec['pid'], float(rec['started'])))
     pid = data.get('agent_pid')

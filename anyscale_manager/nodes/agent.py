@@ -219,6 +219,9 @@ class AgentNode(Node):
         nodes, in a process that outlives this one. One per state file: an agent restarted
         in place, or by systemd, finds it running."""
         s, d = self.settings, self.deployment
+        if self.scale != d.master.name:
+            self.supervisor.fenceable = frozenset(
+                n for n in self.catalogue if set(d.allowed_scales(n)) - {self.scale})
         self.supervisor.save()       # who this agent is, before the warden reads it
         port = warden_port(d, self.scale)
         log = os.path.join(self.log_dir, 'warden.log')
