@@ -18,6 +18,7 @@ import pytest
 
 from anyscale_manager.testbed import netns
 from anyscale_manager.testbed import harness
+from anyscale_manager.testbed.known import KNOWN_OPEN
 
 HYSTERESIS_S = 8.0
 # Longer than two of Fast DDS's default 20 s leases: a copy idle (inactive) that long on the
@@ -126,20 +127,6 @@ def moves_since(tb, t0):
     """(seconds from t0, kind, node, reason) of every move since t0, for failure messages."""
     return [(round(t - t0, 1), e.kind, e.node, e.reason[:100])
             for t, e in tb.record.moves(since=t0)]
-
-
-# Open defects: violations the package's Δ judge (runtime/delta.py) finds on this test-bed that
-# the system does not prevent yet. Each one seen is printed with its length (KNOWN OPEN DEFECT in
-# the test output) and counted in the README's figures; it fails nothing, and hides nothing
-# else: a violation on any other connection fails the test.
-KNOWN_OPEN = {
-    'amcl_ekf': 'AMCL made active on the CPU-capped robot (after a cut, a move back) can run at '
-                'about its 2 Hz minimum for seconds while AR starts beside it',
-    'odometer_odometry': 'the tolerance-0 odometry chain on the CPU-capped robot can miss a '
-                         'message or two (gaps of 0.2-0.3 s at 40 Hz) while AMCL and AR start '
-                         'or stop there',
-    'odometry_ekf': 'as odometer_odometry, at 10 Hz',
-}
 
 
 def open_defects(found, what):

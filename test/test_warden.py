@@ -111,7 +111,7 @@ def test_the_nodes_of_a_killed_agent_are_stopped_and_the_echo_says_so(tmp_path):
         took = time.monotonic() - killed
         assert node.returncode == -signal.SIGINT or node.returncode in (1, -signal.SIGKILL)
         assert took >= 0.3                       # not before the adopt grace
-        assert ask(port, 2)[2] == warden.FENCED
+        wait_for(lambda: ask(port, 2)[2] == warden.FENCED, 10.0, "the echo saying 'fenced'")
         assert pinned.poll() is None          # no other copy could meet it: left running
         # A second warden of the same state file leaves at once.
         again = start_warden(tmp_path, free_udp_port())

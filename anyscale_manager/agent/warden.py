@@ -37,7 +37,7 @@ from typing import Any, Callable, List, Optional, Tuple
 
 ALIVE, RESTARTING, GONE, FENCED = 'alive', 'restarting', 'gone', 'fenced'
 AGENT_STATES = (ALIVE, RESTARTING, GONE, FENCED)
-LOOP_S = 0.05
+LOOP_S = 0.25           # the loop wakes at once for a beat or the agent's death
 MISSING_S = 5.0          # a state folder removed this long ago: the deployment is gone
 MAX_DATAGRAM = 512
 
@@ -93,6 +93,45 @@ class Verdict:
     def _set(self, state: str, now: float) -> None:
         if state != self.state:
             self.state, self.since = state, now
+
+
+class AgentWatch:
+    """Whether the agent process named in the state file lives: a pidfd that the warden's
+    wait includes (its death wakes the loop at once), checked against the process's start time
+    when it is first followed (a reused pid is not the agent)."""
+
+    def __init__(self) -> None:
+        self._fd: Optional[int] = None
+        self._dead = True
+
+    def follow(self, pid: int, started: Optional[float]) -> None:
+        from . import procs
+        self.close()
+        self._dead = True
+        if pid <= 0:
+            return
+        try:
+            fd = os.pidfd_open(pid)
+        except (OSError, AttributeError):
+            return
+        if started is not None and not procs.alive(pid, started):
+            os.close(fd)
+            return
+        self._fd, self._dead = fd, False
+
+    def fds(self) -> List[int]:
+        return [] if self._fd is None or self._dead else [self._fd]
+
+    def alive(self) -> bool:
+        if self._fd is not None and not self._dead:
+            ready, _, _ = select.select([self._fd], [], [], 0)
+            self._dead = bool(ready)
+        return not self._dead
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 def read_state(path: str) -> Optional[AgentView]:
@@ -179,7 +218,6 @@ def fence(nodes: Tuple[Tuple[int, float], ...], grace_s: float,
 
 
 def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
-    from . import procs
     lock_path = args.state + '.warden'
     import fcntl
     lock = open(lock_path, 'a+')
@@ -201,6 +239,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             '(monitoring.bandwidth_probe_port sets the base)')
         return 2
     sock.setblocking(False)
+    watch = AgentWatch()
     verdict = Verdict(args.adopt_grace, args.restart_grace)
     view = AgentView()
     mtime = None
@@ -216,6 +255,8 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             if stat.st_mtime_ns != mtime:
                 fresh = read_state(args.state)
                 if fresh is not None:
+                    if (fresh.pid, fresh.started) != (view.pid, view.started):
+                        watch.follow(fresh.pid, fresh.started)
                     view, mtime = fresh, stat.st_mtime_ns
         except OSError:
             missing_since = now if missing_since is None else missing_since
@@ -223,8 +264,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
                     and now - missing_since > MISSING_S:
                 say('the state folder is gone: nothing left to guard, leaving')
                 return 0
-        alive = view.pid > 0 and (procs.alive(view.pid, view.started) if view.started
-                                  else procs.create_time(view.pid) is not None)
+        alive = watch.alive()
         if view.stopped and not alive:
             say('the agent stopped cleanly (its nodes with it): leaving')
             return 0
@@ -240,7 +280,8 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             say(f'agent pid {view.pid}: {verdict.state}')
         # 'fenced' only once the nodes are stopped.
         state = GONE if fencing is not None and fencing.is_alive() else verdict.state
-        ready, _, _ = select.select([sock], [], [], LOOP_S)
+        ready, _, _ = select.select([sock] + watch.fds(), [], [], LOOP_S)
+        ready = [r for r in ready if r is sock]
         while ready:
             try:
                 data, peer = sock.recvfrom(MAX_DATAGRAM + 1)
