@@ -136,7 +136,6 @@ class LinkMonitor:
         self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
         self._probe_duration = settings.bandwidth_probe_duration_s
         self._congestion_s = settings.congestion_delay_ms / 1000.0
-        self._probe_port = settings.bandwidth_probe_port
 
     def _decode(self, cls, msg: String, topic: str):
         self._bad.flush()
@@ -274,7 +273,8 @@ class LinkMonitor:
 
     def _run_probe(self, remote: _Remote, used: float) -> None:
         try:
-            bps, error = probe_throughput(remote.scale.host, self._probe_port,
+            bps, error = probe_throughput(remote.scale.host,
+                                          warden.warden_port(self._deployment, remote.scale.name),
                                           self._probe_duration), ''
         except (OSError, ValueError) as e:
             bps, error = None, str(e) or type(e).__name__
@@ -365,13 +365,18 @@ class LinkMonitor:
 
     # remote side ----------------------------------------------------------------------------
     def _start_remote(self, settings) -> None:
+        # The scale's own port (TCP here, UDP for its warden's heartbeats): any number of
+        # scales may share a machine.
+        port = warden.warden_port(self._deployment, self._scale.name)
         try:
-            self._server = ProbeServer(self._scale.host, settings.bandwidth_probe_port,
-                                       self._log)
+            self._server = ProbeServer(self._scale.host, port, self._log)
         except OSError as e:
-            self._log.error(f'throughput probe server on {self._scale.host}:'
-                            f'{settings.bandwidth_probe_port} not started: {e}; the master '
-                            f'will use the nominal bandwidth of this link')
+            self._log.error(
+                f'scale {self._scale.name}: throughput probe server on TCP '
+                f'{self._scale.host}:{port} not started ({e.strerror or e}): another process '
+                'holds the port; free it, or move every scale port with '
+                'monitoring.bandwidth_probe_port (scale i uses that + 1 + i). Until then the '
+                'master uses the nominal bandwidth of this link')
 
     def destroy(self) -> None:
         for timer in self._timers:
