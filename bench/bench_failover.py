@@ -16,8 +16,9 @@ copy on both scales) -> pinned (home, a plain workload), every output at --rate-
   standby serves: two senders cannot overlap here.)
 - In place: SIGKILL of pinned (no standby copy, it may run only home) after a healthy run,
   --in-place-kills times: the longest gap on its output (process start, discovery, first input).
-- SIGHUP of each agent (restart in place), --hups times each: moves, node restarts and link
-  down reports while it restarts, and the longest gap on the worker's output.
+- SIGHUP of each agent (restart in place), --hups times each: moves back, relocations and
+  failovers, node restarts and link down reports while it restarts, and the longest gap on the
+  worker's output.
 - SIGKILL of the away agent while the worker serves there, --agent-kills times (a new agent is
   started after each): the time until its worker process is gone (its warden's fencing), how
   long the old and the new copy were both heard, and the longest gap.
@@ -256,14 +257,20 @@ def main() -> int:
                     steady('/w', 2.0)
                     t1 = time.monotonic()
                     with lock:
-                        moved = sum(1 for t, e in events if t0 <= t <= t1)
+                        # A restart must bring nothing back nor relocate anything (a planned
+                        # move out after the hysteresis is not its doing).
+                        backs = [e for t, e in events if t0 <= t <= t1 and e.kind in
+                                 ('migrate_back', 'relocate', 'failover')]
+                        moved = len(backs)
                         down = sum(1 for t, s in links if t0 <= t <= t1 and not s.up)
                         again = sum(r.restarts - restarts.get(s, {}).get(n, r.restarts)
                                     for s, st in states.items() for n, r in st.nodes.items())
                     gap = judge('/w', t0, t1)
                     hups[scale].append((moved, again, down, gap))
-                    print(f'SIGHUP {scale} {k + 1:2}: moves {moved}, node restarts {again}, '
-                          f'link down reports {down}, longest gap {gap:.3f} s', flush=True)
+                    print(f'SIGHUP {scale} {k + 1:2}: moves back {moved}, node restarts {again}, '
+                          f'link down reports {down}, longest gap {gap:.3f} s'
+                          + ''.join(f'; {e.kind} {e.node}: {e.reason[:160]}' for e in backs),
+                          flush=True)
             for k in range(args.agent_kills):
                 time.sleep(HYSTERESIS_S)
                 wait(lambda: (serving() or ('',))[0] == 'away', 120.0,
@@ -303,7 +310,8 @@ def main() -> int:
     print(f'plain node restarted in place, longest gap: {stats(in_place)}')
     for scale, rows in hups.items():
         if rows:
-            print(f'SIGHUP of the {scale} agent ({len(rows)}): moves {sum(r[0] for r in rows)}, '
+            print(f'SIGHUP of the {scale} agent ({len(rows)}): moves back '
+                  f'{sum(r[0] for r in rows)}, '
                   f'node restarts {sum(r[1] for r in rows)}, link down reports '
                   f'{sum(r[2] for r in rows)}; longest gap {stats([r[3] for r in rows])}')
     if fenced:

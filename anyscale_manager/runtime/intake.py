@@ -187,9 +187,10 @@ class ObservationBook:
         return frozenset(lost)
 
     def fencing(self, now: float) -> FrozenSet[str]:
-        """Remote scales whose warden says their agent is gone or restarting, its nodes not yet
-        stopped (``Observations.fencing``)."""
-        return self._peer_agent(now, ('gone', 'restarting'))
+        """Remote scales whose warden, heard over a live link, says their agent's nodes may
+        still run: the agent process lives (restarting in place, or silent on ROS while its
+        process runs) or is gone with its nodes not yet stopped (``Observations.fencing``)."""
+        return self._peer_agent(now, ('alive', 'restarting', 'gone'))
 
     def _peer_agent(self, now: float, states: Tuple[str, ...]) -> FrozenSet[str]:
         max_age = self.settings.observation_max_age_s

@@ -79,9 +79,10 @@ class Observations:
     # node -> scale -> its copy there, from the agents not lost (standby and crashed copies
     # included, unlike ``running``).
     copies: Mapping[str, Mapping[str, CopyObs]] = field(default_factory=frozen_map)
-    # Remote scales whose agent is gone or restarting while their warden, heard over a live
-    # link, has not stopped their nodes yet: those may still serve, so none of them is placed
-    # elsewhere (never two copies).
+    # Remote scales whose warden, heard over a live link, says their nodes may still serve:
+    # the agent process lives (restarting in place, or silent on ROS while it runs) or is gone
+    # and its warden has not stopped them yet. None of them is placed elsewhere while the
+    # agent is silent (never two copies).
     fencing: FrozenSet[str] = frozenset()
 
 

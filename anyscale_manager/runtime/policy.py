@@ -300,8 +300,9 @@ class MigrationPolicy:
         moved = {d.node for d in already}
         extra_cpu: Dict[str, float] = {}
         for scale in sorted((lost & set(obs.fencing)) - {self.master}):
-            notes.append(f'the nodes of {scale} stay placed there: its agent is gone and its '
-                         'warden has not stopped them yet (never two copies serving)')
+            notes.append(f'the nodes of {scale} stay placed there: its agent is silent but its '
+                         'warden says they may still run (the agent restarts, or is gone and '
+                         'they are not stopped yet): never two copies serving')
         for node, scale in list(self.desired.items()):
             if scale not in lost or scale == self.master or node in moved \
                     or scale in obs.fencing:
