@@ -4,6 +4,7 @@ processes over real DDS: never two copies serving, and a restart is not a cut.""
 import os
 import signal
 import time
+from contextlib import contextmanager
 
 import psutil
 import pytest
@@ -50,57 +51,12 @@ def away_worker(seen):
     return r.pid if r is not None and r.state == 'running' else None
 
 
-@pytest.mark.timeout(180)
-def test_a_killed_remote_agents_nodes_are_fenced_before_they_run_elsewhere(
-        tmp_path, ros_env, listener):
+@contextmanager
+def worker_away(tmp_path, ros_env, listener, topic):
+    """Both agents and the decider running, the worker serving on away only; yields (the
+    agents by scale, the arrival times of the worker's output at a subscriber of the test's,
+    the processes). Everything is stopped afterwards, the wardens too."""
     ex, seen = listener
-    topic = f'/fencing_{os.getpid()}'
-    path = deployment(tmp_path, topic)
-    heard = []          # (arrival, publication sequence number) on the worker's output
-    sub = ex.get_nodes()[0].create_subscription(
-        UInt8MultiArray, topic + '/w',
-        lambda _raw, info: heard.append((time.monotonic(),
-                                         info.get('publication_sequence_number', -1))),
-        qos.PROBE, raw=True)
-    procs = []
-    try:
-        agents = ha.start_agents(procs, tmp_path, ros_env, path)
-        ha.start(procs, tmp_path, ros_env, path, 'decider')
-        ha.wait(ex, lambda: away_worker(seen) and not runs(seen, 'home', 'worker'), 90.0,
-                'the worker running on away only', procs)
-        old = psutil.Process(away_worker(seen))
-        links_down_before = sum(1 for _, s in seen['links'] if not s.up)
-        agents['away'].proc.kill()                 # SIGKILL: no chance to stop its nodes
-        killed = time.monotonic()
-        ha.wait(ex, lambda: not old.is_running() or old.status() == psutil.STATUS_ZOMBIE,
-                10.0, "the warden to stop the dead agent's worker", procs)
-        fenced_at = time.monotonic()
-        ha.wait(ex, lambda: runs(seen, 'home', 'worker'), 30.0, 'the worker running home',
-                procs)
-        ha.wait(ex, lambda: any(t > fenced_at for t, _ in heard), 20.0,
-                'the home copy heard', procs)
-        # The old copy was stopped before the new one was placed: the layout that brought
-        # the worker home came after the warden said 'fenced', and the link never went down.
-        assert any(s.peer_agent == 'fenced' for _, s in seen['links'])
-        assert sum(1 for _, s in seen['links'] if not s.up) == links_down_before
-        home = [e for e in seen['events'] if e.node == 'worker' and e.to_scale == 'home']
-        assert home and 'lost' in home[-1].reason, home
-        first_new = min(t for t, _ in heard if t > killed and t > fenced_at - 0.05)
-        last_old = max((t for t, _ in heard if t < fenced_at), default=killed)
-        assert last_old <= first_new
-        print(f'worker stopped {fenced_at - killed:.2f} s after its agent was killed; home '
-              f'copy heard {first_new - killed:.2f} s after')
-    finally:
-        ex.get_nodes()[0].destroy_subscription(sub)
-        for name, pr in reversed(procs):
-            pr.stop()
-        stop_wardens(tmp_path)
-
-
-@pytest.mark.timeout(180)
-def test_a_remote_agent_restarted_in_place_is_not_a_cut(tmp_path, ros_env, listener):
-    ex, seen = listener
-    topic = f'/fencing_hup_{os.getpid()}'
     path = deployment(tmp_path, topic)
     heard = []
     sub = ex.get_nodes()[0].create_subscription(
@@ -112,6 +68,49 @@ def test_a_remote_agent_restarted_in_place_is_not_a_cut(tmp_path, ros_env, liste
         ha.start(procs, tmp_path, ros_env, path, 'decider')
         ha.wait(ex, lambda: away_worker(seen) and not runs(seen, 'home', 'worker'), 90.0,
                 'the worker running on away only', procs)
+        yield agents, heard, procs
+    finally:
+        ex.get_nodes()[0].destroy_subscription(sub)
+        for name, pr in reversed(procs):
+            pr.stop()
+        stop_wardens(tmp_path)
+
+
+@pytest.mark.timeout(180)
+def test_a_killed_remote_agents_nodes_are_fenced_before_they_run_elsewhere(
+        tmp_path, ros_env, listener):
+    ex, seen = listener
+    with worker_away(tmp_path, ros_env, listener, f'/fencing_{os.getpid()}') as (
+            agents, heard, procs):
+        old = psutil.Process(away_worker(seen))
+        links_down_before = sum(1 for _, s in seen['links'] if not s.up)
+        agents['away'].proc.kill()                 # SIGKILL: no chance to stop its nodes
+        killed = time.monotonic()
+        ha.wait(ex, lambda: not old.is_running() or old.status() == psutil.STATUS_ZOMBIE,
+                10.0, "the warden to stop the dead agent's worker", procs)
+        fenced_at = time.monotonic()
+        ha.wait(ex, lambda: runs(seen, 'home', 'worker'), 30.0, 'the worker running home',
+                procs)
+        ha.wait(ex, lambda: any(t > fenced_at for t in heard), 20.0, 'the home copy heard',
+                procs)
+        # The old copy was stopped before the new one was placed: the layout that brought
+        # the worker home came after the warden said 'fenced', and the link never went down.
+        assert any(s.peer_agent == 'fenced' for _, s in seen['links'])
+        assert sum(1 for _, s in seen['links'] if not s.up) == links_down_before
+        home = [e for e in seen['events'] if e.node == 'worker' and e.to_scale == 'home']
+        assert home and 'lost' in home[-1].reason, home
+        first_new = min(t for t in heard if t > killed and t > fenced_at - 0.05)
+        last_old = max((t for t in heard if t < fenced_at), default=killed)
+        assert last_old <= first_new
+        print(f'worker stopped {fenced_at - killed:.2f} s after its agent was killed; home '
+              f'copy heard {first_new - killed:.2f} s after')
+
+
+@pytest.mark.timeout(180)
+def test_a_remote_agent_restarted_in_place_is_not_a_cut(tmp_path, ros_env, listener):
+    ex, seen = listener
+    with worker_away(tmp_path, ros_env, listener, f'/fencing_hup_{os.getpid()}') as (
+            agents, heard, procs):
         pid = away_worker(seen)
         generation = seen['layouts'][-1].generation
         events = len(seen['events'])
@@ -129,8 +128,3 @@ def test_a_remote_agent_restarted_in_place_is_not_a_cut(tmp_path, ros_env, liste
         gaps = [b - a for a, b in zip(heard, heard[1:]) if b > hup]
         print(f'longest gap at the consumer across the restart: {max(gaps):.3f} s')
         assert max(gaps) < 1.0 / RATE_HZ + 0.5
-    finally:
-        ex.get_nodes()[0].destroy_subscription(sub)
-        for name, pr in reversed(procs):
-            pr.stop()
-        stop_wardens(tmp_path)

@@ -24,11 +24,13 @@ No ROS here: a plain process with a UDP socket, a few megabytes.
 """
 
 import argparse
+import fcntl
 import json
 import os
 import select
 import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -156,17 +158,23 @@ def read_state(path: str) -> Optional[AgentView]:
                      stopped=data.get('stopped') is True, nodes=tuple(nodes))
 
 
+def _datagram(data: bytes, deployment: str) -> Optional[dict]:
+    """The JSON object of one datagram of this deployment, or None."""
+    if len(data) > MAX_DATAGRAM:
+        return None
+    try:
+        obj = json.loads(data.decode('utf-8'))
+    except (UnicodeDecodeError, ValueError):
+        return None
+    return obj if isinstance(obj, dict) and obj.get('d') == deployment else None
+
+
 def answer(request: bytes, deployment: str, scale: str, state: str,
            for_s: float) -> Optional[bytes]:
     """The echo of one heartbeat datagram, or None for anything that is not one addressed to
     this scale of this deployment."""
-    if len(request) > MAX_DATAGRAM:
-        return None
-    try:
-        beat = json.loads(request.decode('utf-8'))
-    except (UnicodeDecodeError, ValueError):
-        return None
-    if not isinstance(beat, dict) or beat.get('d') != deployment or beat.get('to') != scale:
+    beat = _datagram(request, deployment)
+    if beat is None or beat.get('to') != scale:
         return None
     seq = beat.get('seq')
     if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
@@ -178,13 +186,8 @@ def answer(request: bytes, deployment: str, scale: str, state: str,
 
 def parse_echo(data: bytes, deployment: str) -> Optional[Tuple[str, int, str, float]]:
     """(scale, seq, agent state, for how long) of an echo, or None if it is not one."""
-    if len(data) > MAX_DATAGRAM:
-        return None
-    try:
-        echo = json.loads(data.decode('utf-8'))
-    except (UnicodeDecodeError, ValueError):
-        return None
-    if not isinstance(echo, dict) or echo.get('d') != deployment:
+    echo = _datagram(data, deployment)
+    if echo is None:
         return None
     scale, seq, state, for_s = (echo.get('from'), echo.get('seq'), echo.get('agent'),
                                 echo.get('for_s'))
@@ -219,7 +222,6 @@ def fence(nodes: Tuple[Tuple[int, float], ...], grace_s: float,
 
 def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     lock_path = args.state + '.warden'
-    import fcntl
     lock = open(lock_path, 'a+')
     try:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -301,8 +303,6 @@ def spawn(state_path: str, scale: str, deployment: str, host: str, port: int,
           adopt_grace_s: float, restart_grace_s: float, fence_grace_s: float,
           log_path: str) -> Optional[int]:
     """Start the warden of this state file unless one runs; its pid, or None if one did."""
-    import fcntl
-    import subprocess
     try:
         with open(state_path + '.warden', 'a+') as f:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)

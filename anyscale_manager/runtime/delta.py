@@ -142,10 +142,6 @@ class DeltaJudge:
             level = ERROR if below > tolerance else WARN
         return Verdict(below, level, now - self._last > self.silence_s, ended)
 
-    def past_delta(self, below_for_s: float) -> bool:
-        """Whether a stretch this long broke the connection's Δ."""
-        return self.tolerance_s is not None and below_for_s > self.tolerance_s
-
 
 def below_spans(arrivals: Iterable[float], freq_min_hz: Optional[float], start: float,
                 end: float, window_s: float = DEFAULT_WINDOW_S,
