@@ -365,8 +365,11 @@ class ConnectionReading(Message):
     # The longest stretch below that ended since the previous reading (None or 0: none), so
     # that a stretch past Δ that ended between two readings is still reported.
     ended_below_s: Optional[float] = None
+    # Bytes per second over the last runtime/bandwidth.DELIVERY_SPAN_S only: what a link
+    # delivers now (bytes_per_s spans the whole probe window).
+    recent_bytes_per_s: Optional[float] = None
     SCHEMA = {'rate_hz': float, 'bytes_per_s': float, 'below_for_s': float, 'level': int,
-              'ended_below_s': ('optional', float)}
+              'ended_below_s': ('optional', float), 'recent_bytes_per_s': ('optional', float)}
 
     def validate(self, where: str) -> None:
         if self.level not in (OK, WARN, ERROR, STALE):

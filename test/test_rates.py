@@ -6,9 +6,10 @@ import random
 import pytest
 
 from anyscale_manager.runtime import cpu
-from anyscale_manager.runtime.rates import (BandwidthEstimate, HeartbeatTracker, RateWindow,
-                                            WriterStreams, crossing_connections,
-                                            steady_throughput_bps, used_kbps)
+from anyscale_manager.runtime.bandwidth import (CONGESTION, PROBE, BandwidthEstimate,
+                                                crossing_connections, steady_throughput_bps,
+                                                used_kbps)
+from anyscale_manager.runtime.rates import HeartbeatTracker, RateWindow, WriterStreams
 
 
 def feed(window, rate_hz, start, stop, nbytes=100, jitter_s=0.0, seed=1):
@@ -410,35 +411,55 @@ def test_process_group_cpu_sums_children_and_tolerates_churn():
     assert g.update(6.0, {'ar': {20: 7.0}, 'gone': {}}) == {'ar': pytest.approx(0.5)}
 
 
-def test_a_link_that_looks_congested_is_probed_at_once_but_not_too_often():
-    est = BandwidthEstimate(interval_s=30.0, nominal_kbps=54000.0, urgent_gap_s=5.0)
-    assert not est.due(0.0, link_up=False, used_kbps=0.0, suspect=True)
+def test_a_congested_link_is_never_probed_and_a_shortfall_lowers_its_figure_at_once():
+    est = BandwidthEstimate(interval_s=30.0, nominal_kbps=54000.0, min_gap_s=1.0,
+                            shortfall=0.9, settle_s=2.0)
     est.started(0.0)
     est.record(0.5, 53000.0, used_kbps=500.0)
-    # Busy and within the interval: a plain probe is not due, a suspected congestion is.
-    assert not est.due(10.0, True, 45000.0)
-    assert est.due(10.0, True, 45000.0, suspect=True)
-    est.started(10.0)
-    assert est.record(10.5, 800.0, used_kbps=4200.0) == pytest.approx(5000.0)
-    # ... but at most every urgent_gap_s, so a long congestion is not flooded with probes.
-    assert not est.due(14.0, True, 4000.0, suspect=True)
-    assert est.due(15.0, True, 4000.0, suspect=True)
-    assert not est.due(39.0, True, 100.0) and est.due(40.0, True, 100.0)
-    # A congestion that begins after the last attempt is probed at once, within the gap
-    # (the last figure predates it), but not twice for the same congestion, and not within
-    # min_gap_s of the last attempt.
-    est.started(20.0)
-    est.record(20.5, 50000.0, used_kbps=6000.0)
-    assert not est.due(21.0, True, 6000.0, suspect=True, suspect_since=20.0)     # before
-    assert not est.due(20.8, True, 6000.0, suspect=True, suspect_since=20.7)     # min gap
-    assert est.due(21.2, True, 6000.0, suspect=True, suspect_since=20.7)
-    est.started(21.2)
-    assert not est.due(22.5, True, 4000.0, suspect=True, suspect_since=20.7)
+    assert est.source == PROBE
+    # Congested: no probe, whatever the interval says.
+    assert not est.due(40.0, True, 100.0, congested=True)
+    # Delivering 90 % of the need or more is no evidence: nothing learnt.
+    assert est.congested(10.0, 5500.0, 6100.0) is None
+    assert est.available_kbps == pytest.approx(53500.0)
+    # Below it: the link carries less than the need, whatever the (lossy) delivery says.
+    assert est.congested(10.1, 80.0, 6100.0) == pytest.approx(5490.0)
+    assert est.source == CONGESTION and est.age_s(10.1) == 0.0
+    # Not lowered again while what was sent back takes effect (the queue drains) ...
+    assert est.congested(11.0, 10.0, 300.0) is None
+    # ... but after settle_s, still short: lowered from the need then.
+    assert est.congested(12.2, 10.0, 300.0) == pytest.approx(270.0)
+    # Never raised by a congestion: the lower of the last figure and the need's share.
+    assert est.congested(14.3, 10.0, 6100.0) == pytest.approx(270.0)
+    # Probed again once no longer congested, min_gap_s after the figure (not at the routine
+    # interval), and then back to the routine schedule.
+    assert not est.due(14.5, True, 200.0, congested=True)
+    assert not est.due(14.5, True, 200.0)
+    assert est.due(15.3, True, 200.0)
+    est.started(15.3)
+    est.record(15.8, 4700.0, used_kbps=250.0)
+    assert est.source == PROBE and est.available_kbps == pytest.approx(4950.0)
+    assert not est.due(20.0, True, 200.0) and est.due(45.4, True, 200.0)
+    # Nonsense is no evidence.
+    for delivered, needed in ((math.nan, 100.0), (10.0, 0.0), (10.0, math.inf)):
+        assert est.congested(50.0, delivered, needed) is None
     # A link back from an outage is measured again at once.
-    est.started(40.0)
-    assert not est.due(41.0, True, 0.0)
+    est.started(60.0)
+    assert not est.due(61.0, True, 0.0)
     est.remeasure()
-    assert est.due(41.0, True, 0.0)
+    assert est.due(61.0, True, 0.0)
+
+
+def test_recent_bytes_count_only_the_last_span():
+    w = RateWindow(2.0)
+    for k in range(20):                 # 10 Hz, 1000 B, for 2 s
+        w.add(k * 0.1, 1000)
+    for k in range(20, 25):             # then 10 Hz of 100 B for 0.5 s
+        w.add(k * 0.1, 100)
+    assert w.recent_bytes_per_s(2.45, 0.5) == pytest.approx(5 * 100 / 0.5)
+    assert w.bytes_per_s(2.45) > 3000.0         # the window still remembers the 1000 B
+    assert w.recent_bytes_per_s(2.45, 10.0) == pytest.approx(w.recent_bytes_per_s(2.45, 2.0))
+    assert RateWindow(2.0).recent_bytes_per_s(1.0, 0.5) == 0.0
 
 
 # --- WriterStreams -----------------------------------------------------------------------------
@@ -488,13 +509,13 @@ def test_writer_streams_a_writer_heard_first_is_no_news():
         WriterStreams(forget_s=0)
 
 
-def test_link_monitor_trackers_judge_congestion_over_a_second_at_any_beat_rate():
+def test_link_monitor_trackers_judge_congestion_over_half_a_second_at_any_beat_rate():
     from anyscale_manager.nodes.monitors.link import heartbeat_tracker
     slow, fast = heartbeat_tracker(0.25, 3), heartbeat_tracker(0.1, 3)
-    assert (slow.recent, slow.agree) == (4, 3)     # the 4 Hz verdict is unchanged
-    assert (fast.recent, fast.agree) == (10, 8)
+    assert (slow.recent, slow.agree) == (4, 3)     # at 4 Hz: the four-beat minimum
+    assert (fast.recent, fast.agree) == (5, 4)
     assert fast.timeout_s == pytest.approx(0.3)    # a cut is still seen after 3 beats
-    # A 0.3 s stall of the judging scale delays 3 beats of 10: no verdict of congestion.
+    # A 0.3 s stall of the judging scale delays 3 beats of 5: no verdict of congestion.
     now, rtts = 0.0, [0.002] * 66 + [0.3, 0.2, 0.1, 0.002]
     for rtt in rtts:
         seq = fast.next_beat(now)

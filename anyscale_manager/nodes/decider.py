@@ -138,6 +138,7 @@ class DeciderNode(Node):
         self._rejected = 0
         self._bad = ThrottledLog(self.get_logger())   # bad input: one line per kind and 10 s
         self._links_up: Dict[str, bool] = {}     # remote scale -> last reported up
+        self._links_kbps: Dict[str, float] = {}  # remote scale -> last reported available
         self._link_lost = False
         self._crash_heard = False
         self._fenced: Dict[str, bool] = {}       # remote scale -> its warden said 'fenced'
@@ -361,7 +362,7 @@ class DeciderNode(Node):
     def _on_link_status(self, msg: String) -> None:
         self._intake(msg, p.LinkStatus, p.TOPIC_LINK_STATUS, self._link_status)
         if self._link_lost:
-            # A link just went down: the nodes beyond it must come back before their
+            # A link just went down or shrank: the nodes beyond it must come back before their
             # connections' tolerance runs out, so decide now rather than at the next period.
             self._link_lost = False
             self._tick()
@@ -372,6 +373,14 @@ class DeciderNode(Node):
         self._links_up[status.remote] = status.up
         if was_up and not status.up and self.layout is not None:
             self._link_lost = True
+        available = status.bandwidth_available_kbps
+        if available is not None:
+            link = self.deployment.link_between(status.master, status.remote)
+            before = self._links_kbps.get(status.remote,
+                                          link.bandwidth_kbps if link else math.inf)
+            if available < 0.95 * before and self.layout is not None:
+                self._link_lost = True
+            self._links_kbps[status.remote] = available
         fenced = status.up and status.peer_agent == 'fenced'
         if fenced and not self._fenced.get(status.remote) and self.layout is not None:
             self._link_lost = True      # its nodes are stopped: place them elsewhere now

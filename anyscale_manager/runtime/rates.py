@@ -1,5 +1,5 @@
-"""Pure statistics of the monitors: rate windows, heartbeats, writers, bandwidth (the Δ rule
-is runtime/delta.py).
+"""Pure statistics of the monitors: rate windows, heartbeats, writers (the Δ rule is
+runtime/delta.py; a link's bandwidth, runtime/bandwidth.py).
 
 Nothing here reads a clock or touches ROS: every method takes ``now`` (seconds on one monotonic
 clock of the caller's choosing), so the same classes run in the probes, in the simulator and in
@@ -8,7 +8,7 @@ unit tests with a hand-written clock.
 
 import math
 from collections import deque
-from typing import Deque, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Deque, Dict, List, Optional
 
 
 def _positive(value: float, what: str) -> float:
@@ -112,6 +112,17 @@ class RateWindow:
         if rate <= 0.0:
             return 0.0
         return rate * self._bytes / len(self._times)
+
+    def recent_bytes_per_s(self, now: float, span_s: float) -> float:
+        """Bytes per second that arrived in the last ``span_s`` (at most the window): what a
+        link delivers now, where ``bytes_per_s`` still remembers the window's older part."""
+        span_s = min(_positive(span_s, 'span_s'), self.window_s)
+        total = 0
+        for t, size in zip(reversed(self._times), reversed(self._sizes)):
+            if t <= now - span_s:
+                break
+            total += size
+        return total / span_s
 
     def reset(self) -> None:
         self._times.clear()
@@ -309,121 +320,3 @@ class WriterStreams:
         """Whether a writer that started later than the others was first heard at or after
         ``since``."""
         return any(t >= since for t in self._joined)
-
-
-def steady_throughput_bps(samples: Sequence[Tuple[float, int]],
-                          skip_fraction: float = 0.25) -> Optional[float]:
-    """Bytes per second of a bulk transfer from (time, cumulative bytes) receiver samples.
-
-    The first ``skip_fraction`` of the transfer's duration is left out: a token bucket lets its
-    burst through at line rate and TCP is still in slow start there, both of which overstate a
-    shaped link. Returns None when the samples are too few to say anything.
-    """
-    if not 0.0 <= skip_fraction < 1.0:
-        raise ValueError(f'skip_fraction must be in [0, 1), got {skip_fraction!r}')
-    if len(samples) < 2:
-        return None
-    t0, t1 = samples[0][0], samples[-1][0]
-    if t1 <= t0:
-        return None
-    start = t0 + skip_fraction * (t1 - t0)
-    for t, b in samples:
-        if t >= start:
-            first_t, first_b = t, b
-            break
-    last_t, last_b = samples[-1]
-    if last_t - first_t <= 0.0 or last_b <= first_b:
-        return None
-    return (last_b - first_b) / (last_t - first_t)
-
-
-class BandwidthEstimate:
-    """The last active measurement of a link's capacity, its age, and when to measure again.
-
-    A probe is due when ``interval_s`` has passed since the last attempt, the link is up, and the
-    traffic already crossing it is below ``busy_fraction`` of what it is believed to carry (the
-    last estimate, else the nominal bandwidth): never probe a link that is already near full.
-    The capacity is the probe's throughput plus the traffic measured crossing the link while it
-    ran, since a bulk TCP flow only gets what the (unyielding, UDP) ROS traffic leaves it.
-    A link suspected full (its queue growing, see ``HeartbeatTracker``) is probed at once, busy
-    or not, but at most every ``urgent_gap_s``: what a probe measures there is what the link
-    still carries, whereas the queue alone may be a scheduling delay on a loaded scale. A
-    suspicion that began (``suspect_since``) after the last attempt is probed at once even
-    within that gap (but not within ``min_gap_s`` of it): the last figure predates the change,
-    so a routine probe taken just before a throttle cannot hold back the one that sees it.
-    """
-
-    def __init__(self, interval_s: float, nominal_kbps: float, busy_fraction: float = 0.75,
-                 urgent_gap_s: float = 5.0, min_gap_s: float = 1.0):
-        self.interval_s = _positive(interval_s, 'interval_s')
-        self.nominal_kbps = _positive(nominal_kbps, 'nominal_kbps')
-        if not 0.0 < busy_fraction <= 1.0:
-            raise ValueError(f'busy_fraction must be in (0, 1], got {busy_fraction!r}')
-        self.busy_fraction = busy_fraction
-        self.urgent_gap_s = _positive(urgent_gap_s, 'urgent_gap_s')
-        self.min_gap_s = _positive(min_gap_s, 'min_gap_s')
-        self.available_kbps: Optional[float] = None
-        self.measured_at: Optional[float] = None
-        self.last_attempt: Optional[float] = None
-        self.failures = 0
-        self.last_error = ''
-
-    def due(self, now: float, link_up: bool, used_kbps: float, suspect: bool = False,
-            suspect_since: Optional[float] = None) -> bool:
-        """Whether to probe now; ``suspect``: the link looks full, since ``suspect_since``
-        (see the class)."""
-        if not link_up:
-            return False
-        since = math.inf if self.last_attempt is None else now - self.last_attempt
-        if suspect:
-            new = suspect_since is not None and self.last_attempt is not None \
-                and self.last_attempt < suspect_since
-            return since >= self.urgent_gap_s or (new and since >= self.min_gap_s)
-        if since < self.interval_s:
-            return False
-        reference = self.available_kbps if self.available_kbps is not None \
-            else self.nominal_kbps
-        return used_kbps < self.busy_fraction * reference
-
-    def started(self, now: float) -> None:
-        self.last_attempt = now
-
-    def remeasure(self) -> None:
-        """Make a probe due at once (the link came back: the robot may be somewhere else)."""
-        self.last_attempt = None
-
-    def record(self, now: float, probe_kbps: float,
-               used_kbps: float = 0.0) -> Optional[float]:
-        if not math.isfinite(probe_kbps) or probe_kbps <= 0:
-            return self.failed(now, f'unusable throughput {probe_kbps!r}')
-        self.available_kbps = probe_kbps + max(0.0, used_kbps)
-        self.measured_at = now
-        self.failures = 0
-        self.last_error = ''
-        return self.available_kbps
-
-    def failed(self, now: float, reason: str) -> Optional[float]:
-        """Note a failed probe; the previous estimate (if any) stands and keeps ageing."""
-        self.failures += 1
-        self.last_error = reason
-        return self.available_kbps
-
-    def age_s(self, now: float) -> Optional[float]:
-        return None if self.measured_at is None else max(0.0, now - self.measured_at)
-
-
-def crossing_connections(connections: Iterable[Tuple[str, str, str]],
-                         running: Mapping[str, str], a: str, b: str) -> Tuple[str, ...]:
-    """Names of the connections (name, publisher, subscriber) whose ends run on a and b."""
-    ends = {a, b}
-    out = []
-    for name, pub, sub in connections:
-        where = {running.get(pub), running.get(sub)}
-        if where == ends and a != b:
-            out.append(name)
-    return tuple(out)
-
-
-def used_kbps(bytes_per_s: Mapping[str, float], names: Iterable[str]) -> float:
-    """kbit/s carried by the named connections, from their measured bytes per second."""
-    return sum(max(0.0, bytes_per_s.get(n, 0.0)) for n in names) * 8.0 / 1000.0

@@ -20,7 +20,8 @@ from std_msgs.msg import String
 from ... import protocol as p
 from ...agent import warden
 from ...model.types import Deployment
-from ...runtime.rates import BandwidthEstimate, HeartbeatTracker, crossing_connections, used_kbps
+from ...runtime.bandwidth import BandwidthEstimate, crossing_connections, used_kbps
+from ...runtime.rates import HeartbeatTracker
 from .common import LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, status
 from .throughput import ProbeServer, probe_throughput
 from ..throttled_log import ThrottledLog
@@ -28,16 +29,18 @@ from ..throttled_log import ThrottledLog
 CHECKS_PER_BEAT = 4            # up/down judged this many times per heartbeat period
 RESOLVE_RETRY_S = 5.0
 # What a tracker judges over, in seconds rather than beats, so that a faster beat sees a cut
-# sooner without making the queueing-delay verdict twitchier: a scale starved of CPU for a few
-# tenths of a second delays a few beats, a full link delays all of them.
-CONGESTION_SPAN_S = 1.0
+# sooner without making the queueing-delay verdict twitchier: a scale starved of CPU for a
+# moment delays a beat or two, a full link delays all of them. Half a second: a throttle is
+# answered within Δ; a false verdict alone moves nothing (the crossing connections must also
+# deliver below their need, see BandwidthEstimate).
+CONGESTION_SPAN_S = 0.5
 LOSS_SPAN_S = 10.0
 BASE_SPAN_S = 60.0
 
 
 def heartbeat_tracker(period_s: float, misses_down: int) -> HeartbeatTracker:
     """A tracker whose windows span CONGESTION_SPAN_S (queueing delay reached by 3 of the last 4
-    beats at 4 Hz, 8 of 10 at 10 Hz), LOSS_SPAN_S and BASE_SPAN_S, at any beat rate."""
+    beats at 2-8 Hz, 4 of 5 at 10 Hz), LOSS_SPAN_S and BASE_SPAN_S, at any beat rate."""
     recent = max(4, math.ceil(CONGESTION_SPAN_S / period_s - 1e-9))
     loss = max(40, math.ceil(LOSS_SPAN_S / period_s - 1e-9))
     return HeartbeatTracker(period_s, misses_down, loss_window=loss,
@@ -54,7 +57,6 @@ class _Remote:
     was_up: bool = False
     probing: bool = False
     congested: bool = False
-    congested_since: Optional[float] = None   # when the link began to look congested
     delay_s: Optional[float] = None
     quiet_since: float = -math.inf     # beats sent earlier say nothing of congestion
     started: float = 0.0               # when this monitor began beating to it
@@ -101,16 +103,14 @@ class LinkMonitor:
             link = self._deployment.link_between(self._scale.name, remote.name)
             estimate = None
             if link is not None:
-                # A link that looks congested is probed at once, but the probe fills at most a
-                # tenth of its time.
-                estimate = BandwidthEstimate(
-                    settings.bandwidth_probe_interval_s, link.bandwidth_kbps,
-                    urgent_gap_s=10.0 * settings.bandwidth_probe_duration_s)
+                estimate = BandwidthEstimate(settings.bandwidth_probe_interval_s,
+                                             link.bandwidth_kbps)
             self._remotes[remote.name] = _Remote(
                 remote, link.name if link else f'{self._scale.name}-{remote.name}',
                 heartbeat_tracker(self._period, settings.heartbeat_misses_down), estimate,
                 started=time.monotonic())
-        self._readings: Dict[Tuple[str, str], Tuple[float, float]] = {}  # (scale, conn) -> B/s, at
+        # (scale, conn) -> (B/s over the probe window, B/s over DELIVERY_SPAN_S, when heard)
+        self._readings: Dict[Tuple[str, str], Tuple[float, float, float]] = {}
         self._running: Dict[str, Dict[str, str]] = {}          # scale -> node -> scale
         self._out = Publishers(self._node, p.TOPIC_LINK_STATUS)
         # Echoes are read by a thread of their own and stamped as they arrive (the trackers are
@@ -177,7 +177,9 @@ class LinkMonitor:
             return
         for name, reading in report.connections.items():
             if name in self._known_connections:
-                self._readings[(report.scale, name)] = (reading.bytes_per_s, now)
+                recent = reading.recent_bytes_per_s
+                self._readings[(report.scale, name)] = (
+                    reading.bytes_per_s, reading.bytes_per_s if recent is None else recent, now)
 
     def _on_agent_state(self, msg: String) -> None:
         state = self._decode(p.AgentState, msg, p.TOPIC_AGENT_STATE)
@@ -187,6 +189,19 @@ class LinkMonitor:
 
     def used_kbps(self, remote: str, now: float) -> float:
         """kbit/s of the connections measured crossing the link to ``remote`` now."""
+        fresh = self._crossing(remote, now)
+        return used_kbps({n: bps for n, (bps, _) in fresh.items()}, fresh)
+
+    def delivery_kbps(self, remote: str, now: float) -> Tuple[float, float]:
+        """(delivered, needed) kbit/s of the connections crossing the link to ``remote`` that
+        are measured: over the last DELIVERY_SPAN_S, against their declared bandwidth."""
+        fresh = self._crossing(remote, now)
+        needed = sum(self._deployment.connection(n).bandwidth_kbps for n in fresh)
+        return used_kbps({n: recent for n, (_, recent) in fresh.items()}, fresh), needed
+
+    def _crossing(self, remote: str, now: float) -> Dict[str, Tuple[float, float]]:
+        """Connection -> (B/s, recent B/s) for those crossing the link to ``remote`` with a
+        fresh reading."""
         running: Dict[str, str] = {}
         for nodes in self._running.values():
             running.update(nodes)
@@ -198,10 +213,10 @@ class LinkMonitor:
         fresh = {}
         for name in names:
             where = running.get(self._deployment.connection(name).subscriber)
-            bps, at = self._readings.get((where, name), (0.0, -math.inf))
+            bps, recent, at = self._readings.get((where, name), (0.0, 0.0, -math.inf))
             if now - at <= self._readings_max_age:
-                fresh[name] = bps
-        return used_kbps(fresh, names)
+                fresh[name] = (bps, recent)
+        return fresh
 
     def _beat(self) -> None:
         with self._beats_lock:
@@ -214,11 +229,12 @@ class LinkMonitor:
             self._collect_probe(remote, now)
             used = self.used_kbps(name, now)
             self._judge_congestion(remote, now, used)   # on the beats already sent
+            if remote.congested and remote.bandwidth is not None and not remote.probing:
+                self._judge_delivery(remote, now)
             seq = remote.beats.next_beat(now)
             self._send_beat(remote, seq, now)
             if remote.bandwidth is not None and not remote.probing \
-                    and remote.bandwidth.due(now, remote.beats.up(now), used, remote.congested,
-                                             remote.congested_since):
+                    and remote.bandwidth.due(now, remote.beats.up(now), used, remote.congested):
                 remote.bandwidth.started(now)
                 remote.probing = True
                 remote.quiet_since = math.inf      # the probe fills the queue on purpose
@@ -247,10 +263,10 @@ class LinkMonitor:
             pass        # no route (a cut link): the missing echo says so
 
     def _judge_congestion(self, remote: _Remote, now: float, used: float) -> None:
-        """A link whose queue holds the heartbeats looks full: it is probed at once (see
-        BandwidthEstimate), and the decider's bandwidth rule compares what the probe measured
-        with what the crossing connections need. A throttle is seen within about a second,
-        where a rate past its Δ would take several."""
+        """A link whose queue holds the heartbeats looks full (a throttle shows within about
+        half a second, where a rate past its Δ would take seconds). It is not probed while so
+        (a probe would fill it further); what its crossing connections deliver is judged
+        instead (``_judge_delivery``)."""
         up = remote.beats.up(now)
         delay = remote.beats.queueing_delay_s(now, since=remote.quiet_since) if up else None
         if not up or self._congestion_s <= 0:
@@ -260,16 +276,27 @@ class LinkMonitor:
         else:
             congested = delay > self._congestion_s
         if congested != remote.congested:
-            remote.congested_since = now if congested else None
             if congested:
                 self._log.warning(
                     f'link to {remote.scale.name} looks congested: queueing delay '
                     f'{delay * 1000.0:.0f} ms > {self._congestion_s * 1000.0:g} ms with '
-                    f'{used:.0f} kbit/s crossing; probing it')
+                    f'{used:.0f} kbit/s crossing')
             else:
                 self._log.info(f'link to {remote.scale.name} is no longer congested')
         remote.congested = congested
         remote.delay_s = delay
+
+    def _judge_delivery(self, remote: _Remote, now: float) -> None:
+        """On a congested link, connections delivering below their need say it carries less
+        than they need: the figure is published at once and the decider sends back what no
+        longer fits (see BandwidthEstimate)."""
+        delivered, needed = self.delivery_kbps(remote.scale.name, now)
+        figure = remote.bandwidth.congested(now, delivered, needed)
+        if figure is not None:
+            self._log.warning(
+                f'link to {remote.scale.name}: congested, and the connections crossing it '
+                f'deliver {delivered:.0f} of the {needed:.0f} kbit/s they need: it carries at '
+                f'most {figure:.0f} kbit/s now (probed once it is no longer congested)')
 
     def _run_probe(self, remote: _Remote, used: float) -> None:
         try:
@@ -358,6 +385,8 @@ class LinkMonitor:
                   'bandwidth_available_age_s': age, 'bandwidth_used_kbps': used,
                   'queueing_delay_ms': message.queueing_delay_ms,
                   'congested': message.congested}
+        if estimate is not None and estimate.source is not None:
+            values['bandwidth_available_from'] = estimate.source
         if estimate is not None and estimate.last_error:
             values['bandwidth_probe_error'] = estimate.last_error
         self._out.send_diagnostics([status(f'anyscale/link/{remote.link_name}', level, text,

@@ -19,6 +19,7 @@ from rclpy.node import Node
 from ... import protocol as p
 from ...model.types import Connection, Deployment
 from ...runtime.delta import DeltaJudge
+from ...runtime.bandwidth import DELIVERY_SPAN_S
 from ...runtime.rates import RateWindow, WriterStreams
 from .common import PROBE_QOS, Publishers, import_message_class, period_of, scale_of, status
 
@@ -234,7 +235,9 @@ class ProbeManager:
                                               bytes_per_s=probe.window.bytes_per_s(now),
                                               below_for_s=verdict.below_for_s,
                                               level=verdict.level,
-                                              ended_below_s=verdict.ended_below_s)
+                                              ended_below_s=verdict.ended_below_s,
+                                              recent_bytes_per_s=probe.window.recent_bytes_per_s(
+                                                  now, DELIVERY_SPAN_S))
                 out[name] = (reading, probe.problem)
         return out
 

@@ -9,7 +9,7 @@ import threading
 import time
 from typing import List, Tuple
 
-from ...runtime.rates import steady_throughput_bps
+from ...runtime.bandwidth import steady_throughput_bps
 
 PROBE_MAGIC = b'ASBWPRB1'            # 8 bytes, then the requested duration in ms (uint32)
 PROBE_MAX_DURATION_S = 2.0           # the server never receives longer than this
