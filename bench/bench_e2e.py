@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """End-to-end figures on the ICAR test-bed (needs root for namespaces, tc and cgroups).
 
-    sudo python bench/bench_e2e.py [--cuts 20] [--stay 30] [--throttles 5] [--duration 60]
+    sudo python bench/bench_e2e.py [--cuts 20] [--stay 30] [--throttles 5]
+                                   [--levels 20000,10000,5000,2000,500] [--duration 60]
                                    [--out FILE]
 
 1. Reaction: the link is cut after AMCL and AR have served from the laptop for ``--stay``
@@ -10,11 +11,13 @@
    judged on what the harness's observer heard at the robot (a reader no agent started) for
    every connection into the robot, and, apart, the robot's own probes reporting a connection
    past its tolerance.
-   Then ``--throttles`` times: with both on the laptop, the link is throttled to 5 Mbit/s (below
-   AR's 6 Mbit/s); the time until the link monitor reports the link congested and until AR
-   runs on the robot again, and whether AMCL (0.2 Mbit/s, which still fits) stayed. Every
-   congestion the monitor reported outside a throttle is counted as a false alarm (it costs a
-   probe), and every move back for bandwidth outside a throttle as a wrong decision.
+   Then ``--throttles`` times at each of ``--levels`` (kbit/s): with both on the laptop, the
+   link is throttled; below AR's 6.4 Mbit/s the time until the link monitor reports it
+   congested and until AR runs on the robot again, at or above it that nothing moves; AMCL
+   (0.24 Mbit/s, which fits at every level) must stay. Each throttle's Δ violations: on the
+   observer (connections into the robot) and on every scale's probes. Every congestion the
+   monitor reported outside a throttle is counted as a false alarm, and every move back for
+   bandwidth outside a throttle as a wrong decision.
 2. The paper's headline: the same link schedule (paper_schedule) with migration and with
    ``decider.migration false``, one after the other in this run; the decider's time-integrated
    performance, AMCL's mean output rate at the robot and where AMCL and AR ran.
@@ -133,8 +136,11 @@ def reaction(args):
             'throttle_congested_p50_s': percentile(seen, 0.5),
             'throttle_congested_max_s': max(seen) if seen else None,
             'throttle_ar_back_p50_s': percentile(ar_back, 0.5),
+            'throttle_ar_back_p95_s': percentile(ar_back, 0.95),
             'throttle_ar_back_max_s': max(ar_back) if ar_back else None,
             'throttles_amcl_moved': sum(1 for r in throttles if r['amcl_moves']),
+            'throttles_wrong': sum(1 for r in throttles if not r['right']),
+            'throttle_violations': sum(len(r['violations']) for r in throttles),
             'false_congestion_onsets': false_onsets,
             'bandwidth_moves_back_outside_throttles': false_backs,
             'cuts': results, 'p50_s': percentile(backs, 0.5), 'p95_s': percentile(backs, 0.95),
@@ -162,36 +168,61 @@ def reaction(args):
 
 
 def throttle_reaction(args, tb):
-    """Throttle below AR's need with both on the laptop; returns the rows and the intervals
-    (throttle to AR's return + 5 s) in which a congestion report is the throttle's."""
+    """Throttles at each level with both on the laptop; returns the rows and the intervals
+    (throttle to its end + 5 s) in which a congestion report is the throttle's."""
     rows, throttled = [], []
-    for i in range(args.throttles):
-        tb.throttle(netns.DEFAULT_RATE_KBPS)
-        tb.restore()
-        # The estimate a throttle left stands until the next probe (every 30 s) measures the
-        # full rate again; only then may AR go out.
-        tb.wait_for(on('amcl', 'laptop'), 120.0, 'amcl on the laptop')
-        tb.wait_for(on('ar', 'laptop'), 120.0, 'ar on the laptop')
-        tb.wait_for(lambda r: r.settled(tb.now(), ('amcl_ekf', 'ar_navigation'), 'robot', 5.0),
-                    30.0, 'a settled layout')
-        t0 = tb.now()
-        tb.throttle(5000.0)
-        tb.wait_for(lambda r: r.where('ar') == ('robot',), 30.0, 'ar back on the robot')
-        t_back = tb.now()
-        tb.sleep(6.0)
-        with tb.lock:
-            onsets = tb.record.congestion_onsets(t0, tb.now())
-            amcl_moves = tb.record.moves(since=t0, node='amcl')
-            reasons = [e.reason for _, e in tb.record.moves(since=t0, node='ar')][:1]
-        throttled.append((t0, t_back + 5.0))
-        row = {'throttle': i + 1,
-               'congested_s': round(onsets[0] - t0, 3) if onsets else None,
-               'ar_back_s': round(t_back - t0, 3),
-               'amcl_moves': len(amcl_moves), 'ar_reason': reasons[0] if reasons else ''}
-        print(f'throttle {i + 1}: congested after {row["congested_s"]} s, ar back after '
-              f'{row["ar_back_s"]:.2f} s, amcl moves {row["amcl_moves"]} ({row["ar_reason"]})',
-              flush=True)
-        rows.append(row)
+    need = sum(c.bandwidth_kbps for c in tb.deployment.connections
+               if 'ar' in (c.publisher, c.subscriber) and c.publisher != c.subscriber)
+    levels = [float(v) for v in args.levels.split(',') if v.strip()]
+    tolerance = max(c.tolerance_s or 0.0 for c in tb.deployment.connections)
+    for level in levels:
+        for i in range(args.throttles):
+            tb.throttle(netns.DEFAULT_RATE_KBPS)
+            tb.restore()
+            # The figure a throttle left stands until the next probe (every 30 s) measures the
+            # full rate again; only then may AR go out.
+            tb.wait_for(on('amcl', 'laptop'), 120.0, 'amcl on the laptop')
+            tb.wait_for(on('ar', 'laptop'), 120.0, 'ar on the laptop')
+            tb.wait_for(lambda r: r.settled(tb.now(), ('amcl_ekf', 'ar_navigation'), 'robot',
+                                            5.0), 30.0, 'a settled layout')
+            t0 = tb.now()
+            tb.throttle(level)
+            back_expected = level < need
+            t_back = None
+            if back_expected:
+                tb.wait_for(lambda r: r.where('ar') == ('robot',), 30.0, 'ar back on the robot')
+                with tb.lock:
+                    t_back = tb.record.serving_since('robot', ('ar',), t0) or tb.now()
+            # Long enough for every Δ to run out and a probe to follow the congestion.
+            tb.sleep(tolerance + 4.0)
+            end = tb.now()
+            with tb.lock:
+                r = tb.record
+                onsets = r.congestion_onsets(t0, end)
+                amcl_moves = r.moves(since=t0, node='amcl')
+                ar_moves = r.moves(since=t0, node='ar')
+                reasons = [e.reason for _, e in ar_moves][:1]
+                observed = r.delta_violations(t0, end, 'robot')
+                reported = r.reported_violations(t0, end, serving_only=True)
+                timeline = r.timeline(t0, min(end, t0 + 4.0), nodes=('ar',))
+            throttled.append((t0, end + 5.0))
+            violations = sorted({(v.connection, round(v.end - v.start, 2))
+                                 for v in list(observed) + list(reported)})
+            right = (not amcl_moves and (bool(ar_moves) == back_expected))
+            row = {'level_kbps': level, 'throttle': i + 1,
+                   'congested_s': round(onsets[0] - t0, 3) if onsets else None,
+                   'ar_back_s': round(t_back - t0, 3) if t_back is not None else None,
+                   'amcl_moves': len(amcl_moves), 'ar_moves': len(ar_moves),
+                   'ar_reason': reasons[0] if reasons else '', 'right': right,
+                   'violations': violations}
+            print(f'throttle {level:.0f} kbit/s #{i + 1}: congested after {row["congested_s"]} s, '
+                  f'ar back after {row["ar_back_s"]} s, ar moves {row["ar_moves"]}, amcl moves '
+                  f'{row["amcl_moves"]}, Δ violations {violations} ({row["ar_reason"]})',
+                  flush=True)
+            if back_expected or not right or violations:
+                print(f'  link {timeline["link"]}\n  layouts {timeline["layouts"]}\n'
+                      f'  robot reports {timeline["reports"]}', flush=True)
+            rows.append(row)
     tb.throttle(netns.DEFAULT_RATE_KBPS)
     return rows, throttled
 
@@ -256,7 +287,9 @@ def main():
     parser.add_argument('--stay', type=float, default=30.0,
                         help='seconds AMCL and AR serve from the laptop before each cut')
     parser.add_argument('--duration', type=float, default=60.0)
-    parser.add_argument('--throttles', type=int, default=5)
+    parser.add_argument('--throttles', type=int, default=5, help='throttles per level')
+    parser.add_argument('--levels', default='20000,10000,5000,2000,500',
+                        help='throttle levels in kbit/s, comma-separated')
     parser.add_argument('--hysteresis', type=float, default=8.0)
     parser.add_argument('--domain-id', type=int,
                         default=int(os.environ.get('ROS_DOMAIN_ID', '0') or 0))
@@ -278,18 +311,20 @@ def main():
               f'{r["observed"]}, robot probes {r["reported"]}); standby copies restarted in '
               f'{r["cuts_with_cold_restarts"]} cuts', flush=True)
         if r['throttles']:
-            print(f'throttle below AR\'s need over {len(r["throttles"])} throttles: congestion '
+            print(f'{len(r["throttles"])} throttles at {args.levels} kbit/s: congestion '
                   f'seen p50 {r["throttle_congested_p50_s"]:.2f} s (max '
-                  f'{r["throttle_congested_max_s"]:.2f} s), AR back p50 '
-                  f'{r["throttle_ar_back_p50_s"]:.2f} s (max {r["throttle_ar_back_max_s"]:.2f} '
-                  f's); AMCL moved in {r["throttles_amcl_moved"]}', flush=True)
+                  f'{r["throttle_congested_max_s"]:.2f} s); below AR\'s need AR back p50 '
+                  f'{r["throttle_ar_back_p50_s"]:.2f} s, p95 {r["throttle_ar_back_p95_s"]:.2f} s '
+                  f'(max {r["throttle_ar_back_max_s"]:.2f} s); AMCL moved in '
+                  f'{r["throttles_amcl_moved"]}; wrong moves in {r["throttles_wrong"]}; Δ '
+                  f'violations {r["throttle_violations"]}', flush=True)
         worst = max((h['below_s'] for h in r['handovers']), default=0.0)
         print(f'moves out of the robot: {len(r["handovers"])} outputs judged; below freq_min at '
               f'the robot in {r["handovers_below_freq_min"]} (longest {worst:.2f} s); least rate '
               f'p50 by node {r["handover_min_rate_p50_hz"]}; the robot kept its copy past the '
               f'ready report p50 {r["handover_kept_past_ready_p50_s"]} s, max '
               f'{r["handover_kept_past_ready_max_s"]} s', flush=True)
-        print(f'link looked congested outside a throttle (each time it is probed at once): '
+        print(f'link looked congested outside a throttle: '
               f'{len(r["false_congestion_onsets"])} times, at {r["false_congestion_onsets"]} s; '
               f'moves back for bandwidth outside a throttle: '
               f'{r["bandwidth_moves_back_outside_throttles"]}', flush=True)
