@@ -173,6 +173,27 @@ def _signed_fields_ok(message: Any, where: str) -> None:
         raise ProtocolError(f'{where}.auth: too long')
 
 
+# The fields every signed status message carries when the deployment has a key: the sending
+# process (a random id drawn at its start), its message count, and the HMAC of the rest.
+SIGNED_SCHEMA = {'sender': ('optional', str), 'seq': ('optional', int), 'auth': ('optional', str)}
+SIGNED_FIELDS = tuple(SIGNED_SCHEMA)
+
+
+def _without_unsigned(out: Dict[str, Any], message: Any) -> Dict[str, Any]:
+    """``out`` without the signed fields an unsigned message leaves empty."""
+    for key in SIGNED_FIELDS:
+        if getattr(message, key) is None:
+            out.pop(key, None)
+    return out
+
+
+def _sender_ok(message: Any, where: str) -> None:
+    _signed_fields_ok(message, where)
+    sender = message.sender
+    if sender is not None and (not sender or len(sender) > 128 or not sender.isprintable()):
+        raise ProtocolError(f'{where}.sender: empty, over 128 characters or not printable')
+
+
 def _names_ok(mapping: Mapping[str, Any], where: str, what: str) -> None:
     for key in mapping:
         if not key or len(key) > 256:
@@ -312,20 +333,24 @@ class ScaleStatus(Message):
     # What cpu_total measures: 'cgroup', 'machine' or 'processes' (the agent's process tree,
     # single-machine mode; runtime/cpu.py); absent from older agents.
     cpu_source: Optional[str] = None
+    sender: Optional[str] = None
+    seq: Optional[int] = None
+    auth: Optional[str] = None
     SCHEMA = {'scale': str, 'stamp': float, 'cpu_total': float, 'capacity_cpu': float,
               'cpu_by_node': ('map', float), 'mem_percent': float, 'load_1m': float,
-              'cpu_source': ('optional', str)}
+              'cpu_source': ('optional', str), **SIGNED_SCHEMA}
 
     def validate(self, where: str) -> None:
         if self.cpu_source is not None and self.cpu_source not in CPU_SOURCES:
             raise ProtocolError(f'{where}.cpu_source: expected one of '
                                 f'{", ".join(CPU_SOURCES)}, got {self.cpu_source!r:.40}')
+        _sender_ok(self, where)
 
     def to_dict(self) -> Dict[str, Any]:
         out = asdict(self)
         if out['cpu_source'] is None:
             del out['cpu_source']
-        return out
+        return _without_unsigned(out, self)
 
 
 @dataclass
@@ -338,22 +363,32 @@ class LinkStatus(Message):
     up: bool
     rtt_ms: Optional[float]
     loss: float                                  # fraction of recent beats lost
-    bandwidth_available_kbps: Optional[float]    # last active probe; None = never measured
+    # the last probe's figure, or a congestion's (runtime/bandwidth.py); None = none yet
+    bandwidth_available_kbps: Optional[float]
     bandwidth_available_age_s: Optional[float]
     bandwidth_used_kbps: float                   # measured traffic of crossing connections
     queueing_delay_ms: Optional[float] = None    # RTT beyond the base; None = not judged yet
-    congested: bool = False                      # queueing delay past congestion_delay_ms: probed
+    congested: bool = False                      # queueing delay past congestion_delay_ms
     # What the remote scale's warden says of its agent (agent/warden.py: alive, restarting,
     # gone, fenced) and for how long; None while the link is down or before its first echo.
     peer_agent: Optional[str] = None
     peer_agent_for_s: Optional[float] = None
+    sender: Optional[str] = None
+    seq: Optional[int] = None
+    auth: Optional[str] = None
     SCHEMA = {'master': str, 'remote': str, 'stamp': float, 'up': bool,
               'rtt_ms': ('optional', float), 'loss': float,
               'bandwidth_available_kbps': ('optional', float),
               'bandwidth_available_age_s': ('optional', float),
               'bandwidth_used_kbps': float, 'queueing_delay_ms': ('optional', float),
               'congested': bool, 'peer_agent': ('optional', str),
-              'peer_agent_for_s': ('optional', float)}
+              'peer_agent_for_s': ('optional', float), **SIGNED_SCHEMA}
+
+    def validate(self, where: str) -> None:
+        _sender_ok(self, where)
+
+    def to_dict(self) -> Dict[str, Any]:
+        return _without_unsigned(asdict(self), self)
 
 
 @dataclass
@@ -384,11 +419,20 @@ class ConnectionStatus(Message):
     scale: str
     stamp: float
     connections: Dict[str, ConnectionReading]
-    SCHEMA = {'scale': str, 'stamp': float, 'connections': ('map', ConnectionReading)}
+    sender: Optional[str] = None
+    seq: Optional[int] = None
+    auth: Optional[str] = None
+    SCHEMA = {'scale': str, 'stamp': float, 'connections': ('map', ConnectionReading),
+              **SIGNED_SCHEMA}
+
+    def validate(self, where: str) -> None:
+        _sender_ok(self, where)
 
     def to_dict(self) -> Dict[str, Any]:
-        return {'scale': self.scale, 'stamp': self.stamp,
-                'connections': {k: asdict(v) for k, v in self.connections.items()}}
+        out = {'scale': self.scale, 'stamp': self.stamp,
+               'connections': {k: asdict(v) for k, v in self.connections.items()},
+               'sender': self.sender, 'seq': self.seq, 'auth': self.auth}
+        return _without_unsigned(out, self)
 
 
 @dataclass
@@ -402,8 +446,17 @@ class Event(Message):
     to_scale: str
     reason: str
     generation: int
+    sender: Optional[str] = None
+    seq: Optional[int] = None
+    auth: Optional[str] = None
     SCHEMA = {'stamp': float, 'kind': str, 'node': str, 'from_scale': str, 'to_scale': str,
-              'reason': str, 'generation': int}
+              'reason': str, 'generation': int, **SIGNED_SCHEMA}
+
+    def validate(self, where: str) -> None:
+        _sender_ok(self, where)
+
+    def to_dict(self) -> Dict[str, Any]:
+        return _without_unsigned(asdict(self), self)
 
 
 @dataclass
@@ -447,13 +500,21 @@ class PlanCheck(Message):
     nodes: Dict[str, PlanNode]
     overall_deviation: float
     overloaded: Dict[str, float] = field(default_factory=dict)
+    sender: Optional[str] = None
+    seq: Optional[int] = None
+    auth: Optional[str] = None
     SCHEMA = {'stamp': float, 'nodes': ('map', PlanNode), 'overall_deviation': float,
-              'overloaded': ('map', float)}
+              'overloaded': ('map', float), **SIGNED_SCHEMA}
+
+    def validate(self, where: str) -> None:
+        _sender_ok(self, where)
 
     def to_dict(self) -> Dict[str, Any]:
-        return {'stamp': self.stamp, 'overall_deviation': self.overall_deviation,
-                'nodes': {k: asdict(v) for k, v in self.nodes.items()},
-                'overloaded': dict(self.overloaded)}
+        out = {'stamp': self.stamp, 'overall_deviation': self.overall_deviation,
+               'nodes': {k: asdict(v) for k, v in self.nodes.items()},
+               'overloaded': dict(self.overloaded),
+               'sender': self.sender, 'seq': self.seq, 'auth': self.auth}
+        return _without_unsigned(out, self)
 
 
 __all__ = [

@@ -12,9 +12,10 @@
    every connection into the robot, and, apart, the robot's own probes reporting a connection
    past its tolerance.
    Then ``--throttles`` times at each of ``--levels`` (kbit/s): with both on the laptop, the
-   link is throttled; below AR's 6.4 Mbit/s the time until the link monitor reports it
+   link is throttled; below what AR's connections put on the link (12.3 Mbit/s: 6.1 Mbit/s of
+   images to AR and to the laptop agent's probe) the time until the link monitor reports it
    congested and until AR runs on the robot again, at or above it that nothing moves; AMCL
-   (0.24 Mbit/s, which fits at every level) must stay. Each throttle's Δ violations: on the
+   (0.24 Mbit/s twice, which fits at every level) must stay. Each throttle's Δ violations: on the
    observer (connections into the robot) and on every scale's probes. Every congestion the
    monitor reported outside a throttle is counted as a false alarm, and every move back for
    bandwidth outside a throttle as a wrong decision.
@@ -50,6 +51,10 @@ def percentile(values, q):
     k = (len(values) - 1) * q
     lo, hi = int(k), min(int(k) + 1, len(values) - 1)
     return values[lo] + (values[hi] - values[lo]) * (k - lo)
+
+
+def fmt(value) -> str:
+    return '-' if value is None or value != value else f'{value:.2f}'
 
 
 def on(node, scale):
@@ -171,8 +176,10 @@ def throttle_reaction(args, tb):
     """Throttles at each level with both on the laptop; returns the rows and the intervals
     (throttle to its end + 5 s) in which a congestion report is the throttle's."""
     rows, throttled = [], []
-    need = sum(c.bandwidth_kbps for c in tb.deployment.connections
-               if 'ar' in (c.publisher, c.subscriber) and c.publisher != c.subscriber)
+    # What AR's connections put on the link: each twice, once to its subscriber and once to
+    # the probe of the subscriber's agent, a reader in another process (docs/monitoring.md).
+    need = 2 * sum(c.bandwidth_kbps for c in tb.deployment.connections
+                   if 'ar' in (c.publisher, c.subscriber) and c.publisher != c.subscriber)
     levels = [float(v) for v in args.levels.split(',') if v.strip()]
     tolerance = max(c.tolerance_s or 0.0 for c in tb.deployment.connections)
     for level in levels:
@@ -305,19 +312,21 @@ def main():
     if not args.skip_reaction:
         out['reaction'] = reaction(args)
         r = out['reaction']
-        print(f'\nreaction to a link cut over {len(r["cuts"])} cuts: p50 {r["p50_s"]:.2f} s, '
-              f'p95 {r["p95_s"]:.2f} s, max {r["max_s"]:.2f} s; Δ violations: '
-              f'{r["violations"]} (in {r["cuts_with_violations"]} cuts; observer '
-              f'{r["observed"]}, robot probes {r["reported"]}); standby copies restarted in '
-              f'{r["cuts_with_cold_restarts"]} cuts', flush=True)
+        write(args, out)
+        if r['cuts']:
+            print(f'\nreaction to a link cut over {len(r["cuts"])} cuts: p50 {r["p50_s"]:.2f} s, '
+                  f'p95 {r["p95_s"]:.2f} s, max {r["max_s"]:.2f} s; Δ violations: '
+                  f'{r["violations"]} (in {r["cuts_with_violations"]} cuts; observer '
+                  f'{r["observed"]}, robot probes {r["reported"]}); standby copies restarted '
+                  f'in {r["cuts_with_cold_restarts"]} cuts', flush=True)
         if r['throttles']:
             print(f'{len(r["throttles"])} throttles at {args.levels} kbit/s: congestion '
-                  f'seen p50 {r["throttle_congested_p50_s"]:.2f} s (max '
-                  f'{r["throttle_congested_max_s"]:.2f} s); below AR\'s need AR back p50 '
-                  f'{r["throttle_ar_back_p50_s"]:.2f} s, p95 {r["throttle_ar_back_p95_s"]:.2f} s '
-                  f'(max {r["throttle_ar_back_max_s"]:.2f} s); AMCL moved in '
-                  f'{r["throttles_amcl_moved"]}; wrong moves in {r["throttles_wrong"]}; Δ '
-                  f'violations {r["throttle_violations"]}', flush=True)
+                  f'seen p50 {fmt(r["throttle_congested_p50_s"])} s (max '
+                  f'{fmt(r["throttle_congested_max_s"])} s); below what AR puts on the link, AR '
+                  f'back p50 {fmt(r["throttle_ar_back_p50_s"])} s, p95 '
+                  f'{fmt(r["throttle_ar_back_p95_s"])} s (max {fmt(r["throttle_ar_back_max_s"])} '
+                  f's); AMCL moved in {r["throttles_amcl_moved"]}; other than expected in '
+                  f'{r["throttles_wrong"]}; Δ violations {r["throttle_violations"]}', flush=True)
         worst = max((h['below_s'] for h in r['handovers']), default=0.0)
         print(f'moves out of the robot: {len(r["handovers"])} outputs judged; below freq_min at '
               f'the robot in {r["handovers_below_freq_min"]} (longest {worst:.2f} s); least rate '
@@ -353,11 +362,15 @@ def main():
         for name, v in sorted(on_['cpu'].items()):
             print(f'  {name:14} {v["percent_of_one_core"]:6.2f} % of one core '
                   f'({v["reference_core_percent"]:.1f} reference-core %)')
+    write(args, out)
+    return 0
+
+
+def write(args, out) -> None:
     if args.out:
         with open(args.out, 'w') as f:
             json.dump(out, f, indent=2, sort_keys=True, default=str)
-        print(f'written: {args.out}')
-    return 0
+        print(f'written: {args.out}', flush=True)
 
 
 if __name__ == '__main__':

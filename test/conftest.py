@@ -62,3 +62,23 @@ def make_sup(tmp_path):
     supervisors = Supervisors(tmp_path)
     yield supervisors.make
     supervisors.kill_all()
+
+
+@pytest.fixture(autouse=True)
+def no_warden_outlives_its_test(tmp_path):
+    """A warden (agent/warden.py) outlives its agent on purpose, and leaves once the agent
+    stopped cleanly or its state folder is gone. One whose test ended first (an agent killed,
+    a folder kept) is stopped here, by the state file under this test's folder, and said."""
+    yield
+    import psutil
+    root = str(tmp_path)
+    for proc in psutil.process_iter(['pid', 'cmdline']):
+        cmd = proc.info['cmdline'] or []
+        if 'anyscale_manager.agent.warden' not in cmd or '--state' not in cmd[:-1]:
+            continue
+        if cmd[cmd.index('--state') + 1].startswith(root):
+            try:
+                proc.kill()
+            except psutil.Error:
+                continue
+            print(f'\n[conftest] stopped warden pid {proc.pid} of this test', file=sys.stderr)

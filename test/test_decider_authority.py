@@ -5,7 +5,9 @@
 - without a key, a plain script's layout is refused by agents that follow a live decider;
 - with a key: the decider moves nodes as before; a forged layout (generation 10**15) and a
   replayed one (a real signed message sent again) are dropped by the agents, each with its
-  reason in their log, and nothing moves.
+  reason in their log, and nothing moves; so are a forged agent state, and a forged or
+  replayed link status (the away link down) or scale status (the away scale full) at the
+  decider.
 """
 
 import json
@@ -32,7 +34,7 @@ def world():
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = Node('decider_authority_test', context=ctx)
-    seen = {'layouts': [], 'raw': [], 'states': {}}
+    seen = {'layouts': [], 'raw': [], 'states': {}, 'links': []}
 
     def layout(m):
         seen['raw'].append(m.data)
@@ -44,6 +46,8 @@ def world():
             seen['states'][s.scale] = s
     node.create_subscription(String, p.TOPIC_LAYOUT, layout, qos.LATCHED_READER)
     node.create_subscription(String, p.TOPIC_AGENT_STATE, state, qos.LATCHED_READER)
+    node.create_subscription(String, p.TOPIC_LINK_STATUS,
+                             lambda m: seen['links'].append(m.data), qos.MONITOR_READER)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
     procs = []
@@ -214,6 +218,25 @@ def test_with_a_key_layouts_move_nodes_and_forged_or_replayed_ones_do_not(tmp_pa
     until_logged(ex, forge_state, {'home': agents['home']},
                  "dropped an agent state claiming scale 'away': not signed")
     assert "agent state claiming scale 'away': not signed" in decider.text()
+    # The monitors' topics are signed too: the away link reported down (unsigned, then a real
+    # signed report sent again), the away scale reported full (unsigned): dropped.
+    assert seen['links'] and auth.check_signature(
+        auth.load_key(str(tmp_path / 'deployment.key')), seen['links'][-1]) == ''
+    real_link = seen['links'][-1]
+    down = dict(json.loads(real_link), up=False, stamp=time.time(), seq=10 ** 9)
+    down.pop('auth')
+    links = node.create_publisher(String, p.TOPIC_LINK_STATUS, qos.STATUS)
+    scales = node.create_publisher(String, p.TOPIC_SCALE_STATUS, qos.STATUS)
+    full = p.ScaleStatus(scale='away', stamp=time.time(), cpu_total=1000.0, capacity_cpu=100.0,
+                         cpu_by_node={'worker': 1000.0}, mem_percent=99.0, load_1m=9.0,
+                         sender='agent away/f00d', seq=1)
+    for pub, text, why in ((links, json.dumps(down), 'ignored a message on '
+                            f'{p.TOPIC_LINK_STATUS}: dropped: not signed'),
+                           (links, real_link, f'ignored a message on {p.TOPIC_LINK_STATUS}: '
+                            'dropped: sequence'),
+                           (scales, full.to_json(), 'ignored a message on '
+                            f'{p.TOPIC_SCALE_STATUS}: dropped: not signed')):
+        until_logged(ex, lambda: pub.publish(String(data=text)), {'decider': decider}, why)
     # Nothing moved, nothing restarted, no generation taken; the decider goes on.
     wait(ex, lambda: len(seen['layouts']) >= 3, 10.0, 'layouts', procs)
     assert serving(seen, agents) == pids

@@ -49,6 +49,26 @@ def test_the_echo_answers_only_its_own_beats():
     assert warden.parse_echo(reply, 'other') is None
 
 
+def test_with_a_key_beats_and_echoes_are_signed_and_an_echo_answers_one_monitor():
+    key, other = bytes(range(32)), bytes(32)
+    beat = warden.beat('d', 'laptop', 7, key, monitor='m1')
+    reply = warden.answer(beat, 'd', 'laptop', warden.ALIVE, 1.5, key)
+    assert warden.parse_echo(reply, 'd', key, 'm1') == ('laptop', 7, warden.ALIVE, 1.5)
+    # An echo of another monitor's beat (say, of this process's predecessor) answers nothing.
+    assert warden.parse_echo(reply, 'd', key, 'm2') is None
+    # Unsigned, or signed with another key: no echo, and no echo taken.
+    assert warden.answer(warden.beat('d', 'laptop', 7, monitor='m1'), 'd', 'laptop',
+                         warden.ALIVE, 0.0, key) is None
+    assert warden.answer(warden.beat('d', 'laptop', 7, other, 'm1'), 'd', 'laptop',
+                         warden.ALIVE, 0.0, key) is None
+    unsigned = warden.answer(warden.beat('d', 'laptop', 7, monitor='m1'), 'd', 'laptop',
+                             warden.ALIVE, 0.0)
+    assert warden.parse_echo(unsigned, 'd', key, 'm1') is None
+    # Altered on the way (a cut link made to look up by an 'alive' that was 'gone').
+    forged = reply.replace(b'"alive"', b'"gone"')
+    assert forged != reply and warden.parse_echo(forged, 'd', key, 'm1') is None
+
+
 def start_warden(tmp_path, port, adopt_grace='0.3'):
     return subprocess.Popen(
         [sys.executable, '-m', 'anyscale_manager.agent.warden', '--state',

@@ -2,6 +2,7 @@
 
     python -m anyscale_manager.agent.warden --state FILE --scale NAME --deployment NAME
         --host HOST --port PORT [--adopt-grace S] [--restart-grace S] [--fence-grace S]
+        [--key-file FILE]
 
 The agent starts it (once: a second warden of the same state file exits at once) and it does
 two things an agent cannot do for itself, because both must hold while the agent is dead or
@@ -11,7 +12,10 @@ replacing itself:
   scale's warden (``warden_port``) and times the answer: the link's round trip, loss, queueing
   delay and up/down. The answer also says how the scale's agent is (``alive``, ``restarting``,
   ``gone`` or ``fenced``, and for how long), so a dead or restarting agent is never taken for a
-  cut link, and a cut link is still one (no answer at all).
+  cut link, and a cut link is still one (no answer at all). With the deployment's key, beats
+  and echoes carry an HMAC (protocol_auth) and anything unsigned or forged is dropped; an echo
+  names the monitor that sent the beat (a random id of that process) and the beat's number, so
+  an echo recorded earlier answers nothing now.
 - **Fencing.** A node must not outlive its agent unsupervised. The warden reads the agent's
   state file (its pid and start time, and every node it runs); when the agent is gone and no
   successor has written that file within ``adopt_grace_s`` (``restart_grace_s`` after the agent
@@ -36,6 +40,8 @@ import threading
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, List, Optional, Tuple
+
+from .. import protocol_auth as auth
 
 ALIVE, RESTARTING, GONE, FENCED = 'alive', 'restarting', 'gone', 'fenced'
 AGENT_STATES = (ALIVE, RESTARTING, GONE, FENCED)
@@ -158,36 +164,50 @@ def read_state(path: str) -> Optional[AgentView]:
                      stopped=data.get('stopped') is True, nodes=tuple(nodes))
 
 
-def _datagram(data: bytes, deployment: str) -> Optional[dict]:
-    """The JSON object of one datagram of this deployment, or None."""
+def _datagram(data: bytes, deployment: str, key: Optional[bytes]) -> Optional[dict]:
+    """The JSON object of one datagram of this deployment (signed with ``key`` when there is
+    one), or None."""
     if len(data) > MAX_DATAGRAM:
         return None
     try:
-        obj = json.loads(data.decode('utf-8'))
-    except (UnicodeDecodeError, ValueError):
+        text = data.decode('utf-8')
+        obj = json.loads(text)
+    except (UnicodeDecodeError, ValueError, RecursionError):
         return None
-    return obj if isinstance(obj, dict) and obj.get('d') == deployment else None
+    if not isinstance(obj, dict) or obj.get('d') != deployment:
+        return None
+    if key is not None and auth.check_signature(key, text):
+        return None
+    return obj
 
 
-def answer(request: bytes, deployment: str, scale: str, state: str,
-           for_s: float) -> Optional[bytes]:
+def _encode(obj: dict, key: Optional[bytes]) -> bytes:
+    if key is not None:
+        obj['auth'] = auth.sign(key, obj)
+    return json.dumps(obj, separators=(',', ':'), sort_keys=True).encode()
+
+
+def answer(request: bytes, deployment: str, scale: str, state: str, for_s: float,
+           key: Optional[bytes] = None) -> Optional[bytes]:
     """The echo of one heartbeat datagram, or None for anything that is not one addressed to
-    this scale of this deployment."""
-    beat = _datagram(request, deployment)
+    this scale of this deployment (signed, when there is a key)."""
+    beat = _datagram(request, deployment, key)
     if beat is None or beat.get('to') != scale:
         return None
-    seq = beat.get('seq')
-    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0:
+    seq, monitor = beat.get('seq'), beat.get('m', '')
+    if not isinstance(seq, int) or isinstance(seq, bool) or seq < 0 \
+            or not isinstance(monitor, str) or len(monitor) > 64:
         return None
-    reply = {'d': deployment, 'from': scale, 'seq': seq, 'agent': state,
-             'for_s': round(max(0.0, for_s), 3)}
-    return json.dumps(reply, separators=(',', ':')).encode()
+    return _encode({'d': deployment, 'from': scale, 'm': monitor, 'seq': seq, 'agent': state,
+                    'for_s': round(max(0.0, for_s), 3)}, key)
 
 
-def parse_echo(data: bytes, deployment: str) -> Optional[Tuple[str, int, str, float]]:
-    """(scale, seq, agent state, for how long) of an echo, or None if it is not one."""
-    echo = _datagram(data, deployment)
-    if echo is None:
+def parse_echo(data: bytes, deployment: str, key: Optional[bytes] = None,
+               monitor: str = '') -> Optional[Tuple[str, int, str, float]]:
+    """(scale, seq, agent state, for how long) of an echo of a beat of ``monitor``, or None
+    if it is not one (or, with a key, not signed with it)."""
+    echo = _datagram(data, deployment, key)
+    if echo is None or echo.get('m', '') != monitor:
         return None
     scale, seq, state, for_s = (echo.get('from'), echo.get('seq'), echo.get('agent'),
                                 echo.get('for_s'))
@@ -197,9 +217,10 @@ def parse_echo(data: bytes, deployment: str) -> Optional[Tuple[str, int, str, fl
     return scale, seq, state, float(for_s)
 
 
-def beat(deployment: str, scale: str, seq: int) -> bytes:
-    return json.dumps({'d': deployment, 'to': scale, 'seq': seq},
-                      separators=(',', ':')).encode()
+def beat(deployment: str, scale: str, seq: int, key: Optional[bytes] = None,
+         monitor: str = '') -> bytes:
+    """A heartbeat of ``monitor`` (a random id of the sending process) to ``scale``."""
+    return _encode({'d': deployment, 'to': scale, 'm': monitor, 'seq': seq}, key)
 
 
 def fence(nodes: Tuple[Tuple[int, float], ...], grace_s: float,
@@ -221,6 +242,13 @@ def fence(nodes: Tuple[Tuple[int, float], ...], grace_s: float,
 
 
 def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
+    key = None
+    if args.key_file:
+        try:
+            key = auth.load_key(args.key_file)
+        except auth.KeyFileError as e:
+            say(f'{e}: not started')
+            return 2
     lock_path = args.state + '.warden'
     lock = open(lock_path, 'a+')
     try:
@@ -290,7 +318,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             except (BlockingIOError, InterruptedError):
                 break
             reply = answer(data, args.deployment, args.scale, state,
-                           time.monotonic() - verdict.since)
+                           time.monotonic() - verdict.since, key)
             if reply is not None:
                 try:
                     sock.sendto(reply, peer)
@@ -301,7 +329,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
 
 def spawn(state_path: str, scale: str, deployment: str, host: str, port: int,
           adopt_grace_s: float, restart_grace_s: float, fence_grace_s: float,
-          log_path: str) -> Optional[int]:
+          log_path: str, key_file: str = '') -> Optional[int]:
     """Start the warden of this state file unless one runs; its pid, or None if one did."""
     try:
         with open(state_path + '.warden', 'a+') as f:
@@ -313,6 +341,8 @@ def spawn(state_path: str, scale: str, deployment: str, host: str, port: int,
             '--scale', scale, '--deployment', deployment, '--host', host, '--port', str(port),
             '--adopt-grace', str(adopt_grace_s), '--restart-grace', str(restart_grace_s),
             '--fence-grace', str(fence_grace_s)]
+    if key_file:
+        argv += ['--key-file', key_file]
     os.makedirs(os.path.dirname(log_path) or '.', exist_ok=True)
     with open(log_path, 'ab') as log:
         proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log,
@@ -332,6 +362,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument('--adopt-grace', type=float, default=5.0)
     ap.add_argument('--restart-grace', type=float, default=10.0)
     ap.add_argument('--fence-grace', type=float, default=0.5)
+    ap.add_argument('--key-file', default='', help="the deployment's key: signed heartbeats")
     args = ap.parse_args(argv)
 
     def say(text: str) -> None:

@@ -227,7 +227,8 @@ class AgentNode(Node):
         log = os.path.join(self.log_dir, 'warden.log')
         try:
             pid = spawn_warden(stem + '.json', self.scale, d.name, d.scale(self.scale).host,
-                               port, s.adopt_grace_s, s.restart_grace_s, s.fence_grace_s, log)
+                               port, s.adopt_grace_s, s.restart_grace_s, s.fence_grace_s, log,
+                               d.security.key_file)
         except OSError as e:
             # The nodes still run and are supervised; what is lost is said.
             self.get_logger().error(
@@ -281,12 +282,16 @@ class AgentNode(Node):
                                    'this agent supervises nodes only')
             return
         d, scale = self.deployment, self.scale
+        # One signer for the monitors' topics (a key: signed; else plain JSON, as before).
+        sealer = auth.Sealer(self._key, f'agent {scale}')
         builders = (('ScaleMonitor', lambda cls: cls(self, d, scale, pids=self._serving_pids,
                                                      own_pids=self._supervised_pids,
-                                                     shared_with=self._shared_with)),
-                    ('LinkMonitor', lambda cls: cls(self, d, scale)),
+                                                     shared_with=self._shared_with,
+                                                     sealer=sealer)),
+                    ('LinkMonitor', lambda cls: cls(self, d, scale, sealer=sealer)),
                     ('ProbeManager', lambda cls: cls(self, d, scale,
-                                                     watch_node=self._handover_node())))
+                                                     watch_node=self._handover_node(),
+                                                     sealer=sealer)))
         for name, build in builders:
             cls = getattr(_monitors, name, None)
             if cls is None:

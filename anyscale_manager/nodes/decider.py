@@ -150,6 +150,12 @@ class DeciderNode(Node):
         self.key = auth.load_key(security.key_file) if security.key_file else None
         self.gate = auth.LayoutGate(self.key, security.replay_window_s)
         self.state_gate = auth.Gate(self.key, security.replay_window_s)
+        # The monitors' topics, each with its own replay guard (a sender numbers its messages
+        # across topics), and this decider's own events and plan checks.
+        self.status_gates = {topic: auth.StatusGate(self.key, security.replay_window_s)
+                             for topic in (p.TOPIC_SCALE_STATUS, p.TOPIC_LINK_STATUS,
+                                           p.TOPIC_CONNECTION_STATUS)}
+        self.sealer = auth.Sealer(self.key, f'decider {self.identity.id}')
         self.objective_seq = 0
         self.rivals = RivalWatch(self.identity, self.settings.lease_s)
         self.seq = 0
@@ -270,6 +276,10 @@ class DeciderNode(Node):
     def _intake(self, msg: Any, cls: type, topic: str, handle) -> None:
         try:
             decoded = cls.from_json(msg.data, topic)
+            gate = self.status_gates.get(topic)
+            why = gate.check(msg.data, decoded, time.time()) if gate is not None else ''
+            if why:
+                raise p.ProtocolError(f'dropped: {why}')
             handle(decoded, self._now())
         except (p.ProtocolError, ValueError, KeyError, TypeError) as e:
             self._rejected += 1
@@ -532,7 +542,7 @@ class DeciderNode(Node):
     # --- publishing ---------------------------------------------------------------------------
     def _publish(self, pub, message: p.Message) -> None:
         if pub is not None:
-            pub.publish(String(data=message.to_json()))
+            pub.publish(String(data=self.sealer.seal(message)))
 
     def _publish_layout(self, reason: str) -> None:
         self.reason = reason[:2000]

@@ -15,6 +15,7 @@ import sys
 import time
 
 from .. import protocol as p
+from .. import protocol_auth as auth
 from ..model.loader import DeploymentError, load_deployment
 from ..view.screen import LiveScreen
 from ..view.status import StatusBook, render
@@ -52,7 +53,13 @@ def run(args: argparse.Namespace) -> int:
     from std_msgs.msg import String
 
     from .qos import LATCHED_READER as latched, MONITOR_READER as sensor
-    book = StatusBook(deployment)
+    key = None
+    if deployment.security.key_file:
+        try:
+            key = auth.load_key(deployment.security.key_file)
+        except auth.KeyFileError as e:
+            print(f'anyscale-manager status: {e}: messages shown unverified', file=sys.stderr)
+    book = StatusBook(deployment, key=key)
     ctx = rclpy.Context()
     # Python's own handlers: Ctrl-C is a KeyboardInterrupt in the loop below, which gives the
     # terminal back before the process ends.

@@ -41,7 +41,7 @@ class BandwidthEstimate:
     """
 
     def __init__(self, interval_s: float, nominal_kbps: float, busy_fraction: float = 0.75,
-                 min_gap_s: float = 1.0, shortfall: float = 0.9, settle_s: float = 2.0):
+                 min_gap_s: float = 1.0, shortfall: float = 0.9, settle_s: float = 1.0):
         self.interval_s = _positive(interval_s, 'interval_s')
         self.nominal_kbps = _positive(nominal_kbps, 'nominal_kbps')
         for value, what in ((busy_fraction, 'busy_fraction'), (shortfall, 'shortfall')):

@@ -14,10 +14,12 @@ Scales whose agents report one machine are said (single-machine mode, ``runtime.
 scale's CPU measured as its agent's own processes is marked ``own processes``.
 """
 
+import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 from .. import protocol as p
+from .. import protocol_auth as auth
 from ..model.types import Deployment
 from ..runtime.hosts import describe, shared_groups
 
@@ -82,6 +84,11 @@ class StatusBook:
     events: List[p.Event] = field(default_factory=list)
     ignored: int = 0
     foreign: int = 0
+    # With the deployment's key: every message must be signed, unaltered and new (per sender
+    # and topic); the others are counted in ``refused`` and dropped.
+    key: Optional[bytes] = None
+    refused: int = 0
+    _gates: Dict[str, auth.Gate] = field(default_factory=dict)
 
     def take(self, topic: str, text: str, now: float) -> None:
         """Decode one message of ``topic``; malformed ones are counted and dropped, and so are
@@ -90,28 +97,59 @@ class StatusBook:
         scales = self.deployment.scale_names
         try:
             if topic == p.TOPIC_LAYOUT:
-                self._take_layout(p.Layout.from_json(text, topic), now)
+                m = p.Layout.from_json(text, topic)
+                if self._verified(topic, text, m):
+                    self._take_layout(m, now)
             elif topic == p.TOPIC_OBJECTIVE:
-                self.objective = (p.Objective.from_json(text, topic), now)
+                m = p.Objective.from_json(text, topic)
+                if self._verified(topic, text, m):
+                    self.objective = (m, now)
             elif topic == p.TOPIC_AGENT_STATE:
                 m = p.AgentState.from_json(text, topic)
-                self._keep(self.agents, m.scale, m, now, m.scale in scales)
+                if self._verified(topic, text, m):
+                    self._keep(self.agents, m.scale, m, now, m.scale in scales)
             elif topic == p.TOPIC_SCALE_STATUS:
                 m = p.ScaleStatus.from_json(text, topic)
-                self._keep(self.scales, m.scale, m, now, m.scale in scales)
+                if self._verified(topic, text, m):
+                    self._keep(self.scales, m.scale, m, now, m.scale in scales)
             elif topic == p.TOPIC_LINK_STATUS:
                 m = p.LinkStatus.from_json(text, topic)
-                self._keep(self.links, m.remote, m, now, m.remote in scales)
+                if self._verified(topic, text, m):
+                    self._keep(self.links, m.remote, m, now, m.remote in scales)
             elif topic == p.TOPIC_CONNECTION_STATUS:
                 m = p.ConnectionStatus.from_json(text, topic)
                 known = {c.name for c in self.deployment.connections}
-                for name, r in m.connections.items():
-                    self._keep(self.readings, (m.scale, name), r, now,
-                               m.scale in scales and name in known)
+                if self._verified(topic, text, m):
+                    for name, r in m.connections.items():
+                        self._keep(self.readings, (m.scale, name), r, now,
+                                   m.scale in scales and name in known)
             elif topic == p.TOPIC_EVENTS:
-                self.events = (self.events + [p.Event.from_json(text, topic)])[-8:]
+                m = p.Event.from_json(text, topic)
+                if self._verified(topic, text, m):
+                    self.events = (self.events + [m])[-8:]
         except p.ProtocolError:
             self.ignored += 1
+
+    def _verified(self, topic: str, text: str, message: Any) -> bool:
+        """Without a key, everything; with one, what its topic's gate lets through."""
+        if self.key is None:
+            return True
+        wall = time.time()
+        if topic == p.TOPIC_LAYOUT:
+            gate = self._gates.setdefault(topic, auth.LayoutGate(self.key))
+            why = gate.check(text, message, wall)
+        else:
+            gate = self._gates.setdefault(topic, auth.StatusGate(self.key))
+            if topic == p.TOPIC_AGENT_STATE:
+                why = gate.check_from(text, f'{message.scale}/{message.instance}', message.seq,
+                                      message.stamp, wall)
+            elif topic == p.TOPIC_OBJECTIVE:
+                why = gate.check_from(text, message.decider, message.seq, message.stamp, wall)
+            else:
+                why = gate.check(text, message, wall)
+        if why:
+            self.refused += 1
+        return not why
 
     def _keep(self, book: dict, key, message, now: float, known: bool) -> None:
         if known:
@@ -316,8 +354,11 @@ def render(book: StatusBook, now: float) -> str:
         lines += ['', 'RECENT EVENTS']
         lines += [f'  {e.kind} {e.node} {e.from_scale}->{e.to_scale}: {e.reason}'[:160]
                   if e.node else f'  {e.kind}: {e.reason}'[:160] for e in book.events]
-    if book.ignored or book.foreign:
+    if book.ignored or book.foreign or book.refused:
         lines.append('')
+    if book.refused:
+        lines.append(f'{book.refused} message(s) refused: unsigned, forged or replayed (this '
+                     'deployment has a key)')
     if book.ignored:
         lines.append(f'{book.ignored} malformed message(s) ignored')
     if book.foreign:

@@ -3,13 +3,14 @@
 
 import importlib
 import re
-from typing import List, Mapping
+from typing import List, Mapping, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import String
 
 from .. import qos
 from ... import protocol as p
+from ...protocol_auth import Sealer
 from ...model.types import Deployment
 
 PROBE_QOS = qos.PROBE
@@ -55,15 +56,16 @@ def _fmt(value: object) -> str:
 class Publishers:
     """A monitor's project-topic publisher plus the shared /diagnostics publisher."""
 
-    def __init__(self, node, topic: str):
+    def __init__(self, node, topic: str, sealer: Optional[Sealer] = None):
         self.node = node
         self.topic = topic
+        self.sealer = sealer or Sealer(None, '')
         self.own = node.create_publisher(String, topic, STATUS_QOS)
         self.diagnostics = node.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS,
                                                  DIAGNOSTICS_QOS)
 
     def send(self, message: p.Message) -> None:
-        self.own.publish(String(data=message.to_json()))
+        self.own.publish(String(data=self.sealer.seal(message)))
 
     def send_diagnostics(self, statuses: List[DiagnosticStatus]) -> None:
         if not statuses:

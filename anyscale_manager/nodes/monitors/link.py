@@ -8,6 +8,7 @@ and a cut link (no answer) is never taken for a dead agent.
 """
 
 import math
+import secrets
 import socket
 import threading
 import time
@@ -20,6 +21,7 @@ from std_msgs.msg import String
 from ... import protocol as p
 from ...agent import warden
 from ...model.types import Deployment
+from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import BandwidthEstimate, crossing_connections, used_kbps
 from ...runtime.rates import HeartbeatTracker
 from .common import LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, status
@@ -72,7 +74,8 @@ class LinkMonitor:
     """Master: heartbeats, RTT, loss, up/down and bandwidth of the link to each remote.
     Remote: serves the throughput probe (its warden answers the heartbeats)."""
 
-    def __init__(self, node, deployment: Deployment, scale: str):
+    def __init__(self, node, deployment: Deployment, scale: str,
+                 sealer: Optional[Sealer] = None):
         self._node = node
         self._deployment = deployment
         self._scale = scale_of(deployment, scale)
@@ -89,6 +92,11 @@ class LinkMonitor:
         self._subs = []
         self._server: Optional[ProbeServer] = None
         self._remotes: Dict[str, _Remote] = {}
+        # Signed when the deployment has a key: what it publishes, and what it reads.
+        self._sealer = sealer or Sealer(None, '')
+        window = deployment.security.replay_window_s
+        self._connections_gate = StatusGate(self._sealer.key, window)
+        self._states_gate = Gate(self._sealer.key, window)
         self._lock = threading.Lock()
         self._beats_lock = threading.RLock()    # the trackers: the echo thread and the executor
         self.last: Dict[str, p.LinkStatus] = {}
@@ -112,10 +120,11 @@ class LinkMonitor:
         # (scale, conn) -> (B/s over the probe window, B/s over DELIVERY_SPAN_S, when heard)
         self._readings: Dict[Tuple[str, str], Tuple[float, float, float]] = {}
         self._running: Dict[str, Dict[str, str]] = {}          # scale -> node -> scale
-        self._out = Publishers(self._node, p.TOPIC_LINK_STATUS)
+        self._out = Publishers(self._node, p.TOPIC_LINK_STATUS, self._sealer)
         # Echoes are read by a thread of their own and stamped as they arrive (the trackers are
         # shared under _beats_lock); the executor judges up and down CHECKS_PER_BEAT times a
         # period, so a cut is published within a quarter period of the rule being met.
+        self._monitor_id = secrets.token_hex(8)   # echoes answer this process's beats only
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind(('', 0))
         self._sock.settimeout(0.5)
@@ -157,7 +166,8 @@ class LinkMonitor:
                 time.sleep(0.05)
                 continue
             at = time.monotonic()
-            echo = warden.parse_echo(data, self._deployment.name)
+            echo = warden.parse_echo(data, self._deployment.name, self._sealer.key,
+                                     self._monitor_id)
             if echo is None:
                 self._bad.warn('heartbeat echo', 'link monitor: ignoring a datagram that is '
                                                  'not an echo of this deployment')
@@ -175,6 +185,11 @@ class LinkMonitor:
         report = self._decode(p.ConnectionStatus, msg, p.TOPIC_CONNECTION_STATUS)
         if report is None or report.scale not in self._known_scales:
             return
+        why = self._connections_gate.check(msg.data, report, time.time())
+        if why:
+            self._bad.warn(p.TOPIC_CONNECTION_STATUS, f'link monitor: dropped a connection '
+                                                      f'status from {report.scale}: {why}')
+            return
         for name, reading in report.connections.items():
             if name in self._known_connections:
                 recent = reading.recent_bytes_per_s
@@ -183,7 +198,14 @@ class LinkMonitor:
 
     def _on_agent_state(self, msg: String) -> None:
         state = self._decode(p.AgentState, msg, p.TOPIC_AGENT_STATE)
-        if state is not None and state.scale in self._known_scales:
+        if state is None or state.scale not in self._known_scales:
+            return
+        why = self._states_gate.check_from(msg.data, f'{state.scale}/{state.instance}',
+                                           state.seq, state.stamp, time.time())
+        if why:
+            self._bad.warn(p.TOPIC_AGENT_STATE, f'link monitor: dropped an agent state of '
+                                                f'{state.scale}: {why}')
+        else:
             self._running[state.scale] = {n: state.scale for n in state.running()
                                           if n in self._known_nodes}
 
@@ -258,7 +280,8 @@ class LinkMonitor:
         if remote.address is None:
             return
         try:
-            self._sock.sendto(warden.beat(self._deployment.name, name, seq), remote.address)
+            self._sock.sendto(warden.beat(self._deployment.name, name, seq, self._sealer.key,
+                                          self._monitor_id), remote.address)
         except OSError:
             pass        # no route (a cut link): the missing echo says so
 

@@ -18,8 +18,9 @@ from rclpy.node import Node
 
 from ... import protocol as p
 from ...model.types import Connection, Deployment
-from ...runtime.delta import DeltaJudge
+from ...protocol_auth import Sealer
 from ...runtime.bandwidth import DELIVERY_SPAN_S
+from ...runtime.delta import DeltaJudge
 from ...runtime.rates import RateWindow, WriterStreams
 from .common import PROBE_QOS, Publishers, import_message_class, period_of, scale_of, status
 
@@ -57,7 +58,8 @@ class ProbeManager:
     info to callbacks, hence the polling.)
     """
 
-    def __init__(self, node, deployment: Deployment, scale: str, watch_node=None):
+    def __init__(self, node, deployment: Deployment, scale: str, watch_node=None,
+                 sealer: Optional[Sealer] = None):
         self._node = node
         self._watch_node = watch_node
         self._migratable = frozenset(deployment.migratable_nodes)
@@ -69,7 +71,7 @@ class ProbeManager:
         period = period_of(settings.probe_publish_rate_hz, 'probe_publish_rate_hz')
         self._topics: Dict[str, _TopicProbe] = {}
         self._probes: Dict[str, Connection] = {}
-        self._out = Publishers(node, p.TOPIC_CONNECTION_STATUS)
+        self._out = Publishers(node, p.TOPIC_CONNECTION_STATUS, sealer)
         self._group = MutuallyExclusiveCallbackGroup()
         self._lock = threading.Lock()
         self.last: Optional[p.ConnectionStatus] = None

@@ -12,6 +12,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from ... import protocol as p
 from ...agent import procs
 from ...model.types import Deployment
+from ...protocol_auth import Sealer
 from ...runtime import cpu as cpu_math
 from .common import Publishers, period_of, scale_of, status
 
@@ -102,7 +103,8 @@ class ScaleMonitor:
     def __init__(self, node, deployment: Deployment, scale: str,
                  pids: Callable[[], Mapping[str, int]],
                  own_pids: Optional[Callable[[], Iterable[int]]] = None,
-                 shared_with: Optional[Callable[[], Sequence[str]]] = None):
+                 shared_with: Optional[Callable[[], Sequence[str]]] = None,
+                 sealer: Optional[Sealer] = None):
         self._node = node
         self._scale = scale_of(deployment, scale)
         self._pids = pids
@@ -117,7 +119,7 @@ class ScaleMonitor:
         self._own = cpu_math.ProcessGroupCpu()
         self.source = cpu_math.CGROUP if self._system.quota_confined else cpu_math.MACHINE
         self.sharing: Tuple[str, ...] = ()
-        self._out = Publishers(node, p.TOPIC_SCALE_STATUS)
+        self._out = Publishers(node, p.TOPIC_SCALE_STATUS, sealer)
         self._group = MutuallyExclusiveCallbackGroup()
         self.last: Optional[p.ScaleStatus] = None
         self._sample()     # prime every counter now, so the first tick already has a reading
