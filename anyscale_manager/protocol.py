@@ -36,6 +36,9 @@ MAX_DEPTH = 8
 MAX_MAGNITUDE = 1e12
 # Generations, sequences: the largest integer a JSON reader with doubles still keeps exact.
 MAX_GENERATION = 2 ** 53
+# A decider adds one generation per decision: a larger jump from the followed decider is not
+# one of its layouts (a forged or corrupted number would otherwise lock its real ones out).
+MAX_GENERATION_STEP = 1_000_000
 
 # Diagnostic levels as plain ints (DiagnosticStatus.level is bytes in Python).
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
@@ -519,6 +522,6 @@ class PlanCheck(Message):
 
 __all__ = [
     'AgentState', 'ConnectionReading', 'ConnectionStatus', 'DeciderIdentity', 'ERROR', 'Event',
-    'Layout', 'LinkStatus', 'MAX_GENERATION', 'Message', 'NodeReport', 'OK',
+    'Layout', 'LinkStatus', 'MAX_GENERATION', 'MAX_GENERATION_STEP', 'Message', 'NodeReport', 'OK',
     'Objective', 'PlanCheck', 'PlanNode', 'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
 ]

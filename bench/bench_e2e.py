@@ -38,6 +38,7 @@ import time
 
 from anyscale_manager.testbed import harness, netns
 from anyscale_manager.testbed import schedule as sched
+from anyscale_manager.testbed.known import KNOWN_OPEN
 from anyscale_manager.testbed.report import placement_shares
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -146,6 +147,7 @@ def reaction(args):
             'throttles_amcl_moved': sum(1 for r in throttles if r['amcl_moves']),
             'throttles_wrong': sum(1 for r in throttles if not r['right']),
             'throttle_violations': sum(len(r['violations']) for r in throttles),
+            'throttle_known_open': sum(len(r['known_open']) for r in throttles),
             'false_congestion_onsets': false_onsets,
             'bandwidth_moves_back_outside_throttles': false_backs,
             'cuts': results, 'p50_s': percentile(backs, 0.5), 'p95_s': percentile(backs, 0.95),
@@ -213,18 +215,21 @@ def throttle_reaction(args, tb):
                 reported = r.reported_violations(t0, end, serving_only=True)
                 timeline = r.timeline(t0, min(end, t0 + 4.0), nodes=('ar',))
             throttled.append((t0, end + 5.0))
-            violations = sorted({(v.connection, round(v.end - v.start, 2))
-                                 for v in list(observed) + list(reported)})
+            seen = sorted({(v.connection, round(v.end - v.start, 2))
+                           for v in list(observed) + list(reported)})
+            violations = [v for v in seen if v[0] not in KNOWN_OPEN]
+            known = [v for v in seen if v[0] in KNOWN_OPEN]
             right = (not amcl_moves and (bool(ar_moves) == back_expected))
             row = {'level_kbps': level, 'throttle': i + 1,
                    'congested_s': round(onsets[0] - t0, 3) if onsets else None,
                    'ar_back_s': round(t_back - t0, 3) if t_back is not None else None,
                    'amcl_moves': len(amcl_moves), 'ar_moves': len(ar_moves),
                    'ar_reason': reasons[0] if reasons else '', 'right': right,
-                   'violations': violations}
+                   'violations': violations, 'known_open': known}
             print(f'throttle {level:.0f} kbit/s #{i + 1}: congested after {row["congested_s"]} s, '
                   f'ar back after {row["ar_back_s"]} s, ar moves {row["ar_moves"]}, amcl moves '
-                  f'{row["amcl_moves"]}, Δ violations {violations} ({row["ar_reason"]})',
+                  f'{row["amcl_moves"]}, Δ violations {violations}, known open defects {known} '
+                  f'({row["ar_reason"]})',
                   flush=True)
             if back_expected or not right or violations:
                 print(f'  link {timeline["link"]}\n  layouts {timeline["layouts"]}\n'
@@ -326,7 +331,8 @@ def main():
                   f'back p50 {fmt(r["throttle_ar_back_p50_s"])} s, p95 '
                   f'{fmt(r["throttle_ar_back_p95_s"])} s (max {fmt(r["throttle_ar_back_max_s"])} '
                   f's); AMCL moved in {r["throttles_amcl_moved"]}; other than expected in '
-                  f'{r["throttles_wrong"]}; Δ violations {r["throttle_violations"]}', flush=True)
+                  f'{r["throttles_wrong"]}; Δ violations {r["throttle_violations"]} (and '
+                  f'{r["throttle_known_open"]} on known open defects)', flush=True)
         worst = max((h['below_s'] for h in r['handovers']), default=0.0)
         print(f'moves out of the robot: {len(r["handovers"])} outputs judged; below freq_min at '
               f'the robot in {r["handovers_below_freq_min"]} (longest {worst:.2f} s); least rate '

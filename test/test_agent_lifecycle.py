@@ -7,7 +7,6 @@ from anyscale_manager.agent import lifecycle as lc
 from anyscale_manager.agent.catalogue import build_catalogue
 from anyscale_manager.agent.reconcile import Reconciler
 from anyscale_manager.model.loader import load_mapping
-from anyscale_manager.nodes.agent import lifecycle_report
 
 from test_agent_supervisor import deployment_dict
 
@@ -188,7 +187,7 @@ def test_what_the_agent_reports_of_a_lifecycle_copy(state, goal, proc, want):
     d = driver()
     d.state = state
     d.goal = goal
-    got = lifecycle_report(proc, proc == 'running', '', d)
+    got = lc.report(proc, proc == 'running', '', d)
     assert got[:2] == want
     assert got[3] == (state if proc in ('starting', 'running') else None)
 
@@ -240,3 +239,14 @@ def test_standby_copies_are_kept_where_listed_and_moves_keep_the_handover():
         'loc': protocol.NodeReport(state='running', pid=9, since=0.0, restarts=0, ready=True,
                                    exit_reason='', lifecycle='active')}), 0.3)
     assert a.desired(0.3, {'loc', 'plain'}, heard_here=lambda n, s: True) == {'plain', 'rec'}
+
+
+def test_goals_follow_the_layout_and_keep_live_copies_before_the_first_one():
+    names = ['amcl', 'ar', 'old']
+    goals, run = lc.goals(names, {'amcl'}, ['ar'], has_layout=True, live=['old'])
+    assert goals == {'amcl': lc.ACTIVE, 'ar': lc.INACTIVE, 'old': lc.FINALIZED}
+    assert run == {'amcl', 'ar'}                       # the standby copy's process runs too
+    # A restarted agent before its first layout: the live copies keep what they report.
+    goals, run = lc.goals(names, set(), ['ar'], has_layout=False, live=['amcl', 'old'])
+    assert goals == {'amcl': None, 'ar': lc.INACTIVE, 'old': None}
+    assert run == {'amcl', 'ar', 'old'}

@@ -13,7 +13,8 @@ import yaml
 from anyscale_manager import protocol as p
 from anyscale_manager import protocol_auth as auth
 from anyscale_manager.agent.authority import Follower
-from anyscale_manager.agent.reconcile import MAX_GENERATION_STEP, Reconciler
+from anyscale_manager.agent.reconcile import Reconciler
+from anyscale_manager.protocol import MAX_GENERATION_STEP
 from anyscale_manager.model.advice import warnings
 from anyscale_manager.model.loader import DeploymentError, load_deployment, load_mapping
 from anyscale_manager.runtime.rivals import older, RivalWatch

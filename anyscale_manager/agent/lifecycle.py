@@ -15,7 +15,7 @@ when the goal was to finalize it, signals it anyway. Reaching the goal clears th
 """
 
 from dataclasses import dataclass
-from typing import List, Optional, Tuple
+from typing import Dict, Iterable, List, Optional, Set, Tuple
 
 UNKNOWN = 'unknown'
 UNCONFIGURED = 'unconfigured'
@@ -205,3 +205,43 @@ class Driver:
                 f'; retry {self.failures} of {self.max_failures - 1} in {delay:g} s')
         self.events.append(('warn' if not self.failed else 'error',
                             f'{self.name}: lifecycle: {why}{tail}'))
+
+
+def report(state: str, ready: bool, reason: str, driver: Driver) -> tuple:
+    """(state, ready, reason, lifecycle label) of a lifecycle copy for the agent's report:
+    'running' and ready only while active (what serves), 'standby' for a live copy kept
+    inactive, 'starting' on its way to active, 'stopping' on its way out."""
+    if state not in ('starting', 'running'):
+        return state, False, reason, driver.state if state == 'stopping' else None
+    if driver.failed:
+        reason = f'lifecycle: {driver.problem}'
+    elif driver.problem:
+        reason = f'lifecycle (retrying): {driver.problem}'
+    if driver.state == ACTIVE and driver.goal != FINALIZED:
+        return 'running', True, reason, driver.state
+    if driver.goal == FINALIZED:
+        return 'stopping', False, reason, driver.state
+    if driver.goal == INACTIVE or (driver.goal is None and driver.state == INACTIVE):
+        return 'standby', False, reason, driver.state
+    return 'starting', False, reason, driver.state
+
+
+def goals(names: Iterable[str], want: Set[str], standby_here: Iterable[str], has_layout: bool,
+          live: Iterable[str]) -> Tuple[Dict[str, Optional[str]], Set[str]]:
+    """The goal of each lifecycle copy on this scale, and the nodes whose process must run.
+
+    ``want``: the nodes the layout places here; ``standby_here``: those it keeps a standby
+    copy of here; ``live``: the lifecycle copies running now. A placed copy is made active, a
+    standby one inactive, any other finalized. Before the first layout (a restarted agent
+    adopting its copies) a live copy keeps the state it reports (goal None) until the layout
+    says otherwise. An inactive copy's process runs too."""
+    standby = set(standby_here)
+    out: Dict[str, Optional[str]] = {n: ACTIVE if n in want else INACTIVE if n in standby
+                                     else FINALIZED for n in names}
+    run = set(want)
+    if not has_layout:
+        kept = set(live) & set(out)
+        out.update({n: None for n in kept})
+        run |= kept
+    run |= {n for n, g in out.items() if g == INACTIVE}
+    return out, run

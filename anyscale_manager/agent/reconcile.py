@@ -33,16 +33,13 @@ from dataclasses import dataclass
 from typing import Callable, Dict, FrozenSet, Iterable, List, Mapping, Optional, Set, Tuple
 
 from ..model import types as t
-from ..protocol import AgentState, Layout
+from ..protocol import MAX_GENERATION_STEP, AgentState, Layout
 
 LIVE = ('starting', 'running', 'stopping')
 NO_GENERATION = -1
 # How long a losing scale keeps its copy past the new copy's ready report while it has not heard
 # the new copy (its inputs may not reach it yet; or the copies' sequence numbers overlap).
 HEAR_PATIENCE_S = 5.0
-# A decider adds one generation per decision: a larger jump from the followed decider is not
-# one of its layouts (a forged or corrupted number would otherwise lock its real ones out).
-MAX_GENERATION_STEP = 1_000_000
 
 
 @dataclass(frozen=True)

@@ -443,17 +443,10 @@ class AgentNode(Node):
             want: set = set()
             goals = {n: lc.FINALIZED for n in self._lifecycle}
         else:
-            want = self.reconciler.desired(now, self._serving(), heard_here=self._heard_here)
-            goals = {n: lc.ACTIVE if n in want else
-                     lc.INACTIVE if n in self.reconciler.standby_here else lc.FINALIZED
-                     for n in self._lifecycle}
-            if not self.reconciler.has_layout:
-                # Before the first layout (a restarted agent adopting its copies): a live copy
-                # keeps the state it reports, active or not, until the layout says otherwise.
-                live = {n for n in self._lifecycle if sup.state(n) in ('starting', 'running')}
-                goals.update({n: None for n in live})
-                want |= live
-            want |= {n for n, g in goals.items() if g == lc.INACTIVE}
+            placed = self.reconciler.desired(now, self._serving(), heard_here=self._heard_here)
+            live = [n for n in self._lifecycle if sup.state(n) in ('starting', 'running')]
+            goals, want = lc.goals(self._lifecycle, placed, self.reconciler.standby_here,
+                                   self.reconciler.has_layout, live)
             waiting = self.reconciler.waiting
             for node, why in waiting.items():
                 if self._last_waiting.get(node) != why.split(' (')[0]:
@@ -586,8 +579,8 @@ class AgentNode(Node):
             state, ready, reason, label = r.state, r.ready, r.exit_reason, None
             clients = self._lifecycle.get(name)
             if clients is not None:
-                state, ready, reason, label = lifecycle_report(r.state, r.ready, r.exit_reason,
-                                                               clients.driver)
+                state, ready, reason, label = lc.report(r.state, r.ready, r.exit_reason,
+                                                        clients.driver)
             nodes[name] = protocol.NodeReport(state=state, pid=r.pid, since=since,
                                               restarts=r.restarts, ready=ready,
                                               exit_reason=reason, lifecycle=label)
@@ -657,25 +650,6 @@ class AgentNode(Node):
             self._watch = None
         self._release_lock()
         super().destroy_node()
-
-
-def lifecycle_report(state: str, ready: bool, reason: str, driver: lc.Driver) -> tuple:
-    """(state, ready, reason, lifecycle label) of a lifecycle copy for the agent's report:
-    'running' and ready only while active (what serves), 'standby' for a live copy kept
-    inactive, 'starting' on its way to active, 'stopping' on its way out."""
-    if state not in ('starting', 'running'):
-        return state, False, reason, driver.state if state == 'stopping' else None
-    if driver.failed:
-        reason = f'lifecycle: {driver.problem}'
-    elif driver.problem:
-        reason = f'lifecycle (retrying): {driver.problem}'
-    if driver.state == lc.ACTIVE and driver.goal != lc.FINALIZED:
-        return 'running', True, reason, driver.state
-    if driver.goal == lc.FINALIZED:
-        return 'stopping', False, reason, driver.state
-    if driver.goal == lc.INACTIVE or (driver.goal is None and driver.state == lc.INACTIVE):
-        return 'standby', False, reason, driver.state
-    return 'starting', False, reason, driver.state
 
 
 def main(args: Optional[List[str]] = None) -> int:

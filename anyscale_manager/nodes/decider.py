@@ -1,9 +1,11 @@
 """The decider node: ``ros2 run anyscale_manager decider --ros-args --params-file FILE.yaml``.
 
-Glue only. It rebuilds the deployment from its parameters, listens to the agents and monitors,
-runs the migration policy once per ``decider.period_s`` and publishes the desired layout
-(latched, with a generation number), every decision with its reason, the cost function, the
-plan-against-reality check and its own health on /diagnostics.
+Glue only. It rebuilds the deployment from its parameters, checks and feeds what the agents and
+monitors publish into the decider's turn (runtime/turn.py), runs that turn once per
+``decider.period_s`` (and at once on a cut, a crash or a shrinking link) and publishes what it
+returns: the desired layout (latched, with a generation number), every decision with its
+reason, the cost function, the plan-against-reality check and its own health on /diagnostics.
+It also keeps what only a live process has: its identity, key and rivals.
 """
 
 import math
@@ -13,7 +15,7 @@ import socket
 import sys
 import time
 from dataclasses import fields, replace
-from typing import Any, Dict, List, Optional, Set, Tuple
+from typing import Any, Dict, List, Optional
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -27,19 +29,13 @@ from . import qos
 from .throttled_log import ThrottledLog
 from .. import protocol as p
 from .. import protocol_auth as auth
-from ..agent.reconcile import MAX_GENERATION_STEP
 from ..model.advice import UNSIGNED
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.types import HYSTERESIS_SCOPES, INITIAL_LAYOUTS, DeciderSettings, Deployment
 from ..runtime.constraints import ConstraintReport
-from ..runtime.cost import CostIntegrator
-from ..runtime.hosts import SingleMachineWatch
-from ..runtime.intake import ObservationBook
-from ..runtime.layout import LayoutError, adopt, initial_plan
-from ..runtime.liveness import LivenessWatch
-from ..runtime.plan_check import check_plan, expectations
-from ..runtime.policy import MigrationPolicy
+from ..runtime.layout import LayoutError
 from ..runtime.rivals import RivalWatch
+from ..runtime.turn import DeciderTurn, TurnOutput
 
 NODE_NAME = 'anyscale_decider'
 
@@ -118,23 +114,10 @@ class DeciderNode(Node):
         self.deployment: Deployment = load_from_parameters(flat, source=f'{NODE_NAME} parameters')
         self.settings = self.deployment.decider
         self._declare_descriptors()
-        self.planned, self.placements = initial_plan(self.deployment, self.settings)
 
         started = self._now()
         self.started = started
-        self.book = ObservationBook(self.deployment, self.settings, started)
-        self.policy = MigrationPolicy(self.deployment, self.settings)
-        # Silent agents, lost scales and nodes with nowhere to go: said when they change.
-        self.liveness = LivenessWatch(self.deployment, self.settings)
-        # Scales whose agents report one machine (single-machine mode): said when it changes.
-        self.machines = SingleMachineWatch(self.deployment.scale_names)
-        self.cost = CostIntegrator(self.deployment)
-        self.expected = expectations(self.deployment, self.placements)
-        self.generation = 0
-        self.layout: Optional[Dict[str, str]] = None
-        self.last_report: Optional[ConstraintReport] = None
-        self._active: Set[Tuple[str, str]] = set()    # (kind, subject) violations announced
-        self._said: Set[str] = set()                  # warnings and notes announced
+        self.core = DeciderTurn(self.deployment, self.settings, started)
         self._rejected = 0
         self._bad = ThrottledLog(self.get_logger())   # bad input: one line per kind and 10 s
         self._links_up: Dict[str, bool] = {}     # remote scale -> last reported up
@@ -142,7 +125,6 @@ class DeciderNode(Node):
         self._link_lost = False
         self._crash_heard = False
         self._fenced: Dict[str, bool] = {}       # remote scale -> its warden said 'fenced'
-        self._decisions = 0
         self.host = socket.gethostname()
         self.identity = p.DeciderIdentity(id=secrets.token_hex(8), host=self.host[:256],
                                           pid=os.getpid(), started=time.time())
@@ -159,7 +141,6 @@ class DeciderNode(Node):
         self.objective_seq = 0
         self.rivals = RivalWatch(self.identity, self.settings.lease_s)
         self.seq = 0
-        self.reason = ''
         self._layouts_heard = 0
         self._followers: Dict[str, Optional[str]] = {}    # scale -> decider its agent follows
         # Nothing is published until no other decider of the deployment has been heard for
@@ -192,6 +173,31 @@ class DeciderNode(Node):
             f'{", ".join(self.deployment.migratable_nodes) or "none"}; first layout '
             f'{self.settings.initial_layout!r}, waiting up to {self.settings.agent_timeout_s:g} s '
             f'for the agents to report what runs')
+
+    # What the turn holds, by the names the node and its tests use.
+    @property
+    def book(self):
+        return self.core.book
+
+    @property
+    def policy(self):
+        return self.core.policy
+
+    @property
+    def liveness(self):
+        return self.core.liveness
+
+    @property
+    def layout(self) -> Optional[Dict[str, str]]:
+        return self.core.layout
+
+    @property
+    def generation(self) -> int:
+        return self.core.generation
+
+    @property
+    def last_report(self) -> Optional[ConstraintReport]:
+        return self.core.last_report
 
     # --- parameters ---------------------------------------------------------------------------
     def _declare_descriptors(self) -> None:
@@ -234,43 +240,13 @@ class DeciderNode(Node):
         except ValueError:
             return                     # refused before; nothing changed
         old, self.settings = self.settings, new
-        self.policy.update_settings(new)
-        self.book.settings = new
-        self.liveness.settings = new
+        self.core.update_settings(new)
         if new.period_s != old.period_s:
             self.timer.cancel()
             self.destroy_timer(self.timer)
             self.timer = self.create_timer(new.period_s, self._tick)
         for key in changes:
             self._event('settings', '', '', '', f'decider.{key} = {changes[key]!r}')
-
-    # --- first layout -------------------------------------------------------------------------
-    def _start(self, now: float) -> None:
-        # Adopt where nodes serve: a standby node's copies all start at boot, so only its
-        # active copy counts (a starting one adopted the laptop's fresh standby copies).
-        with_standby = [n for n in self.deployment.node_names
-                        if self.deployment.standby_scales(n)]
-        running = self.book.running(now, active_only=with_standby)
-        layout, notes = adopt(self.deployment, self.planned, running)
-        # Above what the agents applied, so that their comparisons across scales stay sane;
-        # agents take a new decider's first layout whatever its number, so near the bound
-        # it starts again from 1.
-        self.generation = max(self.book.max_generation, 0) + 1
-        if self.generation > p.MAX_GENERATION - MAX_GENERATION_STEP:
-            self.generation = 1
-        self.layout = layout
-        self.policy.reset(layout, now, running)
-        lost = sorted(self.book.lost_scales(now))
-        reason = f'first layout ({self.settings.initial_layout})'
-        if notes:
-            reason += ': ' + '; '.join(notes)
-        self._publish_layout(reason)
-        for note in notes:
-            self._event('adopt', '', '', '', note)
-        if lost:
-            self._event('warning', '', '', '', 'no report from the agent of '
-                        + ', '.join(lost) + ' at start')
-        self.get_logger().info(f'generation {self.generation}: {reason}')
 
     # --- intake -------------------------------------------------------------------------------
     def _intake(self, msg: Any, cls: type, topic: str, handle) -> None:
@@ -442,151 +418,74 @@ class DeciderNode(Node):
             self._diagnostics(p.ERROR, f'turn failed: {e}')
 
     def _turn(self, now: float) -> None:
-        if self.layout is None:
-            waited = now - self.started
-            if self.book.all_agents_heard() or waited >= self.settings.agent_timeout_s:
-                self._start(now)
-            else:
-                self._diagnostics(p.OK, 'waiting for the agents to report what runs')
-                return
-        obs = self.book.snapshot(now, self.layout)
-        decisions = self.policy.step(obs)
-        report = self.policy.last_report
-        self.last_report = report
-        if decisions:
-            self.layout = dict(self.policy.layout)
-            self.generation += 1
-            self._publish_layout('; '.join(f'{d.kind} {d.node}: {d.reason}' for d in decisions))
-            for d in decisions:
-                self._decisions += 1
-                self._event(d.kind, d.node, d.from_scale, d.to_scale, d.reason)
-                self.get_logger().info(f'{d.kind} {d.node} {d.from_scale} -> {d.to_scale}: '
-                                       f'{d.reason}')
-        self._announce(report)
-        self._single_machine()
-        for n in self.liveness.update(obs, self.policy.unplaceable, report, self.layout):
-            self._event(n.kind, n.node, n.scale, '', n.text)
-            log = self.get_logger()
+        self._emit(self.core.turn(now))
+
+    def _emit(self, out: TurnOutput) -> None:
+        """Publish and log what a turn returned, in its order."""
+        for generation, assignments, reason in out.layouts:
+            self._send_layout(generation, assignments, reason)
+        for event in out.events:
+            self._event(*event)
+        log = self.get_logger()
+        for level, text in out.logs:
             # rclpy refuses one call site with changing severities: one call per level.
-            if n.level == 'error':
-                log.error(n.text)
-            elif n.level == 'warn':
-                log.warning(n.text)
+            if level == 'error':
+                log.error(text)
+            elif level == 'warn':
+                log.warning(text)
             else:
-                log.info(n.text)
-
-        cpu_by_node: Dict[str, float] = {}
-        for so in obs.scales.values():
-            cpu_by_node.update(so.cpu_by_node)
-        perf, integral = self.cost.update(now, obs.running, cpu_by_node)
-        self.objective_seq += 1
-        self.pub_objective.publish(String(data=auth.seal(self.key, p.Objective(
-            stamp=time.time(), perf_map=perf, integral=integral, elapsed_s=self.cost.elapsed_s,
-            decider=self.identity.id, seq=self.objective_seq))))
-
-        checked = check_plan(self.deployment, self.expected, obs, self.settings)
-        self._publish(self.pub_plan, p.PlanCheck(
-            stamp=time.time(), overall_deviation=checked.overall_deviation,
-            nodes={n: p.PlanNode(expected_hz=c.expected_hz, measured_hz=c.measured_hz,
-                                 expected_performance=c.expected_performance,
-                                 measured_performance=c.measured_performance,
-                                 deviation=c.deviation) for n, c in checked.nodes.items()},
-            overloaded=dict(checked.overloaded)))
-        for w in checked.warnings:
-            self._say_once(w)
-
-        level, message = p.OK, 'constraints hold'
-        if self.machines.groups:
-            message += f' (single-machine mode: {self.machines.summary()})'
-        if report is not None and report.violations:
-            level, message = p.WARN, f'{len(report.violations)} violation(s): ' + \
-                report.violations[0].reason
-        live_level, live_message = self.liveness.summary()
-        if live_level != p.OK:
-            # A silent agent or a node with nowhere to go says more than a violation it causes.
-            level, message = live_level, live_message
-        self._diagnostics(level, message, perf, integral, len(obs.running))
-
-    def _announce(self, report: Optional[ConstraintReport]) -> None:
-        """Events for violations as they appear and clear, and for new notes (not each turn)."""
-        active = set()
-        if report is not None:
-            for v in report.violations:
-                key = (v.kind, v.subject)
-                active.add(key)
-                if key not in self._active:
-                    self._event('violation', ','.join(v.nodes), '', '', f'{v.kind}: {v.reason}')
-        for kind, subject in sorted(self._active - active):
-            self._event('cleared', '', '', '', f'{kind} on {subject} holds again')
-        self._active = active
-        for note in self.policy.notes:
-            self._say_once(note, kind='note')
-
-    def _single_machine(self) -> None:
-        """One line, one event, when scales start or stop sharing one machine."""
-        hosts = {scale: (seen.state.host_id or '', seen.state.host or '')
-                 for scale, seen in self.book.agents.items()}
-        text = self.machines.update(hosts)
-        if text:
-            self.get_logger().info(text)
-            self._event('single_machine', '', '', '', text)
-
-    def _say_once(self, text: str, kind: str = 'warning') -> None:
-        if text in self._said:
-            return
-        if len(self._said) > 1000:
-            self._said.clear()
-        self._said.add(text)
-        self._event(kind, '', '', '', text)
+                log.info(text)
+        if out.objective is not None:
+            perf, integral, elapsed = out.objective
+            self.objective_seq += 1
+            self.pub_objective.publish(String(data=auth.seal(self.key, p.Objective(
+                stamp=time.time(), perf_map=perf, integral=integral, elapsed_s=elapsed,
+                decider=self.identity.id, seq=self.objective_seq))))
+        if out.plan is not None:
+            checked = out.plan
+            self._publish(self.pub_plan, p.PlanCheck(
+                stamp=time.time(), overall_deviation=checked.overall_deviation,
+                nodes={n: p.PlanNode(expected_hz=c.expected_hz, measured_hz=c.measured_hz,
+                                     expected_performance=c.expected_performance,
+                                     measured_performance=c.measured_performance,
+                                     deviation=c.deviation) for n, c in checked.nodes.items()},
+                overloaded=dict(checked.overloaded)))
+        self._diagnostics(out.level, out.message, out.values)
 
     # --- publishing ---------------------------------------------------------------------------
     def _publish(self, pub, message: p.Message) -> None:
         if pub is not None:
             pub.publish(String(data=self.sealer.seal(message)))
 
-    def _publish_layout(self, reason: str) -> None:
-        self.reason = reason[:2000]
-        self._send_layout()
-        self._event('layout', '', '', '', self.reason)
-
-    def _send_layout(self) -> None:
+    def _send_layout(self, generation: int, assignments: Dict[str, str], reason: str) -> None:
         self.seq += 1
         layout = p.Layout(
-            generation=self.generation, deployment=self.deployment.name,
-            assignments=dict(self.layout), reason=self.reason, stamp=time.time(),
+            generation=generation, deployment=self.deployment.name,
+            assignments=dict(assignments), reason=reason, stamp=time.time(),
             decider=self.identity, seq=self.seq)
         self.pub_layout.publish(String(data=auth.seal(self.key, layout)))
 
     def _renew(self) -> None:
         """The same layout again, newly stamped and numbered: the agents' lease on us."""
         if self.layout is not None and self.pub_layout is not None:
-            self._send_layout()
+            self._send_layout(self.core.generation, self.core.layout, self.core.reason)
 
-    def _event(self, kind: str, node: str, from_scale: str, to_scale: str, reason: str) -> None:
+    def _event(self, kind: str, node: str, from_scale: str, to_scale: str, reason: str,
+               generation: Optional[int] = None) -> None:
         self._publish(self.pub_events, p.Event(
             stamp=time.time(), kind=kind, node=node, from_scale=from_scale, to_scale=to_scale,
-            reason=reason, generation=self.generation))
+            reason=reason, generation=self.generation if generation is None else generation))
 
-    def _diagnostics(self, level: int, message: str, perf: float = 0.0,
-                     integral: float = 0.0, running: int = 0) -> None:
+    def _diagnostics(self, level: int, message: str,
+                     values: Optional[Dict[str, object]] = None) -> None:
         if self.pub_diag is None:
             return
         status = DiagnosticStatus(
             level=bytes([level]), name=f'{NODE_NAME}: {self.deployment.name}',
             message=message[:500], hardware_id=self.host)
-        values = {
-            'generation': self.generation, 'nodes running': running,
-            'lost scales': ', '.join(sorted(self.book.lost_scales(self._now()))),
-            'silent agents': ', '.join(sorted(self.liveness.silent_since)),
-            'cannot be placed': ', '.join(sorted(self.liveness.unplaceable)),
-            'migrated': ', '.join(f'{n}@{s}' for n, s in self.policy.migrated),
-            'decisions': self._decisions, 'messages ignored': self._rejected,
-            'perf_map': round(perf, 3), 'perf integral': round(integral, 3),
-            'migration': self.settings.migration,
-            'single machine': self.machines.summary() or 'no',
-            'decider': self.identity.describe(),
-            'layouts signed': self.key is not None,
-        }
+        values = dict(values or self.core.values(self._now()))
+        values.update({'messages ignored': self._rejected, 'decider': self.identity.describe(),
+                       'messages signed': self.key is not None})
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()

@@ -1,0 +1,213 @@
+"""The decider's turn, pure: observations and a clock in; the layout, decisions, events,
+diagnostics, objective and plan check out.
+
+``DeciderTurn`` holds everything a decider knows between turns (the observation book, the
+policy, the liveness and single-machine watches, the cost integral, the layout and its
+generation, the violations and notes already announced). The rclpy decider
+(nodes/decider.py) feeds the book from its topics, calls ``turn(now)`` once a period (and at
+once on a cut, a crash or a shrinking link) and publishes what comes back; the unit tests
+drive the same object with a hand-written clock. Nothing here reads a clock or touches ROS.
+"""
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Set, Tuple
+
+from .. import protocol as p
+from ..model.types import DeciderSettings, Deployment
+from .constraints import ConstraintReport
+from .cost import CostIntegrator
+from .hosts import SingleMachineWatch
+from .intake import ObservationBook
+from .layout import adopt, initial_plan
+from .liveness import LivenessWatch
+from .plan_check import PlanCheckReport, check_plan, expectations
+from .policy import MigrationPolicy
+
+# (kind, node, from scale, to scale, reason, generation): one message of /anyscale/events.
+EventTuple = Tuple[str, str, str, str, str, int]
+# (generation, assignments, reason): one layout to publish.
+LayoutTuple = Tuple[int, Dict[str, str], str]
+
+
+@dataclass
+class TurnOutput:
+    """What one turn asks its caller to publish and log."""
+
+    # New layouts to publish, in order (a first layout and a first decision in one turn).
+    layouts: List[LayoutTuple] = field(default_factory=list)
+    events: List[EventTuple] = field(default_factory=list)
+    logs: List[Tuple[str, str]] = field(default_factory=list)      # (info|warn|error, text)
+    # Perf_map now, its integral and the time it covers (None before the first layout).
+    objective: Optional[Tuple[float, float, float]] = None
+    plan: Optional[PlanCheckReport] = None
+    level: int = p.OK                                               # the decider's health
+    message: str = ''
+    values: Dict[str, object] = field(default_factory=dict)
+
+
+class DeciderTurn:
+    """The decider between and during its turns (see the module)."""
+
+    def __init__(self, deployment: Deployment, settings: DeciderSettings, started: float):
+        self.deployment = deployment
+        self.settings = settings
+        self.started = started
+        self.planned, self.placements = initial_plan(deployment, settings)
+        self.book = ObservationBook(deployment, settings, started)
+        self.policy = MigrationPolicy(deployment, settings)
+        # Silent agents, lost scales and nodes with nowhere to go: said when they change.
+        self.liveness = LivenessWatch(deployment, settings)
+        # Scales whose agents report one machine (single-machine mode): said when it changes.
+        self.machines = SingleMachineWatch(deployment.scale_names)
+        self.cost = CostIntegrator(deployment)
+        self.expected = expectations(deployment, self.placements)
+        self.generation = 0
+        self.layout: Optional[Dict[str, str]] = None
+        self.reason = ''
+        self.last_report: Optional[ConstraintReport] = None
+        self.decisions = 0
+        self._active: Set[Tuple[str, str]] = set()    # (kind, subject) violations announced
+        self._said: Set[str] = set()                  # warnings and notes announced
+
+    def update_settings(self, settings: DeciderSettings) -> None:
+        self.settings = settings
+        self.policy.update_settings(settings)
+        self.book.settings = settings
+        self.liveness.settings = settings
+
+    # --- one turn -----------------------------------------------------------------------------
+    def turn(self, now: float) -> TurnOutput:
+        out = TurnOutput()
+        if self.layout is None:
+            waited = now - self.started
+            if not (self.book.all_agents_heard() or waited >= self.settings.agent_timeout_s):
+                out.message = 'waiting for the agents to report what runs'
+                return out
+            self._start(now, out)
+        obs = self.book.snapshot(now, self.layout)
+        decisions = self.policy.step(obs)
+        report = self.policy.last_report
+        self.last_report = report
+        if decisions:
+            self.layout = dict(self.policy.layout)
+            self.generation += 1
+            self._new_layout('; '.join(f'{d.kind} {d.node}: {d.reason}' for d in decisions), out)
+            for d in decisions:
+                self.decisions += 1
+                self._event(out, d.kind, d.node, d.from_scale, d.to_scale, d.reason)
+                out.logs.append(('info', f'{d.kind} {d.node} {d.from_scale} -> {d.to_scale}: '
+                                         f'{d.reason}'))
+        self._announce(report, out)
+        self._single_machine(out)
+        for n in self.liveness.update(obs, self.policy.unplaceable, report, self.layout):
+            self._event(out, n.kind, n.node, n.scale, '', n.text)
+            out.logs.append((n.level if n.level in ('error', 'warn') else 'info', n.text))
+
+        cpu_by_node: Dict[str, float] = {}
+        for so in obs.scales.values():
+            cpu_by_node.update(so.cpu_by_node)
+        perf, integral = self.cost.update(now, obs.running, cpu_by_node)
+        out.objective = (perf, integral, self.cost.elapsed_s)
+        out.plan = check_plan(self.deployment, self.expected, obs, self.settings)
+        for w in out.plan.warnings:
+            self._say_once(w, out)
+
+        level, message = p.OK, 'constraints hold'
+        if self.machines.groups:
+            message += f' (single-machine mode: {self.machines.summary()})'
+        if report is not None and report.violations:
+            level, message = p.WARN, f'{len(report.violations)} violation(s): ' + \
+                report.violations[0].reason
+        live_level, live_message = self.liveness.summary()
+        if live_level != p.OK:
+            # A silent agent or a node with nowhere to go says more than a violation it causes.
+            level, message = live_level, live_message
+        out.level, out.message = level, message
+        out.values = self.values(now, perf, integral, len(obs.running))
+        return out
+
+    def values(self, now: float, perf: float = 0.0, integral: float = 0.0,
+               running: int = 0) -> Dict[str, object]:
+        """The decider's diagnostic values that the turn knows."""
+        return {
+            'generation': self.generation, 'nodes running': running,
+            'lost scales': ', '.join(sorted(self.book.lost_scales(now))),
+            'silent agents': ', '.join(sorted(self.liveness.silent_since)),
+            'cannot be placed': ', '.join(sorted(self.liveness.unplaceable)),
+            'migrated': ', '.join(f'{n}@{s}' for n, s in self.policy.migrated),
+            'decisions': self.decisions,
+            'perf_map': round(perf, 3), 'perf integral': round(integral, 3),
+            'migration': self.settings.migration,
+            'single machine': self.machines.summary() or 'no',
+        }
+
+    # --- the first layout ---------------------------------------------------------------------
+    def _start(self, now: float, out: TurnOutput) -> None:
+        # Adopt where nodes serve: a standby node's copies all start at boot, so only its
+        # active copy counts (a starting one adopted the laptop's fresh standby copies).
+        with_standby = [n for n in self.deployment.node_names
+                        if self.deployment.standby_scales(n)]
+        running = self.book.running(now, active_only=with_standby)
+        layout, notes = adopt(self.deployment, self.planned, running)
+        # Above what the agents applied, so that their comparisons across scales stay sane;
+        # agents take a new decider's first layout whatever its number, so near the bound
+        # it starts again from 1.
+        self.generation = max(self.book.max_generation, 0) + 1
+        if self.generation > p.MAX_GENERATION - p.MAX_GENERATION_STEP:
+            self.generation = 1
+        self.layout = layout
+        self.policy.reset(layout, now, running)
+        lost = sorted(self.book.lost_scales(now))
+        reason = f'first layout ({self.settings.initial_layout})'
+        if notes:
+            reason += ': ' + '; '.join(notes)
+        self._new_layout(reason, out)
+        for note in notes:
+            self._event(out, 'adopt', '', '', '', note)
+        if lost:
+            self._event(out, 'warning', '', '', '', 'no report from the agent of '
+                        + ', '.join(lost) + ' at start')
+        out.logs.append(('info', f'generation {self.generation}: {reason}'))
+
+    # --- what is said -------------------------------------------------------------------------
+    def _event(self, out: TurnOutput, kind: str, node: str, from_scale: str, to_scale: str,
+               reason: str) -> None:
+        out.events.append((kind, node, from_scale, to_scale, reason, self.generation))
+
+    def _new_layout(self, reason: str, out: TurnOutput) -> None:
+        self.reason = reason[:2000]
+        out.layouts.append((self.generation, dict(self.layout), self.reason))
+        self._event(out, 'layout', '', '', '', self.reason)
+
+    def _announce(self, report: Optional[ConstraintReport], out: TurnOutput) -> None:
+        """Events for violations as they appear and clear, and for new notes (not each turn)."""
+        active = set()
+        if report is not None:
+            for v in report.violations:
+                key = (v.kind, v.subject)
+                active.add(key)
+                if key not in self._active:
+                    self._event(out, 'violation', ','.join(v.nodes), '', '',
+                                f'{v.kind}: {v.reason}')
+        for kind, subject in sorted(self._active - active):
+            self._event(out, 'cleared', '', '', '', f'{kind} on {subject} holds again')
+        self._active = active
+        for note in self.policy.notes:
+            self._say_once(note, out, kind='note')
+
+    def _single_machine(self, out: TurnOutput) -> None:
+        """One line, one event, when scales start or stop sharing one machine."""
+        hosts = {scale: (seen.state.host_id or '', seen.state.host or '')
+                 for scale, seen in self.book.agents.items()}
+        text = self.machines.update(hosts)
+        if text:
+            out.logs.append(('info', text))
+            self._event(out, 'single_machine', '', '', '', text)
+
+    def _say_once(self, text: str, out: TurnOutput, kind: str = 'warning') -> None:
+        if text in self._said:
+            return
+        if len(self._said) > 1000:
+            self._said.clear()
+        self._said.add(text)
+        self._event(out, kind, '', '', '', text)

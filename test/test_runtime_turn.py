@@ -1,0 +1,119 @@
+"""The decider's turn without ROS (runtime/turn.py): the ICAR test-bed's deployment, the
+agents' and monitors' messages fed to its book by hand, a hand-written clock."""
+
+import pytest
+
+from anyscale_manager import protocol as p
+from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.runtime.layout import master_layout
+from anyscale_manager.runtime.turn import DeciderTurn
+
+
+@pytest.fixture(scope='module')
+def d():
+    from conftest import TESTBED
+    return load_deployment(TESTBED)
+
+
+def agent(d, scale, where, generation=0, standby=()):
+    nodes = {}
+    for n in d.nodes:
+        if not n.managed:
+            continue
+        if where.get(n.name) == scale:
+            nodes[n.name] = p.NodeReport(state='running', pid=100 + len(nodes), since=1.0,
+                                         restarts=0, ready=True, exit_reason='',
+                                         lifecycle='active' if n.lifecycle else None)
+        elif n.name in standby:
+            nodes[n.name] = p.NodeReport(state='standby', pid=200 + len(nodes), since=1.0,
+                                         restarts=0, ready=False, exit_reason='',
+                                         lifecycle='inactive')
+    return p.AgentState(scale=scale, generation=generation, stamp=0.0, nodes=nodes,
+                        instance=f'{scale}-1')
+
+
+def feed(turn, d, now, where, generation=0):
+    """Every agent, scale, link and connection report of one moment, all healthy."""
+    book = turn.book
+    standby = [n for n in d.node_names if d.standby_scales(n)]
+    for scale in d.scale_names:
+        book.agent_state(agent(d, scale, where, generation, standby), now)
+        cpu = {n: d.node(n).cpu for n, s in where.items() if s == scale}
+        book.scale_status(p.ScaleStatus(scale=scale, stamp=now, cpu_total=sum(cpu.values()),
+                                        capacity_cpu=d.scale(scale).capacity_cpu,
+                                        cpu_by_node=cpu, mem_percent=10.0, load_1m=0.5), now)
+    book.link_status(p.LinkStatus(master='robot', remote='laptop', stamp=now, up=True,
+                                  rtt_ms=1.0, loss=0.0, bandwidth_available_kbps=50000.0,
+                                  bandwidth_available_age_s=1.0, bandwidth_used_kbps=0.0), now)
+    for scale in d.scale_names:
+        readings = {c.name: p.ConnectionReading(rate_hz=c.freq_opt_hz, bytes_per_s=1000.0,
+                                                below_for_s=0.0, level=p.OK)
+                    for c in d.connections if c.monitored and where.get(c.subscriber) == scale}
+        book.connection_status(p.ConnectionStatus(scale=scale, stamp=now,
+                                                  connections=readings), now)
+
+
+def test_nothing_before_the_agents_report_then_the_first_layout(d):
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    out = turn.turn(0.5)
+    assert not out.layouts and turn.layout is None
+    assert out.message == 'waiting for the agents to report what runs' and not out.events
+    where = master_layout(d)
+    feed(turn, d, 1.0, where, generation=6)
+    out = turn.turn(1.0)
+    # Above what the agents applied; with every scale observed, the first move out is
+    # decided in the same turn: two layouts to publish, in order, each with its events.
+    (g1, first, why1), (g2, second, why2) = out.layouts
+    assert (g1, first) == (7, where) and why1 == 'first layout (master)'
+    assert g2 == 8 and second == dict(where, amcl='laptop') and why2.startswith('migrate amcl')
+    assert turn.generation == 8 and turn.layout == second
+    assert out.events[0] == ('layout', '', '', '', why1, 7)
+    assert ('migrate', 'amcl', 'robot', 'laptop') == out.events[2][:4] and out.events[2][5] == 8
+    assert ('info', f'generation 7: {why1}') in out.logs
+    assert out.objective is not None and out.plan is not None
+    assert out.values['generation'] == 8 and out.values['nodes running'] == len(where)
+
+
+def test_without_all_agents_the_first_layout_waits_for_agent_timeout(d):
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    turn.book.agent_state(agent(d, 'robot', master_layout(d)), 1.0)
+    assert not turn.turn(d.decider.agent_timeout_s - 0.1).layouts
+    out = turn.turn(d.decider.agent_timeout_s + 0.1)
+    assert out.layouts and out.layouts[0][2] == 'first layout (master)'
+    assert any(e[0] == 'warning' and 'laptop' in e[4] for e in out.events)
+
+
+def test_the_next_move_waits_for_the_last_one_to_run_and_be_measured(d):
+    """AR out only once AMCL runs on the laptop and the laptop's CPU was measured with it
+    there (its first report at 1.5 s); one move per turn, then nothing more."""
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    where = master_layout(d)
+    feed(turn, d, 1.0, where)
+    turn.turn(1.0)
+    assert turn.layout['amcl'] == 'laptop'
+    t, moves = 1.0, []
+    while t < 30.0:
+        t += d.decider.period_s
+        # The agents apply what the turn asked for (AMCL first), a period later.
+        feed(turn, d, t, dict(turn.layout), turn.generation)
+        out = turn.turn(t)
+        moves += [(t, e[1], e[3]) for e in out.events if e[0] == 'migrate']
+        assert len(out.layouts) <= 1
+    assert [(n, to) for _, n, to in moves] == [('ar', 'laptop')]
+    assert moves[0][0] > 1.5
+    assert turn.layout == dict(where, amcl='laptop', ar='laptop')
+
+
+def test_two_turns_fed_alike_say_the_same(d):
+    a, b = DeciderTurn(d, d.decider, 0.0), DeciderTurn(d, d.decider, 0.0)
+    where = master_layout(d)
+    said = []
+    for turn in (a, b):
+        lines = []
+        for k in range(40):
+            t = 1.0 + k * d.decider.period_s
+            feed(turn, d, t, where, turn.generation)
+            out = turn.turn(t)
+            lines.append((out.layouts, out.events, out.logs, out.level, out.message))
+        said.append(lines)
+    assert said[0] == said[1]
