@@ -311,9 +311,11 @@ def _named_sections(parent: _Section, key: str, required: bool = True
     return out
 
 
-def _dataclass_settings(parent: _Section, key: str, cls: type, checks: Dict[str, dict]) -> Any:
-    """A flat settings section whose keys are the fields of ``cls`` with their defaults."""
+def _dataclass_settings(parent: _Section, key: str, cls: type) -> Any:
+    """A flat settings section whose keys are the fields of ``cls`` with their defaults,
+    checked against what each field's ``setting`` declares."""
     sec = parent.section(key, required=False)
+    checks = t.checks_of(cls)
     values = {}
     for f in fields(cls):
         if not sec.has(f.name):
@@ -686,46 +688,10 @@ def load_mapping(data: Any, source: str = '<mapping>', wrapped: bool = True) -> 
     nodes = tuple(_read_node(n, s) for n, s in _named_sections(root, 'nodes'))
     connections = tuple(_read_connection(n, s)
                         for n, s in _named_sections(root, 'connections', required=False))
-    decider = _dataclass_settings(root, 'decider', t.DeciderSettings, {
-        'period_s': dict(low=0, high=3600, low_open=True),
-        'cpu_headroom': dict(low=0, high=1, low_open=True),
-        'bandwidth_margin': dict(low=0, high=1, low_open=True),
-        'observation_max_age_s': dict(low=0, high=3600, low_open=True),
-        'hysteresis_s': dict(low=0, high=86400),
-        'hysteresis_scope': dict(choices=t.HYSTERESIS_SCOPES),
-        'grace_s': dict(low=0, high=3600),
-        'agent_timeout_s': dict(low=0, high=3600, low_open=True),
-        'initial_layout': dict(choices=t.INITIAL_LAYOUTS),
-        'lease_s': dict(low=0, high=600, low_open=True),
-        'discovery_s': dict(low=0, high=600, low_open=True),
-    })
-    monitoring = _dataclass_settings(root, 'monitoring', t.MonitorSettings, {
-        'scale_rate_hz': dict(low=0, high=1000, low_open=True),
-        'heartbeat_rate_hz': dict(low=0, high=1000, low_open=True),
-        'heartbeat_misses_down': dict(low=1, high=1000),
-        'probe_window_s': dict(low=0, high=3600, low_open=True),
-        'probe_publish_rate_hz': dict(low=0, high=1000, low_open=True),
-        'bandwidth_probe_interval_s': dict(low=0, high=86400, low_open=True),
-        'bandwidth_probe_duration_s': dict(low=0, high=60, low_open=True),
-        'bandwidth_probe_port': dict(low=1, high=65535),
-        'congestion_delay_ms': dict(low=0, high=60000),
-    })
-    agent = _dataclass_settings(root, 'agent', t.AgentSettings, {
-        'sigint_grace_s': dict(low=0, high=3600),
-        'sigterm_grace_s': dict(low=0, high=3600),
-        'readiness_timeout_s': dict(low=0, high=3600, low_open=True),
-        'lifecycle_timeout_s': dict(low=0, high=3600, low_open=True),
-        'restart_backoff_s': dict(low=0, high=3600),
-        'restart_backoff_max_s': dict(low=0, high=86400),
-        'heartbeat_rate_hz': dict(low=0, high=1000, low_open=True),
-        'node_nice': dict(low=0, high=19),
-        'adopt_grace_s': dict(low=0, high=3600),
-        'restart_grace_s': dict(low=0, high=3600),
-        'fence_grace_s': dict(low=0, high=60),
-    })
-    security = _dataclass_settings(root, 'security', t.SecuritySettings, {
-        'replay_window_s': dict(low=0, high=86400, low_open=True),
-    })
+    decider = _dataclass_settings(root, 'decider', t.DeciderSettings)
+    monitoring = _dataclass_settings(root, 'monitoring', t.MonitorSettings)
+    agent = _dataclass_settings(root, 'agent', t.AgentSettings)
+    security = _dataclass_settings(root, 'security', t.SecuritySettings)
     if security.key_file and not os.path.isabs(os.path.expanduser(security.key_file)):
         # The decider, each agent and validate run in different folders: one meaning only.
         ctx.error('security.key_file', f'expected an absolute path, got {security.key_file!r}')

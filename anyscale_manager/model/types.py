@@ -1,9 +1,9 @@
 """Frozen dataclasses describing one deployment: scales, links, nodes, connections, settings."""
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 from types import MappingProxyType
-from typing import Mapping, Optional, Tuple
+from typing import Dict, Mapping, Optional, Tuple
 
 MASTER = 'master'
 REMOTE = 'remote'
@@ -146,58 +146,130 @@ class Connection:
         return self.freq_min_hz is not None and self.tolerance_s is not None
 
 
+def setting(default, help: str, *, low=None, high=None, low_open: bool = False,
+            choices: Optional[Tuple[str, ...]] = None, unit: str = '', live: bool = False,
+            factory=None):
+    """One setting of a deployment file, declared once: its default, what it means, its range
+    or choices and unit (model/loader.py checks a file against them; the decider declares its
+    ROS parameters with them), and whether the decider takes a change while it runs."""
+    check = {k: v for k, v in (('low', low), ('high', high), ('choices', choices))
+             if v is not None}
+    if low_open:
+        check['low_open'] = True
+    if unit:
+        check['unit'] = unit
+    meta = {'help': help, 'check': check, 'live': live}
+    if factory is not None:
+        return field(default_factory=factory, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+def checks_of(cls) -> Dict[str, dict]:
+    """Field name -> the checks its ``setting`` declares."""
+    return {f.name: dict(f.metadata.get('check', {})) for f in fields(cls)}
+
+
 @dataclass(frozen=True)
 class DeciderSettings:
-    period_s: float = 1.0
-    cpu_headroom: float = 0.9             # usable fraction of a scale's capacity
-    bandwidth_margin: float = 0.9         # usable fraction of a link's available bandwidth
-    observation_max_age_s: float = 3.0    # older observations count as missing
-    hysteresis_s: float = 20.0            # the paper's T
-    hysteresis_scope: str = 'scale'       # 'scale': T bars the scale it came back from; 'node'
-    grace_s: float = 5.0                  # after a move, its connections are not judged
-    agent_timeout_s: float = 5.0          # a silent agent's scale is lost
-    migration: bool = True                # False: keep the first layout (the baseline)
-    initial_layout: str = 'master'
-    layout: Mapping[str, str] = field(default_factory=frozen_map)
-    lease_s: float = 3.0                  # agents follow another decider after this silence
-    discovery_s: float = 5.0              # a starting decider listens this long for another
+    period_s: float = setting(
+        1.0, 'seconds between two turns of the migration loop', low=0, high=3600,
+        low_open=True, unit='s', live=True)
+    cpu_headroom: float = setting(
+        0.9, 'usable fraction of the CPU capacity of a scale', low=0, high=1, low_open=True,
+        live=True)
+    bandwidth_margin: float = setting(
+        0.9, 'usable fraction of the available bandwidth of a link', low=0, high=1,
+        low_open=True, live=True)
+    observation_max_age_s: float = setting(
+        3.0, 'older observations count as missing; a silent link is down', low=0, high=3600,
+        low_open=True, unit='s', live=True)
+    hysteresis_s: float = setting(
+        20.0, "T: a node migrated back is not moved out again for this long (the paper's T)",
+        low=0, high=86400, unit='s', live=True)
+    hysteresis_scope: str = setting(
+        'scale', 'scale: T bars only the scale a node came back from | node: any scale',
+        choices=HYSTERESIS_SCOPES, live=True)
+    grace_s: float = setting(
+        5.0, 'after a move, the connections of the moved node are not judged', low=0,
+        high=3600, unit='s', live=True)
+    agent_timeout_s: float = setting(
+        5.0, 'an agent silent this long loses its scale; its nodes move', low=0, high=3600,
+        low_open=True, unit='s', live=True)
+    migration: bool = setting(
+        True, 'false: never move a node out (the no-migration baseline)', live=True)
+    initial_layout: str = setting(
+        'master', 'master | problem1 | problem2 | explicit; read once, at start',
+        choices=INITIAL_LAYOUTS, live=True)
+    layout: Mapping[str, str] = setting(
+        None, 'node -> scale, the first layout when initial_layout is explicit',
+        factory=frozen_map)
+    lease_s: float = setting(
+        3.0, 'agents follow another decider after this silence of the one they follow',
+        low=0, high=600, low_open=True, unit='s')
+    discovery_s: float = setting(
+        5.0, 'a starting decider listens this long for another one before it publishes',
+        low=0, high=600, low_open=True, unit='s')
 
 
 @dataclass(frozen=True)
 class SecuritySettings:
-    key_file: str = ''                    # '' = layouts unsigned: anyone on the domain may send
-    replay_window_s: float = 30.0         # signed messages stamped further off are refused
+    key_file: str = setting(
+        '', 'absolute path of the deployment key; empty: messages unsigned (anyone on the '
+            'domain may send)')
+    replay_window_s: float = setting(
+        30.0, 'signed messages stamped further off this clock are refused', low=0, high=86400,
+        low_open=True, unit='s')
 
 
 @dataclass(frozen=True)
 class MonitorSettings:
-    scale_rate_hz: float = 2.0
-    heartbeat_rate_hz: float = 4.0
-    heartbeat_misses_down: int = 3
-    probe_window_s: float = 2.0
-    probe_publish_rate_hz: float = 2.0
-    bandwidth_probe_interval_s: float = 30.0
-    bandwidth_probe_duration_s: float = 0.5
-    bandwidth_probe_port: int = 47800
-    congestion_delay_ms: float = 50.0     # queueing delay that marks a link full; 0 = never
+    scale_rate_hz: float = setting(2.0, 'scale status rate', low=0, high=1000, low_open=True,
+                                   unit='Hz')
+    heartbeat_rate_hz: float = setting(4.0, "the master's heartbeats to each remote scale",
+                                       low=0, high=1000, low_open=True, unit='Hz')
+    heartbeat_misses_down: int = setting(3, 'missed heartbeats that make a link down', low=1,
+                                         high=1000)
+    probe_window_s: float = setting(2.0, "a probe's rate window", low=0, high=3600,
+                                    low_open=True, unit='s')
+    probe_publish_rate_hz: float = setting(2.0, 'connection status rate', low=0, high=1000,
+                                           low_open=True, unit='Hz')
+    bandwidth_probe_interval_s: float = setting(30.0, 'seconds between two routine probes',
+                                                low=0, high=86400, low_open=True, unit='s')
+    bandwidth_probe_duration_s: float = setting(0.5, 'length of one throughput probe', low=0,
+                                                high=60, low_open=True, unit='s')
+    bandwidth_probe_port: int = setting(47800, 'base port: scale i uses it + 1 + i', low=1,
+                                        high=65535)
+    congestion_delay_ms: float = setting(50.0, 'queueing delay that marks a link full; 0 = '
+                                               'never', low=0, high=60000, unit='ms')
 
 
 @dataclass(frozen=True)
 class AgentSettings:
-    sigint_grace_s: float = 5.0
-    sigterm_grace_s: float = 3.0
-    readiness_timeout_s: float = 15.0
-    lifecycle_timeout_s: float = 5.0      # a lifecycle transition not answered by then failed
-    restart_backoff_s: float = 1.0
-    restart_backoff_max_s: float = 30.0
-    heartbeat_rate_hz: float = 2.0
-    node_nice: int = 0                    # niceness added to every node the agent starts
+    sigint_grace_s: float = setting(5.0, 'SIGINT to SIGTERM', low=0, high=3600, unit='s')
+    sigterm_grace_s: float = setting(3.0, 'SIGTERM to SIGKILL', low=0, high=3600, unit='s')
+    readiness_timeout_s: float = setting(15.0, 'a started node not in the ROS graph by then '
+                                               'is reported not ready', low=0, high=3600,
+                                         low_open=True, unit='s')
+    lifecycle_timeout_s: float = setting(5.0, 'a lifecycle transition not answered by then '
+                                              'failed', low=0, high=3600, low_open=True,
+                                         unit='s')
+    restart_backoff_s: float = setting(1.0, 'first restart delay of a crash loop', low=0,
+                                       high=3600, unit='s')
+    restart_backoff_max_s: float = setting(30.0, 'its bound; a run this long resets it',
+                                           low=0, high=86400, unit='s')
+    heartbeat_rate_hz: float = setting(2.0, 'agent state report rate', low=0, high=1000,
+                                       low_open=True, unit='Hz')
+    node_nice: int = setting(0, 'niceness added to every node the agent starts (not to '
+                                'critical ones)', low=0, high=19)
     # The warden (agent/warden.py) stops this agent's nodes when the agent is gone this long
     # with no successor (restart_grace_s after it said it restarts in place), SIGKILL after
     # fence_grace_s: the bound within which a dead agent's nodes are gone.
-    adopt_grace_s: float = 5.0          # covers a supervisor's restart of the agent
-    restart_grace_s: float = 10.0
-    fence_grace_s: float = 0.5
+    adopt_grace_s: float = setting(5.0, 'a dead agent with no successor this long: its '
+                                        'warden stops its nodes', low=0, high=3600, unit='s')
+    restart_grace_s: float = setting(10.0, 'the same after the agent announced a restart in '
+                                           'place', low=0, high=3600, unit='s')
+    fence_grace_s: float = setting(0.5, 'SIGINT to SIGKILL of a fenced node', low=0, high=60,
+                                   unit='s')
     state_dir: str = ''                   # '' = ~/.ros/anyscale_manager
     log_dir: str = ''                     # '' = ~/.ros/log/anyscale_manager
 

@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Optional
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -31,7 +31,7 @@ from .. import protocol as p
 from .. import protocol_auth as auth
 from ..model.advice import UNSIGNED
 from ..model.loader import DeploymentError, load_from_parameters
-from ..model.types import HYSTERESIS_SCOPES, INITIAL_LAYOUTS, DeciderSettings, Deployment
+from ..model.types import DeciderSettings, Deployment
 from ..runtime.constraints import ConstraintReport
 from ..runtime.layout import LayoutError
 from ..runtime.rivals import RivalWatch
@@ -44,25 +44,9 @@ AGENT_STATE_QOS = qos.LATCHED_READER
 EVENTS_QOS = qos.EVENTS
 MONITOR_QOS = qos.MONITOR_READER
 
-# decider.* parameters a person may change while it runs: description and check.
-DESCRIPTIONS = {
-    'period_s': 'seconds between two turns of the migration loop (> 0)',
-    'cpu_headroom': 'usable fraction of the CPU capacity of a scale, in (0, 1]',
-    'bandwidth_margin': 'usable fraction of the available bandwidth of a link, in (0, 1]',
-    'observation_max_age_s': 'older observations count as missing; a silent link is down (> 0)',
-    'hysteresis_s': 'T: a node migrated back is not moved out again for this long (>= 0)',
-    'hysteresis_scope': 'scale: T bars only the scale a node came back from | node: any scale',
-    'grace_s': 'after a move, the connections of the moved node are not judged (>= 0)',
-    'agent_timeout_s': 'an agent silent this long loses its scale; its nodes move (> 0)',
-    'migration': 'false: never move a node out (the no-migration baseline)',
-    'initial_layout': 'master | problem1 | problem2 | explicit; read once, at start',
-}
-RANGES = {
-    'period_s': (0.0, 3600.0, True), 'cpu_headroom': (0.0, 1.0, True),
-    'bandwidth_margin': (0.0, 1.0, True), 'observation_max_age_s': (0.0, 3600.0, True),
-    'hysteresis_s': (0.0, 86400.0, False), 'grace_s': (0.0, 3600.0, False),
-    'agent_timeout_s': (0.0, 3600.0, True),
-}
+# decider.* parameters a person may change while it runs (model/types.py declares each once:
+# its meaning, range and unit).
+LIVE = {f.name: f.metadata for f in fields(DeciderSettings) if f.metadata.get('live')}
 
 
 class RivalDecider(Exception):
@@ -73,32 +57,45 @@ def settings_with(settings: DeciderSettings, changes: Dict[str, Any]) -> Decider
     """New decider settings from parameter changes; ValueError names the bad one."""
     values = {}
     for name, value in changes.items():
-        if name in RANGES:
-            low, high, low_open = RANGES[name]
+        meta = LIVE.get(name)
+        if meta is None:
+            raise ValueError(f'decider.{name}: cannot be changed while the decider runs')
+        check, default = meta['check'], getattr(DeciderSettings(), name)
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise ValueError(f'decider.{name}: expected true or false, got {value!r:.40}')
+        elif 'choices' in check:
+            if value not in check['choices']:
+                raise ValueError(f'decider.{name}: expected one of '
+                                 f'{", ".join(check["choices"])}, got {value!r:.40}')
+        else:
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
                     or not math.isfinite(value):
                 raise ValueError(f'decider.{name}: expected a number, got {value!r:.40}')
+            low, high, low_open = check['low'], check['high'], check.get('low_open', False)
             if (value <= low if low_open else value < low) or value > high:
                 raise ValueError(f'decider.{name}: {value} out of range '
                                  f'{"(" if low_open else "["}{low:g}, {high:g}]')
-            values[name] = float(value)
-        elif name == 'migration':
-            if not isinstance(value, bool):
-                raise ValueError(f'decider.migration: expected true or false, got {value!r:.40}')
-            values[name] = value
-        elif name == 'hysteresis_scope':
-            if value not in HYSTERESIS_SCOPES:
-                raise ValueError(f'decider.hysteresis_scope: expected one of '
-                                 f'{", ".join(HYSTERESIS_SCOPES)}, got {value!r:.40}')
-            values[name] = value
-        elif name == 'initial_layout':
-            if value not in INITIAL_LAYOUTS:
-                raise ValueError(f'decider.initial_layout: expected one of '
-                                 f'{", ".join(INITIAL_LAYOUTS)}, got {value!r:.40}')
-            values[name] = value
-        else:
-            raise ValueError(f'decider.{name}: cannot be changed while the decider runs')
+            value = float(value)
+        values[name] = value
     return replace(settings, **values)
+
+
+def describe(name: str) -> ParameterDescriptor:
+    """The ROS descriptor of a live decider setting: its meaning, unit and range."""
+    meta = LIVE[name]
+    check = meta['check']
+    text = meta['help'] + (f' ({check["unit"]})' if check.get('unit') else '')
+    descriptor = ParameterDescriptor(description=text, dynamic_typing=True)
+    if 'low' in check:
+        if check.get('low_open'):
+            text += f'; above {check["low"]:g}'
+            descriptor.description = text
+        descriptor.floating_point_range = [FloatingPointRange(
+            from_value=float(check['low']), to_value=float(check['high']), step=0.0)]
+    elif 'choices' in check:
+        descriptor.additional_constraints = 'one of ' + ', '.join(check['choices'])
+    return descriptor
 
 
 class DeciderNode(Node):
@@ -202,11 +199,10 @@ class DeciderNode(Node):
     # --- parameters ---------------------------------------------------------------------------
     def _declare_descriptors(self) -> None:
         for f in fields(DeciderSettings):
-            if f.name not in DESCRIPTIONS:
+            if f.name not in LIVE:
                 continue
             name = f'decider.{f.name}'
-            descriptor = ParameterDescriptor(description=DESCRIPTIONS[f.name],
-                                             dynamic_typing=True)
+            descriptor = describe(f.name)
             if self.has_parameter(name):
                 self.set_descriptor(name, descriptor)
             else:
