@@ -11,7 +11,7 @@ import yaml
 
 from anyscale_manager.model import DeploymentError, load_deployment, load_mapping
 from anyscale_manager.model import cli as validate
-from anyscale_manager.model.launch_check import launch_problems
+from anyscale_manager.agent.launch_check import launch_problems
 from conftest import CONFIG, TESTBED
 
 

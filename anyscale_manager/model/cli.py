@@ -5,7 +5,6 @@ import textwrap
 from typing import List, Tuple
 
 from .advice import single_machine, warnings
-from .launch_check import launch_problems
 from .loader import DeploymentError, did_you_mean, load_deployment
 from .types import Deployment
 from ..protocol_auth import KeyFileError, load_key
@@ -79,6 +78,9 @@ def summary(d: Deployment) -> str:
 def machine_check(d: Deployment, scale: str = '') -> Tuple[List[str], List[str]]:
     """(errors, warnings) about launches this machine cannot start; with ``scale``, the file is
     validated for that scale: its nodes' launches are errors, other nodes' are not looked at."""
+    # The command asks how an agent here would resolve each launch; the model itself knows
+    # nothing of agents.
+    from ..agent.launch_check import launch_problems
     errors, notes = [], []
     for node, problem in launch_problems(d).items():
         if not scale:

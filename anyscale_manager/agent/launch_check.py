@@ -1,15 +1,15 @@
 """Whether this machine can start each node: its launch resolved exactly as an agent here would.
 
-Not pure, unlike the rest of the model: it looks at the file system, the ament index and PATH of
-the machine it runs on. validate uses it; the agent resolves the same way when it starts
-(agent/catalogue.py), so what validate accepts is what the agent can start.
+It looks at the file system, the ament index and PATH of the machine it runs on. validate uses
+it; the agent resolves the same way when it starts (agent/catalogue.py), so what validate
+accepts is what the agent can start.
 """
 
 import os
 from typing import Callable, Dict, Mapping, Optional
 
-from . import types as t
-from ..agent.catalogue import build_argv
+from ..model import types as t
+from .catalogue import build_argv
 
 
 def launch_problems(d: t.Deployment, environ: Optional[Mapping[str, str]] = None,
