@@ -62,7 +62,9 @@ def main() -> int:
         if i == 0:
             check.gate = LayoutGate(key, 30.0)
         text = texts[i]
-        why = check.gate.check(text, protocol.Layout.from_json(text, 'bench'), time.time())
+        layout = protocol.Layout.from_json(text, 'bench')
+        # On the clock of its making: the bench runs longer than the replay window.
+        why = check.gate.check(text, layout, layout.stamp)
         if why:
             raise SystemExit(f'bench_auth: a sealed layout was refused: {why}')
 
