@@ -322,8 +322,11 @@ import socket, threading
 s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
 s.bind(("0.0.0.0", 5301)); s.listen(4)
 def drain(c):
-    while c.recv(65536):
-        pass
+    try:
+        while c.recv(65536):
+            pass
+    except OSError:
+        pass                 # the sender ends with a reset (SO_LINGER 0)
 while True:
     c, _ = s.accept(); threading.Thread(target=drain, args=(c,), daemon=True).start()
 '''

@@ -7,6 +7,7 @@ connection below freq_min", "how many moves". No rclpy here.
 
 import json
 import math
+import time
 from bisect import bisect_right
 from dataclasses import dataclass, field
 from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
@@ -45,6 +46,11 @@ class Record:
     link_status: List[Tuple[float, p.LinkStatus]] = field(default_factory=list)
     readings: Dict[str, List[Tuple[float, str, p.ConnectionReading]]] = \
         field(default_factory=dict)
+    # connection -> (when its scale published the reading, on this record's clock; scale): a
+    # reading repaired by DDS after a loss arrives late, but was sent when the probe still ran.
+    readings_sent: Dict[str, List[Tuple[float, str]]] = field(default_factory=dict)
+    # wall clock minus this record's (monotonic) clock: the machine's, shared by its namespaces
+    wall_offset: float = field(default_factory=lambda: time.time() - time.monotonic())
     events: List[Tuple[float, p.Event]] = field(default_factory=list)
     objectives: List[Tuple[float, p.Objective]] = field(default_factory=list)
     arrivals: Dict[str, List[float]] = field(default_factory=dict)
@@ -132,6 +138,8 @@ class Record:
             status = p.ConnectionStatus.from_json(data, topic)
             for name, reading in status.connections.items():
                 self.readings.setdefault(name, []).append((t, status.scale, reading))
+                self.readings_sent.setdefault(name, []).append(
+                    (min(t, status.stamp - self.wall_offset), status.scale))
         elif topic == p.TOPIC_EVENTS:
             self.events.append((t, p.Event.from_json(data, topic)))
         elif topic == p.TOPIC_OBJECTIVE:
