@@ -36,3 +36,11 @@ def test_find_names_nothing_for_a_file_the_package_does_not_ship():
     assert config_files.find('no_such_file.yaml') is None
     assert all(p.endswith(os.path.join('config', 'no_such_file.yaml'))
                for p in config_files.candidates('no_such_file.yaml'))
+
+
+def test_the_settings_table_in_the_docs_is_made_from_the_declarations():
+    """docs/configuration.md holds exactly what model/types.py declares (one home per fact):
+    after changing a setting, run python -m anyscale_manager.model.settings_doc --write."""
+    from anyscale_manager.model import settings_doc
+    assert settings_doc.current() == settings_doc.block(), \
+        'docs/configuration.md is stale: python -m anyscale_manager.model.settings_doc --write'

@@ -187,7 +187,8 @@ class DeciderSettings:
         20.0, "T: a node migrated back is not moved out again for this long (the paper's T)",
         low=0, high=86400, unit='s', live=True)
     hysteresis_scope: str = setting(
-        'scale', 'scale: T bars only the scale a node came back from | node: any scale',
+        'scale', 'scale: T bars only the scale a node came back from (another remote scale may '
+                 "take it at once); node: the paper's rule as written, T bars every move out",
         choices=HYSTERESIS_SCOPES, live=True)
     grace_s: float = setting(
         5.0, 'after a move, the connections of the moved node are not judged', low=0,
@@ -198,26 +199,31 @@ class DeciderSettings:
     migration: bool = setting(
         True, 'false: never move a node out (the no-migration baseline)', live=True)
     initial_layout: str = setting(
-        'master', 'master | problem1 | problem2 | explicit; read once, at start',
+        'master', 'the first layout: every node on the master, the IROS Problem 1 or 2 '
+                  'planner, or decider.layout; read once, at start',
         choices=INITIAL_LAYOUTS, live=True)
     layout: Mapping[str, str] = setting(
         None, 'node -> scale, the first layout when initial_layout is explicit',
         factory=frozen_map)
     lease_s: float = setting(
-        3.0, 'agents follow another decider after this silence of the one they follow',
+        3.0, 'the decider re-publishes its layout every lease_s / 3; agents follow another '
+             'decider only after this silence of the one they follow',
         low=0, high=600, low_open=True, unit='s')
     discovery_s: float = setting(
-        5.0, 'a starting decider listens this long for another one before it publishes',
+        5.0, 'a starting decider publishes nothing this long, and exits 2 naming another live '
+             'decider of the deployment if it hears one',
         low=0, high=600, low_open=True, unit='s')
 
 
 @dataclass(frozen=True)
 class SecuritySettings:
     key_file: str = setting(
-        '', 'absolute path of the deployment key; empty: messages unsigned (anyone on the '
-            'domain may send)')
+        '', 'absolute path of the deployment key (anyscale-manager keygen), the same on every '
+            'scale, mode 0600: every project message is then signed and receivers drop '
+            'unsigned, forged and replayed ones; empty: anyone on the domain can move nodes')
     replay_window_s: float = setting(
-        30.0, 'signed messages stamped further off this clock are refused', low=0, high=86400,
+        30.0, "signed messages stamped further than this from the receiver's clock are refused "
+              "(the scales' clocks must agree within it)", low=0, high=86400,
         low_open=True, unit='s')
 
 
@@ -227,8 +233,8 @@ class MonitorSettings:
                                    unit='Hz')
     heartbeat_rate_hz: float = setting(4.0, "the master's heartbeats to each remote scale",
                                        low=0, high=1000, low_open=True, unit='Hz')
-    heartbeat_misses_down: int = setting(3, 'missed heartbeats that make a link down', low=1,
-                                         high=1000)
+    heartbeat_misses_down: int = setting(3, 'a link is down after this many missed heartbeats '
+                                            '(BFD rule, docs/monitoring.md)', low=1, high=1000)
     probe_window_s: float = setting(2.0, "a probe's rate window", low=0, high=3600,
                                     low_open=True, unit='s')
     probe_publish_rate_hz: float = setting(2.0, 'connection status rate', low=0, high=1000,
@@ -239,24 +245,33 @@ class MonitorSettings:
                                                 high=60, low_open=True, unit='s')
     bandwidth_probe_port: int = setting(47800, 'base port: scale i uses it + 1 + i', low=1,
                                         high=65535)
-    congestion_delay_ms: float = setting(50.0, 'queueing delay that marks a link full; 0 = '
-                                               'never', low=0, high=60000, unit='ms')
+    congestion_delay_ms: float = setting(
+        50.0, 'heartbeat queueing delay (reached by 4 of the 5 beats of the last half second '
+              'at 10 Hz) at which a link looks full: never probed while so, and when its '
+              'crossing connections deliver below 90 % of their need its figure drops to 0.9 x '
+              'that need (docs/monitoring.md); 0 turns it off', low=0, high=60000, unit='ms')
 
 
 @dataclass(frozen=True)
 class AgentSettings:
-    sigint_grace_s: float = setting(5.0, 'SIGINT to SIGTERM', low=0, high=3600, unit='s')
-    sigterm_grace_s: float = setting(3.0, 'SIGTERM to SIGKILL', low=0, high=3600, unit='s')
+    sigint_grace_s: float = setting(5.0, 'stopping a node: SIGINT, then SIGTERM after this',
+                                    low=0, high=3600, unit='s')
+    sigterm_grace_s: float = setting(3.0, '... then SIGKILL after this', low=0, high=3600,
+                                     unit='s')
     readiness_timeout_s: float = setting(15.0, 'a started node not in the ROS graph by then '
-                                               'is reported not ready', low=0, high=3600,
-                                         low_open=True, unit='s')
-    lifecycle_timeout_s: float = setting(5.0, 'a lifecycle transition not answered by then '
-                                              'failed', low=0, high=3600, low_open=True,
-                                         unit='s')
-    restart_backoff_s: float = setting(1.0, 'first restart delay of a crash loop', low=0,
+                                               'is reported not ready; also the longest a '
+                                               'start_before_stop handover keeps the old copy',
+                                         low=0, high=3600, low_open=True, unit='s')
+    lifecycle_timeout_s: float = setting(5.0, 'a lifecycle transition not answered by then: '
+                                              'the agent checks with get_state, retries with '
+                                              'backoff (3 tries), then restarts the copy',
+                                         low=0, high=3600, low_open=True, unit='s')
+    restart_backoff_s: float = setting(1.0, 'a first crash (or the first after '
+                                            'restart_backoff_max_s of running) restarts at once; '
+                                            'a crash loop waits this, doubling', low=0,
                                        high=3600, unit='s')
-    restart_backoff_max_s: float = setting(30.0, 'its bound; a run this long resets it',
-                                           low=0, high=86400, unit='s')
+    restart_backoff_max_s: float = setting(30.0, 'the bound of that wait', low=0, high=86400,
+                                           unit='s')
     heartbeat_rate_hz: float = setting(2.0, 'agent state report rate', low=0, high=1000,
                                        low_open=True, unit='Hz')
     node_nice: int = setting(0, 'niceness added to every node the agent starts (not to '
@@ -270,8 +285,8 @@ class AgentSettings:
                                            'place', low=0, high=3600, unit='s')
     fence_grace_s: float = setting(0.5, 'SIGINT to SIGKILL of a fenced node', low=0, high=60,
                                    unit='s')
-    state_dir: str = ''                   # '' = ~/.ros/anyscale_manager
-    log_dir: str = ''                     # '' = ~/.ros/log/anyscale_manager
+    state_dir: str = setting('', 'the adoption state (empty: ~/.ros/anyscale_manager)')
+    log_dir: str = setting('', 'per-node logs (empty: ~/.ros/log/anyscale_manager)')
 
 
 @dataclass(frozen=True)
