@@ -57,7 +57,6 @@ import argparse
 import json
 import os
 import random
-import signal
 import statistics
 import subprocess
 import sys
@@ -67,6 +66,8 @@ import time
 import psutil
 import yaml
 from scales import SPIN, Listener, Loopback, Namespaces, choose, run_inside
+
+from anyscale_manager.agent.procs import stop_popen
 
 TALKER = r'''
 import os, sys
@@ -179,13 +180,7 @@ def start_agent(path, scale, tmp, place):
 
 def stop_process(proc, timeout_s=30.0):
     """SIGINT, then SIGKILL past ``timeout_s``."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        proc.wait(timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
+    stop_popen(proc, timeout_s, session=False)
 
 
 def tail(path, lines=15):

@@ -24,11 +24,12 @@ DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in the given dom
 import argparse
 import json
 import os
-import signal
 import statistics
 import subprocess
 import sys
 import time
+
+from anyscale_manager.agent.procs import stop_popen
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
@@ -77,14 +78,7 @@ def scale_remaps(scale):
 
 def stop(proc, timeout_s=10.0):
     """SIGINT, then SIGKILL past the deadline; the exit status."""
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    return proc.returncode
+    return stop_popen(proc, timeout_s)
 
 
 def plan(deployment, name):

@@ -23,6 +23,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
+from anyscale_manager.agent.procs import stop_popen
 from anyscale_manager.model.loader import load_deployment
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -42,13 +43,7 @@ def start_decider(params_file, ros_env, *extra):
 
 
 def stop(proc, timeout=10.0):
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(5)
+    stop_popen(proc, timeout)
     out = proc.stdout.read() if proc.stdout else ''
     return proc.returncode, out
 

@@ -1,9 +1,7 @@
 """The workload node: argument checks, message types and shapes, the output gate, CPU work, and
 real processes over DDS."""
 
-import os
 import re
-import signal
 import subprocess
 import sys
 import time
@@ -19,6 +17,7 @@ from rclpy.serialization import serialize_message
 from std_msgs.msg import UInt8MultiArray
 
 from anyscale_manager.agent.catalogue import LIFECYCLE_SERVICES, LIFECYCLE_TOPICS
+from anyscale_manager.agent.procs import stop_popen
 from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.model.types import (Connection, Deployment, Launch, MonitorSettings, Node,
                                           Scale)
@@ -277,14 +276,7 @@ def _start(python, env, *args):
 
 
 def _stop(proc, timeout=10.0):
-    if proc.poll() is None:
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-    return proc.returncode
+    return stop_popen(proc, timeout)
 
 
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,

@@ -170,16 +170,25 @@ def environ_value(pid: int, name: str, exec_wait_s: float = 0.0) -> Optional[str
 
 
 def stop_popen(proc: 'subprocess.Popen', sigint_grace_s: float,
-               sigterm_grace_s: float) -> Optional[int]:
-    """Stop a child started in a session of its own (``start_new_session=True``) as ROS expects:
-    SIGINT to its session, then SIGTERM after ``sigint_grace_s``, then SIGKILL after
-    ``sigterm_grace_s``; returns its exit status (None if even SIGKILL did not end it)."""
-    for sig, grace in ((signal.SIGINT, sigint_grace_s), (signal.SIGTERM, sigterm_grace_s),
-                       (signal.SIGKILL, 5.0)):
+               sigterm_grace_s: Optional[float] = None, *, session: bool = True,
+               kill_wait_s: float = 5.0) -> Optional[int]:
+    """Stop a child as ROS expects: SIGINT, then SIGTERM after ``sigint_grace_s`` (skipped when
+    ``sigterm_grace_s`` is None), then SIGKILL after ``sigterm_grace_s``; to its whole session
+    when it was started in one of its own (``start_new_session=True``), else to it alone.
+    Returns its exit status (None if even SIGKILL did not end it within ``kill_wait_s``). The
+    one escalation of the project: the agent, the test-bed, the benches and the tests use it."""
+    steps = [(signal.SIGINT, sigint_grace_s)]
+    if sigterm_grace_s is not None:
+        steps.append((signal.SIGTERM, sigterm_grace_s))
+    steps.append((signal.SIGKILL, kill_wait_s))
+    for sig, grace in steps:
         if proc.poll() is not None:
             break
         try:
-            os.killpg(proc.pid, sig)
+            if session:
+                os.killpg(proc.pid, sig)
+            else:
+                os.kill(proc.pid, sig)
         except ProcessLookupError:
             pass
         try:

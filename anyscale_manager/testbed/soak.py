@@ -25,6 +25,7 @@ import psutil
 import yaml
 
 from .. import protocol_auth
+from ..agent import procs
 from ..agent.catalogue import ENV_NODE, ENV_SCALE
 from ..agent.reconcile import HEAR_PATIENCE_S
 from ..runtime.constraints import required_kbps
@@ -699,17 +700,7 @@ class Soak:
 
 def _stop(popen: subprocess.Popen) -> None:
     """End a tool process of ours (SIGINT, then SIGKILL) and reap it."""
-    for sig, wait_s in ((signal.SIGINT, 5.0), (signal.SIGKILL, 5.0)):
-        if popen.poll() is not None:
-            return
-        try:
-            os.kill(popen.pid, sig)
-        except ProcessLookupError:
-            return
-        try:
-            popen.wait(timeout=wait_s)
-        except subprocess.TimeoutExpired:
-            continue
+    procs.stop_popen(popen, 5.0, session=False)
 
 
 def _last_json(path: str) -> Dict[str, object]:
