@@ -278,3 +278,15 @@ def test_standby_scales_are_every_allowed_scale_or_the_listed_ones():
                               't.yaml')
     assert only_robot.standby_scales('amcl') == ('robot',)
     assert only_robot.standby_scales('ar') == ('robot', 'laptop')
+
+
+def test_a_standby_node_without_a_lifecycle_is_said_with_every_other_problem():
+    """A node's own contradictions are reported at once, not once the rest of the file is
+    right: two masters (which stops the derived checks) and a standby plain node."""
+    data = mutate(lambda p: (p['nodes']['amcl'].update(lifecycle=False),
+                             p['scales']['laptop'].update(role='master')))
+    with pytest.raises(DeploymentError) as e:
+        load_mapping(data, 'two.yaml')
+    text = str(e.value)
+    assert 'expected exactly one scale with role master' in text
+    assert 'nodes.amcl.standby: a standby copy is an inactive lifecycle node' in text

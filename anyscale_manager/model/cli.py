@@ -119,7 +119,9 @@ def run(args) -> int:
             _print_problems(path, problems)
             continue
         if not args.quiet:
-            print(summary(d))
+            # Flushed before the warnings (stderr): on one terminal or pipe they follow it on
+            # lines of their own, never inside it.
+            print(summary(d), flush=True)
         for w in warnings(d) + notes:
             print(f'warning: {w}', file=sys.stderr)
     return 2 if failed else 0

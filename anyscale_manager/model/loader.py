@@ -542,6 +542,15 @@ def _cross_check(ctx: _Context, d: t.Deployment) -> None:
                                             f'joined by link {pairs[key]!r}')
         pairs.setdefault(key, link.name)
     for n in d.nodes:
+        # What a node's own fields contradict is said whatever else is wrong in the file.
+        lifecycle_read = not ctx.damaged(f'nodes.{n.name}.lifecycle')
+        if n.standby and not n.lifecycle and lifecycle_read:
+            ctx.error(f'nodes.{n.name}.standby', 'a standby copy is an inactive lifecycle node: '
+                                                 'set lifecycle: true (and make the node a '
+                                                 'lifecycle node, docs/lifecycle.md)')
+        if n.lifecycle and not n.managed:
+            ctx.error(f'nodes.{n.name}.lifecycle', 'only a node the agents start (managed) is '
+                                                   'driven through its lifecycle')
         for s in n.residence:
             if s not in scales:
                 _unknown(ctx, f'nodes.{n.name}.residence', 'scale', s, scales)
@@ -630,13 +639,6 @@ def _derived_checks(ctx: _Context, d: t.Deployment) -> None:
             ctx.error(f'nodes.{n.name}.standby', 'a standby copy is kept only for a migratable '
                                                  f'node, and this node cannot migrate: '
                                                  f'{d.why_not_migratable(n.name)}')
-        elif n.standby and not n.lifecycle and not unread:
-            ctx.error(f'nodes.{n.name}.standby', 'a standby copy is an inactive lifecycle node: '
-                                                 'set lifecycle: true (and make the node a '
-                                                 'lifecycle node, docs/lifecycle.md)')
-        if n.lifecycle and not n.managed:
-            ctx.error(f'nodes.{n.name}.lifecycle', 'only a node the agents start (managed) is '
-                                                   'driven through its lifecycle')
         for i, scale in enumerate(n.standby_on):
             if scale not in d.scale_names:
                 ctx.error(f'nodes.{n.name}.standby[{i}]',

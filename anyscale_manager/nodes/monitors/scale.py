@@ -124,9 +124,14 @@ class ScaleMonitor:
         self.last: Optional[p.ScaleStatus] = None
         self._sample()     # prime every counter now, so the first tick already has a reading
         self._timer = node.create_timer(period, self._tick, callback_group=self._group)
+        # What this process can use against what the file declares, said apart: a machine (or
+        # quota) of 2 CPUs running a scale declared with 1 core is not an error, but worth seeing.
+        declared = self._scale.cores
         node.get_logger().info(
-            f'scale monitor for {self._scale.name}: {self._system.cores:g} CPUs worth '
-            f'{self._scale.capacity_cpu:g} reference-core percent, from {self._system.source}')
+            f'scale monitor for {self._scale.name}: measures {self._system.cores:g} CPUs here '
+            f'({self._system.source}); the deployment declares {declared} core'
+            f'{"s" if declared != 1 else ""} and a capacity of {self._scale.capacity_cpu:g} '
+            'reference-core percent, which the decider judges against')
 
     def _choose_source(self) -> None:
         """Single-machine mode or not, from the other agents' reports; said when it changes."""
