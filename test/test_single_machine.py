@@ -281,7 +281,9 @@ def write_deployment(tmp_path):
     return ha.write_deployment(
         tmp_path, f'single_machine_{os.getpid()}', graph, capacity_cpu=CAPACITY,
         link_kbps=NOMINAL_KBPS,
-        decider={'cpu_headroom': HEADROOM, 'agent_timeout_s': 4.0},
+        # A grace long enough for the moved worker's own start (a Python process: about a core
+        # for a second or more here) to pass before its scale's CPU is judged.
+        decider={'cpu_headroom': HEADROOM, 'agent_timeout_s': 4.0, 'grace_s': 4.0},
         monitoring={'bandwidth_probe_duration_s': 0.3}, port_offset=13)
 
 

@@ -418,7 +418,12 @@ class MigrationPolicy:
                     and where != v.subject]
             recent = [n for n, t in self.last_move.items() if n not in migrated
                       and obs.now - t < self.settings.grace_s]
-            if not left and not recent and not any(n in taken for n in culprits):
+            # Nor within the grace period of a node's arrival there: a process starting (a
+            # Python node: about a core for a second) is not the load it will be.
+            settling = [n for n in culprits
+                        if obs.now - self.last_move.get(n, -math.inf) < self.settings.grace_s]
+            if not left and not recent and not settling \
+                    and not any(n in taken for n in culprits):
                 back(culprits[0], v.reason + f'; {culprits[0]} was the last moved there')
         # do ... while required_BW > network_BW: pick, among the migrated nodes crossing an
         # overloaded link, the one whose return frees the most bandwidth on it (ties: the most
