@@ -79,9 +79,15 @@ def test_the_status_view_with_a_key_shows_only_what_is_signed(testbed_path):
     book = StatusBook(deployment, key=KEY)
     sealer = auth.Sealer(KEY, 'agent laptop')
     topic, good = messages(now)[0]
-    book.take(topic, sealer.seal(good), 0.0)
+    text = sealer.seal(good)
+    book.take(topic, text, 0.0, wall=now)
     _, forged = messages(now)[0]
     forged.scale, forged.cpu_total = 'robot', 999.0
-    book.take(topic, forged.to_json(), 0.0)               # unsigned
-    assert set(book.scales) == {'laptop'} and book.refused == 1
-    assert '1 message(s) refused: unsigned, forged or replayed' in render(book, 0.0)
+    book.take(topic, forged.to_json(), 0.0, wall=now)     # unsigned
+    book.take(topic, text, 0.0, wall=now)                 # replayed
+    assert set(book.scales) == {'laptop'} and book.refused == 2
+    # A signed message judged on a clock a minute later is outside the replay window.
+    late = StatusBook(deployment, key=KEY)
+    late.take(topic, sealer.seal(messages(now)[0][1]), 0.0, wall=now + 60.0)
+    assert not late.scales and late.refused == 1
+    assert '2 message(s) refused: unsigned, forged or replayed' in render(book, 0.0)

@@ -86,11 +86,10 @@ def describe(name: str) -> ParameterDescriptor:
     meta = LIVE[name]
     check = meta['check']
     text = meta['help'] + (f' ({check["unit"]})' if check.get('unit') else '')
+    if check.get('low_open'):
+        text += f'; above {check["low"]:g}'
     descriptor = ParameterDescriptor(description=text, dynamic_typing=True)
     if 'low' in check:
-        if check.get('low_open'):
-            text += f'; above {check["low"]:g}'
-            descriptor.description = text
         descriptor.floating_point_range = [FloatingPointRange(
             from_value=float(check['low']), to_value=float(check['high']), step=0.0)]
     elif 'choices' in check:

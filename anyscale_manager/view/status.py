@@ -89,11 +89,14 @@ class StatusBook:
     key: Optional[bytes] = None
     refused: int = 0
     _gates: Dict[str, auth.Gate] = field(default_factory=dict)
+    _wall: float = 0.0
 
-    def take(self, topic: str, text: str, now: float) -> None:
+    def take(self, topic: str, text: str, now: float, wall: Optional[float] = None) -> None:
         """Decode one message of ``topic``; malformed ones are counted and dropped, and so are
         those about scales or connections the deployment does not have (another deployment on
-        the domain; and names from senders never grow the book)."""
+        the domain; and names from senders never grow the book). ``wall``: the wall clock a
+        signed message's stamp is judged against (with a key; default: this machine's)."""
+        self._wall = time.time() if wall is None else wall
         scales = self.deployment.scale_names
         try:
             if topic == p.TOPIC_LAYOUT:
@@ -134,7 +137,7 @@ class StatusBook:
         """Without a key, everything; with one, what its topic's gate lets through."""
         if self.key is None:
             return True
-        wall = time.time()
+        wall = self._wall
         if topic == p.TOPIC_LAYOUT:
             gate = self._gates.setdefault(topic, auth.LayoutGate(self.key))
             why = gate.check(text, message, wall)
