@@ -5,6 +5,7 @@ import importlib
 import os
 import sys
 from typing import List, Optional
+from .interrupt import restore_ctrl_c
 
 # name -> (module with add_arguments(parser) and run(args) -> int, one-line help)
 SUBCOMMANDS = {
@@ -37,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    restore_ctrl_c()
     args = build_parser().parse_args(argv)
     missing = getattr(args, '_missing', None)
     if missing:

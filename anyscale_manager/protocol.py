@@ -25,6 +25,7 @@ TOPIC_CONNECTION_STATUS = PREFIX + '/connection_status'  # probes (in each agent
 TOPIC_EVENTS = PREFIX + '/events'                  # decider decisions with reasons
 TOPIC_OBJECTIVE = PREFIX + '/objective'            # decider cost function
 TOPIC_PLAN_CHECK = PREFIX + '/plan_check'          # decider plan-against-reality report
+TOPIC_DECIDER = PREFIX + '/decider'                # deciders' beats: leader and standbys
 TOPIC_DIAGNOSTICS = '/diagnostics'
 
 MAX_PAYLOAD_BYTES = 1 << 20
@@ -203,6 +204,11 @@ def _names_ok(mapping: Mapping[str, Any], where: str, what: str) -> None:
             raise ProtocolError(f'{where}: bad {what} name {key!r:.60}')
 
 
+def _term_ok(term: Optional[int], where: str) -> None:
+    if term is not None and not 0 <= term <= MAX_GENERATION:
+        raise ProtocolError(f'{where}.term: must be in [0, 2**53]')
+
+
 @dataclass
 class DeciderIdentity(Message):
     """Who publishes a layout: one decider process (a random id drawn at its start)."""
@@ -226,9 +232,10 @@ class DeciderIdentity(Message):
 class Layout(Message):
     """The desired layout: node -> scale for every managed node, with a generation number.
 
-    ``decider`` names the decider that publishes it (absent from older deciders), ``seq``
-    counts that decider's layout messages (re-publications included), and ``auth`` is the
-    HMAC of the rest when the deployment has a key (protocol_auth).
+    ``decider`` names the decider that publishes it (absent from older deciders), ``term`` is
+    its leadership term (the fence: agents refuse a lower one than they follow; absent: 0),
+    ``seq`` counts that decider's layout messages (re-publications included), and ``auth`` is
+    the HMAC of the rest when the deployment has a key (protocol_auth).
     """
 
     generation: int
@@ -239,9 +246,10 @@ class Layout(Message):
     decider: Optional[DeciderIdentity] = None
     seq: Optional[int] = None
     auth: Optional[str] = None
+    term: Optional[int] = None
     SCHEMA = {'generation': int, 'deployment': str, 'assignments': ('map', str),
               'reason': str, 'stamp': float, 'decider': ('optional', DeciderIdentity),
-              'seq': ('optional', int), 'auth': ('optional', str)}
+              'seq': ('optional', int), 'auth': ('optional', str), 'term': ('optional', int)}
 
     def validate(self, where: str) -> None:
         if self.generation < 0:
@@ -249,12 +257,13 @@ class Layout(Message):
         if self.generation > MAX_GENERATION:
             raise ProtocolError(f'{where}.generation: {self.generation:.3g} is beyond the '
                                 f'bound 2**53 (no decider counts that far)')
+        _term_ok(self.term, where)
         _signed_fields_ok(self, where)
         _names_ok(self.assignments, where + '.assignments', 'node')
 
     def to_dict(self) -> Dict[str, Any]:
         out = asdict(self)
-        for key in ('decider', 'seq', 'auth'):
+        for key in ('decider', 'seq', 'auth', 'term'):
             if out[key] is None:
                 del out[key]    # an older agent's strict decoder still reads it
         return out
@@ -296,14 +305,17 @@ class AgentState(Message):
     # runtime/hosts.py); host is its host name, for people.
     host_id: Optional[str] = None
     host: Optional[str] = None
+    term: Optional[int] = None        # the leadership term of the decider it follows
     SCHEMA = {'scale': str, 'generation': int, 'stamp': float, 'nodes': ('map', NodeReport),
               'decider': ('optional', str), 'instance': ('optional', str),
               'seq': ('optional', int), 'auth': ('optional', str),
-              'host_id': ('optional', str), 'host': ('optional', str)}
+              'host_id': ('optional', str), 'host': ('optional', str),
+              'term': ('optional', int)}
 
     def validate(self, where: str) -> None:
         if abs(self.generation) > MAX_GENERATION:
             raise ProtocolError(f'{where}.generation: beyond the bound 2**53')
+        _term_ok(self.term, where)
         _signed_fields_ok(self, where)
         for key in ('host_id', 'host'):
             value = getattr(self, key)
@@ -313,7 +325,7 @@ class AgentState(Message):
     def to_dict(self) -> Dict[str, Any]:
         out = {'scale': self.scale, 'generation': self.generation, 'stamp': self.stamp,
                'nodes': {k: asdict(v) for k, v in self.nodes.items()}}
-        for key in ('decider', 'instance', 'seq', 'auth', 'host_id', 'host'):
+        for key in ('decider', 'instance', 'seq', 'auth', 'host_id', 'host', 'term'):
             if getattr(self, key) is not None:
                 out[key] = getattr(self, key)
         return out
@@ -462,6 +474,40 @@ class Event(Message):
         return _without_unsigned(asdict(self), self)
 
 
+DECIDER_ROLES = ('leader', 'standby')
+
+
+@dataclass
+class DeciderBeat(Message):
+    """A decider's beat on /anyscale/decider, every ``decider.beat_s``: who it is, whether it
+    leads or stands by, its term and the generation it leads at (runtime/leadership.py)."""
+
+    stamp: float
+    deployment: str
+    decider: DeciderIdentity
+    role: str
+    term: int
+    generation: int
+    sender: Optional[str] = None
+    seq: Optional[int] = None
+    auth: Optional[str] = None
+    SCHEMA = {'stamp': float, 'deployment': str, 'decider': DeciderIdentity, 'role': str,
+              'term': int, 'generation': int, **SIGNED_SCHEMA}
+
+    def validate(self, where: str) -> None:
+        if self.role not in DECIDER_ROLES:
+            raise ProtocolError(f'{where}.role: expected one of {", ".join(DECIDER_ROLES)}, '
+                                f'got {self.role!r:.40}')
+        _term_ok(self.term, where)
+        if not 0 <= self.generation <= MAX_GENERATION:
+            raise ProtocolError(f'{where}.generation: must be in [0, 2**53]')
+        _sender_ok(self, where)
+
+    def to_dict(self) -> Dict[str, Any]:
+        out = asdict(self)
+        return _without_unsigned(out, self)
+
+
 @dataclass
 class Objective(Message):
     """The ICAR cost function: Perf_map now, and its integral over the run."""
@@ -521,7 +567,8 @@ class PlanCheck(Message):
 
 
 __all__ = [
-    'AgentState', 'ConnectionReading', 'ConnectionStatus', 'DeciderIdentity', 'ERROR', 'Event',
+    'AgentState', 'ConnectionReading', 'ConnectionStatus', 'DeciderBeat', 'DeciderIdentity',
+    'ERROR', 'Event',
     'Layout', 'LinkStatus', 'MAX_GENERATION', 'MAX_GENERATION_STEP', 'Message', 'NodeReport', 'OK',
     'Objective', 'PlanCheck', 'PlanNode', 'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
 ]

@@ -1,9 +1,10 @@
 """Faults of a node or an agent, judged at a consumer of our own: failover of a crashed
 lifecycle node to its standby copy, a plain node restarted in place, agents restarted in place
-(SIGHUP), a remote agent SIGKILLed (fencing).
+(SIGHUP), a remote agent SIGKILLed (fencing), the leading decider SIGKILLed beside a standby.
 
     python bench/bench_failover.py [--kills 20] [--in-place-kills 10] [--hups 10]
-                                   [--agent-kills 10] [--rate-hz 20] [--domain-id N]
+                                   [--agent-kills 10] [--decider-kills 20] [--rate-hz 20]
+                                   [--domain-id N]
 
 Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
 beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
@@ -22,6 +23,10 @@ copy on both scales) -> pinned (home, a plain workload), every output at --rate-
 - SIGKILL of the away agent while the worker serves there, --agent-kills times (a new agent is
   started after each): the time until its worker process is gone (its warden's fencing), how
   long the old and the new copy were both heard, and the longest gap.
+- SIGKILL of the leading decider while a second one stands by, --decider-kills times (the killed
+  one is started again and stands by before the next): the time until the first layout of the
+  other decider arrives here, the moves and node restarts it caused, and the longest gap on the
+  worker's output.
 Prints one line per fault, then p50/p95/max of each figure.
 """
 
@@ -107,6 +112,8 @@ def main() -> int:
     ap.add_argument('--hups', type=int, default=10, help='SIGHUPs of each agent')
     ap.add_argument('--agent-kills', type=int, default=10,
                     help='SIGKILLs of the remote agent while the worker serves there')
+    ap.add_argument('--decider-kills', type=int, default=20,
+                    help='SIGKILLs of the leading decider with a standby running')
     ap.add_argument('--rate-hz', type=float, default=20.0)
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '44')))
     args = ap.parse_args()
@@ -126,7 +133,7 @@ def main() -> int:
     node = rclpy.create_node('bench_failover_consumer')
     lock = threading.Lock()
     heard = {'/w': [], '/p': []}      # arrival times
-    states, events, links = {}, [], []
+    states, events, links, layouts, beats = {}, [], [], [], {}
 
     def keep(suffix):
         def take(_raw):
@@ -149,6 +156,16 @@ def main() -> int:
                              lambda m: links.append((time.monotonic(),
                                                      p.LinkStatus.from_json(m.data))),
                              qos.MONITOR_READER)
+    node.create_subscription(String, p.TOPIC_LAYOUT,
+                             lambda m: layouts.append((time.monotonic(),
+                                                       p.Layout.from_json(m.data))),
+                             qos.LATCHED_READER)
+
+    def beat(m):
+        b = p.DeciderBeat.from_json(m.data)
+        with lock:
+            beats[b.decider.pid] = (time.monotonic(), b.role)
+    node.create_subscription(String, p.TOPIC_DECIDER, beat, qos.BEAT)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     stop = threading.Event()
@@ -205,6 +222,7 @@ def main() -> int:
         failover, in_place = [], []
         hups = {'home': [], 'away': []}      # (moves, restarts, links down, longest gap)
         fenced, overlap, agent_gap = [], [], []
+        takeover, takeover_moves, takeover_gap = [], 0, []
         try:
             start('agent', '-p', 'scale:=home')
             start('agent', '-p', 'scale:=away')
@@ -298,6 +316,45 @@ def main() -> int:
                 print(f'agent kill {k + 1:2}: its worker stopped {t_fenced - t0:.2f} s after, '
                       f'longest gap {gap:.3f} s', flush=True)
                 agents['away'] = start('agent', '-p', 'scale:=away')
+            deciders = [procs[2]]
+            if args.decider_kills:
+                deciders.append(start('decider'))
+
+            def role(proc, wanted):
+                with lock:
+                    t, r = beats.get(proc.pid, (0.0, ''))
+                return r == wanted and time.monotonic() - t < 1.0
+            for k in range(args.decider_kills):
+                leader = wait(lambda: next((d for d in deciders if role(d, 'leader')), None),
+                              30.0, 'a leading decider')
+                other = wait(lambda: next((d for d in deciders if d is not leader
+                                           and role(d, 'standby')), None), 30.0,
+                             'a standby decider')
+                steady('/w', 1.0)
+                with lock:
+                    restarts = {s: {n: r.restarts for n, r in st.nodes.items()}
+                                for s, st in states.items()}
+                t0 = time.monotonic()
+                leader.kill()
+                leader.wait()
+                t_new = wait(lambda: next((t for t, lay in list(layouts) if t > t0
+                                           and lay.decider and lay.decider.pid == other.pid),
+                                          None), 10.0, "the standby's first layout")
+                steady('/w', 1.0)
+                t1 = time.monotonic()
+                with lock:
+                    moved = sum(1 for t, e in events if t0 <= t <= t1 and e.kind in
+                                ('migrate', 'migrate_back', 'relocate', 'failover'))
+                    again = sum(r.restarts - restarts.get(s, {}).get(n, r.restarts)
+                                for s, st in states.items() for n, r in st.nodes.items())
+                gap = judge('/w', t0, t1)
+                takeover.append(t_new - t0)
+                takeover_moves += moved + again
+                takeover_gap.append(gap)
+                print(f'decider kill {k + 1:2}: first layout of the standby after '
+                      f'{t_new - t0:.3f} s, moves {moved}, node restarts {again}, longest gap '
+                      f'{gap:.3f} s', flush=True)
+                deciders = [other, start('decider')]
         finally:
             for proc in reversed(procs):
                 stop_popen(proc, 5.0, 5.0)
@@ -317,6 +374,10 @@ def main() -> int:
     if fenced:
         print(f'remote agent SIGKILLed: its worker stopped after {stats(fenced)}; two senders '
               f'heard at once {stats(overlap)}; longest gap {stats(agent_gap)}')
+    if takeover:
+        print(f'leading decider SIGKILLed with a standby: its first layout after '
+              f'{stats(takeover)}; moves and node restarts {takeover_moves}; longest gap '
+              f'{stats(takeover_gap)}')
     return 0
 
 

@@ -2,6 +2,7 @@
 
 import os
 import random
+import signal
 import sys
 
 import pytest
@@ -15,6 +16,13 @@ if 'ANYSCALE_TEST_DOMAIN_ID' not in os.environ:
     os.environ['ANYSCALE_TEST_DOMAIN_ID'] = str(random.SystemRandom().randint(1, 100))
 os.environ['ROS_DOMAIN_ID'] = os.environ['ANYSCALE_TEST_DOMAIN_ID']
 os.environ.setdefault('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+
+# A run started in the background of a non-interactive shell (``bash .ci/run &``, some CI
+# runners) inherits SIGINT ignored, and so would every process the tests start: Ctrl-C, the
+# way the tests stop a program, would then do nothing to a plain Python one. Python restores
+# its Ctrl-C only where SIGINT was not ignored; restore it here, so children start with it.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = os.path.join(REPO, 'config')

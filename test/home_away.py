@@ -140,7 +140,7 @@ def listening(name):
 
     def diagnostics(m):
         for status in m.status:
-            if status.name.startswith('anyscale_decider'):
+            if status.name.startswith('anyscale_decider:'):
                 seen['diagnostics'] = {kv.key: kv.value for kv in status.values}
                 seen['diagnostics']['message'] = status.message
     node.create_subscription(String, p.TOPIC_LAYOUT,

@@ -1,5 +1,6 @@
 """One decider, signed layouts (pure): key files, canonical form, HMAC, replay window, the
-agents' follow rule, the deciders' rival rule and the generation bounds. No ROS."""
+agents' follow rule (lease and term fence) and the generation bounds. No ROS. The deciders'
+leadership rule: test_leadership.py."""
 
 import json
 import os
@@ -17,7 +18,6 @@ from anyscale_manager.agent.reconcile import Reconciler
 from anyscale_manager.protocol import MAX_GENERATION_STEP
 from anyscale_manager.model.advice import warnings
 from anyscale_manager.model.loader import DeploymentError, load_deployment, load_mapping
-from anyscale_manager.runtime.rivals import older, RivalWatch
 from conftest import TESTBED
 
 KEY = bytes(range(32))
@@ -156,14 +156,36 @@ def test_an_agent_follows_one_decider_and_switches_only_after_its_lease():
     v = f.consider(ident('a'), 0.0)
     assert v.accept and v.switched and 'following decider a' in v.reason
     assert f.consider(ident('a'), 1.0) == (True, False, '') or f.consider(ident('a'), 1.0).accept
-    v = f.consider(ident('b', started=50.0), 2.0)
-    assert not v.accept and 'following a (host robot, pid 1), heard 1.0 s ago' in v.reason
+    v = f.consider(ident('b', started=150.0), 2.0)
+    assert not v.accept and 'following a (host robot, pid 1) (term 0), heard 1.0 s ago' \
+        in v.reason
     v = f.consider(None, 3.5)                              # a plain script: refused as well
     assert not v.accept and 'without identity' in v.reason
-    v = f.consider(ident('b'), 4.0)                        # a silent for 3 s: lease lapsed
+    v = f.consider(ident('b', started=150.0), 4.0)        # a silent for 3 s: lease lapsed
     assert v.accept and v.switched and 'silent for 3.0 s' in v.reason
     assert f.followed_id == 'b'
     assert not f.consider(ident('a'), 4.5).accept          # and a back: refused now
+
+
+def test_a_higher_term_is_followed_at_once_and_a_lower_one_refused_while_the_lease_holds():
+    f = Follower(lease_s=3.0)
+    assert f.consider(ident('a'), 0.0, term=4).accept and f.term == 4
+    # The standby that took over: a higher term, followed at once (no lease to wait out).
+    v = f.consider(ident('b', started=150.0), 0.5, term=5)
+    assert v.accept and v.switched and 'leads at term 5, above term 4' in v.reason
+    assert (f.followed_id, f.term) == ('b', 5)
+    # The old leader back from a stall: its term is lower, refused whatever it says.
+    v = f.consider(ident('a'), 0.6, term=4)
+    assert not v.accept and '(term 4) ignored: following b' in v.reason
+    assert f.consider(ident('b', started=150.0), 1.0, term=5).accept
+    # Two that took the lead together at one term: the one started first, on both sides.
+    v = f.consider(ident('c', started=120.0), 1.1, term=5)
+    assert v.accept and v.switched and 'started before it' in v.reason
+    assert not f.consider(ident('b', started=150.0), 1.2, term=5).accept
+    # A lone decider restarted with no memory of terms: followed once c's lease lapsed.
+    assert not f.consider(ident('d', started=900.0), 2.0, term=1).accept
+    v = f.consider(ident('d', started=900.0), 4.2, term=1)
+    assert v.accept and v.switched and 'silent for 3.1 s' in v.reason and f.term == 1
 
 
 def test_without_identities_the_anonymous_decider_is_followed_as_before():
@@ -171,37 +193,6 @@ def test_without_identities_the_anonymous_decider_is_followed_as_before():
     assert f.consider(None, 0.0).switched
     assert f.consider(None, 100.0) == (True, False, '') or f.consider(None, 100.0).accept
     assert f.followed_id == ''
-
-
-# --- the deciders' rule -----------------------------------------------------------------------
-
-def test_a_starting_decider_stops_on_a_live_rival_only():
-    me = ident('me', started=200.0)
-    w = RivalWatch(me, lease_s=3.0)
-    assert w.must_stop(0.0, 1000.0, started=False) is None
-    w.heard(me, 1, 1000.0, 0.0)                           # our own messages do not count
-    assert w.must_stop(0.0, 1000.0, started=False) is None
-    # A frozen decider's latched layout: stamped long ago, and nothing newer comes.
-    w.heard(ident('old', started=10.0), 40, 900.0, 0.5)
-    assert w.must_stop(0.5, 1000.0, started=False) is None
-    # It publishes again while we listen: live.
-    w.heard(ident('old', started=10.0), 41, 900.0, 1.0)
-    why = w.must_stop(1.0, 1000.0, started=False)
-    assert 'another decider of this deployment is live: old (host robot, pid 1)' in why
-    assert w.must_stop(4.5, 1000.0, started=False) is None      # silent for a lease: gone
-
-
-def test_of_two_publishing_deciders_the_first_started_keeps_the_deployment():
-    first, second = ident('f', started=100.0), ident('s', started=105.0)
-    assert older(first, second) and not older(second, first)
-    assert older(ident('a', 100.0), ident('b', 100.0))          # a tie: by id, both agree
-    w1, w2 = RivalWatch(first, 3.0), RivalWatch(second, 3.0)
-    w1.heard(second, 1, 1000.0, 0.0)
-    w2.heard(first, 9, 1000.0, 0.0)
-    assert w1.must_stop(0.1, 1000.1, started=True) is None
-    assert w1.younger(0.1, 1000.1) == [second]
-    why = w2.must_stop(0.1, 1000.1, started=True)
-    assert 'f (host robot, pid 1)' in why and 'this one stops' in why
 
 
 # --- generations ------------------------------------------------------------------------------

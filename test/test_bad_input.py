@@ -41,6 +41,7 @@ DECODERS = {
     p.TOPIC_SCALE_STATUS: p.ScaleStatus, p.TOPIC_LINK_STATUS: p.LinkStatus,
     p.TOPIC_CONNECTION_STATUS: p.ConnectionStatus, p.TOPIC_EVENTS: p.Event,
     p.TOPIC_OBJECTIVE: p.Objective, p.TOPIC_PLAN_CHECK: p.PlanCheck,
+    p.TOPIC_DECIDER: p.DeciderBeat,
 }
 VALID = {type(m): m for m in sample_messages()}
 

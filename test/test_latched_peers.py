@@ -108,10 +108,10 @@ def test_a_deciding_decider_hears_every_rivals_layout_landing_together(tmp_path)
         executor = make_executor(decider_ctx)
         executor.add_node(decider)
         end = time.monotonic() + DEADLINE_S
-        while time.monotonic() < end and not decider.publishing:
+        while time.monotonic() < end and decider.lead.role != 'leader':
             executor.spin_once(timeout_sec=0.05)
-        assert decider.publishing, 'the decider never started deciding'
-        # Two rival deciders of this deployment, started after it (they are the ones to stop),
+        assert decider.lead.role == 'leader', 'the decider never started leading'
+        # Two other deciders of this deployment, started after it (at its term they yield),
         # each with its own latched writer, publish while nothing spins the decider.
         writers = [rivals.create_publisher(String, p.TOPIC_LAYOUT, qos.LATCHED) for _ in (1, 2)]
         while time.monotonic() < end and not all(w.get_subscription_count() for w in writers):
@@ -128,14 +128,14 @@ def test_a_deciding_decider_hears_every_rivals_layout_landing_together(tmp_path)
         seen = set()
 
         def heard():
-            seen.update(r.id for r in decider.rivals.younger(time.monotonic(), time.time()))
+            seen.update(decider.lead.peers)
             return seen
 
         while time.monotonic() < end and heard() != {'rival-1', 'rival-2'}:
             executor.spin_once(timeout_sec=0.05)
         assert heard() == {'rival-1', 'rival-2'}, (
             f'the decider heard only {sorted(heard())} of the two latched layouts '
-            f'({decider._layouts_heard} layouts taken, {decider._rejected} refused)')
+            f'({len(decider._layouts)} layouts kept, {decider._rejected} refused)')
     finally:
         if executor is not None:
             executor.shutdown()

@@ -554,8 +554,11 @@ def test_sigint_ends_the_watch_early_and_writes(workloads, tmp_path):
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines = []
     try:
+        # Three seconds of progress, the last with every node seen (discovery on a loaded
+        # machine may take longer than the first progress lines).
         deadline = time.monotonic() + 30.0
-        while time.monotonic() < deadline and len(lines) < 3:
+        while time.monotonic() < deadline and not (
+                len(lines) >= 3 and f': {len(GRAPH)} nodes' in lines[-1]):
             line = proc.stderr.readline()
             if not line:
                 break

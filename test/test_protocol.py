@@ -20,6 +20,7 @@ def sample_messages():
         p.Objective(1.0, 225.0, 1000.0, 10.0),
         p.PlanCheck(1.0, {'amcl_1': p.PlanNode(2.5, 2.4, 50.0, 48.0, -0.04)}, -0.04,
                     {'c1': 1.2}),
+        p.DeciderBeat(1.0, 'd', p.DeciderIdentity('ab12', 'robot', 7, 100.0), 'leader', 3, 9),
     ]
 
 

@@ -350,7 +350,7 @@ def test_a_load_outside_both_scales_moves_nothing_back(tmp_path, ros_env, listen
             recent = [s for t, s in seen['scales'] if s.scale == 'away' and t > moved + 1.5][-3:]
             return len(recent) == 3 and all(s.cpu_source == 'processes'
                                             and s.cpu_total < usable for s in recent)
-        wait(ex, settled, 30.0, "three readings of away below its usable CPU after the "
+        wait(ex, settled, 30.0, 'three readings of away below its usable CPU after the '
              "worker's start", procs)
         # A busy process of this test's own, on neither scale.
         layouts, events = len(seen['layouts']), len(seen['events'])

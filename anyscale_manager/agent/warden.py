@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, List, Optional, Tuple
 
 from .. import protocol_auth as auth
+from ..interrupt import restore_ctrl_c
 
 ALIVE, RESTARTING, GONE, FENCED = 'alive', 'restarting', 'gone', 'fenced'
 AGENT_STATES = (ALIVE, RESTARTING, GONE, FENCED)
@@ -352,6 +353,7 @@ def spawn(state_path: str, scale: str, deployment: str, host: str, port: int,
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    restore_ctrl_c()
     ap = argparse.ArgumentParser(prog='anyscale_manager.agent.warden',
                                  description=__doc__.split('\n')[0])
     ap.add_argument('--state', required=True, help="the agent's state file")

@@ -574,6 +574,11 @@ def _cross_check(ctx: _Context, d: t.Deployment) -> None:
             _unknown(ctx, f'decider.layout.{node}', 'scale', scale, scales)
     if d.decider.initial_layout == 'explicit' and not layout:
         ctx.error('decider.layout', 'initial_layout is explicit but no layout is given')
+    beat, takeover = d.decider.beat_s, d.decider.takeover_s
+    if takeover < 3 * beat and not any(ctx.damaged(f'decider.{k}')
+                                       for k in ('beat_s', 'takeover_s')):
+        ctx.error('decider.takeover_s', f'{takeover:g} s is under three beats ({beat:g} s '
+                                        'each): one late beat would pass for a dead leader')
 
 
 def _known_references(d: t.Deployment) -> t.Deployment:

@@ -210,9 +210,16 @@ class DeciderSettings:
              'decider only after this silence of the one they follow',
         low=0, high=600, low_open=True, unit='s')
     discovery_s: float = setting(
-        5.0, 'a starting decider publishes nothing this long, and exits 2 naming another live '
-             'decider of the deployment if it hears one',
+        5.0, 'a starting decider that hears no leading decider of the deployment for this long '
+             'leads; one that hears one stands by (it takes over when the leader falls silent)',
         low=0, high=600, low_open=True, unit='s')
+    beat_s: float = setting(
+        0.05, 'every decider beats on /anyscale/decider this often: the leader that it leads, a '
+              'standby that it stands by', low=0, high=10, low_open=True, unit='s')
+    takeover_s: float = setting(
+        0.3, 'a standby decider takes over after this silence of the leader; a leader that '
+             'could not beat for this long (stalled) commands nothing more before it has '
+             'listened again', low=0, high=600, low_open=True, unit='s')
 
 
 @dataclass(frozen=True)

@@ -45,6 +45,7 @@ from ..agent.reconcile import Reconciler
 from ..agent.supervisor import Supervisor
 from ..model.loader import DeploymentError, load_from_parameters
 from ..runtime.hosts import HostBook
+from ..interrupt import restore_ctrl_c
 
 try:
     from . import monitors as _monitors
@@ -332,7 +333,7 @@ class AgentNode(Node):
             self._bad.error('layout: refused', f'dropped layout generation {layout.generation} '
                             f'of decider {describe(layout.decider)}: {why}')
             return
-        follow = self._follower.consider(layout.decider, now)
+        follow = self._follower.consider(layout.decider, now, layout.term)
         if not follow.accept:
             self.get_logger().warn(follow.reason, throttle_duration_sec=10.0)
             return
@@ -586,7 +587,8 @@ class AgentNode(Node):
                                               exit_reason=reason, lifecycle=label)
         return protocol.AgentState(scale=self.scale, generation=self.reconciler.generation,
                                    stamp=time.time(), nodes=nodes,
-                                   decider=self._follower.followed_id, instance=self._instance,
+                                   decider=self._follower.followed_id, term=self._follower.term,
+                                   instance=self._instance,
                                    host_id=self._host_id or None, host=self._host_name or None)
 
     def _publish_state(self) -> None:
@@ -653,6 +655,7 @@ class AgentNode(Node):
 
 
 def main(args: Optional[List[str]] = None) -> int:
+    restore_ctrl_c()
     argv = list(sys.argv if args is None else args)
     scale = scale_from_args(argv)
     if not scale:

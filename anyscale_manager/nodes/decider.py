@@ -3,9 +3,14 @@
 Glue only. It rebuilds the deployment from its parameters, checks and feeds what the agents and
 monitors publish into the decider's turn (runtime/turn.py), runs that turn once per
 ``decider.period_s`` (and at once on a cut, a crash or a shrinking link) and publishes what it
-returns: the desired layout (latched, with a generation number), every decision with its
-reason, the cost function, the plan-against-reality check and its own health on /diagnostics.
-It also keeps what only a live process has: its identity, key and rivals.
+returns: the desired layout (latched, with a generation number and the leadership term), every
+decision with its reason, the cost function, the plan-against-reality check and its own health
+on /diagnostics. It also keeps what only a live process has: its identity, key and beat.
+
+Several deciders of one deployment may run: one leads, the others stand by
+(runtime/leadership.py). A standby hears everything the leader hears, follows its layouts and
+decisions, publishes only its beat and diagnostics, and takes over within ``takeover_s`` of the
+leader's silence from the leader's last layout.
 """
 
 import math
@@ -33,9 +38,10 @@ from ..model.advice import UNSIGNED
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.types import DeciderSettings, Deployment
 from ..runtime.constraints import ConstraintReport
+from ..runtime.leadership import LEADER, STANDBY, Change, Leadership
 from ..runtime.layout import LayoutError
-from ..runtime.rivals import RivalWatch
 from ..runtime.turn import DeciderTurn, TurnOutput
+from ..interrupt import restore_ctrl_c
 
 NODE_NAME = 'anyscale_decider'
 
@@ -47,10 +53,6 @@ MONITOR_QOS = qos.MONITOR_READER
 # decider.* parameters a person may change while it runs (model/types.py declares each once:
 # its meaning, range and unit).
 LIVE = {f.name: f.metadata for f in fields(DeciderSettings) if f.metadata.get('live')}
-
-
-class RivalDecider(Exception):
-    """Another decider of this deployment keeps it: this one stops (exit 2)."""
 
 
 def settings_with(settings: DeciderSettings, changes: Dict[str, Any]) -> DeciderSettings:
@@ -135,15 +137,25 @@ class DeciderNode(Node):
                                            p.TOPIC_CONNECTION_STATUS)}
         self.sealer = auth.Sealer(self.key, f'decider {self.identity.id}')
         self.objective_seq = 0
-        self.rivals = RivalWatch(self.identity, self.settings.lease_s)
+        s = self.settings
+        self.lead = Leadership(self.identity, beat_s=s.beat_s, takeover_s=s.takeover_s,
+                               discovery_s=s.discovery_s, lease_s=s.lease_s, started=started)
+        self.beat_gate = auth.StatusGate(self.key, security.replay_window_s)
         self.seq = 0
-        self._layouts_heard = 0
+        # decider id -> its last layout (a standby takes over from the leader's)
+        self._layouts: Dict[str, p.Layout] = {}
         self._followers: Dict[str, Optional[str]] = {}    # scale -> decider its agent follows
-        # Nothing is published until no other decider of the deployment has been heard for
-        # discovery_s (discovery): a second decider then stops before it publishes anything.
-        self.publishing = False
-        self.pub_layout = self.pub_events = self.pub_objective = self.pub_plan = None
-        self.pub_diag = None
+        self._stood_by_for: Optional[tuple] = None         # (leader id, term) said in the log
+        # A standby publishes its beat and diagnostics only; layouts, events, the objective
+        # and the plan check come from the leader.
+        self.pub_layout = self.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
+        self.pub_events = self.create_publisher(String, p.TOPIC_EVENTS, EVENTS_QOS)
+        self.pub_objective = self.create_publisher(String, p.TOPIC_OBJECTIVE, 10)
+        self.pub_plan = self.create_publisher(String, p.TOPIC_PLAN_CHECK, 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS, 10)
+        self.pub_beat = self.create_publisher(String, p.TOPIC_DECIDER, qos.BEAT)
+        self.create_subscription(String, p.TOPIC_DECIDER, self._on_beat, qos.BEAT)
+        self.create_subscription(String, p.TOPIC_EVENTS, self._on_event, EVENTS_QOS)
         self.create_subscription(String, p.TOPIC_LAYOUT, self._on_layout, qos.LATCHED_READER)
         self.create_subscription(String, p.TOPIC_AGENT_STATE, self._on_agent_state,
                                  AGENT_STATE_QOS)
@@ -158,11 +170,12 @@ class DeciderNode(Node):
         self.timer = self.create_timer(self.settings.period_s, self._tick)
         # The lease of the agents' follow rule: re-published well within it.
         self.renew_timer = self.create_timer(self.settings.lease_s / 3.0, self._renew)
+        self.beat_timer = self.create_timer(self.settings.beat_s, self._beat)
         if self.key is None:
             self.get_logger().warn(f'security.key_file is not set: {UNSIGNED}')
         self.get_logger().info(
             f'decider {self.identity.describe()}: listening {self.settings.discovery_s:g} s for '
-            'another decider of this deployment before publishing')
+            'a leading decider of this deployment (hearing one, it stands by)')
         self.get_logger().info(
             f'deployment {self.deployment.name!r}: {len(self.deployment.scales)} scales, '
             f'{len(self.deployment.nodes)} nodes, migratable: '
@@ -275,6 +288,7 @@ class DeciderNode(Node):
         if why:
             raise p.ProtocolError(f'agent state claiming scale {state.scale!r:.60}: {why}')
         self.book.agent_state(state, now)
+        self.lead.heard_term(state.term)
         if self.layout is not None and any(
                 self.book.crashes.get((state.scale, node), (None,))[0] == now
                 for node, scale in self.policy.desired.items() if scale == state.scale):
@@ -285,17 +299,19 @@ class DeciderNode(Node):
         if state.scale in self.deployment.scale_names \
                 and self._followers.get(state.scale, '?') != state.decider:
             self._followers[state.scale] = state.decider
-            if self.publishing and state.decider != self.identity.id:
+            if self.lead.role == LEADER and state.decider != self.identity.id:
                 who = 'no decider' if state.decider is None else (
                     'an anonymous layout' if state.decider == '' else f'decider {state.decider}')
                 self.get_logger().info(
                     f'the agent of {state.scale} follows {who} (generation '
-                    f'{state.generation}), not this one ({self.identity.id}); it follows this '
-                    f'one once that one has been silent for {self.settings.lease_s:g} s')
+                    f'{state.generation}, term {state.term}), not this one ({self.identity.id}, '
+                    f'term {self.lead.term}); it follows this one at a higher term, or once '
+                    f'that one has been silent for {self.settings.lease_s:g} s')
 
     def _on_layout(self, msg: String) -> None:
-        """Layouts of others: a rival decider (one stops), or foreign or malformed (said,
-        throttled, never answered by re-deciding)."""
+        """Layouts of other deciders: a leader's (kept: a standby continues from it; one of a
+        higher term makes a leader step down), or foreign or malformed (said, throttled, never
+        answered by re-deciding)."""
         try:
             layout = p.Layout.from_json(msg.data, p.TOPIC_LAYOUT)
         except p.ProtocolError as e:
@@ -304,7 +320,6 @@ class DeciderNode(Node):
             return
         if layout.decider is not None and layout.decider.id == self.identity.id:
             return                                  # our own
-        self._layouts_heard += 1
         if layout.deployment != self.deployment.name:
             # Another deployment's decider on this domain: harmless, said once a minute.
             self._bad.warn('layout: another deployment',
@@ -326,16 +341,55 @@ class DeciderNode(Node):
                 f'{layout.generation}: an older decider or a plain script); agents that '
                 'follow this decider ignore it too')
             return
-        now = self._now()
-        self.rivals.heard(layout.decider, layout.seq, layout.stamp, now)
-        stop = self.rivals.must_stop(now, time.time(), started=self.publishing)
-        if stop:
-            raise RivalDecider(stop)
-        for r in self.rivals.younger(now, time.time()):
-            self.get_logger().warning(
-                f'another decider of this deployment publishes: {r.describe()}, started '
-                f'after this one; it stops when it hears this one (the first one keeps the '
-                'deployment)', throttle_duration_sec=10.0)
+        if layout.decider.id not in self._layouts and len(self._layouts) >= 64:
+            self._layouts.pop(next(iter(self._layouts)))
+        self._layouts[layout.decider.id] = layout
+        # A layout is its decider's word that it leads at its term, as its beat is.
+        self._heard_leader(layout.decider, layout.term or 0, layout.generation)
+
+    def _on_beat(self, msg: String) -> None:
+        try:
+            beat = p.DeciderBeat.from_json(msg.data, p.TOPIC_DECIDER)
+        except p.ProtocolError as e:
+            self._rejected += 1
+            self._bad.warn('beat: malformed', f'ignored a malformed decider beat: {e}')
+            return
+        if beat.decider.id == self.identity.id or beat.deployment != self.deployment.name:
+            return
+        why = self.beat_gate.check(msg.data, beat, time.time())
+        if why:
+            self._rejected += 1
+            self._bad.warn('beat: refused', f'ignored a decider beat claiming to be of this '
+                           f'deployment: {why}')
+            return
+        if beat.role == LEADER:
+            self._heard_leader(beat.decider, beat.term, beat.generation)
+        else:
+            self.lead.heard_beat(beat.decider, beat.role, beat.term, beat.generation,
+                                 self._now())
+
+    def _heard_leader(self, identity: p.DeciderIdentity, term: int, generation: int) -> None:
+        change = self.lead.heard_beat(identity, LEADER, term, generation, self._now())
+        if change is not None:
+            self._role_changed(change)
+        leader = self.lead.leader
+        if self.lead.role == STANDBY and leader is not None \
+                and (leader.identity.id, leader.term) != self._stood_by_for:
+            self._stood_by_for = (leader.identity.id, leader.term)
+            self.get_logger().info(f'standing by for decider {leader.identity.describe()} '
+                                   f'(term {leader.term})')
+
+    def _on_event(self, msg: String) -> None:
+        """The leader's decisions: a standby keeps their hysteresis for after a takeover."""
+        if self.lead.role != STANDBY:
+            return
+        try:
+            event = p.Event.from_json(msg.data, p.TOPIC_EVENTS)
+        except p.ProtocolError:
+            return                    # the status view and the leader say it; not ours
+        if self.key is not None and auth.check_signature(self.key, msg.data):
+            return
+        self.core.heard_decision(event.kind, event.node, event.from_scale, self._now())
 
     def _on_scale_status(self, msg: String) -> None:
         self._intake(msg, p.ScaleStatus, p.TOPIC_SCALE_STATUS, self.book.scale_status)
@@ -372,45 +426,64 @@ class DeciderNode(Node):
                      self.book.connection_status)
 
     # --- the loop -----------------------------------------------------------------------------
-    def _discovered(self, now: float) -> bool:
-        """Whether the start-up listening is over and no live rival was heard (else stop)."""
-        if self.publishing:
-            return True
-        stop = self.rivals.must_stop(now, time.time(), started=False)
-        if stop:
-            raise RivalDecider(stop)
-        waited = now - self.started
-        listen = self.settings.discovery_s
-        if waited < listen:
-            return False
-        # A layout writer, or another node named as a decider, not heard from yet (its DDS
-        # discovery is slower than ours): listen for one more lease.
-        others = sum(1 for name in self.get_node_names() if name == NODE_NAME) > 1
-        if waited < listen + self.settings.lease_s and not self._layouts_heard and \
-                (others or self.count_publishers(p.TOPIC_LAYOUT) > 0):
-            return False
-        self.publishing = True
-        self.pub_layout = self.create_publisher(String, p.TOPIC_LAYOUT, LATCHED)
-        self.pub_events = self.create_publisher(String, p.TOPIC_EVENTS, EVENTS_QOS)
-        self.pub_objective = self.create_publisher(String, p.TOPIC_OBJECTIVE, 10)
-        self.pub_plan = self.create_publisher(String, p.TOPIC_PLAN_CHECK, 10)
-        self.pub_diag = self.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS, 10)
-        self.get_logger().info(f'no other decider of {self.deployment.name!r} heard in '
-                               f'{waited:.1f} s: this one ({self.identity.id}) decides')
-        return True
+    def _beat(self) -> None:
+        now = self._now()
+        self._check_role(now)
+        beat = p.DeciderBeat(stamp=time.time(), deployment=self.deployment.name,
+                             decider=self.identity, role=self.lead.role, term=self.lead.term,
+                             generation=self.generation)
+        self.pub_beat.publish(String(data=self.sealer.seal(beat)))
+        self.lead.beaten(now)
+
+    def _check_role(self, now: float) -> None:
+        change = self.lead.check(now)
+        if change is not None:
+            self._role_changed(change)
+
+    def _role_changed(self, change: Change) -> None:
+        now = self._now()
+        log = self.get_logger()
+        if change.role == STANDBY:
+            log.warning(change.reason)
+            self._diagnostics(p.OK, f'standing by (term {change.term}): {change.reason}')
+            return
+        log.info(change.reason)
+        previous = change.previous
+        layout = None if previous is None else self._layouts.get(previous.identity.id)
+        if layout is None and self.layout is not None:
+            layout = p.Layout(generation=self.generation, deployment=self.deployment.name,
+                              assignments=dict(self.layout), reason=self.core.reason, stamp=0.0)
+        if layout is not None:
+            self._emit(self.core.take_over(now, dict(layout.assignments), layout.generation,
+                                           change.reason))
+            if previous is not None:
+                self._event('takeover', '', '', '', change.reason)
+        self._tick()
 
     def _tick(self) -> None:
         self._bad.flush()
+        now = self._now()
         try:
-            if not self._discovered(self._now()):
+            self._check_role(now)
+            if not self.lead.may_command(now):
+                self._standby_diagnostics(now)
                 return
-            self._turn(self._now())
-        except RivalDecider:
-            raise
+            self._turn(now)
         except Exception as e:  # noqa: B902 - report, keep the last layout, try again
             self.get_logger().error(f'decider turn failed: {type(e).__name__}: {e}',
                                     throttle_duration_sec=5.0)
             self._diagnostics(p.ERROR, f'turn failed: {e}')
+
+    def _standby_diagnostics(self, now: float) -> None:
+        leader = self.lead.live_leader(now)
+        if leader is not None:
+            message = (f'standing by for decider {leader.identity.describe()} (term '
+                       f'{leader.term})')
+        else:
+            due = self.lead.due_in(now)
+            message = 'standing by: no leader heard' + (
+                f'; leads in {max(due, 0.0):.1f} s' if due is not None else '')
+        self._diagnostics(p.OK, message, {'generation': self.generation})
 
     def _turn(self, now: float) -> None:
         self._emit(self.core.turn(now))
@@ -453,20 +526,26 @@ class DeciderNode(Node):
             pub.publish(String(data=self.sealer.seal(message)))
 
     def _send_layout(self, generation: int, assignments: Dict[str, str], reason: str) -> None:
+        if not self.lead.may_command(self._now()):
+            return         # stalled past takeover_s, or standing by: another may lead now
         self.seq += 1
         layout = p.Layout(
             generation=generation, deployment=self.deployment.name,
             assignments=dict(assignments), reason=reason, stamp=time.time(),
-            decider=self.identity, seq=self.seq)
+            decider=self.identity, seq=self.seq, term=self.lead.term)
         self.pub_layout.publish(String(data=auth.seal(self.key, layout)))
 
     def _renew(self) -> None:
         """The same layout again, newly stamped and numbered: the agents' lease on us."""
-        if self.layout is not None and self.pub_layout is not None:
+        now = self._now()
+        self._check_role(now)
+        if self.layout is not None and self.lead.may_command(now):
             self._send_layout(self.core.generation, self.core.layout, self.core.reason)
 
     def _event(self, kind: str, node: str, from_scale: str, to_scale: str, reason: str,
                generation: Optional[int] = None) -> None:
+        if self.lead.role != LEADER:
+            return
         self._publish(self.pub_events, p.Event(
             stamp=time.time(), kind=kind, node=node, from_scale=from_scale, to_scale=to_scale,
             reason=reason, generation=self.generation if generation is None else generation))
@@ -476,11 +555,17 @@ class DeciderNode(Node):
         if self.pub_diag is None:
             return
         status = DiagnosticStatus(
-            level=bytes([level]), name=f'{NODE_NAME}: {self.deployment.name}',
+            level=bytes([level]), name=(f'{NODE_NAME}: {self.deployment.name}'
+                                        if self.lead.role == LEADER else
+                                        f'{NODE_NAME} (standby {self.identity.id}): '
+                                        f'{self.deployment.name}'),
             message=message[:500], hardware_id=self.host)
         values = dict(values or self.core.values(self._now()))
         values.update({'messages ignored': self._rejected, 'decider': self.identity.describe(),
-                       'messages signed': self.key is not None})
+                       'messages signed': self.key is not None, 'role': self.lead.role,
+                       'term': self.lead.term, 'takeovers': self.lead.takeovers,
+                       'other deciders': ', '.join(f'{o.identity.id} ({o.role})' for o in
+                                                   self.lead.others(self._now())) or 'none'})
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         array = DiagnosticArray(status=[status])
         array.header.stamp = self.get_clock().now().to_msg()
@@ -488,6 +573,7 @@ class DeciderNode(Node):
 
 
 def main(args=None) -> int:
+    restore_ctrl_c()
     try:
         rclpy.init(args=args)
     except Exception as e:  # noqa: B902 - rcl refuses the arguments or the parameters file
@@ -506,7 +592,7 @@ def main(args=None) -> int:
         # asked for, so it is a clean stop; while the context is up it is a real error.
         if rclpy.ok():
             raise
-    except (DeploymentError, LayoutError, auth.KeyFileError, RivalDecider) as e:
+    except (DeploymentError, LayoutError, auth.KeyFileError) as e:
         print(f'anyscale_manager decider: {e}', file=sys.stderr)
         code = 2
     finally:

@@ -25,3 +25,5 @@ MONITOR_READER = _profile(20, reliable=False)
 # Probes: best effort and volatile reach every publisher; the probes drain their subscriptions
 # every 50 ms, and 100 messages hold a 1 kHz topic for twice that.
 PROBE = _profile(100, reliable=False)
+# Deciders' beats (every decider.beat_s): the newest counts, a lost one is replaced at once.
+BEAT = _profile(10, reliable=False)

@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt     # SIGTERM, SIGHUP: leave as Ctrl-C does, the terminal restored
+    raise KeyboardInterrupt     # SIGINT, SIGTERM, SIGHUP: leave as Ctrl-C does, terminal restored
 
 
 def run(args: argparse.Namespace) -> int:
@@ -64,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
     # Python's own handlers: Ctrl-C is a KeyboardInterrupt in the loop below, which gives the
     # terminal back before the process ends.
     rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
-    for signum in (signal.SIGTERM, signal.SIGHUP):
+    # SIGINT too: a view started from a script in the background inherits it ignored.
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(signum, _interrupt)
     node = rclpy.create_node(f'anyscale_status_{os.getpid()}', context=ctx)
     topics = {p.TOPIC_LAYOUT: latched, p.TOPIC_AGENT_STATE: latched,

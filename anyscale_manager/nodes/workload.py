@@ -42,6 +42,7 @@ from rclpy.utilities import remove_ros_args
 
 from .workload_messages import (DEFAULT_TYPE, MAX_BYTES, Endpoint, EndpointError,
                                 build_message, message_class, parse_endpoint, stamper)
+from ..interrupt import restore_ctrl_c
 
 REFERENCE_CORE = 0.3      # one reference (robot) core as a fraction of one core of this machine
 
@@ -201,6 +202,7 @@ class OutputGate:
 
 
 def main(args: Optional[List[str]] = None) -> int:
+    restore_ctrl_c()
     argv = sys.argv if args is None else args
     spec = parse_spec(remove_ros_args(argv)[1:])
     # SIGUSR1 writes every thread's stack to stderr (the node's log under an agent): what a

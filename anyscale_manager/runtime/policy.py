@@ -78,11 +78,12 @@ class MigrationPolicy:
         self.settings = settings
 
     def reset(self, layout: Mapping[str, str], now: float,
-              running: Optional[Mapping[str, str]] = None) -> None:
+              running: Optional[Mapping[str, str]] = None, *, settled: bool = False) -> None:
         """Start from a given layout (the first layout the decider published).
 
         Nodes it places off the master enter the migrated list (in deployment order); they and
-        the nodes it places elsewhere than they run (pending) get a grace period from ``now``.
+        the nodes it places elsewhere than they run (pending) get a grace period from ``now``
+        (with ``settled``, a layout taken over from another decider: the pending ones only).
         Nothing moves out while a pending node is not yet running where it is placed, nor
         before its scale's CPU has been measured after it started there.
         """
@@ -98,7 +99,7 @@ class MigrationPolicy:
         # the judging of their connections only). The first move out is held by the pending
         # moves and by the observations it needs (``_migrate_out``), not by a fixed delay.
         self.last_move = {n: now for n, s in self.desired.items()
-                          if s != self.master or n in self.pending}
+                          if n in self.pending or s != self.master and not settled}
         self._seeded = True
         if self.started is None:
             self.started = now
@@ -620,6 +621,18 @@ class MigrationPolicy:
             return None, (f'CPU of {scale} not measured since {arrived[1]} started there '
                           f'({obs.now - arrived[0]:.1f} s ago)')
         return True, ''
+
+    def heard(self, kind: str, node: str, from_scale: str, now: float) -> None:
+        """Another decider's decision (a standby hears the leader's): its hysteresis and
+        failover memory, kept for the day this one takes over."""
+        if node not in self.deployment.node_names:
+            return
+        if kind == MIGRATE:
+            self.last_move_out = now
+        elif kind in (MIGRATE_BACK, RELOCATE, FAILOVER):
+            self.last_back[(node, from_scale)] = now
+            if kind == FAILOVER:
+                self.crashed[(node, from_scale)] = now
 
     def _apply(self, d: Decision, now: float) -> None:
         self.desired[d.node] = d.to_scale

@@ -169,6 +169,32 @@ class DeciderTurn:
                         + ', '.join(lost) + ' at start')
         out.logs.append(('info', f'generation {self.generation}: {reason}'))
 
+    # --- a standby's turn ----------------------------------------------------------------------
+    def heard_decision(self, kind: str, node: str, from_scale: str, now: float) -> None:
+        """The leader's decision (its event), remembered for hysteresis after a takeover."""
+        self.policy.heard(kind, node, from_scale, now)
+
+    def take_over(self, now: float, assignments: Dict[str, str], generation: int,
+                  reason: str) -> TurnOutput:
+        """Lead on from the layout of the decider taken over from: nothing moves that it did
+        not move; only the nodes not yet running where it placed them get a grace period."""
+        out = TurnOutput()
+        with_standby = [n for n in self.deployment.node_names
+                        if self.deployment.standby_scales(n)]
+        running = self.book.running(now, active_only=with_standby)
+        layout = dict(self.layout or self.planned)
+        for node, scale in assignments.items():
+            if node in layout and scale in self.deployment.allowed_scales(node):
+                layout[node] = scale
+        self.generation = max(generation, self.generation, self.book.max_generation, 0) + 1
+        if self.generation > p.MAX_GENERATION - p.MAX_GENERATION_STEP:
+            self.generation = 1
+        self.layout = layout
+        self.policy.reset(layout, now, running, settled=True)
+        self._new_layout(reason, out)
+        out.logs.append(('info', f'generation {self.generation}: {reason}'))
+        return out
+
     # --- what is said -------------------------------------------------------------------------
     def _event(self, out: TurnOutput, kind: str, node: str, from_scale: str, to_scale: str,
                reason: str) -> None:

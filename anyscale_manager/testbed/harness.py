@@ -206,13 +206,16 @@ class Testbed:
                 _lift_quota(robot_group)
             except OSError as e:
                 notes.append(f'could not lift the robot CPU quota for the teardown: {e}')
-        for name in ('decider', 'agent_laptop', 'agent_robot'):
+        # Every decider (a standby's too), then the agents.
+        system = [n for n in self.procs if n.startswith('decider')]
+        system += ['agent_laptop', 'agent_robot']
+        for name in system:
             proc = self.procs.get(name)
             if proc and proc.popen.poll() is None:
                 _signal_group(proc.popen.pid, signal.SIGINT)
         settings = self.deployment.agent
         grace = settings.sigint_grace_s + settings.sigterm_grace_s + 8.0
-        for name in ('decider', 'agent_laptop', 'agent_robot'):
+        for name in system:
             proc = self.procs.get(name)
             if proc is None:
                 continue

@@ -27,6 +27,7 @@ from .. import protocol as p
 from ..model.loader import load_deployment
 from ..model.types import Deployment
 from ..protocol_auth import sign
+from ..interrupt import restore_ctrl_c
 
 GARBAGE = (
     'not json', '{', '[]', 'null', '42', '""', '{"generation": NaN}',
@@ -153,6 +154,7 @@ class Forger:
 
 
 def main(args: Optional[List[str]] = None) -> int:
+    restore_ctrl_c()
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node

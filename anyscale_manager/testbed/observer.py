@@ -32,6 +32,7 @@ from .. import protocol as p
 from ..nodes import qos
 from ..nodes.monitors.probes import clock_offset_s
 from ..nodes.workload_messages import DEFAULT_TYPE, message_class
+from ..interrupt import restore_ctrl_c
 
 LATCHED = qos.LATCHED_READER
 RELIABLE = qos.EVENTS
@@ -102,6 +103,7 @@ class Observer(Node):
 
 
 def main(args: Optional[List[str]] = None) -> int:
+    restore_ctrl_c()
     argv = sys.argv if args is None else args
     parser = argparse.ArgumentParser(prog='observer')
     parser.add_argument('--topic', action='append', default=[], metavar='TOPIC[:TYPE]')

@@ -1,0 +1,195 @@
+"""Who decides: one leading decider per deployment, and hot standbys ready to take over.
+
+Pure, clocks passed in (``now``: monotonic seconds). Every decider beats on /anyscale/decider
+every ``beat_s`` with its identity, role and term; the leader also publishes the layouts, and a
+standby only listens (to the leader's layouts and events and to every report the leader reads).
+
+- **Start.** A decider starts as a standby. It leads once it has heard no leader for
+  ``discovery_s`` since its start; hearing one, it stays a standby.
+- **Takeover.** A standby takes the lead when the last leader it heard has been silent for
+  ``takeover_s``, plus two beats per live standby that started before it (the first one started
+  goes first; the others then hear it lead and stay standbys).
+- **Term.** A decider that takes the lead takes a term above every term it has heard (beats,
+  layouts, the agents' reports), and every layout carries it: agents refuse a lower term than
+  the one they follow (agent/authority.py), so a leader that comes back after a takeover
+  commands nothing. It steps down when it hears a live leader of a higher term (or of its own
+  term that started before it), and a leader that hears a higher term from no live leader
+  (an agent that follows a decider now gone) moves to a term above it.
+- **Stall.** A leader commands only within ``takeover_s`` of its own last beat: one that could
+  not beat for longer (SIGSTOP, a paused VM, a starved process) may have been taken over, so
+  it steps down and listens before anything else it would publish. A standby takes over only
+  ``takeover_s`` after the leader's last beat *arrived*, which is after the leader sent it:
+  the old leader's last command always precedes the new leader's first. A leader that knows
+  of no other decider (none heard within ``lease_s``) and stalled for less than
+  ``discovery_s`` cannot have been overtaken (a decider that never heard it listens
+  ``discovery_s``), and keeps leading.
+"""
+
+from dataclasses import dataclass
+from typing import Dict, List, Optional, Tuple
+
+from ..protocol import DeciderIdentity
+
+LEADER, STANDBY = 'leader', 'standby'
+MAX_PEERS = 64
+RANK_BEATS = 2          # a standby waits this many beats more per live standby older than it
+
+
+def older(a: DeciderIdentity, b: DeciderIdentity) -> bool:
+    """Whether ``a`` started before ``b`` (the id breaks a tie): both sides compute the same."""
+    return (a.started, a.id) < (b.started, b.id)
+
+
+def outranks(a: Tuple[int, DeciderIdentity], b: Tuple[int, DeciderIdentity]) -> bool:
+    """Whether leader ``a`` = (term, identity) keeps the lead against leader ``b``."""
+    return a[0] > b[0] or a[0] == b[0] and older(a[1], b[1])
+
+
+@dataclass
+class Peer:
+    identity: DeciderIdentity
+    role: str
+    term: int
+    generation: int
+    received: float
+
+
+@dataclass(frozen=True)
+class Change:
+    """A change of role or term this decider must act on."""
+
+    role: str
+    term: int
+    reason: str
+    # On a takeover: the leader last heard (its layouts are the ones to continue from).
+    previous: Optional[Peer] = None
+
+
+class Leadership:
+    def __init__(self, me: DeciderIdentity, *, beat_s: float, takeover_s: float,
+                 discovery_s: float, lease_s: float, started: float):
+        self.me = me
+        self.beat_s, self.takeover_s = beat_s, takeover_s
+        self.discovery_s, self.lease_s = discovery_s, lease_s
+        self.started = started
+        self.role = STANDBY
+        self.term = 0
+        self.max_term = 0                   # the highest term heard anywhere
+        self.peers: Dict[str, Peer] = {}
+        self.leader: Optional[Peer] = None  # the leader last heard (as a standby)
+        self.quiet_since: Optional[float] = None    # when a leader was last known to live
+        self.last_beat: Optional[float] = None      # our own last beat
+        self.takeovers = 0
+
+    # --- what is heard --------------------------------------------------------------------
+    def heard_beat(self, identity: DeciderIdentity, role: str, term: int, generation: int,
+                   now: float) -> Optional[Change]:
+        if identity.id == self.me.id:
+            return None
+        self.max_term = max(self.max_term, term)
+        if identity.id not in self.peers and len(self.peers) >= MAX_PEERS:
+            del self.peers[min(self.peers, key=lambda k: self.peers[k].received)]
+        peer = Peer(identity, role, term, generation, now)
+        self.peers[identity.id] = peer
+        if role != LEADER:
+            return None
+        if self.role == LEADER:
+            if outranks((term, identity), (self.term, self.me)):
+                return self._step_down(now, f'decider {identity.describe()} leads at term '
+                                            f'{term} (this one at term {self.term})')
+            return None
+        if self.leader is None or self.leader.identity.id == identity.id \
+                or outranks((term, identity), (self.leader.term, self.leader.identity)) \
+                or now - self.leader.received > self.takeover_s:
+            self.leader = peer
+        self.quiet_since = now if self.quiet_since is None else max(self.quiet_since, now)
+        return None
+
+    def heard_term(self, term: Optional[int]) -> None:
+        """A term seen in a layout or an agent's report."""
+        if term is not None:
+            self.max_term = max(self.max_term, term)
+
+    # --- the clock ------------------------------------------------------------------------
+    def check(self, now: float) -> Optional[Change]:
+        """Before a beat and before anything this decider would command: the change of role or
+        term that is due now, if any."""
+        if self.role == LEADER:
+            stalled = self.last_beat is not None and now - self.last_beat > self.takeover_s
+            if stalled and (self.others(now) or now - self.last_beat >= self.discovery_s):
+                return self._step_down(now, f'could not beat for {now - self.last_beat:.2f} s '
+                                            f'(takeover_s {self.takeover_s:g} s): another '
+                                            'decider may lead now')
+            if self.max_term > self.term:
+                old, self.term = self.term, self.max_term + 1
+                return Change(LEADER, self.term, f'term {self.max_term} heard above this '
+                                                 f"leader's term {old}: leading at term "
+                                                 f'{self.term}')
+            return None
+        wait = self.due_in(now)
+        if wait is not None and wait <= 0:
+            return self._lead(now)
+        return None
+
+    def beaten(self, now: float) -> None:
+        """This decider's beat went out at ``now``."""
+        self.last_beat = now
+
+    def may_command(self, now: float) -> bool:
+        return self.role == LEADER and self.last_beat is not None \
+            and now - self.last_beat <= self.takeover_s
+
+    # --- views ----------------------------------------------------------------------------
+    def live_leader(self, now: float) -> Optional[Peer]:
+        live = [p for p in self.peers.values()
+                if p.role == LEADER and now - p.received <= self.takeover_s]
+        best = None
+        for p in live:
+            if best is None or outranks((p.term, p.identity), (best.term, best.identity)):
+                best = p
+        return best
+
+    def others(self, now: float) -> List[Peer]:
+        """Other deciders heard within ``lease_s``, first started first."""
+        return sorted((p for p in self.peers.values() if now - p.received <= self.lease_s),
+                      key=lambda p: (p.identity.started, p.identity.id))
+
+    def standbys_before(self, now: float) -> int:
+        return sum(1 for p in self.peers.values() if p.role == STANDBY
+                   and now - p.received <= self.takeover_s and older(p.identity, self.me))
+
+    def due_in(self, now: float) -> Optional[float]:
+        """Seconds until this standby takes the lead (<= 0: now); None while a leader lives."""
+        if self.role == LEADER or self.live_leader(now) is not None:
+            return None
+        rank = RANK_BEATS * self.beat_s * self.standbys_before(now)
+        if self.quiet_since is None:
+            return self.started + self.discovery_s + rank - now
+        return self.quiet_since + self.takeover_s + rank - now
+
+    # --- transitions ----------------------------------------------------------------------
+    def _lead(self, now: float) -> Change:
+        previous = self.leader
+        self.term = max(self.max_term, self.term) + 1
+        self.max_term = self.term
+        self.role = LEADER
+        self.last_beat = now
+        if previous is None:
+            since = self.started if self.quiet_since is None else self.quiet_since
+            reason = (f'no leading decider heard in {now - since:.1f} s: this one leads at '
+                      f'term {self.term}')
+        else:
+            self.takeovers += 1
+            reason = (f'decider {previous.identity.describe()} (term {previous.term}) silent '
+                      f'for {now - previous.received:.2f} s: this one takes over at term '
+                      f'{self.term}')
+        return Change(LEADER, self.term, reason, previous)
+
+    def _step_down(self, now: float, why: str) -> Change:
+        self.role = STANDBY
+        self.leader = None
+        self.quiet_since = now
+        return Change(STANDBY, self.term, why + ': standing by')
+
+
+__all__ = ['Change', 'LEADER', 'Leadership', 'Peer', 'STANDBY', 'older', 'outranks']

@@ -1,0 +1,199 @@
+"""A decider on watch: real deciders and agents over loopback DDS.
+
+- A second decider of a running deployment stands by: it publishes no layout, says whom it
+  stands by for on /diagnostics, and when the leader is SIGKILLed it publishes the leader's
+  layout at a higher term; the agents follow it and no node moves or restarts.
+- A leader stopped (SIGSTOP) is taken over the same way; resumed (SIGCONT), it publishes
+  nothing, says it stands by, and takes over again when the new leader dies.
+- Two deciders started together: one leads, the other stands by, both stay up.
+"""
+
+import os
+import signal
+import time
+
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from anyscale_manager import protocol as p
+from anyscale_manager.nodes import qos
+from home_away import runs, start, start_agents, wait
+from test_decider_agent import write_deployment
+
+
+@pytest.fixture
+def world():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node('standby_decider_test', context=ctx)
+    seen = {'layouts': [], 'states': {}, 'events': [], 'diag': {}}
+
+    def layout(m):
+        seen['layouts'].append((time.monotonic(), p.Layout.from_json(m.data)))
+
+    def state(m):
+        s = p.AgentState.from_json(m.data)
+        seen['states'][s.scale] = s
+
+    def diagnostics(m):
+        for status in m.status:
+            if status.name.startswith('anyscale_decider'):
+                values = {kv.key: kv.value for kv in status.values}
+                seen['diag'][values.get('decider', '?').split(' ')[0]] = (
+                    values.get('role'), status.message)
+    node.create_subscription(String, p.TOPIC_LAYOUT, layout, qos.LATCHED_READER)
+    node.create_subscription(String, p.TOPIC_AGENT_STATE, state, qos.LATCHED_READER)
+    node.create_subscription(String, p.TOPIC_EVENTS,
+                             lambda m: seen['events'].append(p.Event.from_json(m.data)),
+                             qos.EVENTS)
+    node.create_subscription(DiagnosticArray, p.TOPIC_DIAGNOSTICS, diagnostics, 50)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    procs = []
+    yield ex, seen, procs
+    for _, pr in reversed(procs):
+        if pr.proc.poll() is None:
+            try:
+                os.kill(pr.proc.pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+        pr.stop()
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
+def follow(seen, decider_id, term=None):
+    return all(seen['states'].get(s) is not None and seen['states'][s].decider == decider_id
+               and (term is None or seen['states'][s].term == term) for s in ('home', 'away'))
+
+
+def pids(seen):
+    return {s: {n: r.pid for n, r in seen['states'][s].running().items()}
+            for s in ('home', 'away')}
+
+
+def leading(ex, seen, procs, name, proc):
+    """The identity of the decider ``proc`` once it leads and both agents follow it."""
+    wait(ex, lambda: any(lay.decider is not None and lay.decider.pid == proc.proc.pid
+                         for _, lay in seen['layouts']), 40.0, f'a layout of {name}', procs)
+    me = [lay for _, lay in seen['layouts'] if lay.decider.pid == proc.proc.pid][-1]
+    wait(ex, lambda: follow(seen, me.decider.id), 30.0, f'both agents following {name}', procs)
+    return me.decider
+
+
+def standing_by(ex, seen, procs, proc, leader):
+    """The identity id of ``proc`` once its diagnostics say it stands by for ``leader``."""
+    def said():
+        return [i for i, (role, msg) in seen['diag'].items()
+                if role == 'standby' and f'standing by for decider {leader.id}' in msg
+                and f'pid {proc.proc.pid})' in proc.text()]
+    wait(ex, said, 30.0, 'the second decider standing by', procs)
+    return said()[0]
+
+
+def settled(ex, seen, procs):
+    """Both agents report the worker away and the pinned node home, and nothing is pending."""
+    wait(ex, lambda: runs(seen, 'away', 'worker') and runs(seen, 'home', 'pinned')
+         and not runs(seen, 'home', 'worker'), 60.0, 'the worker running away', procs)
+
+
+def test_a_standby_takes_over_a_killed_leader_without_moving_anything(tmp_path, ros_env, world):
+    ex, seen, procs = world
+    path = write_deployment(tmp_path)
+    start_agents(procs, tmp_path, ros_env, path)
+    first = start(procs, tmp_path, ros_env, path, 'decider_1')
+    one = leading(ex, seen, procs, 'decider_1', first)
+    settled(ex, seen, procs)
+    second = start(procs, tmp_path, ros_env, path, 'decider_2')
+    two_id = standing_by(ex, seen, procs, second, one)
+    # It published no layout, and it stays up.
+    assert {lay.decider.id for _, lay in seen['layouts']} == {one.id}
+    assert second.proc.poll() is None
+    last = seen['layouts'][-1][1]
+    before = pids(seen)
+
+    killed = time.monotonic()
+    os.kill(first.proc.pid, signal.SIGKILL)
+    wait(ex, lambda: any(lay.decider.id == two_id for _, lay in seen['layouts']), 10.0,
+         'a layout of the standby', procs)
+    at, new = next((t, lay) for t, lay in seen['layouts'] if lay.decider.id == two_id)
+    # The leader's layout at a higher term (the time it took is bench_standby_decider's).
+    assert new.term > last.term and new.generation > last.generation
+    assert dict(new.assignments) == dict(last.assignments)
+    assert f'decider {one.id}' in new.reason and 'takes over at term' in new.reason, new.reason
+    wait(ex, lambda: follow(seen, two_id, new.term), 15.0, 'both agents following it', procs)
+    assert pids(seen) == before                   # nothing moved, nothing restarted
+    wait(ex, lambda: any(e.kind == 'takeover' for e in seen['events']), 10.0,
+         'the takeover event', procs)
+    assert at - killed < 10.0
+    codes = {name: pr.stop() for name, pr in reversed(procs) if name != 'decider_1'}
+    assert codes['decider_2'] == 0, second.text()
+
+
+def test_a_stopped_leader_is_taken_over_and_commands_nothing_when_it_resumes(tmp_path, ros_env,
+                                                                             world):
+    ex, seen, procs = world
+    path = write_deployment(tmp_path)
+    start_agents(procs, tmp_path, ros_env, path)
+    first = start(procs, tmp_path, ros_env, path, 'decider_1')
+    one = leading(ex, seen, procs, 'decider_1', first)
+    settled(ex, seen, procs)
+    second = start(procs, tmp_path, ros_env, path, 'decider_2')
+    two_id = standing_by(ex, seen, procs, second, one)
+    before = pids(seen)
+
+    os.kill(first.proc.pid, signal.SIGSTOP)
+    wait(ex, lambda: any(lay.decider.id == two_id for _, lay in seen['layouts']), 10.0,
+         'a layout of the standby', procs)
+    new = next(lay for _, lay in seen['layouts'] if lay.decider.id == two_id)
+    wait(ex, lambda: follow(seen, two_id, new.term), 15.0, 'both agents following it', procs)
+    resumed = time.monotonic()
+    os.kill(first.proc.pid, signal.SIGCONT)
+    wait(ex, lambda: 'standing by' in first.text().split('takes over')[-1]
+         and seen['diag'].get(one.id, ('',))[0] == 'standby', 15.0,
+         'the old leader standing by', procs)
+    # Over two more seconds: no layout of the old leader, the agents on the new one.
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+    assert not [lay for t, lay in seen['layouts'] if t > resumed and lay.decider.id == one.id]
+    assert follow(seen, two_id, new.term) and pids(seen) == before
+    assert first.proc.poll() is None and second.proc.poll() is None
+
+    # The roles swap back when the new leader dies.
+    os.kill(second.proc.pid, signal.SIGKILL)
+    wait(ex, lambda: any(t > resumed and lay.decider.id == one.id and lay.term > new.term
+                         for t, lay in seen['layouts']), 10.0, 'the first decider again',
+         procs)
+    back = [lay for t, lay in seen['layouts'] if lay.decider.id == one.id][-1]
+    wait(ex, lambda: follow(seen, one.id, back.term), 15.0, 'the agents following it', procs)
+    assert pids(seen) == before
+
+
+def test_two_deciders_started_together_leave_one_leader_and_one_standby(tmp_path, ros_env,
+                                                                        world):
+    ex, seen, procs = world
+    path = write_deployment(tmp_path)
+    start_agents(procs, tmp_path, ros_env, path)
+    deciders = [start(procs, tmp_path, ros_env, path, f'decider_{i}') for i in (1, 2)]
+    wait(ex, lambda: len({i for i, (role, _) in seen['diag'].items() if role}) == 2
+         and sorted(role for role, _ in seen['diag'].values()) == ['leader', 'standby'],
+         60.0, 'one leader and one standby', procs)
+    # Started together, both may lead for a moment at one term; the one started later then
+    # hears the other and stands by. Judged once that has settled.
+    end = time.monotonic() + 2.0
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.05)
+    roles = sorted(role for role, _ in seen['diag'].values())
+    assert roles == ['leader', 'standby'], seen['diag']
+    leader = next(i for i, (role, _) in seen['diag'].items() if role == 'leader')
+    wait(ex, lambda: follow(seen, leader), 30.0, 'both agents following the leader', procs)
+    n = len(seen['layouts'])
+    wait(ex, lambda: len(seen['layouts']) >= n + 3, 15.0, 'its re-publications', procs)
+    assert {lay.decider.id for _, lay in seen['layouts'][n:]} == {leader}
+    assert all(d.proc.poll() is None for d in deciders)
