@@ -18,6 +18,7 @@ import os
 import secrets
 import socket
 import sys
+import threading
 import time
 from dataclasses import fields, replace
 from typing import Any, Dict, List, Optional
@@ -31,6 +32,8 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from . import qos
+from .decider_beat import BeatThread
+from .executor import make_executor
 from .throttled_log import ThrottledLog
 from .. import protocol as p
 from .. import protocol_auth as auth
@@ -99,6 +102,25 @@ def describe(name: str) -> ParameterDescriptor:
     return descriptor
 
 
+class _Locked:
+    """An object whose every method runs under a lock (the leadership, shared with the beat
+    thread); plain attributes are read as they are."""
+
+    def __init__(self, obj, lock):
+        self._obj, self._lock = obj, lock
+
+    def __getattr__(self, name: str):
+        value = getattr(self._obj, name)
+        if not callable(value):
+            return value
+        lock = self._lock
+
+        def locked(*args, **kwargs):
+            with lock:
+                return value(*args, **kwargs)
+        return locked
+
+
 class DeciderNode(Node):
     """One decider per deployment, on the master scale."""
 
@@ -138,8 +160,12 @@ class DeciderNode(Node):
         self.sealer = auth.Sealer(self.key, f'decider {self.identity.id}')
         self.objective_seq = 0
         s = self.settings
-        self.lead = Leadership(self.identity, beat_s=s.beat_s, takeover_s=s.takeover_s,
-                               discovery_s=s.discovery_s, lease_s=s.lease_s, started=started)
+        # Every callback runs under this lock, and so does the beat thread's work
+        # (nodes/decider_beat.py): one thread at a time in the decider's state.
+        self._lock = threading.RLock()
+        self.lead = _Locked(Leadership(self.identity, beat_s=s.beat_s, takeover_s=s.takeover_s,
+                                       discovery_s=s.discovery_s, lease_s=s.lease_s,
+                                       started=started), self._lock)
         self.beat_gate = auth.StatusGate(self.key, security.replay_window_s)
         self.seq = 0
         # decider id -> its last layout (a standby takes over from the leader's)
@@ -153,24 +179,22 @@ class DeciderNode(Node):
         self.pub_objective = self.create_publisher(String, p.TOPIC_OBJECTIVE, 10)
         self.pub_plan = self.create_publisher(String, p.TOPIC_PLAN_CHECK, 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS, 10)
-        self.pub_beat = self.create_publisher(String, p.TOPIC_DECIDER, qos.BEAT)
-        self.create_subscription(String, p.TOPIC_DECIDER, self._on_beat, qos.BEAT)
-        self.create_subscription(String, p.TOPIC_EVENTS, self._on_event, EVENTS_QOS)
-        self.create_subscription(String, p.TOPIC_LAYOUT, self._on_layout, qos.LATCHED_READER)
-        self.create_subscription(String, p.TOPIC_AGENT_STATE, self._on_agent_state,
-                                 AGENT_STATE_QOS)
-        self.create_subscription(String, p.TOPIC_SCALE_STATUS, self._on_scale_status,
-                                 MONITOR_QOS)
-        self.create_subscription(String, p.TOPIC_LINK_STATUS, self._on_link_status,
-                                 MONITOR_QOS)
-        self.create_subscription(String, p.TOPIC_CONNECTION_STATUS, self._on_connection_status,
-                                 MONITOR_QOS)
+        for topic, callback, profile in (
+                (p.TOPIC_EVENTS, self._on_event, EVENTS_QOS),
+                (p.TOPIC_LAYOUT, self._on_layout, qos.LATCHED_READER),
+                (p.TOPIC_AGENT_STATE, self._on_agent_state, AGENT_STATE_QOS),
+                (p.TOPIC_SCALE_STATUS, self._on_scale_status, MONITOR_QOS),
+                (p.TOPIC_LINK_STATUS, self._on_link_status, MONITOR_QOS),
+                (p.TOPIC_CONNECTION_STATUS, self._on_connection_status, MONITOR_QOS)):
+            self.create_subscription(String, topic, self._locked(callback), profile)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.add_post_set_parameters_callback(self._after_set_parameters)
-        self.timer = self.create_timer(self.settings.period_s, self._tick)
+        self.add_post_set_parameters_callback(self._locked(self._after_set_parameters))
+        self.timer = self.create_timer(self.settings.period_s, self._locked(self._on_timer))
         # The lease of the agents' follow rule: re-published well within it.
-        self.renew_timer = self.create_timer(self.settings.lease_s / 3.0, self._renew)
-        self.beat_timer = self.create_timer(self.settings.beat_s, self._beat)
+        self.renew_timer = self.create_timer(self.settings.lease_s / 3.0,
+                                             self._locked(self._renew))
+        self.beat = BeatThread(self, self._lock)
+        self.beat.start()
         if self.key is None:
             self.get_logger().warn(f'security.key_file is not set: {UNSIGNED}')
         self.get_logger().info(
@@ -182,6 +206,10 @@ class DeciderNode(Node):
             f'{", ".join(self.deployment.migratable_nodes) or "none"}; first layout '
             f'{self.settings.initial_layout!r}, waiting up to {self.settings.agent_timeout_s:g} s '
             f'for the agents to report what runs')
+
+    def destroy_node(self) -> None:
+        self.beat.stop()
+        super().destroy_node()
 
     # What the turn holds, by the names the node and its tests use.
     @property
@@ -252,7 +280,7 @@ class DeciderNode(Node):
         if new.period_s != old.period_s:
             self.timer.cancel()
             self.destroy_timer(self.timer)
-            self.timer = self.create_timer(new.period_s, self._tick)
+            self.timer = self.create_timer(new.period_s, self._locked(self._on_timer))
         for key in changes:
             self._event('settings', '', '', '', f'decider.{key} = {changes[key]!r}')
 
@@ -347,31 +375,42 @@ class DeciderNode(Node):
         # A layout is its decider's word that it leads at its term, as its beat is.
         self._heard_leader(layout.decider, layout.term or 0, layout.generation)
 
-    def _on_beat(self, msg: String) -> None:
+    def heard_beat_text(self, text: str, now: float) -> None:
+        """One beat taken by the beat thread (under the lock): decoded, checked, heard, and a
+        change of role it causes acted on."""
         try:
-            beat = p.DeciderBeat.from_json(msg.data, p.TOPIC_DECIDER)
+            beat = p.DeciderBeat.from_json(text, p.TOPIC_DECIDER)
         except p.ProtocolError as e:
             self._rejected += 1
             self._bad.warn('beat: malformed', f'ignored a malformed decider beat: {e}')
             return
         if beat.decider.id == self.identity.id or beat.deployment != self.deployment.name:
             return
-        why = self.beat_gate.check(msg.data, beat, time.time())
+        why = self.beat_gate.check(text, beat, time.time())
         if why:
             self._rejected += 1
             self._bad.warn('beat: refused', f'ignored a decider beat claiming to be of this '
                            f'deployment: {why}')
             return
-        if beat.role == LEADER:
-            self._heard_leader(beat.decider, beat.term, beat.generation)
-        else:
-            self.lead.heard_beat(beat.decider, beat.role, beat.term, beat.generation,
-                                 self._now())
+        change = self.lead.heard_beat(beat.decider, beat.role, beat.term, beat.generation, now)
+        if change is not None:
+            self._role_changed(change)
+        self._say_standing_by()
+
+    def _locked(self, callback):
+        """``callback`` run under the decider's lock (the beat thread's work runs under it)."""
+        def run(*args):
+            with self._lock:
+                return callback(*args)
+        return run
 
     def _heard_leader(self, identity: p.DeciderIdentity, term: int, generation: int) -> None:
         change = self.lead.heard_beat(identity, LEADER, term, generation, self._now())
         if change is not None:
             self._role_changed(change)
+        self._say_standing_by()
+
+    def _say_standing_by(self) -> None:
         leader = self.lead.leader
         if self.lead.role == STANDBY and leader is not None \
                 and (leader.identity.id, leader.term) != self._stood_by_for:
@@ -426,16 +465,7 @@ class DeciderNode(Node):
                      self.book.connection_status)
 
     # --- the loop -----------------------------------------------------------------------------
-    def _beat(self) -> None:
-        now = self._now()
-        self._check_role(now)
-        beat = p.DeciderBeat(stamp=time.time(), deployment=self.deployment.name,
-                             decider=self.identity, role=self.lead.role, term=self.lead.term,
-                             generation=self.generation)
-        self.pub_beat.publish(String(data=self.sealer.seal(beat)))
-        self.lead.beaten(now)
-
-    def _check_role(self, now: float) -> None:
+    def check_role(self, now: float) -> None:
         change = self.lead.check(now)
         if change is not None:
             self._role_changed(change)
@@ -460,11 +490,15 @@ class DeciderNode(Node):
                 self._event('takeover', '', '', '', change.reason)
         self._tick()
 
+    def _on_timer(self) -> None:
+        self.beat.executor_alive = self._now()      # the executor turns: the beat may go on
+        self._tick()
+
     def _tick(self) -> None:
         self._bad.flush()
         now = self._now()
         try:
-            self._check_role(now)
+            self.check_role(now)
             if not self.lead.may_command(now):
                 self._standby_diagnostics(now)
                 return
@@ -538,7 +572,7 @@ class DeciderNode(Node):
     def _renew(self) -> None:
         """The same layout again, newly stamped and numbered: the agents' lease on us."""
         now = self._now()
-        self._check_role(now)
+        self.check_role(now)
         if self.layout is not None and self.lead.may_command(now):
             self._send_layout(self.core.generation, self.core.layout, self.core.reason)
 
@@ -583,7 +617,10 @@ def main(args=None) -> int:
     code = 0
     try:
         node = DeciderNode()
-        rclpy.spin(node)
+        executor = make_executor()
+        executor.add_node(node)
+        while rclpy.ok():
+            executor.spin_once(timeout_sec=1.0)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
