@@ -8,7 +8,8 @@ standby only listens (to the leader's layouts and events and to every report the
   ``discovery_s`` since its start; hearing one, it stays a standby.
 - **Takeover.** A standby takes the lead when the last leader it heard has been silent for
   ``takeover_s``, plus two beats per live standby that started before it (the first one started
-  goes first; the others then hear it lead and stay standbys).
+  goes first; the others then hear it lead and stay standbys), and never within
+  ``discovery_s`` of its own start (a leader's latched layout may arrive before its beats).
 - **Term.** A decider that takes the lead takes a term above every term it has heard (beats,
   layouts, the agents' reports), and every layout carries it: agents refuse a lower term than
   the one they follow (agent/authority.py), so a leader that comes back after a takeover
@@ -163,9 +164,13 @@ class Leadership:
         if self.role == LEADER or self.live_leader(now) is not None:
             return None
         rank = RANK_BEATS * self.beat_s * self.standbys_before(now)
-        if self.quiet_since is None:
-            return self.started + self.discovery_s + rank - now
-        return self.quiet_since + self.takeover_s + rank - now
+        # Never before discovery_s after the start: a starting decider may hear a leader's
+        # latched layout before its beats (their discovery is separate), and a leader whose
+        # beats it has not heard yet is not a silent one.
+        base = self.started + self.discovery_s
+        if self.quiet_since is not None:
+            base = max(base, self.quiet_since + self.takeover_s)
+        return base + rank - now
 
     # --- transitions ----------------------------------------------------------------------
     def _lead(self, now: float) -> Change:
