@@ -3,8 +3,8 @@ lifecycle node to its standby copy, a plain node restarted in place, agents rest
 (SIGHUP), a remote agent SIGKILLed (fencing), the leading decider SIGKILLed beside a standby.
 
     python bench/bench_failover.py [--kills 20] [--in-place-kills 10] [--hups 10]
-                                   [--agent-kills 10] [--decider-kills 20] [--rate-hz 20]
-                                   [--domain-id N]
+                                   [--agent-kills 10] [--decider-kills 20]
+                                   [--decider-stops 10] [--rate-hz 20] [--domain-id N]
 
 Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
 beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
@@ -27,6 +27,9 @@ copy on both scales) -> pinned (home, a plain workload), every output at --rate-
   one is started again and stands by before the next): the time until the first layout of the
   other decider arrives here, the moves and node restarts it caused, and the longest gap on the
   worker's output.
+- SIGSTOP of the leading decider for 2 s, then SIGCONT, --decider-stops times: the time until the
+  standby's first layout, whether any layout of the stopped one arrived after it resumed, and
+  whether an agent ever reported following it again (both must be no).
 Prints one line per fault, then p50/p95/max of each figure.
 """
 
@@ -114,6 +117,8 @@ def main() -> int:
                     help='SIGKILLs of the remote agent while the worker serves there')
     ap.add_argument('--decider-kills', type=int, default=20,
                     help='SIGKILLs of the leading decider with a standby running')
+    ap.add_argument('--decider-stops', type=int, default=10,
+                    help='SIGSTOPs (2 s) of the leading decider with a standby running')
     ap.add_argument('--rate-hz', type=float, default=20.0)
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '44')))
     args = ap.parse_args()
@@ -223,6 +228,7 @@ def main() -> int:
         hups = {'home': [], 'away': []}      # (moves, restarts, links down, longest gap)
         fenced, overlap, agent_gap = [], [], []
         takeover, takeover_moves, takeover_gap = [], 0, []
+        stop_takeover, stale_layouts, stale_followed = [], 0, 0
         try:
             start('agent', '-p', 'scale:=home')
             start('agent', '-p', 'scale:=away')
@@ -355,6 +361,36 @@ def main() -> int:
                       f'{t_new - t0:.3f} s, moves {moved}, node restarts {again}, longest gap '
                       f'{gap:.3f} s', flush=True)
                 deciders = [other, start('decider')]
+            for k in range(args.decider_stops):
+                leader = wait(lambda: next((d for d in deciders if role(d, 'leader')), None),
+                              30.0, 'a leading decider')
+                other = wait(lambda: next((d for d in deciders if d is not leader
+                                           and role(d, 'standby')), None), 30.0,
+                             'a standby decider')
+                steady('/w', 1.0)
+                t0 = time.monotonic()
+                os.kill(leader.pid, signal.SIGSTOP)
+                t_new = wait(lambda: next((t for t, lay in list(layouts) if t > t0
+                                           and lay.decider and lay.decider.pid == other.pid),
+                                          None), 10.0, "the standby's first layout")
+                with lock:
+                    new_id = next(lay.decider.id for t, lay in layouts if t == t_new)
+                time.sleep(max(0.0, t0 + 2.0 - time.monotonic()))
+                t_cont = time.monotonic()
+                os.kill(leader.pid, signal.SIGCONT)
+                wait(lambda: role(leader, 'standby'), 10.0, 'the resumed one standing by')
+                steady('/w', 1.0)
+                with lock:
+                    stale = sum(1 for t, lay in layouts if t > t_cont and lay.decider
+                                and lay.decider.pid == leader.pid)
+                    followed = sum(1 for st in states.values() if st.decider != new_id)
+                stop_takeover.append(t_new - t0)
+                stale_layouts += stale
+                stale_followed += followed
+                print(f'decider stop {k + 1:2}: first layout of the standby after '
+                      f'{t_new - t0:.3f} s; layouts of the resumed one {stale}; agents not '
+                      f'following the new leader {followed}', flush=True)
+                deciders = [other, leader]
         finally:
             for proc in reversed(procs):
                 stop_popen(proc, 5.0, 5.0)
@@ -378,6 +414,10 @@ def main() -> int:
         print(f'leading decider SIGKILLed with a standby: its first layout after '
               f'{stats(takeover)}; moves and node restarts {takeover_moves}; longest gap '
               f'{stats(takeover_gap)}')
+    if stop_takeover:
+        print(f"leading decider SIGSTOPped for 2 s: the standby's first layout after "
+              f'{stats(stop_takeover)}; layouts of the resumed one {stale_layouts}; agents '
+              f'left following it {stale_followed}')
     return 0
 
 

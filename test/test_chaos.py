@@ -57,12 +57,15 @@ def test_a_long_soak_draws_every_kind_with_its_parameters_in_range():
                 (n, 'active') for n in ('odometry', 'ekf', 'navigation')}
         elif f.kind == 'hostile':
             assert 4.0 <= f.hold_s <= 8.0
+        elif f.kind == 'stop_decider':
+            assert 1.0 <= f.hold_s <= 4.0
         assert f.describe()
 
 
 def test_the_short_soak_of_the_e2e_module_has_one_fault_of_every_kind():
     # The seed and bounds of test_e2e_soak.py.
-    faults = chaos.generate(7, 120.0, ensure_each=True, gap_s=(3.0, 5.0))
+    from test_e2e_soak import DURATION_S, SEED
+    faults = chaos.generate(SEED, DURATION_S, ensure_each=True, gap_s=(3.0, 5.0))
     assert sorted(f.kind for f in faults) == sorted(chaos.KINDS)
 
 

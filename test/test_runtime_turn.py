@@ -117,3 +117,30 @@ def test_two_turns_fed_alike_say_the_same(d):
             lines.append((out.layouts, out.events, out.logs, out.level, out.message))
         said.append(lines)
     assert said[0] == said[1]
+
+
+def test_a_standby_takes_over_from_the_leaders_layout_and_moves_nothing(d):
+    # The leader had moved AMCL and AR out and brought AR back 2 s ago (its event heard).
+    where = dict(master_layout(d), amcl='laptop')
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    feed(turn, d, 10.0, where, generation=12)
+    turn.heard_decision('migrate_back', 'ar', 'laptop', 8.0)
+    out = turn.take_over(10.0, dict(where), 12, 'decider a (term 1) silent for 0.30 s')
+    ((generation, layout, why),) = out.layouts
+    assert generation == 13 and layout == where and why.startswith('decider a (term 1)')
+    assert turn.policy.last_back[('ar', 'laptop')] == 8.0       # its hysteresis goes on
+    # Every node runs where the layout has it: no grace period, no move in the next turns.
+    assert turn.policy.last_move == {}
+    for now in (10.25, 10.5, 11.0):
+        feed(turn, d, now, where, generation=13)
+        assert not turn.turn(now).layouts
+    assert turn.layout == where and turn.generation == 13
+
+
+def test_a_takeover_gives_a_grace_period_only_to_nodes_not_yet_where_placed(d):
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    feed(turn, d, 10.0, master_layout(d), generation=3)
+    # The leader had just moved AMCL out; its copy on the laptop does not serve yet.
+    placed = dict(master_layout(d), amcl='laptop')
+    turn.take_over(10.0, placed, 4, 'takeover')
+    assert set(turn.policy.last_move) == {'amcl'} and set(turn.policy.pending) == {'amcl'}

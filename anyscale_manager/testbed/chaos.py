@@ -13,15 +13,15 @@ from dataclasses import dataclass, field
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Set, Tuple
 
 KINDS = ('cut', 'throttle', 'flap', 'kill_agent_laptop', 'kill_agent_robot', 'kill_decider',
-         'kill_node', 'hostile', 'rival_decider')
+         'stop_decider', 'kill_node', 'hostile', 'rival_decider')
 # How often each kind is drawn in a long soak (relative).
 WEIGHTS = {'cut': 3.0, 'throttle': 2.0, 'flap': 2.0, 'kill_agent_laptop': 1.5,
-           'kill_agent_robot': 1.5, 'kill_decider': 1.5, 'kill_node': 3.0, 'hostile': 1.5,
-           'rival_decider': 1.0}
+           'kill_agent_robot': 1.5, 'kill_decider': 1.5, 'stop_decider': 1.0, 'kill_node': 3.0,
+           'hostile': 1.5, 'rival_decider': 1.0}
 # The time each kind takes beyond its hold, reaction included, to space the schedule (s).
 EXTRA_S = {'cut': 2.0, 'throttle': 3.0, 'flap': 2.0, 'kill_agent_laptop': 6.0,
-           'kill_agent_robot': 6.0, 'kill_decider': 12.0, 'kill_node': 6.0, 'hostile': 3.0,
-           'rival_decider': 10.0}
+           'kill_agent_robot': 6.0, 'kill_decider': 6.0, 'stop_decider': 3.0, 'kill_node': 6.0,
+           'hostile': 3.0, 'rival_decider': 10.0}
 # A throttle below AR's 6 Mbit/s (AR must come back, AMCL may stay) and one everything fits.
 THROTTLE_KBPS = (5000.0, 20000.0)
 
@@ -33,7 +33,8 @@ class Fault:
     index: int
     at_s: float
     kind: str
-    hold_s: float = 0.0          # cut, throttle: how long it lasts; hostile: how long it sends
+    # cut, throttle, stop_decider: how long it lasts; hostile: how long it sends
+    hold_s: float = 0.0
     rate_kbps: Optional[float] = None                # throttle
     flaps: Tuple[Tuple[float, float], ...] = ()     # flap: (down_s, up_s) per cycle
     node: str = ''                                   # kill_node
@@ -59,10 +60,12 @@ class Fault:
         if self.kind == 'hostile':
             return f'hostile publisher {self.hold_s:.1f} s'
         if self.kind == 'rival_decider':
-            return 'second decider started'
+            return 'third decider started'
+        if self.kind == 'stop_decider':
+            return f'SIGSTOP the leading decider for {self.hold_s:.1f} s'
         return {'kill_agent_laptop': "SIGKILL the laptop's agent",
                 'kill_agent_robot': "SIGKILL the robot's agent",
-                'kill_decider': 'SIGKILL the decider'}[self.kind]
+                'kill_decider': 'SIGKILL the leading decider'}[self.kind]
 
 
 def _draw(rng: random.Random, kind: str, index: int, at_s: float,
@@ -85,6 +88,8 @@ def _draw(rng: random.Random, kind: str, index: int, at_s: float,
     if kind == 'hostile':
         return Fault(index, at_s, kind, hold_s=round(rng.uniform(4.0, 8.0), 1),
                      seed=rng.randrange(1 << 30))
+    if kind == 'stop_decider':
+        return Fault(index, at_s, kind, hold_s=round(rng.uniform(1.0, 4.0), 1))
     return Fault(index, at_s, kind)
 
 

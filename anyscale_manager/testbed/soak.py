@@ -48,7 +48,7 @@ DUPLICATE_PROCESS_S = 3.0
 # Faults after which nothing has a reason to come home: a move back or a relocation from their
 # start to 3 s after their reaction is counted (the laptop agent's death may relocate its nodes
 # once it is silent for agent_timeout_s, as documented, and is not among them).
-NO_MOVE_BACK = ('kill_agent_robot', 'kill_decider', 'hostile')
+NO_MOVE_BACK = ('kill_agent_robot', 'kill_decider', 'stop_decider', 'hostile')
 # A third decider's start is listed apart (``moves_back_noted``), not counted: its protocol
 # rule is what the fault checks, and a process joining the domain on the robot made the robot's
 # link monitor miss 3 beats (a false cut of 0.04-0.13 s, AMCL brought home by an activation) in
@@ -110,6 +110,7 @@ class Soak:
         self._next_processes = 0.0
         self.missed = 0
         self.rival_misbehaved = 0       # a third decider that published or did not stand by
+        self.stale_leader = 0           # a resumed leader published, or was followed again
 
     # --- set-up ---------------------------------------------------------------------------
     def _keyed_copy(self, path: str) -> str:
@@ -407,6 +408,43 @@ class Soak:
         if t_follow is None:
             self._missed(row, 'agents not following the new decider 20 s after it published')
 
+    def _stop_decider(self, f: chaos.Fault, row: Dict[str, object]) -> None:
+        name = self.leader() or 'decider'
+        stopped = self.tb.procs[name].popen.pid
+        with self.tb.lock:
+            ids = {lay.decider.id for _, lay in self.tb.record.layouts
+                   if lay.decider and lay.decider.pid == stopped}
+        os.kill(stopped, signal.SIGSTOP)
+        t_stop = time.monotonic()
+        row['what'] = f'SIGSTOP the leading decider ({name}) for {f.hold_s:.1f} s'
+        row['reaction'] = '-> the other decider publishing'
+        try:
+            t_pub = self.wait(lambda r: any(
+                t > t_stop and lay.decider and lay.decider.pid in self.decider_pids
+                and lay.decider.pid != stopped for t, lay in r.layouts), 20.0)
+            if t_pub is not None:
+                row['reaction_s'] = t_pub - t_stop
+            self.sleep(t_stop + f.hold_s - time.monotonic())
+        finally:
+            os.kill(stopped, signal.SIGCONT)
+        t_cont = time.monotonic()
+        if t_pub is None:
+            self._missed(row, 'no layout from another decider 20 s after the SIGSTOP')
+            return
+        # Resumed, it must stand by: no layout of its own, no agent following it again.
+        self.sleep(2.0)
+        with self.tb.lock:
+            stale = sum(1 for t, lay in self.tb.record.layouts if t > t_cont and lay.decider
+                        and lay.decider.pid == stopped)
+            followed = sorted({scale for scale, history in self.tb.record.agent_states.items()
+                               for t, st in history if t > t_cont + 1.0 and st.decider in ids})
+        row['outcome'] = (f'resumed after {t_cont - t_stop:.1f} s: {stale} layouts of its own; '
+                          f'agents following it again: {", ".join(followed) or "none"}')
+        if stale or followed:
+            self.stale_leader += 1
+            self.log(f'!! {name} resumed: {stale} layouts published, followed by '
+                     f'{followed or "none"}')
+
     def _kill_node(self, f: chaos.Fault, row: Dict[str, object]) -> None:
         node = f.node
 
@@ -676,6 +714,7 @@ class Soak:
             'forged_applied': verdict['forged_applied_count'],
             'rival_followed': verdict['rival_followed_count'],
             'rival_misbehaved': self.rival_misbehaved,
+            'stale_leader': self.stale_leader,
             'unexpected_exits': len(unintended),
             'missed_reactions': self.missed,
             'leftovers': len(teardown['leftovers']),
