@@ -35,6 +35,7 @@ Prints one line per fault, then p50/p95/max of each figure.
 
 import argparse
 import os
+import re
 import signal
 import statistics
 import subprocess
@@ -127,6 +128,7 @@ def main() -> int:
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import String, UInt8MultiArray
 
     from anyscale_manager import protocol as p
@@ -138,7 +140,7 @@ def main() -> int:
     node = rclpy.create_node('bench_failover_consumer')
     lock = threading.Lock()
     heard = {'/w': [], '/p': []}      # arrival times
-    states, events, links, layouts, beats = {}, [], [], [], {}
+    states, events, links, layouts, beats, ready = {}, [], [], [], {}, set()
 
     def keep(suffix):
         def take(_raw):
@@ -171,6 +173,16 @@ def main() -> int:
         with lock:
             beats[b.decider.pid] = (time.monotonic(), b.role)
     node.create_subscription(String, p.TOPIC_DECIDER, beat, qos.BEAT)
+
+    def diagnostics(m):
+        # A standby is ready once it stands by for a leader it hears (its diagnostics say so).
+        for status in m.status:
+            values = {kv.key: kv.value for kv in status.values}
+            found = re.search(r'pid (\d+)\)', values.get('decider', ''))
+            if found and status.message.startswith('standing by for decider'):
+                with lock:
+                    ready.add(int(found.group(1)))
+    node.create_subscription(DiagnosticArray, p.TOPIC_DIAGNOSTICS, diagnostics, 50)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     stop = threading.Event()
@@ -334,8 +346,8 @@ def main() -> int:
                 leader = wait(lambda: next((d for d in deciders if role(d, 'leader')), None),
                               30.0, 'a leading decider')
                 other = wait(lambda: next((d for d in deciders if d is not leader
-                                           and role(d, 'standby')), None), 30.0,
-                             'a standby decider')
+                                           and role(d, 'standby') and d.pid in ready), None),
+                             30.0, 'a standby decider standing by for it')
                 steady('/w', 1.0)
                 with lock:
                     restarts = {s: {n: r.restarts for n, r in st.nodes.items()}
@@ -365,8 +377,8 @@ def main() -> int:
                 leader = wait(lambda: next((d for d in deciders if role(d, 'leader')), None),
                               30.0, 'a leading decider')
                 other = wait(lambda: next((d for d in deciders if d is not leader
-                                           and role(d, 'standby')), None), 30.0,
-                             'a standby decider')
+                                           and role(d, 'standby') and d.pid in ready), None),
+                             30.0, 'a standby decider standing by for it')
                 steady('/w', 1.0)
                 t0 = time.monotonic()
                 os.kill(leader.pid, signal.SIGSTOP)

@@ -33,7 +33,7 @@ def test_a_lone_decider_leads_after_listening_above_every_term_heard():
 
 
 def test_a_standby_takes_over_from_a_silent_leader_at_a_higher_term():
-    d = decider('b', started=200.0, at=-10.0)
+    d = decider('b', started=200.0)
     leader = ident('a')
     for t in (0.0, 0.05, 0.1):
         assert d.heard_beat(leader, LEADER, 3, 12, t) is None
@@ -49,7 +49,7 @@ def test_a_standby_takes_over_from_a_silent_leader_at_a_higher_term():
 
 
 def test_of_two_standbys_the_first_started_takes_over_and_the_other_stands_by():
-    first, second = decider('f', started=100.0, at=-10.0), decider('s', started=105.0, at=-10.0)
+    first, second = decider('f', started=100.0), decider('s', started=105.0)
     leader = ident('l', started=50.0)
     for d in (first, second):
         d.heard_beat(leader, LEADER, 1, 3, 0.0)
@@ -67,11 +67,20 @@ def test_of_two_standbys_the_first_started_takes_over_and_the_other_stands_by():
     assert second.live_leader(0.45).identity == first.me
 
 
-def test_a_starting_decider_that_heard_a_leader_once_waits_out_its_discovery():
+def test_a_starting_decider_that_heard_only_a_layout_waits_out_its_discovery():
     d = decider('new', started=300.0, at=0.0)
-    d.heard_beat(ident('l', started=50.0), LEADER, 2, 7, 0.2)     # its latched layout
+    d.heard_beat(ident('l', started=50.0), LEADER, 2, 7, 0.2, layout=True)   # latched
     assert d.check(0.6) is None and d.check(4.9) is None and d.role == STANDBY
     change = d.check(5.0)
+    assert change.role == LEADER and change.term == 3 and change.previous.identity.id == 'l'
+
+
+def test_a_starting_decider_that_heard_the_leaders_beats_may_take_over_at_once():
+    d = decider('new', started=300.0, at=0.0)
+    d.heard_beat(ident('l', started=50.0), LEADER, 2, 7, 0.2, layout=True)
+    d.heard_beat(ident('l', started=50.0), LEADER, 2, 7, 0.5)             # a beat
+    assert d.check(0.75) is None
+    change = d.check(0.8)
     assert change.role == LEADER and change.term == 3 and change.previous.identity.id == 'l'
 
 

@@ -373,7 +373,11 @@ class DeciderNode(Node):
             self._layouts.pop(next(iter(self._layouts)))
         self._layouts[layout.decider.id] = layout
         # A layout is its decider's word that it leads at its term, as its beat is.
-        self._heard_leader(layout.decider, layout.term or 0, layout.generation)
+        change = self.lead.heard_beat(layout.decider, LEADER, layout.term or 0,
+                                      layout.generation, self._now(), layout=True)
+        if change is not None:
+            self._role_changed(change)
+        self._say_standing_by()
 
     def heard_beat_text(self, text: str, now: float) -> None:
         """One beat taken by the beat thread (under the lock): decoded, checked, heard, and a
@@ -403,12 +407,6 @@ class DeciderNode(Node):
             with self._lock:
                 return callback(*args)
         return run
-
-    def _heard_leader(self, identity: p.DeciderIdentity, term: int, generation: int) -> None:
-        change = self.lead.heard_beat(identity, LEADER, term, generation, self._now())
-        if change is not None:
-            self._role_changed(change)
-        self._say_standing_by()
 
     def _say_standing_by(self) -> None:
         leader = self.lead.leader

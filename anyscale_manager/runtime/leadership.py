@@ -8,8 +8,9 @@ standby only listens (to the leader's layouts and events and to every report the
   ``discovery_s`` since its start; hearing one, it stays a standby.
 - **Takeover.** A standby takes the lead when the last leader it heard has been silent for
   ``takeover_s``, plus two beats per live standby that started before it (the first one started
-  goes first; the others then hear it lead and stay standbys), and never within
-  ``discovery_s`` of its own start (a leader's latched layout may arrive before its beats).
+  goes first; the others then hear it lead and stay standbys). A standby that has heard a
+  leader only through its layouts (a latched one arrives before the beats, whose discovery is
+  separate), never its beats, waits until ``discovery_s`` after its own start as well.
 - **Term.** A decider that takes the lead takes a term above every term it has heard (beats,
   layouts, the agents' reports), and every layout carries it: agents refuse a lower term than
   the one they follow (agent/authority.py), so a leader that comes back after a takeover
@@ -26,6 +27,7 @@ standby only listens (to the leader's layouts and events and to every report the
   ``discovery_s``), and keeps leading.
 """
 
+import math
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Tuple
 
@@ -79,14 +81,18 @@ class Leadership:
         self.peers: Dict[str, Peer] = {}
         self.leader: Optional[Peer] = None  # the leader last heard (as a standby)
         self.quiet_since: Optional[float] = None    # when a leader was last known to live
+        self.beats_heard = False                    # a leader's beat, not only its layouts
         self.last_beat: Optional[float] = None      # our own last beat
         self.takeovers = 0
 
     # --- what is heard --------------------------------------------------------------------
     def heard_beat(self, identity: DeciderIdentity, role: str, term: int, generation: int,
-                   now: float) -> Optional[Change]:
+                   now: float, *, layout: bool = False) -> Optional[Change]:
+        """A beat (or, with ``layout``, a layout: a leader's word too) of another decider."""
         if identity.id == self.me.id:
             return None
+        if role == LEADER and not layout:
+            self.beats_heard = True
         self.max_term = max(self.max_term, term)
         if identity.id not in self.peers and len(self.peers) >= MAX_PEERS:
             del self.peers[min(self.peers, key=lambda k: self.peers[k].received)]
@@ -164,12 +170,12 @@ class Leadership:
         if self.role == LEADER or self.live_leader(now) is not None:
             return None
         rank = RANK_BEATS * self.beat_s * self.standbys_before(now)
-        # Never before discovery_s after the start: a starting decider may hear a leader's
-        # latched layout before its beats (their discovery is separate), and a leader whose
-        # beats it has not heard yet is not a silent one.
         base = self.started + self.discovery_s
         if self.quiet_since is not None:
-            base = max(base, self.quiet_since + self.takeover_s)
+            # A leader whose beats have not been heard yet is not a silent one: until then,
+            # not before discovery_s after the start.
+            floor = -math.inf if self.beats_heard else base
+            base = max(floor, self.quiet_since + self.takeover_s)
         return base + rank - now
 
     # --- transitions ----------------------------------------------------------------------
