@@ -92,7 +92,7 @@ def readings(scale, rate_hz, below_s=0.0):
 
 TOPICS = {p.Layout: p.TOPIC_LAYOUT, p.AgentState: p.TOPIC_AGENT_STATE,
           p.LinkStatus: p.TOPIC_LINK_STATUS, p.ScaleStatus: p.TOPIC_SCALE_STATUS,
-          p.ConnectionStatus: p.TOPIC_CONNECTION_STATUS}
+          p.ConnectionStatus: p.TOPIC_CONNECTION_STATUS, p.DeciderBeat: p.TOPIC_DECIDER}
 
 
 def take(book, now, *messages):
@@ -116,6 +116,24 @@ def test_fresh_figures_are_shown_as_current(d):
     assert 'ok, generation 3, 1.0 s ago' in row(text, 'robot')
     assert row(text, 'wifi').split()[2:8] == ['up', '1.5', 'ms', '40000', '/', '54000']
     assert row(text, 'sensor_worker').split()[1:] == ['10.0', '5', '0.0', '/', '2', 'ok']
+
+
+def test_the_leading_decider_and_its_standbys_are_shown_from_their_beats(d):
+    def beat(name, role, term, deployment=None):
+        return p.DeciderBeat(stamp=time.time(), deployment=deployment or d.name,
+                             decider=p.DeciderIdentity(name, 'robot', 7, 1.0), role=role,
+                             term=term, generation=3)
+    book = StatusBook(d)
+    take(book, 0.0, layout(3))
+    assert 'deciders' not in render(book, 0.5)                    # none heard: no line
+    take(book, 1.0, beat('b2', 'standby', 1), beat('a1', 'leader', 2),
+         beat('x9', 'leader', 9, deployment='another_robot'))
+    assert 'deciders: a1 leader (term 2); b2 standby' in render(book, 1.5).splitlines()
+    assert book.foreign == 1
+    # The leader killed: only the standby beats on, then it leads at a higher term.
+    take(book, 5.0, beat('b2', 'leader', 3))
+    assert 'deciders: b2 leader (term 3)' in render(book, 5.5).splitlines()
+    assert 'deciders: none heard for 3 s' in render(book, 9.0)
 
 
 def test_stale_figures_are_marked_with_their_age_not_shown_as_current(d):

@@ -52,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
     from std_msgs.msg import String
 
-    from .qos import LATCHED_READER as latched, MONITOR_READER as sensor
+    from .qos import BEAT as beat, LATCHED_READER as latched, MONITOR_READER as sensor
     key = None
     if deployment.security.key_file:
         try:
@@ -70,7 +70,8 @@ def run(args: argparse.Namespace) -> int:
     node = rclpy.create_node(f'anyscale_status_{os.getpid()}', context=ctx)
     topics = {p.TOPIC_LAYOUT: latched, p.TOPIC_AGENT_STATE: latched,
               p.TOPIC_EVENTS: 50, p.TOPIC_OBJECTIVE: 10, p.TOPIC_SCALE_STATUS: sensor,
-              p.TOPIC_LINK_STATUS: sensor, p.TOPIC_CONNECTION_STATUS: sensor}
+              p.TOPIC_LINK_STATUS: sensor, p.TOPIC_CONNECTION_STATUS: sensor,
+              p.TOPIC_DECIDER: beat}
     for topic, qos in topics.items():
         node.create_subscription(
             String, topic, lambda m, t=topic: book.take(t, m.data, time.monotonic()), qos)

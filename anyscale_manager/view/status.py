@@ -82,6 +82,8 @@ class StatusBook:
     readings: Dict[Tuple[str, str], Tuple[p.ConnectionReading, float]] = \
         field(default_factory=dict)
     events: List[p.Event] = field(default_factory=list)
+    # decider id -> its last beat (leader or standby), of this deployment
+    deciders: Dict[str, Tuple[p.DeciderBeat, float]] = field(default_factory=dict)
     ignored: int = 0
     foreign: int = 0
     # With the deployment's key: every message must be signed, unaltered and new (per sender
@@ -130,6 +132,14 @@ class StatusBook:
                 m = p.Event.from_json(text, topic)
                 if self._verified(topic, text, m):
                     self.events = (self.events + [m])[-8:]
+            elif topic == p.TOPIC_DECIDER:
+                m = p.DeciderBeat.from_json(text, topic)
+                if self._verified(topic, text, m):
+                    ours = m.deployment == self.deployment.name
+                    if ours and m.decider.id not in self.deciders and len(self.deciders) >= 8:
+                        del self.deciders[min(self.deciders,
+                                              key=lambda k: self.deciders[k][1])]
+                    self._keep(self.deciders, m.decider.id, m, now, ours)
         except p.ProtocolError:
             self.ignored += 1
 
@@ -197,6 +207,21 @@ def _layout_line(book: StatusBook, now: float) -> str:
     if now - heard > book.deployment.decider.lease_s:
         text += f'; decider silent, {stale_mark(now - heard)}'
     return text
+
+
+def _deciders_line(book: StatusBook, now: float) -> str:
+    """Who leads and who stands by, from the deciders' beats ('' before any is heard)."""
+    if not book.deciders:
+        return ''
+    # A decider silent for a lease is gone (its beats come every beat_s).
+    lease = book.deployment.decider.lease_s
+    live = sorted(((b, at) for b, at in book.deciders.values() if now - at <= lease),
+                  key=lambda x: (x[0].role != 'leader', -x[0].term, x[0].decider.id))
+    if not live:
+        return f'deciders: none heard for {lease:g} s'
+    return 'deciders: ' + '; '.join(
+        f'{b.decider.id} {b.role}' + (f' (term {b.term})' if b.role == 'leader' else '')
+        for b, _ in live)
 
 
 def _objective_line(book: StatusBook, now: float) -> str:
@@ -344,8 +369,10 @@ def _node_rows(book: StatusBook, now: float, running, standby) -> List[str]:
 
 def render(book: StatusBook, now: float) -> str:
     """The status view as text, its figures judged at ``now`` (the clock of ``take``)."""
-    lines = [f'deployment {book.deployment.name}', _layout_line(book, now),
-             _objective_line(book, now)]
+    lines = [f'deployment {book.deployment.name}', _layout_line(book, now)]
+    deciders = _deciders_line(book, now)
+    lines += [deciders] if deciders else []
+    lines.append(_objective_line(book, now))
     shared = _single_machine_line(book)
     lines += [shared, ''] if shared else ['']
     running, standby = _placement(book)
