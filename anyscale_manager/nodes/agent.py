@@ -671,19 +671,27 @@ def main(args: Optional[List[str]] = None) -> int:
         print(f'agent: cannot start on scale {scale!r}: {e}', file=sys.stderr)
         return 2
     node = None
-    early = []
-    restart = []
+    # The handlers only note the signal; the loop acts on it between two callbacks. A handler
+    # runs between any two bytecodes of the main thread, maybe inside a callback that holds a
+    # monitor's lock: stopping the nodes from there deadlocked once (a SIGINT logged "shutting
+    # down" and stopped nothing).
+    signals: List[str] = []
 
     def on_signal(signum, frame):
-        if node is None:
-            early.append(signum)   # the node reports before main() gets here: remember it
-        else:
-            node.request_shutdown()
+        signals.append('stop')
 
     def on_restart(signum, frame):
-        restart.append(signum)
-        if node is not None:
-            node.request_restart()
+        signals.append('restart')
+
+    def act() -> None:
+        stops = 0
+        while signals:
+            kind = signals.pop(0)
+            if kind == 'restart':
+                node.request_restart()
+            elif stops < 2:         # a second one kills every node at once
+                stops += 1
+                node.request_shutdown()
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
@@ -694,13 +702,13 @@ def main(args: Optional[List[str]] = None) -> int:
         except (DeploymentError, AgentError, ValueError) as e:
             print(f'agent: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
             return 2
-        for _ in early[:2]:
-            node.request_shutdown()
-        if restart:
-            node.request_restart()
+        act()
         executor = make_executor()
         executor.add_node(node)
         while rclpy.ok() and not node.finished and not node.restarting:
+            act()
+            if node.finished or node.restarting:
+                break
             try:
                 executor.spin_once(timeout_sec=TICK_S)
             except (KeyboardInterrupt, ExternalShutdownException):
