@@ -504,8 +504,7 @@ class DeciderBeat(Message):
         _sender_ok(self, where)
 
     def to_dict(self) -> Dict[str, Any]:
-        out = asdict(self)
-        return _without_unsigned(out, self)
+        return _without_unsigned(asdict(self), self)
 
 
 @dataclass

@@ -335,19 +335,23 @@ def main() -> int:
                       f'longest gap {gap:.3f} s', flush=True)
                 agents['away'] = start('agent', '-p', 'scale:=away')
             deciders = [procs[2]]
-            if args.decider_kills:
+            if args.decider_kills or args.decider_stops:
                 deciders.append(start('decider'))
 
             def role(proc, wanted):
                 with lock:
                     t, r = beats.get(proc.pid, (0.0, ''))
                 return r == wanted and time.monotonic() - t < 1.0
-            for k in range(args.decider_kills):
+
+            def leader_and_standby():
                 leader = wait(lambda: next((d for d in deciders if role(d, 'leader')), None),
                               30.0, 'a leading decider')
                 other = wait(lambda: next((d for d in deciders if d is not leader
                                            and role(d, 'standby') and d.pid in ready), None),
                              30.0, 'a standby decider standing by for it')
+                return leader, other
+            for k in range(args.decider_kills):
+                leader, other = leader_and_standby()
                 steady('/w', 1.0)
                 with lock:
                     restarts = {s: {n: r.restarts for n, r in st.nodes.items()}
@@ -374,11 +378,7 @@ def main() -> int:
                       f'{gap:.3f} s', flush=True)
                 deciders = [other, start('decider')]
             for k in range(args.decider_stops):
-                leader = wait(lambda: next((d for d in deciders if role(d, 'leader')), None),
-                              30.0, 'a leading decider')
-                other = wait(lambda: next((d for d in deciders if d is not leader
-                                           and role(d, 'standby') and d.pid in ready), None),
-                             30.0, 'a standby decider standing by for it')
+                leader, other = leader_and_standby()
                 steady('/w', 1.0)
                 t0 = time.monotonic()
                 os.kill(leader.pid, signal.SIGSTOP)

@@ -6,9 +6,9 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 from anyscale_manager.interrupt import restore_ctrl_c
+from supervision import wait_for
 
 BIN = os.path.dirname(sys.executable)
 
@@ -23,18 +23,10 @@ def start(argv, tmp_path, name):
                             preexec_fn=ignoring_sigint), tmp_path / f'{name}.out'
 
 
-def until(cond, timeout_s, what):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f'timed out after {timeout_s} s waiting for {what}')
-
-
 def stopped_by_sigint(proc, log, ready, tmp_path):
     try:
-        until(lambda: ready in log.read_text() or proc.poll() is not None, 60.0, ready)
+        assert wait_for(lambda: ready in log.read_text() or proc.poll() is not None, 60.0,
+                        period=0.05), f'{ready!r} not logged in 60 s'
         assert proc.poll() is None, log.read_text()
         proc.send_signal(signal.SIGINT)
         proc.wait(15.0)

@@ -102,27 +102,33 @@ def settled(ex, seen, procs):
          and not runs(seen, 'home', 'worker'), 60.0, 'the worker running away', procs)
 
 
-def test_a_standby_takes_over_a_killed_leader_without_moving_anything(tmp_path, ros_env, world):
-    ex, seen, procs = world
+def leader_and_standby(ex, seen, procs, tmp_path, ros_env):
+    """Agents, a leading decider with the worker moved out, and a second one standing by for
+    it: (first process, its identity, second process, its id)."""
     path = write_deployment(tmp_path)
     start_agents(procs, tmp_path, ros_env, path)
     first = start(procs, tmp_path, ros_env, path, 'decider_1')
     one = leading(ex, seen, procs, 'decider_1', first)
     settled(ex, seen, procs)
     second = start(procs, tmp_path, ros_env, path, 'decider_2')
-    two_id = standing_by(ex, seen, procs, second, one)
+    return first, one, second, standing_by(ex, seen, procs, second, one)
+
+
+def test_a_standby_takes_over_a_killed_leader_without_moving_anything(tmp_path, ros_env, world):
+    ex, seen, procs = world
+    first, one, second, two_id = leader_and_standby(ex, seen, procs, tmp_path, ros_env)
     # It published no layout, and it stays up.
     assert {lay.decider.id for _, lay in seen['layouts']} == {one.id}
     assert second.proc.poll() is None
     last = seen['layouts'][-1][1]
     before = pids(seen)
 
-    killed = time.monotonic()
     os.kill(first.proc.pid, signal.SIGKILL)
     wait(ex, lambda: any(lay.decider.id == two_id for _, lay in seen['layouts']), 10.0,
          'a layout of the standby', procs)
-    at, new = next((t, lay) for t, lay in seen['layouts'] if lay.decider.id == two_id)
-    # The leader's layout at a higher term (the time it took is bench_standby_decider's).
+    new = next(lay for _, lay in seen['layouts'] if lay.decider.id == two_id)
+    # The leader's layout at a higher term (the time it takes: bench/bench_failover.py
+    # --decider-kills).
     assert new.term > last.term and new.generation > last.generation
     assert dict(new.assignments) == dict(last.assignments)
     assert f'decider {one.id}' in new.reason and 'takes over at term' in new.reason, new.reason
@@ -130,7 +136,6 @@ def test_a_standby_takes_over_a_killed_leader_without_moving_anything(tmp_path, 
     assert pids(seen) == before                   # nothing moved, nothing restarted
     wait(ex, lambda: any(e.kind == 'takeover' for e in seen['events']), 10.0,
          'the takeover event', procs)
-    assert at - killed < 10.0
     codes = {name: pr.stop() for name, pr in reversed(procs) if name != 'decider_1'}
     assert codes['decider_2'] == 0, second.text()
 
@@ -138,13 +143,7 @@ def test_a_standby_takes_over_a_killed_leader_without_moving_anything(tmp_path, 
 def test_a_stopped_leader_is_taken_over_and_commands_nothing_when_it_resumes(tmp_path, ros_env,
                                                                              world):
     ex, seen, procs = world
-    path = write_deployment(tmp_path)
-    start_agents(procs, tmp_path, ros_env, path)
-    first = start(procs, tmp_path, ros_env, path, 'decider_1')
-    one = leading(ex, seen, procs, 'decider_1', first)
-    settled(ex, seen, procs)
-    second = start(procs, tmp_path, ros_env, path, 'decider_2')
-    two_id = standing_by(ex, seen, procs, second, one)
+    first, one, second, two_id = leader_and_standby(ex, seen, procs, tmp_path, ros_env)
     before = pids(seen)
 
     os.kill(first.proc.pid, signal.SIGSTOP)

@@ -207,7 +207,8 @@ class DeciderSettings:
         factory=frozen_map)
     lease_s: float = setting(
         3.0, 'the decider re-publishes its layout every lease_s / 3; agents follow another '
-             'decider only after this silence of the one they follow',
+             'decider at the same or a lower term only after this silence of the one they '
+             'follow (a higher term at once)',
         low=0, high=600, low_open=True, unit='s')
     discovery_s: float = setting(
         5.0, 'a starting decider that hears no leading decider of the deployment for this long '
