@@ -198,6 +198,14 @@ class DeciderSettings:
         low_open=True, unit='s', live=True)
     migration: bool = setting(
         True, 'false: never move a node out (the no-migration baseline)', live=True)
+    rebalance: bool = setting(
+        True, 'move a node from a remote scale to a more powerful remote one that can host '
+              'it, T after it arrived, when the cost function gains rebalance_min_gain '
+              '(beyond the paper: a returning server is used again)', live=True)
+    rebalance_min_gain: float = setting(
+        25.0, 'the least gain of a rebalancing move: CPU x (alpha there - alpha here), in '
+              'reference-core percent x alpha (a node of 50 from alpha 2 to 3.5: 75)',
+        low=0, high=1e9, live=True)
     initial_layout: str = setting(
         'master', 'the first layout: every node on the master, the IROS Problem 1 or 2 '
                   'planner, or decider.layout; read once, at start',

@@ -88,6 +88,8 @@ class Observations:
 
 MIGRATE = 'migrate'            # master -> remote (Algorithm 1's else branch)
 MIGRATE_BACK = 'migrate_back'  # remote -> master (Algorithm 1's violation branch)
+MOVE_AWAY = 'move_away'        # remote -> a better remote than the master: it must leave
+REBALANCE = 'rebalance'        # remote -> a more powerful remote (beyond the paper)
 RELOCATE = 'relocate'          # a node of a lost scale placed elsewhere
 FAILOVER = 'failover'          # a crashed serving copy replaced by a standby copy elsewhere
 

@@ -3,12 +3,15 @@
 Each ``step(obs)`` is one turn of the paper's loop, taken once per decider period:
 
 - if a constraint is violated (bandwidth required > available, a link down or silent, a
-  connection below freq_min for longer than its Δ, a remote scale over its CPU), migrate back to
-  the master the nodes of the migrated list that cause it, and keep migrating back while some
-  link's required bandwidth exceeds what it has (the paper's do ... while);
+  connection below freq_min for longer than its Δ, a remote scale over its CPU), move the nodes
+  of the migrated list that cause it to the next-best scale (the most powerful remote one that
+  can host them now, else back to the master), and keep doing so while some link's required
+  bandwidth exceeds what it has (the paper's do ... while);
 - otherwise sort the migratable nodes on the master by CPU usage and the remote scales by power,
   and migrate the first node not migrated back within the hysteresis time T to the first scale
-  that can host it (allowed there, CPU headroom, link up with the bandwidth available).
+  that can host it (allowed there, CPU headroom, link up with the bandwidth available); when
+  none moves, rebalance: a node on a remote scale moves to a more powerful one when the cost
+  function gains enough (beyond the paper).
 
 Additions a live system needs (documented in docs/decider.md): a grace period after each move
 during which the moved node's connections are not judged; at most one move out per step, and
@@ -36,7 +39,8 @@ from ..model.types import DeciderSettings, Deployment, frozen_map
 from .constraints import (CPU, FREQUENCY, LINK_DOWN, ConstraintReport, DeltaTracker, evaluate,
                           is_fresh, link_capacity, node_cpu, required_kbps, scale_cpu)
 from .layout import adopt, default_scale, master_layout
-from .observations import FAILOVER, MIGRATE, MIGRATE_BACK, RELOCATE, Decision, Observations
+from .observations import (FAILOVER, MIGRATE, MIGRATE_BACK, MOVE_AWAY, REBALANCE, RELOCATE,
+                           Decision, Observations)
 
 
 class MigrationPolicy:
@@ -300,6 +304,9 @@ class MigrationPolicy:
         out: List[Decision] = []
         moved = {d.node for d in already}
         extra_cpu: Dict[str, float] = {}
+        placed = dict(running)
+        for d in already:
+            placed[d.node] = d.to_scale
         for scale in sorted((lost & set(obs.fencing)) - {self.master}):
             notes.append(f'the nodes of {scale} stay placed there: its agent is silent but its '
                          'warden says they may still run (the agent restarts, or is gone and '
@@ -308,10 +315,12 @@ class MigrationPolicy:
             if scale not in lost or scale == self.master or node in moved \
                     or scale in obs.fencing:
                 continue
-            target, why_not = self._relocation_target(obs, node, extra_cpu)
+            target, why_not = self._relocation_target(obs, placed, report, node, scale,
+                                                      extra_cpu)
             if target is None:
                 self._unplaceable[node] = why_not
                 continue
+            placed[node] = target
             extra_cpu[target] = extra_cpu.get(target, 0.0) + self.deployment.node(node).cpu
             out.append(Decision(RELOCATE, node, scale, target,
                                 f'{self._lost_reason(obs, report, scale)}; {node} placed '
@@ -336,9 +345,12 @@ class MigrationPolicy:
                     f'and its nodes may be gone with it')
         return text
 
-    def _relocation_target(self, obs: Observations, node: str,
+    def _relocation_target(self, obs: Observations, placed: Mapping[str, str],
+                           report: ConstraintReport, node: str, lost: str,
                            extra_cpu: Mapping[str, float]) -> Tuple[Optional[str], str]:
-        """(scale, '') where a node of a lost scale goes, or (None, why no scale may host it)."""
+        """(scale, '') where a node of a lost scale goes, or (None, why no scale may host it):
+        the next-best scale (``_next_best``), else the master, else the most powerful
+        reachable scale with CPU to spare (a node the master may not run)."""
         allowed = self.deployment.allowed_scales(node)
         usable, refused = [], []
         for scale in allowed:
@@ -350,6 +362,9 @@ class MigrationPolicy:
         if not usable:
             return None, (f'allowed scales {", ".join(allowed)} have no live agent or are '
                           f'unreachable ({"; ".join(refused)})')
+        target, _ = self._next_best(obs, placed, report, node, lost, extra_cpu)
+        if target != self.master:
+            return target, ''
         if self.master in usable:
             return self.master, ''
         cpu = self.deployment.node(node).cpu
@@ -377,15 +392,33 @@ class MigrationPolicy:
         out: List[Decision] = []
         actionable = False
         migrated = [n for n, _ in self.migrated]
+        # Where every node will be once the moves asked for (earlier, and in this step) are
+        # made: what the next-best scale is judged against.
+        placed = dict(running)
+        for n, (where, _) in self.pending.items():
+            if n in placed:
+                placed[n] = where
+        for d in already:
+            placed[d.node] = d.to_scale
+        sent: Dict[str, float] = {}                     # scale -> CPU sent there this step
 
         def back(node: str, reason: str) -> None:
             if node in taken or node not in migrated:
                 return
             taken.add(node)
-            if self._hold_for_master(obs, node, notes):
-                return
-            out.append(Decision(MIGRATE_BACK, node, self.desired.get(node, running.get(node)),
-                                self.master, reason))
+            leaving = self.desired.get(node, running.get(node))
+            target, why = self._next_best(obs, placed, report, node, leaving, sent)
+            placed[node] = target         # one held for the master counts as back too
+            if target == self.master:
+                if self._hold_for_master(obs, node, notes):
+                    return
+                out.append(Decision(MIGRATE_BACK, node, leaving, self.master, reason + (
+                    f'; no other scale may take it ({why})' if why else '')))
+            else:
+                out.append(Decision(MOVE_AWAY, node, leaving, target,
+                                    f'{reason}; {node} to {target}, the next-best scale: {why}'))
+            sent[target] = sent.get(target, 0.0) + node_cpu(self.deployment, self.settings,
+                                                            obs, node)
 
         # A link down (or silent) brings back at once everything placed beyond it, running
         # or still starting there: waiting for the connections' Δ would be too late.
@@ -429,23 +462,18 @@ class MigrationPolicy:
         # do ... while required_BW > network_BW: pick, among the migrated nodes crossing an
         # overloaded link, the one whose return frees the most bandwidth on it (ties: the most
         # recently migrated), until every link fits. Moves already asked for count as done.
-        hypothetical = dict(running)
-        for n, (where, _) in self.pending.items():
-            if n in hypothetical:
-                hypothetical[n] = where
-        for n in taken:
-            hypothetical[n] = self.master
         for _ in range(len(migrated) + 1):
-            over = self._overloaded_links(report, hypothetical)
+            over = self._overloaded_links(report, placed)
             if not over:
                 break
             link_name, required, usable = over[0]
             current = required
             best, best_gain = None, 0.0
             for n in reversed(migrated):
-                if n in taken or hypothetical.get(n, self.master) == self.master:
+                if n in taken or placed.get(n, self.master) == self.master:
                     continue
-                trial = dict(hypothetical, **{n: self.master})
+                where, _ = self._next_best(obs, placed, report, n, placed[n], sent)
+                trial = dict(placed, **{n: where})
                 gain = current - required_kbps(self.deployment, trial)[link_name]
                 if gain > best_gain:
                     best, best_gain = n, gain
@@ -455,8 +483,38 @@ class MigrationPolicy:
             back(best, f'link {link_name}: required {required:.0f} kbit/s > usable '
                        f'{usable:.0f} kbit/s{report.links[link_name].cap_note}; {best} frees '
                        f'{best_gain:.0f} kbit/s')
-            hypothetical[best] = self.master
         return out, actionable
+
+    def _next_best(self, obs: Observations, placed: Mapping[str, str],
+                   report: ConstraintReport, node: str, leaving: Optional[str],
+                   sent: Mapping[str, float]) -> Tuple[str, str]:
+        """(scale, why) for a node that must leave ``leaving``: the most powerful remote scale
+        more powerful than the master that can host it now (live agent, its links up and
+        observed, CPU and bandwidth, counting what this step already sent there; not a scale
+        it left within T), else the master (Algorithm 1's migrate-back). With hysteresis scope
+        'node' (the paper's rule as written) always the master."""
+        d = self.deployment
+        if self.settings.hysteresis_scope == 'node':
+            return self.master, ''
+        power = d.master.power
+        others = [s for s in d.allowed_scales(node)
+                  if s not in (leaving, self.master) and d.scale(s).power > power]
+        if not others:
+            return self.master, ''
+        cpu = node_cpu(d, self.settings, obs, node)
+        without = {n: s for n, s in placed.items() if n != node}
+        refused = []
+        for scale in self._scales_by_power(others):
+            held = self._held((node,), scale, obs.now)
+            if held:
+                refused.append(held)
+                continue
+            ok, why = self._can_host(obs, without, report, (node,), cpu, scale,
+                                     sent.get(scale, 0.0))
+            if ok:
+                return scale, why
+            refused.append(f'{scale}: {why}')
+        return self.master, '; '.join(refused)
 
     def _overloaded_links(self, report: ConstraintReport,
                           running: Mapping[str, str]) -> List[Tuple[str, float, float]]:
@@ -516,7 +574,64 @@ class MigrationPolicy:
                           f'fits, to {scale} (power {self.deployment.scale(scale).power:g}): '
                           f'{why}')
                 return [Decision(MIGRATE, n, self.master, scale, reason) for n in unit]
-        return []
+        return self._rebalance(obs, running, report, notes)
+
+    def _rebalance(self, obs: Observations, running: Mapping[str, str],
+                   report: ConstraintReport, notes: List[str]) -> List[Decision]:
+        """Beyond the paper: a node (or coresidence group) on a remote scale moves to a more
+        powerful remote scale that can host it, when the cost function gains at least
+        ``rebalance_min_gain`` (CPU x (alpha there - alpha here)), not before T has passed
+        since it last moved, nor to a scale it left within T. One move per turn: the largest
+        gain; each move only raises the cost function, so nothing ping-pongs without a
+        violation in between (and a violation's move back holds the scale for T)."""
+        s, d, now = self.settings, self.deployment, obs.now
+        if not s.rebalance:
+            return []
+        remotes = self._scales_by_power([x.name for x in d.remote_scales])
+        best = None
+        for unit, here in self._remote_units(running):
+            since = max(self.last_move.get(n, -math.inf) for n in unit)
+            if now - since < s.hysteresis_s:
+                continue
+            cpu = sum(node_cpu(d, s, obs, n) for n in unit)
+            without = {n: x for n, x in running.items() if n not in unit}
+            for scale in remotes:
+                gain = cpu * (d.scale(scale).gain - d.scale(here).gain)
+                if scale == here or gain < s.rebalance_min_gain or gain <= 0:
+                    continue
+                if self._held(unit, scale, now):
+                    continue
+                ok, why = self._can_host(obs, without, report, unit, cpu, scale)
+                if not ok:
+                    continue
+                if best is None or gain > best[0]:
+                    best = (gain, unit, here, scale, cpu, why)
+                break                  # the most powerful scale that fits, for this unit
+        if best is None:
+            return []
+        gain, unit, here, scale, cpu, why = best
+        what = unit[0] if len(unit) == 1 else f'{unit[0]} (with {", ".join(unit[1:])})'
+        reason = (f'{what}: CPU {cpu:.0f} on {here} (alpha {d.scale(here).gain:g}) to '
+                  f'{scale} (alpha {d.scale(scale).gain:g}): the cost function gains '
+                  f'{gain:.0f} >= rebalance_min_gain {s.rebalance_min_gain:g}; {why}')
+        return [Decision(REBALANCE, n, here, scale, reason) for n in unit]
+
+    def _remote_units(self, running: Mapping[str, str]) -> List[Tuple[Tuple[str, ...], str]]:
+        """Migratable nodes settled on a remote scale, with their coresidents, and the scale."""
+        migratable = set(self.deployment.migratable_nodes)
+        seen, units = set(), []
+        for node in self.deployment.migratable_nodes:
+            if node in seen:
+                continue
+            group = self.deployment.coresidence_group(node)
+            seen.update(group)
+            here = running.get(node)
+            if here is None or here == self.master:
+                continue
+            if all(m in migratable and running.get(m) == here and self.desired.get(m) == here
+                   for m in group):
+                units.append((tuple(group), here))
+        return units
 
     def _held(self, unit: Tuple[str, ...], scale: Optional[str], now: float) -> str:
         """Why the hysteresis T holds ``unit`` back from ``scale`` (any scale if None), or ''.
@@ -559,10 +674,10 @@ class MigrationPolicy:
 
     def _can_host(self, obs: Observations, running: Mapping[str, str],
                   report: ConstraintReport, unit: Tuple[str, ...], cpu: float,
-                  scale: str) -> Tuple[Optional[bool], str]:
+                  scale: str, sent_cpu: float = 0.0) -> Tuple[Optional[bool], str]:
         """(True | False | None, why): None when it cannot be told yet (the link or the CPU of
         the scale not observed since the start, or its CPU not measured since the last node
-        moved there started running)."""
+        moved there started running). ``sent_cpu``: what this turn already sent there."""
         d, s = self.deployment, self.settings
         silent = self._agent_silent(obs, scale)
         if silent:
@@ -581,6 +696,7 @@ class MigrationPolicy:
         if not seen:
             return seen, why
         used, _ = scale_cpu(d, s, obs, scale)
+        used += sent_cpu
         usable = d.scale(scale).capacity_cpu * s.cpu_headroom
         if used + cpu > usable:
             return False, f'CPU {used:.0f} + {cpu:.0f} > usable {usable:.0f}'
@@ -627,9 +743,9 @@ class MigrationPolicy:
         failover memory, kept for the day this one takes over."""
         if node not in self.deployment.node_names:
             return
-        if kind == MIGRATE:
+        if kind in (MIGRATE, REBALANCE):
             self.last_move_out = now
-        elif kind in (MIGRATE_BACK, RELOCATE, FAILOVER):
+        elif kind in (MIGRATE_BACK, MOVE_AWAY, RELOCATE, FAILOVER):
             self.last_back[(node, from_scale)] = now
             if kind == FAILOVER:
                 self.crashed[(node, from_scale)] = now
@@ -639,7 +755,7 @@ class MigrationPolicy:
         self.migrated = [(n, s) for n, s in self.migrated if n != d.node]
         if d.to_scale != self.master and self.master in self.deployment.allowed_scales(d.node):
             self.migrated.append((d.node, d.to_scale))
-        if d.kind == MIGRATE:
+        if d.kind in (MIGRATE, REBALANCE):
             self.last_move_out = now
         else:
             self.last_back[(d.node, d.from_scale)] = now

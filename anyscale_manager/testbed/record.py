@@ -18,7 +18,7 @@ from ..protocol_auth import check_signature
 from ..runtime.delta import below_spans
 from ..runtime.rates import RateWindow
 
-MIGRATION_KINDS = ('migrate', 'migrate_back')
+MIGRATION_KINDS = ('migrate', 'migrate_back', 'move_away', 'rebalance')
 LIVE_STATES = ('starting', 'running', 'standby', 'stopping')     # a process the agent holds
 
 

@@ -11,7 +11,7 @@ from typing import Dict, List, Optional, Tuple
 from .. import protocol as p
 from ..model.types import Deployment
 from ..view.status import bandwidth_stale_after_s, bandwidth_text, rtt_text, stale_mark
-from .record import Record
+from .record import MIGRATION_KINDS, Record
 
 # The paper's Fig. 5 colours: where AMCL and AR run.
 CATEGORIES = {
@@ -107,7 +107,7 @@ def status_table(record: Record, now: float, t0: float, mode: str) -> str:
     lines.append('')
     lines.append(f'AMCL: {location(record, "amcl", now) or "-":7} AR: '
                  f'{location(record, "ar", now) or "-":7} ({label})')
-    kinds = ('migrate', 'migrate_back', 'scale_lost', 'adopt')
+    kinds = MIGRATION_KINDS + ('relocate', 'failover', 'scale_lost', 'adopt')
     recent = [e for _, e in record.events if e.kind in kinds][-3:]
     for e in recent:
         lines.append(f'  {e.kind} {e.node} {e.from_scale} -> {e.to_scale}: {e.reason[:90]}')
@@ -226,7 +226,7 @@ def write_event_log(record: Record, folder: str, t0: float) -> Tuple[str, str]:
         for row in rows:
             if row['source'] == 'harness':
                 f.write(f'{row["t"]:8.1f}  HARNESS   {row["reason"]}\n')
-            elif row['kind'] in ('migrate', 'migrate_back'):
+            elif row['kind'] in MIGRATION_KINDS + ('relocate', 'failover'):
                 f.write(f'{row["t"]:8.1f}  {row["kind"]:12} {row["node"]} {row["from_scale"]} '
                         f'-> {row["to_scale"]}: {row["reason"]}\n')
             else:

@@ -55,7 +55,7 @@ NO_MOVE_BACK = ('kill_agent_robot', 'kill_decider', 'stop_decider', 'hostile')
 # 2 of 10 starts, 1 of the 3 outside the robot's CPU quota: the false-cut limit of
 # docs/testbed.md.
 NOTED_MOVE_BACK = ('rival_decider',)
-MOVES_BACK = ('migrate_back', 'relocate')
+MOVES_BACK = ('migrate_back', 'move_away', 'relocate')
 SAMPLE_RESOURCES_S = 5.0
 SAMPLE_PROCESSES_S = 1.0
 
