@@ -7,7 +7,7 @@ reports every scale's CPU as the nominal sum of its nodes (plus optional noise).
 
 import os
 import random
-from typing import Callable, Dict, List, Optional, Set, Tuple
+from typing import Callable, Dict, List, Optional, Tuple
 
 import pytest
 
