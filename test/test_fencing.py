@@ -45,6 +45,16 @@ def stop_wardens(tmp_path):
         proc.kill()
 
 
+def home_released(seen):
+    """Whether home reports the worker stopped under the latest layout (an older report can
+    show it 'starting' while the copy kept for the move still runs)."""
+    s = seen['states'].get('home')
+    if s is None or not seen['layouts']:
+        return False
+    r = s.nodes.get('worker')
+    return s.generation >= seen['layouts'][-1].generation and (r is None or r.state == 'stopped')
+
+
 def away_worker(seen):
     s = seen['states'].get('away')
     r = s.nodes.get('worker') if s else None
@@ -66,8 +76,12 @@ def worker_away(tmp_path, ros_env, listener, topic):
     try:
         agents = ha.start_agents(procs, tmp_path, ros_env, path)
         ha.start(procs, tmp_path, ros_env, path, 'decider')
-        ha.wait(ex, lambda: away_worker(seen) and not runs(seen, 'home', 'worker'), 90.0,
+        ha.wait(ex, lambda: away_worker(seen) and home_released(seen), 90.0,
                 'the worker running on away only', procs)
+        # ... and heard here from away (this subscriber discovers the new copy on its own).
+        released = time.monotonic()
+        ha.wait(ex, lambda: len([t for t in heard if t > released]) >= RATE_HZ / 2, 20.0,
+                'the away copy heard here', procs)
         yield agents, heard, procs
     finally:
         ex.get_nodes()[0].destroy_subscription(sub)

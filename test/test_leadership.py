@@ -108,14 +108,15 @@ def test_a_stalled_leader_commands_nothing_until_it_has_listened_again():
     d.check(5.0)
     d.beaten(5.0)
     d.heard_beat(ident('s', started=300.0), STANDBY, 0, 0, 5.0)   # a standby is known
-    assert d.may_command(5.3)
+    assert d.may_command(5.19) and not d.may_command(5.21)  # takeover_s less the delivery
     # SIGSTOP for 1 s: on resuming it may not command, and its first check steps it down.
     assert not d.may_command(6.3)
     change = d.check(6.3)
     assert change.role == STANDBY and 'could not beat for 1.30 s' in change.reason
-    # Nobody took over (the standby was stopped too): it leads again after takeover_s.
-    assert d.check(6.5) is None
-    change = d.check(6.6)
+    # Nobody took over (the standby was stopped too): it leads again after takeover_s and
+    # the time any standby would have taken to go first (two beats, twice the delivery).
+    assert d.check(6.85) is None
+    change = d.check(6.91)
     assert change.role == LEADER and change.term == 2 and change.previous is None
 
 
@@ -128,13 +129,26 @@ def test_a_lone_leader_that_stalled_briefly_keeps_leading():
     assert d.check(11.5).role == STANDBY                   # 5.5 s: a newcomer may lead now
 
 
-def test_a_leader_moves_above_a_term_its_agents_follow():
+def test_a_leader_that_hears_a_higher_term_stands_by_then_leads_above_it():
     d = decider('a')
     d.check(5.0)
-    d.heard_term(8)             # an agent still follows a decider of term 8, now gone
-    change = d.check(5.1)
-    assert change.role == LEADER and change.term == 9 and 'term 8 heard above' in change.reason
-    assert d.check(5.2) is None
+    d.beaten(5.0)
+    d.heard_term(8)             # an agent follows a decider of term 8 (gone, or not heard yet)
+    change = d.check(5.05)
+    assert change.role == STANDBY and 'term 8 heard above' in change.reason
+    assert not d.may_command(5.05)
+    assert d.check(5.6) is None          # takeover_s, and any standby's turn before its own
+    change = d.check(5.66)
+    assert change.role == LEADER and change.term == 9
+
+
+def test_a_leader_stalled_longer_than_the_lease_still_knows_its_standby():
+    d = decider('a')
+    d.check(5.0)
+    d.heard_beat(ident('b', started=200.0), STANDBY, 0, 0, 5.0)
+    d.beaten(5.0)
+    change = d.check(8.5)       # 3.5 s stopped: > lease_s, < discovery_s; b may lead now
+    assert change is not None and change.role == STANDBY and 'could not beat' in change.reason
 
 
 @pytest.mark.parametrize('seed', range(40))
@@ -145,7 +159,8 @@ def test_two_leaders_never_command_at_once_under_delays_and_stalls(seed):
     rng = random.Random(seed)
     a, b = decider('a', started=100.0), decider('b', started=200.0)
     stall_from = rng.uniform(6.0, 8.0)
-    stall_to = stall_from + rng.choice([0.1, 0.25, 0.35, 0.6, 2.0, 7.0]) + rng.uniform(0, 0.05)
+    stall_to = stall_from + rng.choice([0.1, 0.25, 0.35, 0.6, 2.0, 3.5, 7.0]) \
+        + rng.uniform(0, 0.05)
     in_flight = []              # (arrival, receiver, sender, role, term)
     commands = {'a': [], 'b': []}
     t, dt = 0.0, 0.005
@@ -154,9 +169,14 @@ def test_two_leaders_never_command_at_once_under_delays_and_stalls(seed):
         for arrival, receiver, sender, role, term in [m for m in in_flight if m[0] <= t]:
             in_flight.remove((arrival, receiver, sender, role, term))
             if receiver is a and stall_from <= t < stall_to:
-                in_flight.append((stall_to, receiver, sender, role, term))   # read on resume
+                # read on resume, some after a's first checks
+                in_flight.append((stall_to + rng.uniform(0.0, 0.2), receiver, sender, role,
+                                  term))
                 continue
-            receiver.heard_beat(sender.me, role, term, 0, t)
+            if sender is None:
+                receiver.heard_term(term)             # an agent's report of the term it follows
+            else:
+                receiver.heard_beat(sender.me, role, term, 0, t)
         for name, d, other in (('a', a, b), ('b', b, a)):
             if name == 'a' and stall_from <= t < stall_to:
                 continue
@@ -166,6 +186,9 @@ def test_two_leaders_never_command_at_once_under_delays_and_stalls(seed):
             if t >= next_beat[name]:
                 d.beaten(t)
                 in_flight.append((t + rng.uniform(0.0, 0.08), other, d, d.role, d.term))
+                if d.may_command(t):
+                    # the agents follow it; their reports reach the other sooner or later
+                    in_flight.append((t + rng.uniform(0.0, 0.3), other, None, LEADER, d.term))
                 next_beat[name] = t + BEAT
         t += dt
     assert commands['a'], 'a never led'

@@ -184,15 +184,21 @@ def test_two_deciders_started_together_leave_one_leader_and_one_standby(tmp_path
          and sorted(role for role, _ in seen['diag'].values()) == ['leader', 'standby'],
          60.0, 'one leader and one standby', procs)
     # Started together, both may lead for a moment at one term; the one started later then
-    # hears the other and stands by. Judged once that has settled.
-    end = time.monotonic() + 2.0
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.05)
-    roles = sorted(role for role, _ in seen['diag'].values())
-    assert roles == ['leader', 'standby'], seen['diag']
-    leader = next(i for i, (role, _) in seen['diag'].items() if role == 'leader')
-    wait(ex, lambda: follow(seen, leader), 30.0, 'both agents following the leader', procs)
+    # hears the other and stands by. A loaded machine can stall a leader's beats past
+    # takeover_s, and the other then takes over at a higher term: judged is that the deciders
+    # settle on one leader that the agents follow, and that no term is ever commanded by two.
+
+    def one_leader_followed():
+        roles = sorted(role for role, _ in seen['diag'].values())
+        leaders = [i for i, (role, _) in seen['diag'].items() if role == 'leader']
+        return roles == ['leader', 'standby'] and follow(seen, leaders[0])
+    wait(ex, one_leader_followed, 30.0, 'one leader, followed by both agents', procs)
     n = len(seen['layouts'])
     wait(ex, lambda: len(seen['layouts']) >= n + 3, 15.0, 'its re-publications', procs)
-    assert {lay.decider.id for _, lay in seen['layouts'][n:]} == {leader}
+    by_term = {}
+    for _, lay in seen['layouts']:
+        by_term.setdefault(lay.term, set()).add(lay.decider.id)
+    # Both may publish a first layout at term 1 (started together, neither heard the other);
+    # every later term has one decider.
+    assert all(len(ids) == 1 for term, ids in by_term.items() if term != 1), by_term
     assert all(d.proc.poll() is None for d in deciders)

@@ -226,9 +226,10 @@ class DeciderSettings:
         0.05, 'every decider beats on /anyscale/decider this often: the leader that it leads, a '
               'standby that it stands by', low=0, high=10, low_open=True, unit='s')
     takeover_s: float = setting(
-        0.3, 'a standby decider takes over after this silence of the leader; a leader that '
-             'could not beat for this long (stalled) commands nothing more before it has '
-             'listened again', low=0, high=600, low_open=True, unit='s')
+        0.4, 'a standby decider takes over after this silence of the leader; a leader that '
+             'could not beat for this long less the delivery time of a beat (0.1 s, at most a '
+             'third) has stalled: it commands nothing more before it has listened again',
+        low=0, high=600, low_open=True, unit='s')
 
 
 @dataclass(frozen=True)

@@ -100,20 +100,8 @@ def _ros_home() -> str:
     return os.environ.get('ROS_HOME') or os.path.join(os.path.expanduser('~'), '.ros')
 
 
-# The agent's own participant speaks UDP only, unless its environment names Fast DDS's builtin
-# transports itself; its nodes get the environment it was started with.
-# Fast DDS gives a participant on a computer a shared-memory port named after its participant
-# index; the agent that re-executes itself in place (SIGHUP) comes back with the index it had,
-# while the nodes it keeps running still hold the old port open for writing, and what they send
-# the new agent is then lost: it never sees their services, nor a latched layout. Over UDP a
-# new process is a new socket. The agent's traffic is small (reports, layouts, probes).
-OWN_TRANSPORTS = ('FASTDDS_BUILTIN_TRANSPORTS', 'UDPv4')
-
-
 class AgentNode(Node):
-    def __init__(self, scale: str, environ: Optional[Dict[str, str]] = None, **kwargs):
-        # What the nodes inherit: the environment the agent was started with.
-        self._environ = dict(os.environ if environ is None else environ)
+    def __init__(self, scale: str, **kwargs):
         super().__init__(f'anyscale_agent_{scale}',
                          automatically_declare_parameters_from_overrides=True, **kwargs)
         self._lock_file = None
@@ -161,7 +149,7 @@ class AgentNode(Node):
         stem = os.path.join(state_dir, f'agent_{d.name}_{scale}')
         self._take_lock(stem + '.lock')
 
-        self.catalogue: Dict[str, Entry] = build_catalogue(d, scale, self._environ)
+        self.catalogue: Dict[str, Entry] = build_catalogue(d, scale)
         for entry in self.catalogue.values():
             if entry.problem:
                 self.get_logger().error(f'{entry.name}: {entry.problem}')
@@ -677,8 +665,6 @@ def main(args: Optional[List[str]] = None) -> int:
     if not SCALE_RE.match(scale):
         print(f'agent: scale {scale!r} is not a valid scale name', file=sys.stderr)
         return 2
-    inherited = dict(os.environ)
-    os.environ.setdefault(*OWN_TRANSPORTS)    # this process only: see OWN_TRANSPORTS
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as e:   # rcl refuses the arguments or the parameters file
@@ -712,7 +698,7 @@ def main(args: Optional[List[str]] = None) -> int:
     signal.signal(signal.SIGHUP, on_restart)
     try:
         try:
-            node = AgentNode(scale, inherited)
+            node = AgentNode(scale)
         except (DeploymentError, AgentError, ValueError) as e:
             print(f'agent: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
             return 2
@@ -747,15 +733,15 @@ def main(args: Optional[List[str]] = None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     if node is not None and node.restarting:
-        restart_in_place(inherited)
+        restart_in_place()
     return 0
 
 
-def restart_in_place(environ: Dict[str, str]) -> None:
+def restart_in_place() -> None:
     """Replace this process with a new agent: same pid, same command line, the code installed
     now. The nodes stay its children (in sessions of their own) and the new agent adopts them
     from the state file; ``systemctl reload`` with ``ExecReload=/bin/kill -HUP $MAINPID``
-    (docs/agent.md). ``environ``: the one this process was started with."""
+    (docs/agent.md)."""
     # Nothing of this process but stdin, stdout and stderr may reach the new one: a DDS socket
     # or lock file kept open would look like a live participant to the others.
     for entry in os.listdir('/proc/self/fd'):
@@ -771,7 +757,7 @@ def restart_in_place(environ: Dict[str, str]) -> None:
     sys.stdout.flush()
     sys.stderr.flush()
     argv = list(getattr(sys, 'orig_argv', None) or [sys.executable] + sys.argv)
-    os.execve(sys.executable, argv, environ)
+    os.execv(sys.executable, argv)
 
 
 if __name__ == '__main__':

@@ -484,8 +484,10 @@ class DeciderNode(Node):
         if layout is not None:
             self._emit(self.core.take_over(now, dict(layout.assignments), layout.generation,
                                            change.reason))
-            if previous is not None:
-                self._event('takeover', '', '', '', change.reason)
+        elif previous is not None:
+            self._emit(self.core.take_over(now, None, 0, change.reason))
+        if previous is not None:
+            self._event('takeover', '', '', '', change.reason)
         self._tick()
 
     def _on_timer(self) -> None:

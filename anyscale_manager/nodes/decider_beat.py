@@ -65,6 +65,7 @@ class BeatThread:
         d = self.decider
         texts = self._take()
         with self.lock:
+            now = d._now()          # after the wait for the lock: no beat went out meanwhile
             for text in texts:
                 d.heard_beat_text(text, now)
             d.check_role(now)
@@ -74,7 +75,11 @@ class BeatThread:
                 role=d.lead.role, term=d.lead.term, generation=d.generation)
         if beat is not None:
             self.pub.publish(String(data=d.sealer.seal(beat)))
-            d.lead.beaten(now)
+            # When it went out: a takeover's first layout, published in check_role, can take
+            # a while, and a beat stamped before it would make the new leader think it had
+            # stalled (it stepped down right after taking over, on a loaded machine).
+            with self.lock:
+                d.lead.beaten(d._now())
 
     def _take(self) -> List[str]:
         out = []

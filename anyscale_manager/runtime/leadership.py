@@ -15,16 +15,22 @@ standby only listens (to the leader's layouts and events and to every report the
   layouts, the agents' reports), and every layout carries it: agents refuse a lower term than
   the one they follow (agent/authority.py), so a leader that comes back after a takeover
   commands nothing. It steps down when it hears a live leader of a higher term (or of its own
-  term that started before it), and a leader that hears a higher term from no live leader
-  (an agent that follows a decider now gone) moves to a term above it.
-- **Stall.** A leader commands only within ``takeover_s`` of its own last beat: one that could
-  not beat for longer (SIGSTOP, a paused VM, a starved process) may have been taken over, so
-  it steps down and listens before anything else it would publish. A standby takes over only
-  ``takeover_s`` after the leader's last beat *arrived*, which is after the leader sent it:
-  the old leader's last command always precedes the new leader's first. A leader that knows
-  of no other decider (none heard within ``lease_s``) and stalled for less than
-  ``discovery_s`` cannot have been overtaken (a decider that never heard it listens
-  ``discovery_s``), and keeps leading.
+  term that started before it), or any higher term at all (an agent's report can carry the
+  new leader's term before its beats arrive): it stands by, and takes over again, above every
+  term heard, ``takeover_s`` later if no leader beats (an agent that follows a decider now
+  gone).
+- **Stall.** A leader commands only within ``takeover_s`` less DELIVERY_S (0.3 s of 0.4) of its
+  own last beat: one that could not beat for longer (SIGSTOP, a paused VM, a starved process)
+  may have been taken over, so it steps down and listens before anything else it would
+  publish. A standby takes over only ``takeover_s`` after the leader's last beat *arrived*:
+  as long as a beat arrives within DELIVERY_S of being sent, the old leader's last command
+  precedes the new leader's first (the beat it sends on resuming can arrive late, after the
+  standby's silence began). A leader that stepped down goes after every live standby when
+  no leader beats (two beats each, one more, and twice DELIVERY_S): the standby's silence
+  began at its last beat as leader, before its own step-down. A leader that knew
+  of no other decider when it stalled (none heard within ``lease_s`` before its last beat) and
+  stalled for less than ``discovery_s`` cannot have been overtaken (a decider that never heard
+  it listens ``discovery_s``), and keeps leading.
 """
 
 import math
@@ -36,6 +42,10 @@ from ..protocol import DeciderIdentity
 LEADER, STANDBY = 'leader', 'standby'
 MAX_PEERS = 64
 RANK_BEATS = 2          # a standby waits this many beats more per live standby older than it
+# How late a beat may arrive at another decider: a leader counts as stalled after
+# takeover_s less this (at most a third of takeover_s) without a beat. Its beat after a stall
+# can reach a standby that much after the standby's own takeover_s of silence began.
+DELIVERY_S = 0.1
 
 
 def older(a: DeciderIdentity, b: DeciderIdentity) -> bool:
@@ -83,6 +93,8 @@ class Leadership:
         self.quiet_since: Optional[float] = None    # when a leader was last known to live
         self.beats_heard = False                    # a leader's beat, not only its layouts
         self.last_beat: Optional[float] = None      # our own last beat
+        self.stall_s = takeover_s - min(DELIVERY_S, takeover_s / 3.0)
+        self.deposed = False        # stepped down: goes after every live standby
         self.takeovers = 0
 
     # --- what is heard --------------------------------------------------------------------
@@ -122,16 +134,22 @@ class Leadership:
         """Before a beat and before anything this decider would command: the change of role or
         term that is due now, if any."""
         if self.role == LEADER:
-            stalled = self.last_beat is not None and now - self.last_beat > self.takeover_s
-            if stalled and (self.others(now) or now - self.last_beat >= self.discovery_s):
+            stalled = self.last_beat is not None and now - self.last_beat > self.stall_s
+            # The deciders known when the stall began: a stall longer than lease_s would
+            # otherwise forget them all (their beats stamped before it).
+            known = self.last_beat is not None and any(
+                p.received >= self.last_beat - self.lease_s for p in self.peers.values())
+            if stalled and (known or now - self.last_beat >= self.discovery_s):
                 return self._step_down(now, f'could not beat for {now - self.last_beat:.2f} s '
-                                            f'(takeover_s {self.takeover_s:g} s): another '
-                                            'decider may lead now')
+                                            f'(> {self.stall_s:.2f} s: takeover_s '
+                                            f'{self.takeover_s:g} s less the delivery of a beat'
+                                            '): another decider may lead now')
             if self.max_term > self.term:
-                old, self.term = self.term, self.max_term + 1
-                return Change(LEADER, self.term, f'term {self.max_term} heard above this '
-                                                 f"leader's term {old}: leading at term "
-                                                 f'{self.term}')
+                # Another decider led at a higher term since this one took its own: it may
+                # lead now (its beats can arrive after an agent's report of its term). Stand
+                # by; if no leader beats, this one takes over above it after takeover_s.
+                return self._step_down(now, f"term {self.max_term} heard above this leader's "
+                                            f'term {self.term}')
             return None
         wait = self.due_in(now)
         if wait is not None and wait <= 0:
@@ -144,7 +162,7 @@ class Leadership:
 
     def may_command(self, now: float) -> bool:
         return self.role == LEADER and self.last_beat is not None \
-            and now - self.last_beat <= self.takeover_s
+            and now - self.last_beat <= self.stall_s
 
     # --- views ----------------------------------------------------------------------------
     def live_leader(self, now: float) -> Optional[Peer]:
@@ -169,7 +187,16 @@ class Leadership:
         """Seconds until this standby takes the lead (<= 0: now); None while a leader lives."""
         if self.role == LEADER or self.live_leader(now) is not None:
             return None
-        rank = RANK_BEATS * self.beat_s * self.standbys_before(now)
+        if self.deposed:
+            # A leader that stepped down (a stall, a higher term) lets any standby take over
+            # first: the standby's silence began at this one's last beat as leader, earlier
+            # than its own step-down, and the beat of the standby that took over must have
+            # time to arrive.
+            live = sum(1 for p in self.peers.values()
+                       if p.role == STANDBY and now - p.received <= self.takeover_s)
+            rank = RANK_BEATS * self.beat_s * (live + 1) + 2 * DELIVERY_S
+        else:
+            rank = RANK_BEATS * self.beat_s * self.standbys_before(now)
         base = self.started + self.discovery_s
         if self.quiet_since is not None:
             # A leader whose beats have not been heard yet is not a silent one: until then,
@@ -184,6 +211,7 @@ class Leadership:
         self.term = max(self.max_term, self.term) + 1
         self.max_term = self.term
         self.role = LEADER
+        self.deposed = False
         self.last_beat = now
         if previous is None:
             since = self.started if self.quiet_since is None else self.quiet_since
@@ -198,6 +226,7 @@ class Leadership:
 
     def _step_down(self, now: float, why: str) -> Change:
         self.role = STANDBY
+        self.deposed = True
         self.leader = None
         self.quiet_since = now
         return Change(STANDBY, self.term, why + ': standing by')

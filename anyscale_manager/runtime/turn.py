@@ -174,14 +174,20 @@ class DeciderTurn:
         """The leader's decision (its event), remembered for hysteresis after a takeover."""
         self.policy.heard(kind, node, from_scale, now)
 
-    def take_over(self, now: float, assignments: Dict[str, str], generation: int,
+    def take_over(self, now: float, assignments: Optional[Dict[str, str]], generation: int,
                   reason: str) -> TurnOutput:
         """Lead on from the layout of the decider taken over from: nothing moves that it did
-        not move; only the nodes not yet running where it placed them get a grace period."""
+        not move; only the nodes not yet running where it placed them get a grace period.
+        ``assignments`` None: its layout was not heard (it died just after this standby found
+        it): what runs, as the agents report it, is adopted."""
         out = TurnOutput()
         with_standby = [n for n in self.deployment.node_names
                         if self.deployment.standby_scales(n)]
         running = self.book.running(now, active_only=with_standby)
+        if assignments is None:
+            assignments, notes = adopt(self.deployment, self.planned, running)
+            reason += ('; its layout was not heard: what runs is adopted'
+                       + (' (' + '; '.join(notes) + ')' if notes else ''))
         layout = dict(self.layout or self.planned)
         for node, scale in assignments.items():
             if node in layout and scale in self.deployment.allowed_scales(node):
