@@ -10,6 +10,7 @@ import sys
 import time
 from contextlib import contextmanager
 
+import psutil
 import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
@@ -178,6 +179,33 @@ def wait(ex, cond, timeout, what, procs=(), watch=()):
             break
     logs = '\n'.join(f'--- {name}\n{pr.text()[-3000:]}' for name, pr in procs)
     raise AssertionError(f'timed out after {timeout} s waiting for {what}\n{logs}')
+
+
+def released(seen, scale, node):
+    """Whether ``scale`` reports ``node`` stopped under the latest layout (an older report can
+    show it 'starting' while a copy kept for a move still runs)."""
+    s = seen['states'].get(scale)
+    if s is None or not seen['layouts']:
+        return False
+    r = s.nodes.get(node)
+    return s.generation >= seen['layouts'][-1].generation and (r is None or r.state == 'stopped')
+
+
+def wardens_of(tmp_path):
+    """The warden processes the agents of a test started (children of no test process): those
+    whose command line names a path under ``tmp_path``."""
+    out = []
+    for proc in psutil.process_iter(['cmdline']):
+        cmd = proc.info['cmdline'] or []
+        if 'anyscale_manager.agent.warden' in cmd and any(
+                str(a).startswith(str(tmp_path)) for a in cmd):
+            out.append(proc)
+    return out
+
+
+def stop_wardens(tmp_path):
+    for proc in wardens_of(tmp_path):
+        proc.kill()
 
 
 def runs(seen, scale, node):

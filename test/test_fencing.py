@@ -29,32 +29,6 @@ def deployment(tmp_path, topic):
                                agent={'adopt_grace_s': 0.5, 'fence_grace_s': 0.5})
 
 
-def wardens_of(procs):
-    """The warden processes the agents started (children of no test process)."""
-    out = []
-    for proc in psutil.process_iter(['cmdline']):
-        cmd = proc.info['cmdline'] or []
-        if 'anyscale_manager.agent.warden' in cmd and any(
-                str(a).startswith(str(procs)) for a in cmd):
-            out.append(proc)
-    return out
-
-
-def stop_wardens(tmp_path):
-    for proc in wardens_of(tmp_path):
-        proc.kill()
-
-
-def home_released(seen):
-    """Whether home reports the worker stopped under the latest layout (an older report can
-    show it 'starting' while the copy kept for the move still runs)."""
-    s = seen['states'].get('home')
-    if s is None or not seen['layouts']:
-        return False
-    r = s.nodes.get('worker')
-    return s.generation >= seen['layouts'][-1].generation and (r is None or r.state == 'stopped')
-
-
 def away_worker(seen):
     s = seen['states'].get('away')
     r = s.nodes.get('worker') if s else None
@@ -76,7 +50,7 @@ def worker_away(tmp_path, ros_env, listener, topic):
     try:
         agents = ha.start_agents(procs, tmp_path, ros_env, path)
         ha.start(procs, tmp_path, ros_env, path, 'decider')
-        ha.wait(ex, lambda: away_worker(seen) and home_released(seen), 90.0,
+        ha.wait(ex, lambda: away_worker(seen) and ha.released(seen, 'home', 'worker'), 90.0,
                 'the worker running on away only', procs)
         # ... and heard here from away (this subscriber discovers the new copy on its own).
         released = time.monotonic()
@@ -87,7 +61,7 @@ def worker_away(tmp_path, ros_env, listener, topic):
         ex.get_nodes()[0].destroy_subscription(sub)
         for name, pr in reversed(procs):
             pr.stop()
-        stop_wardens(tmp_path)
+        ha.stop_wardens(tmp_path)
 
 
 @pytest.mark.timeout(180)

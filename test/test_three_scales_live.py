@@ -11,7 +11,6 @@ import yaml
 
 import home_away as ha
 from home_away import runs
-from test_fencing import stop_wardens
 
 RATE_HZ = 10.0
 T_S = 6.0
@@ -46,20 +45,10 @@ def three_scales(tmp_path, topic) -> str:
     return path
 
 
-def stopped(seen, scale, node):
-    """Whether ``scale`` reports ``node`` stopped under the latest layout (an older report can
-    miss a copy kept for a move)."""
-    s = seen['states'].get(scale)
-    if s is None or not seen['layouts']:
-        return False
-    r = s.nodes.get(node)
-    return s.generation >= seen['layouts'][-1].generation and (r is None or r.state == 'stopped')
-
-
 def only_on(seen, scale, node='worker', gone=()):
     """``node`` runs on ``scale`` and is stopped on every other scale but those ``gone``."""
     return runs(seen, scale, node) and all(
-        stopped(seen, s, node) for s in ('home', 'laptop', 'server') if s != scale
+        ha.released(seen, s, node) for s in ('home', 'laptop', 'server') if s != scale
         and s not in gone)
 
 
@@ -95,4 +84,4 @@ def test_a_lost_server_hands_its_node_to_the_laptop_and_gets_it_back(tmp_path, r
     finally:
         for name, pr in reversed(procs):
             pr.stop()
-        stop_wardens(tmp_path)
+        ha.stop_wardens(tmp_path)

@@ -76,8 +76,8 @@ class BeatThread:
         if beat is not None:
             self.pub.publish(String(data=d.sealer.seal(beat)))
             # When it went out: a takeover's first layout, published in check_role, can take
-            # a while, and a beat stamped before it would make the new leader think it had
-            # stalled (it stepped down right after taking over, on a loaded machine).
+            # a while, and a beat stamped before it would make the new leader count that
+            # work as a stall of its own.
             with self.lock:
                 d.lead.beaten(d._now())
 

@@ -569,10 +569,9 @@ class MigrationPolicy:
                 if not ok:
                     notes.append(f'{unit[0]} -> {scale}: {why}')
                     continue
-                what = unit[0] if len(unit) == 1 else f'{unit[0]} (with {", ".join(unit[1:])})'
-                reason = (f'{what}: CPU {cpu:.0f}, the most CPU-intensive migratable node that '
-                          f'fits, to {scale} (power {self.deployment.scale(scale).power:g}): '
-                          f'{why}')
+                power = self.deployment.scale(scale).power
+                reason = (f'{_unit_text(unit)}: CPU {cpu:.0f}, the most CPU-intensive '
+                          f'migratable node that fits, to {scale} (power {power:g}): {why}')
                 return [Decision(MIGRATE, n, self.master, scale, reason) for n in unit]
         return self._rebalance(obs, running, report, notes)
 
@@ -610,14 +609,20 @@ class MigrationPolicy:
         if best is None:
             return []
         gain, unit, here, scale, cpu, why = best
-        what = unit[0] if len(unit) == 1 else f'{unit[0]} (with {", ".join(unit[1:])})'
-        reason = (f'{what}: CPU {cpu:.0f} on {here} (alpha {d.scale(here).gain:g}) to '
-                  f'{scale} (alpha {d.scale(scale).gain:g}): the cost function gains '
-                  f'{gain:.0f} >= rebalance_min_gain {s.rebalance_min_gain:g}; {why}')
+        reason = (f'{_unit_text(unit)}: CPU {cpu:.0f} on {here} (alpha '
+                  f'{d.scale(here).gain:g}) to {scale} (alpha {d.scale(scale).gain:g}): the cost '
+                  f'function gains {gain:.0f} >= rebalance_min_gain {s.rebalance_min_gain:g}; '
+                  f'{why}')
         return [Decision(REBALANCE, n, here, scale, reason) for n in unit]
 
     def _remote_units(self, running: Mapping[str, str]) -> List[Tuple[Tuple[str, ...], str]]:
         """Migratable nodes settled on a remote scale, with their coresidents, and the scale."""
+        return [(unit, here) for unit, here in self._settled_units(running)
+                if here != self.master]
+
+    def _settled_units(self, running: Mapping[str, str]) -> List[Tuple[Tuple[str, ...], str]]:
+        """Each coresidence group of migratable nodes that all run where the layout places
+        them, on one scale, with that scale (in deployment order)."""
         migratable = set(self.deployment.migratable_nodes)
         seen, units = set(), []
         for node in self.deployment.migratable_nodes:
@@ -626,10 +631,8 @@ class MigrationPolicy:
             group = self.deployment.coresidence_group(node)
             seen.update(group)
             here = running.get(node)
-            if here is None or here == self.master:
-                continue
-            if all(m in migratable and running.get(m) == here and self.desired.get(m) == here
-                   for m in group):
+            if here is not None and all(m in migratable and running.get(m) == here
+                                        and self.desired.get(m) == here for m in group):
                 units.append((tuple(group), here))
         return units
 
@@ -656,18 +659,8 @@ class MigrationPolicy:
     def _candidate_units(self, obs: Observations, running: Mapping[str, str]
                          ) -> List[Tuple[Tuple[str, ...], float]]:
         """Migratable nodes on the master with their coresidents, by CPU, largest first."""
-        migratable = set(self.deployment.migratable_nodes)
-        seen, units = set(), []
-        for node in self.deployment.migratable_nodes:
-            if node in seen:
-                continue
-            group = self.deployment.coresidence_group(node)
-            seen.update(group)
-            if not all(m in migratable and running.get(m) == self.master
-                       and self.desired.get(m) == self.master for m in group):
-                continue
-            cpu = sum(node_cpu(self.deployment, self.settings, obs, m) for m in group)
-            units.append((tuple(group), cpu))
+        units = [(unit, sum(node_cpu(self.deployment, self.settings, obs, m) for m in unit))
+                 for unit, here in self._settled_units(running) if here == self.master]
         order = {n: i for i, n in enumerate(self.deployment.node_names)}
         units.sort(key=lambda u: (-u[1], order[u[0][0]]))
         return units
@@ -762,6 +755,11 @@ class MigrationPolicy:
         self.last_move[d.node] = now
         self.pending[d.node] = (d.to_scale, now)
         self.history.append((now, d))
+
+
+def _unit_text(unit: Tuple[str, ...]) -> str:
+    """'amcl', or 'amcl (with map_server)' for a coresidence group."""
+    return unit[0] if len(unit) == 1 else f'{unit[0]} (with {", ".join(unit[1:])})'
 
 
 def with_settings(deployment: Deployment, **changes) -> DeciderSettings:
