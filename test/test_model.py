@@ -169,6 +169,15 @@ def mutate(fn):
      'monitoring.heartbeat_misses_down', 'out of range'),
     (lambda p: p['agent'].update(sigint_grace_s='soon'), 'agent.sigint_grace_s',
      'expected a number'),
+    (lambda p: p['scales']['laptop'].update(port=70000), 'scales.laptop.port', 'out of range'),
+    (lambda p: [p['scales'][s].update(host='127.0.0.1' if s == 'robot' else 'localhost',
+                                      port=47000) for s in ('robot', 'laptop')],
+     'scales.laptop.port', "port 47000 on host 'localhost' is also scale 'robot'"),
+    (lambda p: [p['scales']['laptop'].update(host='robot'),
+                p['scales']['robot'].update(port=47802)],
+     'scales.laptop.port', "is also scale 'robot'"),
+    (lambda p: p['monitoring'].update(bandwidth_probe_port=65534), 'scales.laptop.port',
+     'past 65535'),
 ])
 def test_validation_error_names_file_path_and_expectation(change, path, words):
     found = problems_of(mutate(change))

@@ -472,6 +472,21 @@ def test_probe_server_measures_and_refuses_strangers():
         probe_throughput('127.0.0.1', port, 0.1, timeout_s=1.0)
 
 
+def test_probe_server_of_another_deployment_or_scale_is_not_measured():
+    port = free_port()
+    server = ProbeServer('127.0.0.1', port, deployment='lab', scale='laptop')
+    try:
+        assert probe_throughput('127.0.0.1', port, 0.1, deployment='lab', scale='laptop') > 0
+        for deployment, scale in (('field', 'laptop'), ('lab', 'server')):
+            with pytest.raises(ValueError) as e:
+                probe_throughput('127.0.0.1', port, 0.1, deployment=deployment, scale=scale)
+            assert "scale 'laptop' of deployment 'lab'" in str(e.value)
+            assert f'not scale {scale!r} of deployment {deployment!r}' in str(e.value)
+        assert probe_throughput('127.0.0.1', port, 0.1, deployment='lab', scale='laptop') > 0
+    finally:
+        server.close()
+
+
 def test_link_monitor_refuses_unknown_scale(ros, deployment):
     make, _ = ros
     with pytest.raises(ValueError, match='no scale'):

@@ -52,10 +52,8 @@ MAX_DATAGRAM = 512
 
 
 def warden_port(deployment: Any, scale: str) -> int:
-    """The UDP port of ``scale``'s warden: one per scale after the bandwidth probe's, so that
-    every scale of a deployment may share one machine."""
-    base = deployment.monitoring.bandwidth_probe_port
-    return base + 1 + list(deployment.scale_names).index(scale)
+    """The UDP port of ``scale``'s warden (Deployment.scale_port)."""
+    return deployment.scale_port(scale)
 
 
 @dataclass
@@ -267,7 +265,8 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     except OSError as e:
         say(f'cannot listen for heartbeats on UDP {args.host}:{args.port} ({e.strerror or e}): '
             f'another process holds the port; give scale {args.scale} a free one '
-            '(monitoring.bandwidth_probe_port sets the base)')
+            f'(scales.{args.scale}.port, or monitoring.bandwidth_probe_port for the base of '
+            'the derived ones)')
         return 2
     sock.setblocking(False)
     watch = AgentWatch()

@@ -355,6 +355,7 @@ def _read_scale(name: str, sec: _Section) -> t.Scale:
         clock_ghz=sec.number('clock_ghz', 1.0, low=0, high=100, low_open=True, unit='GHz'),
         gain=sec.number('gain', 1.0, low=0, high=1e6, low_open=True),
         host=sec.string('host', 'localhost'),
+        port=sec.integer('port', 0, low=0, high=65535),
     )
     sec.done()
     return _settled(scale)
@@ -521,6 +522,32 @@ def _all_read(ctx: _Context, collection: str, *keys: str) -> bool:
         and not any(ctx.damaged(f'{collection}.{n}.{k}') for n in names for k in keys)
 
 
+LOOPBACK_HOSTS = ('localhost', '127.0.0.1', '::1', '')
+
+
+def _port_check(ctx: _Context, d: t.Deployment) -> None:
+    """Each scale's warden and probe server take one port on its host: two scales of one host
+    must not share it."""
+    if not _all_read(ctx, 'scales', 'port', 'host') \
+            or ctx.damaged('monitoring.bandwidth_probe_port'):
+        return
+    taken: Dict[Tuple[str, int], str] = {}
+    for s in d.scales:
+        port = d.scale_port(s.name)
+        where = f'scales.{s.name}.port'
+        if port > 65535:
+            ctx.error(where, f'no port of its own, and monitoring.bandwidth_probe_port + 1 + '
+                             f'{d.scale_names.index(s.name)} = {port} is past 65535: give it a '
+                             'port or lower the base')
+            continue
+        host = 'localhost' if s.host in LOOPBACK_HOSTS else s.host
+        other = taken.setdefault((host, port), s.name)
+        if other != s.name:
+            ctx.error(where, f'port {port} on host {s.host!r} is also scale {other!r}\'s: the '
+                             'warden and probe server of each scale need their own (set port, '
+                             'or leave it out on both to derive one per scale)')
+
+
 def _cross_check(ctx: _Context, d: t.Deployment) -> None:
     scales = d.scale_names
     nodes = d.node_names
@@ -528,6 +555,7 @@ def _cross_check(ctx: _Context, d: t.Deployment) -> None:
     if len(masters) != 1 and _all_read(ctx, 'scales', 'role'):
         ctx.error('scales', f'expected exactly one scale with role master, got {len(masters)}'
                             + (f' ({", ".join(masters)})' if masters else ''))
+    _port_check(ctx, d)
     for link in d.links:
         for end in link.ends:
             if end and end not in scales:

@@ -34,6 +34,7 @@ class Scale:
     clock_ghz: float
     gain: float               # the ICAR cost function's alpha_k
     host: str
+    port: int = 0             # its warden's UDP and probe TCP port; 0: derived (scale_port)
 
     @property
     def is_master(self) -> bool:
@@ -260,8 +261,9 @@ class MonitorSettings:
                                                 low=0, high=86400, low_open=True, unit='s')
     bandwidth_probe_duration_s: float = setting(0.5, 'length of one throughput probe', low=0,
                                                 high=60, low_open=True, unit='s')
-    bandwidth_probe_port: int = setting(47800, 'base port: scale i uses it + 1 + i', low=1,
-                                        high=65535)
+    bandwidth_probe_port: int = setting(47800, 'base port: scale i (from 0, in file order) '
+                                               'uses it + 1 + i unless it sets its own port',
+                                        low=1, high=65534)
     congestion_delay_ms: float = setting(
         50.0, 'heartbeat queueing delay (reached by 4 of the 5 beats of the last half second '
               'at 10 Hz) at which a link looks full: never probed while so, and when its '
@@ -339,6 +341,15 @@ class Deployment:
 
     def scale(self, name: str) -> Scale:
         return self._lookup('scale', name)
+
+    def scale_port(self, name: str) -> int:
+        """The port of ``name``'s warden (UDP heartbeats) and throughput probe server (TCP):
+        the scale's own ``port``, else monitoring.bandwidth_probe_port + 1 + its index, so that
+        every scale of a deployment may share one machine."""
+        scale = self.scale(name)
+        if scale.port:
+            return scale.port
+        return self.monitoring.bandwidth_probe_port + 1 + self.scale_names.index(name)
 
     def node(self, name: str) -> Node:
         return self._lookup('node', name)

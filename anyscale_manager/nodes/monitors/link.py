@@ -325,7 +325,9 @@ class LinkMonitor:
         try:
             bps, error = probe_throughput(remote.scale.host,
                                           warden.warden_port(self._deployment, remote.scale.name),
-                                          self._probe_duration), ''
+                                          self._probe_duration,
+                                          deployment=self._deployment.name,
+                                          scale=remote.scale.name), ''
         except (OSError, ValueError) as e:
             bps, error = None, str(e) or type(e).__name__
         with self._lock:
@@ -421,12 +423,15 @@ class LinkMonitor:
         # scales may share a machine.
         port = warden.warden_port(self._deployment, self._scale.name)
         try:
-            self._server = ProbeServer(self._scale.host, port, self._log)
+            self._server = ProbeServer(self._scale.host, port, self._log,
+                                       deployment=self._deployment.name,
+                                       scale=self._scale.name)
         except OSError as e:
             self._log.error(
                 f'scale {self._scale.name}: throughput probe server on TCP '
                 f'{self._scale.host}:{port} not started ({e.strerror or e}): another process '
-                'holds the port; free it, or move every scale port with '
+                f'holds the port; free it, give the scale a port of its own '
+                f'(scales.{self._scale.name}.port) or move every derived one with '
                 'monitoring.bandwidth_probe_port (scale i uses that + 1 + i). Until then the '
                 'master uses the nominal bandwidth of this link')
 

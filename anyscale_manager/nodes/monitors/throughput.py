@@ -11,25 +11,31 @@ from typing import List, Tuple
 
 from ...runtime.bandwidth import steady_throughput_bps
 
-PROBE_MAGIC = b'ASBWPRB1'            # 8 bytes, then the requested duration in ms (uint32)
+# 8 bytes, the requested duration in ms (uint32), the length (uint16) of a JSON object naming
+# the deployment and scale the sender means to measure, then that object: a probe server of
+# another deployment or scale (a port shared by mistake) refuses rather than be measured.
+PROBE_MAGIC = b'ASBWPRB2'
+MAX_IDENTITY = 1024
 PROBE_MAX_DURATION_S = 2.0           # the server never receives longer than this
 PROBE_CHUNK = 64 * 1024
 PROBE_RECV_BYTES = 1 << 20
 
 
-def probe_throughput(host: str, port: int, duration_s: float,
-                     timeout_s: float = 3.0) -> float:
+def probe_throughput(host: str, port: int, duration_s: float, timeout_s: float = 3.0,
+                     deployment: str = '', scale: str = '') -> float:
     """Send a bulk TCP burst to a probe server for ``duration_s``; its measured bytes/s.
 
     The receiver times the transfer and answers with one JSON line; the sender keeps the pipe
     full until that answer arrives, so the measurement is bounded by the receiver's clock and
-    not by how much the local socket buffers swallowed. Raises OSError or ValueError.
+    not by how much the local socket buffers swallowed. Raises OSError, or ValueError also
+    when the server there is not ``scale`` of ``deployment``.
     """
     duration_ms = int(min(max(duration_s, 0.05), PROBE_MAX_DURATION_S) * 1000)
     deadline = time.monotonic() + duration_ms / 1000.0 + timeout_s
     chunk = bytes(PROBE_CHUNK)
     with socket.create_connection((host, port), timeout=timeout_s) as sock:
-        sock.sendall(PROBE_MAGIC + struct.pack('!I', duration_ms))
+        identity = json.dumps({'d': deployment, 'to': scale}).encode('utf-8')
+        sock.sendall(PROBE_MAGIC + struct.pack('!IH', duration_ms, len(identity)) + identity)
         sock.setblocking(False)
         reply = b''
         while time.monotonic() < deadline:
@@ -81,11 +87,37 @@ def _drain_ready(conn: socket.socket, buffer: bytearray) -> int:
     return total
 
 
+def _read_exactly(conn: socket.socket, size: int):
+    """``size`` bytes from ``conn``, or None when it closes first."""
+    data = b''
+    while len(data) < size:
+        chunk = conn.recv(size - len(data))
+        if not chunk:
+            return None
+        data += chunk
+    return data
+
+
+def _answer(conn: socket.socket, answer: dict) -> None:
+    """Send the one-line answer, then drain what the sender still had in flight until it
+    closes, so the answer is not discarded by a reset."""
+    conn.sendall(json.dumps(answer).encode('ascii') + b'\n')
+    conn.shutdown(socket.SHUT_WR)
+    end = time.monotonic() + 2.0
+    try:
+        while time.monotonic() < end and conn.recv(PROBE_CHUNK):
+            pass
+    except OSError:
+        pass
+
+
 class ProbeServer:
     """The remote end of the throughput probe: receives one bounded burst at a time."""
 
-    def __init__(self, host: str, port: int, logger=None):
+    def __init__(self, host: str, port: int, logger=None, deployment: str = '',
+                 scale: str = ''):
         self._logger = logger
+        self._identity = {'d': deployment, 'to': scale}
         self._sock = socket.create_server((host, port), reuse_port=False)
         self._sock.settimeout(0.5)
         self.address = self._sock.getsockname()[:2]
@@ -112,16 +144,26 @@ class ProbeServer:
 
     def _receive(self, conn: socket.socket) -> None:
         conn.settimeout(2.0)
-        header = b''
-        while len(header) < 12:
-            data = conn.recv(12 - len(header))
-            if not data:
-                return
-            header += data
-        if header[:8] != PROBE_MAGIC:
+        header = _read_exactly(conn, 14)
+        if header is None or header[:8] != PROBE_MAGIC:
             return         # not ours: drop the connection without an answer
-        duration = min(max(struct.unpack('!I', header[8:])[0] / 1000.0, 0.05),
-                       PROBE_MAX_DURATION_S)
+        duration_ms, size = struct.unpack('!IH', header[8:])
+        raw = _read_exactly(conn, size) if size <= MAX_IDENTITY else None
+        try:
+            asked = json.loads(raw.decode('utf-8')) if raw is not None else None
+        except (ValueError, UnicodeDecodeError):
+            asked = None
+        if not isinstance(asked, dict):
+            return
+        if asked != self._identity:
+            mine, theirs = self._identity, asked
+            error = (f"this port is scale {mine['to']!r} of deployment {mine['d']!r}, not "
+                     f"scale {theirs.get('to')!r} of deployment {theirs.get('d')!r}: two "
+                     'deployments share a port (set monitoring.bandwidth_probe_port or the '
+                     "scales' port apart)")
+            _answer(conn, {'bytes': 0, 'bytes_per_s': 0.0, 'error': error})
+            return
+        duration = min(max(duration_ms / 1000.0, 0.05), PROBE_MAX_DURATION_S)
         samples: List[Tuple[float, int]] = []
         received = 0
         first = None
@@ -146,16 +188,7 @@ class ProbeServer:
         bps = steady_throughput_bps(samples)
         answer = {'bytes': received, 'bytes_per_s': bps or 0.0,
                   'duration_s': 0.0 if first is None else samples[-1][0] - first}
-        conn.sendall(json.dumps(answer).encode('ascii') + b'\n')
-        conn.shutdown(socket.SHUT_WR)
-        # Drain what the sender still had in flight until it closes, so our answer is not
-        # discarded by a reset.
-        end = time.monotonic() + 2.0
-        try:
-            while time.monotonic() < end and conn.recv(PROBE_CHUNK):
-                pass
-        except OSError:
-            pass
+        _answer(conn, answer)
 
     def close(self) -> None:
         self._stop.set()
