@@ -151,6 +151,21 @@ def test_a_leader_stalled_longer_than_the_lease_still_knows_its_standby():
     assert change is not None and change.role == STANDBY and 'could not beat' in change.reason
 
 
+def test_a_stale_layout_does_not_end_a_stepped_down_leaders_wait():
+    d = decider('a')
+    d.check(5.0)
+    d.beaten(5.0)
+    d.heard_beat(ident('s', started=300.0), STANDBY, 0, 0, 5.0)
+    # Stopped 0.5 s; on resuming it hears the standby's queued beat, then a gone leader's
+    # latched layout (term 1) turns up. The standby may have taken over at 5.3, its beats
+    # still on their way: this one goes after it, as if no layout had come.
+    d.heard_beat(ident('s', started=300.0), STANDBY, 0, 0, 5.5)
+    assert d.check(5.5).role == STANDBY
+    d.heard_beat(ident('z', started=50.0), LEADER, 1, 7, 5.51, layout=True)
+    assert d.check(5.9) is None and d.check(6.1) is None
+    assert d.check(6.12).role == LEADER
+
+
 @pytest.mark.parametrize('seed', range(40))
 def test_two_leaders_never_command_at_once_under_delays_and_stalls(seed):
     """Two deciders beat every 50 ms over a channel delaying each beat 0-80 ms; the leader

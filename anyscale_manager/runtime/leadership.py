@@ -117,7 +117,10 @@ class Leadership:
                 return self._step_down(now, f'decider {identity.describe()} leads at term '
                                             f'{term} (this one at term {self.term})')
             return None
-        self.deposed = False            # a leader is heard: the race after a step-down is over
+        if not layout:
+            # A leader beats: the race after a step-down is over. A layout does not end it: a
+            # latched one of a gone leader can arrive now.
+            self.deposed = False
         if self.leader is None or self.leader.identity.id == identity.id \
                 or outranks((term, identity), (self.leader.term, self.leader.identity)) \
                 or now - self.leader.received > self.takeover_s:
