@@ -370,10 +370,11 @@ class ScaleStatus(Message):
 
 @dataclass
 class LinkStatus(Message):
-    """The master's view of its link to one remote scale."""
+    """One link as the agent that watches it sees it (Deployment.link_monitor): the master's
+    view of its link to a remote scale, or a remote scale's view of its link to another."""
 
-    master: str
-    remote: str
+    master: str          # the scale that watches the link (the master for its own links)
+    remote: str          # the far end
     stamp: float
     up: bool
     rtt_ms: Optional[float]

@@ -246,6 +246,27 @@ def test_validate_prints_a_summary_and_exits_0():
     assert 'laser_amcl' in r.stdout and 'tolerance 2 s' in r.stdout
 
 
+def test_validate_says_who_watches_each_link_and_what_may_cross_it(tmp_path):
+    three = os.path.join(CONFIG, 'three_scales_testbed.yaml')
+    with open(three) as f:
+        data = yaml.safe_load(f)
+    params(data)['links']['names'].remove('backhaul')
+    del params(data)['links']['backhaul']
+    path = tmp_path / 'two_links.yaml'
+    path.write_text(yaml.safe_dump(data))
+    r = run_cli('validate', three, str(path))
+    assert r.returncode == 0, r.stderr
+    whole, cut = r.stdout.split('two_links.yaml: deployment')
+    assert 'laptop <-> server 54000 kbit/s wireless, watched by laptop' in whole
+    assert 'robot <-> server 54000 kbit/s wireless, watched by robot' in whole
+    assert 'host server port 47803' in whole
+    assert 'camera -> ar on /image' in whole and '6096 kbit/s, may cross ethernet, wifi' in whole
+    assert 'laser -> navigation on /scan: min 2 Hz, opt 10 Hz, tolerance 0 s, 224 kbit/s\n' \
+        in whole                                # both ends on the robot: crosses nothing
+    assert 'no link' not in whole
+    assert 'no link: laptop <-> server (a connection between nodes placed there' in cut
+
+
 def test_validate_warns_when_a_cold_move_cannot_meet_a_tolerance(tmp_path):
     data = mutate(lambda p: (p['nodes']['amcl'].update(standby=False, lifecycle=False),
                              p['connections']['laser_amcl'].update(tolerance_s=1.0)))

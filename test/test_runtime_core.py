@@ -295,7 +295,7 @@ def test_book_running_lost_and_refusals(d):
     assert 'ar' not in book.running(2.0 + timeout)
     with pytest.raises(ValueError, match='unknown scale'):
         book.agent_state(agent('moon'), 1.0)
-    with pytest.raises(ValueError, match='not the master'):
+    with pytest.raises(ValueError, match="scale 'laptop' does not watch a link to 'robot'"):
         book.link_status(p.LinkStatus(master='laptop', remote='robot', stamp=0.0, up=True,
                                       rtt_ms=None, loss=0.0, bandwidth_available_kbps=None,
                                       bandwidth_available_age_s=None,

@@ -2,7 +2,8 @@
 real DDS: home (the master), a laptop and a server (the most powerful). The worker goes to the
 server; when the server's agent is killed its worker is fenced and placed on the laptop (the
 next-best scale), not home; when the server's agent is back, T after that move the worker returns
-to it (rebalancing). Cutting one link of three needs network namespaces: the test-bed's."""
+to it (rebalancing). Each link is reported by the scale that watches it (the laptop watches the
+backhaul). Cutting one link of three needs network namespaces: the test-bed's."""
 
 import os
 
@@ -64,6 +65,11 @@ def test_a_lost_server_hands_its_node_to_the_laptop_and_gets_it_back(tmp_path, r
         ha.start(procs, tmp_path, ros_env, path, 'decider')
         ha.wait(ex, lambda: only_on(seen, 'server'), 90.0, 'the worker on the server only',
                 procs)
+        # Every link is watched: the master's two, and the backhaul by the laptop (the first
+        # of its ends in scales.names), whose agent beats the server's warden.
+        ha.wait(ex, lambda: {(m.master, m.remote) for _, m in seen['links'] if m.up} >= {
+            ('home', 'laptop'), ('home', 'server'), ('laptop', 'server')}, 15.0,
+            'each link reported up by its watcher', procs)
         agents['server'].proc.kill()                  # SIGKILL: its warden fences the worker
         ha.wait(ex, lambda: only_on(seen, 'laptop', gone=('server',)), 30.0,
                 'the worker on the laptop only', procs)

@@ -10,8 +10,9 @@ import random
 from typing import Callable, Dict, List, Optional, Tuple
 
 import pytest
+import yaml
 
-from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.model.loader import load_deployment, load_mapping
 from anyscale_manager.runtime.layout import master_layout
 from anyscale_manager.runtime.observations import (MIGRATE, MIGRATE_BACK, MOVE_AWAY, REBALANCE,
                                                    RELOCATE, ConnectionObs, Decision, LinkObs,
@@ -34,7 +35,9 @@ class World:
         self.running: Dict[str, str] = dict(master_layout(d))
         self.t = 0.0
         self.period_s = period_s
-        self.link_up = {'laptop': True, 'server': True}
+        # Keyed as Observations.links: the links from the master by their remote end, the
+        # backhaul between laptop and server (watched by the laptop) as 'laptop-server'.
+        self.link_up = {'laptop': True, 'server': True, 'laptop-server': True}
         self.agent_alive = {s: True for s in d.scale_names}
         self.cpu_extra: Dict[str, float] = {}
         self.noise: Optional[Callable[[], float]] = None
@@ -190,3 +193,58 @@ def test_a_server_that_appears_late_takes_the_nodes_from_the_laptop(d):
     assert sorted((k, n, t) for k, n, _, t in moves(out)) == [
         (REBALANCE, 'amcl', 'server'), (REBALANCE, 'ar', 'server')]
     assert all(t - back_at <= 2.0 for t, _ in out)     # one per turn, once it is observed
+
+
+def amcl_feeds_ar():
+    """The three-scale file with one more connection, AMCL's pose into AR: when the two run
+    on the laptop and the server, it crosses the backhaul."""
+    with open(THREE) as f:
+        data = yaml.safe_load(f)
+    conns = data['/**']['ros__parameters']['connections']
+    conns['names'].append('amcl_ar')
+    conns['amcl_ar'] = {'topic': '/amcl_pose', 'publisher': 'amcl', 'subscriber': 'ar',
+                        'msg_type': 'geometry_msgs/msg/PoseWithCovarianceStamped',
+                        'freq_min_hz': 2.0, 'freq_opt_hz': 5.0, 'tolerance_s': 2.0,
+                        'bandwidth_kbps': 15.0}
+    return load_mapping(data, 'three scales, amcl feeding ar')
+
+
+def split_over_the_backhaul(d) -> World:
+    w = World(d)
+    # Room on the server for AMCL (the first to move) and not then for AR: AR takes the laptop.
+    w.cpu_extra['server'] = 1530.0 - 60.0
+    w.run(30.0)
+    assert (w.running['amcl'], w.running['ar']) == ('server', 'laptop')
+    return w
+
+
+def test_a_cut_backhaul_moves_only_what_crosses_it_and_not_across_the_cut():
+    d = amcl_feeds_ar()
+    w = split_over_the_backhaul(d)
+    w.link_up['laptop-server'] = False
+    out = w.run(w.t + 2.0)
+    # One node moves, home: straight to the server (or the laptop) would be a handover over
+    # the cut link. The last migrated goes; the other stays where it is.
+    assert moves(out) == [(MIGRATE_BACK, 'ar', 'laptop', 'robot')]
+    reason = out[0][1].reason
+    assert 'link backhaul between laptop and server reported down' in reason
+    assert 'the handover from laptop needs it' in reason
+    assert w.running['amcl'] == 'server'
+    # Nothing crosses the cut link, and nothing goes back over it while it is down.
+    assert not moves(w.run(w.t + 60.0))
+    assert (w.running['amcl'], w.running['ar']) == ('server', 'robot')
+
+
+def test_a_cut_backhaul_that_carries_nothing_moves_nothing(d):
+    w = split_over_the_backhaul(d)          # no connection between AMCL and AR here
+    w.link_up['laptop-server'] = False
+    assert not moves(w.run(w.t + 10.0))
+
+
+def test_a_backhaul_never_reported_counts_as_down_but_cuts_off_no_scale():
+    d = amcl_feeds_ar()
+    w = split_over_the_backhaul(d)
+    del w.link_up['laptop-server']          # its watcher, the laptop's agent, never says
+    out = w.run(w.t + 4.0)
+    assert moves(out) == [(MIGRATE_BACK, 'ar', 'laptop', 'robot')]
+    assert 'link backhaul between laptop and server silent' in out[0][1].reason

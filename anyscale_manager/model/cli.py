@@ -23,18 +23,37 @@ def _fmt(x) -> str:
     return '-' if x is None else f'{x:g}'
 
 
+def _crosses(d: Deployment, publisher: str, subscriber: str) -> str:
+    """', may cross wifi, backhaul': the links a placement the file allows can make the
+    connection cross (none: both ends always share a scale)."""
+    if publisher not in d.node_names or subscriber not in d.node_names:
+        return ''
+    ends = {frozenset((a, b)) for a in d.allowed_scales(publisher)
+            for b in d.allowed_scales(subscriber) if a != b}
+    links = [link.name for link in d.links if frozenset(link.ends) in ends]
+    return f', may cross {", ".join(links)}' if links else ''
+
+
 def summary(d: Deployment) -> str:
     about = f' ({d.description})' if d.description else ''
     lines = [f'{d.source}: deployment {d.name!r}{about}']
     lines.append(f'  scales ({len(d.scales)}):')
     for s in d.scales:
         lines.append(f'    {s.name:<14} {s.role:<6} {s.kind:<6} capacity {s.capacity_cpu:g} '
-                     f'({s.cores} x {s.clock_ghz:g} GHz, gain {s.gain:g}) host {s.host}')
+                     f'({s.cores} x {s.clock_ghz:g} GHz, gain {s.gain:g}) host {s.host} '
+                     f'port {d.scale_port(s.name)}')
     if d.links:
-        lines.append(f'  links ({len(d.links)}):')
+        lines.append(f'  links ({len(d.links)}; each watched by the agent of one end):')
         for link in d.links:
             lines.append(f'    {link.name:<14} {link.ends[0]} <-> {link.ends[1]} '
-                         f'{link.bandwidth_kbps:g} kbit/s {link.medium}')
+                         f'{link.bandwidth_kbps:g} kbit/s {link.medium}, watched by '
+                         f'{d.link_monitor(link)}')
+    names = d.scale_names
+    unlinked = [f'{a} <-> {b}' for i, a in enumerate(names) for b in names[i + 1:]
+                if d.link_between(a, b) is None]
+    if unlinked and len(names) > 1:
+        lines.append(f'  no link: {", ".join(unlinked)} (a connection between nodes placed '
+                     'there is a bandwidth violation: nothing routes)')
     critical = set(d.critical_nodes)
     providers = set(d.data_providers)
     migratable = set(d.migratable_nodes)
@@ -68,7 +87,8 @@ def summary(d: Deployment) -> str:
         for c in d.connections:
             lines.append(f'    {c.name:<20} {c.publisher} -> {c.subscriber} on {c.topic}: '
                          f'min {_fmt(c.freq_min_hz)} Hz, opt {_fmt(c.freq_opt_hz)} Hz, '
-                         f'tolerance {_fmt(c.tolerance_s)} s, {c.bandwidth_kbps:g} kbit/s')
+                         f'tolerance {_fmt(c.tolerance_s)} s, {c.bandwidth_kbps:g} kbit/s'
+                         + _crosses(d, c.publisher, c.subscriber))
     shared = single_machine(d)
     if shared:
         lines += textwrap.wrap(shared, 99, initial_indent='  ', subsequent_indent='    ')

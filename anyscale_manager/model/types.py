@@ -376,6 +376,24 @@ class Deployment:
     def link_between(self, a: str, b: str) -> Optional[Link]:
         return self._index['link'].get(frozenset((a, b))) if a != b else None
 
+    def link_monitor(self, link: Link) -> str:
+        """The scale whose agent watches ``link`` (heartbeats, congestion, probes): the master
+        for a link that touches it, else the end listed first in scales.names."""
+        master = self.master.name
+        if master in link.ends:
+            return master
+        return min(link.ends, key=self.scale_names.index)
+
+    def watched_from(self, scale: str) -> Tuple[str, ...]:
+        """The far ends of the links ``scale``'s agent watches: every remote scale from the
+        master (declared link or not), and from a remote scale each remote it shares a link
+        with and comes before in scales.names."""
+        if scale == self.master.name:
+            return tuple(s.name for s in self.remote_scales)
+        return tuple(link.other(scale) for link in self.links
+                     if scale in link.ends and self.link_monitor(link) == scale
+                     and self.master.name not in link.ends)
+
     def connections_of(self, node: str) -> Tuple[Connection, ...]:
         return self._connections_of.get(node, ())
 

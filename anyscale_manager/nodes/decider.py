@@ -140,8 +140,9 @@ class DeciderNode(Node):
         self.core = DeciderTurn(self.deployment, self.settings, started)
         self._rejected = 0
         self._bad = ThrottledLog(self.get_logger())   # bad input: one line per kind and 10 s
-        self._links_up: Dict[str, bool] = {}     # remote scale -> last reported up
-        self._links_kbps: Dict[str, float] = {}  # remote scale -> last reported available
+        # Keyed as Observations.links: a remote scale (its link from the master), or 'A-B'.
+        self._links_up: Dict[str, bool] = {}     # -> last reported up
+        self._links_kbps: Dict[str, float] = {}  # -> last reported available
         self._link_lost = False
         self._crash_heard = False
         self._fenced: Dict[str, bool] = {}       # remote scale -> its warden said 'fenced'
@@ -440,23 +441,22 @@ class DeciderNode(Node):
             self._tick()
 
     def _link_status(self, status: p.LinkStatus, now: float) -> None:
-        self.book.link_status(status, now)
-        was_up = self._links_up.get(status.remote, False)
-        self._links_up[status.remote] = status.up
+        key = self.book.link_status(status, now)
+        was_up = self._links_up.get(key, False)
+        self._links_up[key] = status.up
         if was_up and not status.up and self.layout is not None:
             self._link_lost = True
         available = status.bandwidth_available_kbps
         if available is not None:
             link = self.deployment.link_between(status.master, status.remote)
-            before = self._links_kbps.get(status.remote,
-                                          link.bandwidth_kbps if link else math.inf)
+            before = self._links_kbps.get(key, link.bandwidth_kbps if link else math.inf)
             if available < 0.95 * before and self.layout is not None:
                 self._link_lost = True
-            self._links_kbps[status.remote] = available
-        fenced = status.up and status.peer_agent == 'fenced'
-        if fenced and not self._fenced.get(status.remote) and self.layout is not None:
+            self._links_kbps[key] = available
+        fenced = status.up and self.book.links[key].peer_agent == 'fenced'
+        if fenced and not self._fenced.get(key) and self.layout is not None:
             self._link_lost = True      # its nodes are stopped: place them elsewhere now
-        self._fenced[status.remote] = fenced
+        self._fenced[key] = fenced
 
     def _on_connection_status(self, msg: String) -> None:
         self._intake(msg, p.ConnectionStatus, p.TOPIC_CONNECTION_STATUS,

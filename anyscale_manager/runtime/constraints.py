@@ -155,12 +155,23 @@ def is_fresh(stamp: float, now: float, settings: DeciderSettings) -> bool:
     return now - stamp <= settings.observation_max_age_s
 
 
-def link_observation_key(deployment: Deployment, link: Link) -> Optional[str]:
-    """The key of ``Observations.links`` for a link: its remote end when it touches the master."""
+def link_observation_key(deployment: Deployment, link: Link) -> str:
+    """The key of ``Observations.links`` for a link: its remote end when it touches the master,
+    else 'A-B', the scale that watches it then the other (scale names hold no '-')."""
     master = deployment.master.name
     if master in link.ends:
         return link.other(master)
-    return None
+    monitor = deployment.link_monitor(link)
+    return f'{monitor}-{link.other(monitor)}'
+
+
+def link_text(deployment: Deployment, link: Link) -> str:
+    """'link wifi to laptop' for a link from the master, 'link backhaul between laptop and
+    server' for one between two remote scales."""
+    master = deployment.master.name
+    if master in link.ends:
+        return f'link {link.name} to {link.other(master)}'
+    return f'link {link.name} between {link.ends[0]} and {link.ends[1]}'
 
 
 def crossing(deployment: Deployment, running: Mapping[str, str]
@@ -187,8 +198,7 @@ def capped_kbps(measured_kbps: float, nominal_kbps: float) -> float:
 
 def measured_kbps(deployment: Deployment, obs: Observations, link: Link) -> Optional[float]:
     """The link monitor's last bandwidth figure for a link, uncapped (None: none)."""
-    key = link_observation_key(deployment, link)
-    lo = obs.links.get(key) if key is not None else None
+    lo = obs.links.get(link_observation_key(deployment, link))
     return None if lo is None else lo.available_kbps
 
 
@@ -203,12 +213,11 @@ def link_capacity(deployment: Deployment, settings: DeciderSettings, obs: Observ
     """(up, observed, available_kbps, why_down) for one link, from the latest observation.
 
     Available is the measurement capped at the nominal (``capped_kbps``), the nominal while
-    nothing was measured. Links that do not touch the master have no observation: they count as
-    up at their nominal bandwidth (nothing measures them).
+    nothing was measured. Every link is watched by the agent of one of its ends
+    (``Deployment.link_monitor``).
     """
     key = link_observation_key(deployment, link)
-    if key is None:
-        return True, False, link.bandwidth_kbps, ''
+    what = link_text(deployment, link)
     lo = obs.links.get(key)
     max_age = settings.observation_max_age_s
     if key in obs.unjudged_links:
@@ -220,16 +229,14 @@ def link_capacity(deployment: Deployment, settings: DeciderSettings, obs: Observ
     if lo is None:
         silent = math.inf if since is None else obs.now - since
         if silent > max_age:
-            what = 'never reported' if since is None else f'no report for {silent:.1f} s'
-            return False, False, 0.0, f'link {link.name} to {key} silent ({what}, ' \
-                                      f'max age {max_age:g} s)'
+            why = 'never reported' if since is None else f'no report for {silent:.1f} s'
+            return False, False, 0.0, f'{what} silent ({why}, max age {max_age:g} s)'
         return True, False, link.bandwidth_kbps, ''
     age = obs.now - lo.stamp
     if age > max_age:
-        return False, False, 0.0, (f'link {link.name} to {key} silent for {age:.1f} s '
-                                   f'(max age {max_age:g} s)')
+        return False, False, 0.0, f'{what} silent for {age:.1f} s (max age {max_age:g} s)'
     if not lo.up:
-        return False, True, 0.0, f'link {link.name} to {key} reported down'
+        return False, True, 0.0, f'{what} reported down'
     available = link.bandwidth_kbps if lo.available_kbps is None else lo.available_kbps
     return True, True, capped_kbps(available, link.bandwidth_kbps), ''
 
@@ -437,7 +444,10 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
                         reason=why,
                         measured_kbps=measured_kbps(deployment, obs, link) if up else None)
         links[link.name] = load
-        far = [e for e in link.ends if e != master] if master in link.ends else list(link.ends)
+        # Beyond a link from the master: everything on its remote end (cut off, it stops its
+        # own copies). A link between two remote scales cuts off nothing: only the
+        # connections that cross it.
+        far = [e for e in link.ends if e != master] if master in link.ends else []
         hosted_far = tuple(n for n, where in running.items() if where in far)
         if not up and (required > 0 or hosted_far):
             names = {c.publisher for c in conns} | {c.subscriber for c in conns}

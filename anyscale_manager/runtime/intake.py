@@ -15,6 +15,7 @@ from typing import Collection, Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 from ..model.types import DeciderSettings, Deployment, frozen_map
 from ..protocol import (ERROR, LINK_MONITOR_START_S, WARN, AgentState, ConnectionStatus,
                         LinkStatus, ScaleStatus)
+from .constraints import link_observation_key
 from .observations import ConnectionObs, CopyObs, LinkObs, Observations, ScaleObs
 
 _RANK = {'running': 2, 'starting': 1}
@@ -138,20 +139,33 @@ class ObservationBook:
             out[node] = sum(values) / len(values)
         return out
 
-    def link_status(self, msg: LinkStatus, now: float) -> None:
-        master = self.deployment.master.name
-        if msg.master != master:
-            raise ValueError(f'link_status.master: {msg.master!r:.60} is not the master '
-                             f'scale {master!r}')
+    def link_status(self, msg: LinkStatus, now: float) -> str:
+        """File a link monitor's report; return its key in ``links``
+        (constraints.link_observation_key)."""
+        d = self.deployment
+        master = d.master.name
+        self._scale(msg.master, 'link_status.master')
         self._scale(msg.remote, 'link_status.remote')
-        if msg.remote == master:
-            raise ValueError('link_status.remote: the master scale itself')
+        if msg.master == master:
+            if msg.remote == master:
+                raise ValueError('link_status.remote: the master scale itself')
+            key, peer_agent = msg.remote, msg.peer_agent
+        else:
+            link = d.link_between(msg.master, msg.remote)
+            if link is None or master in link.ends or d.link_monitor(link) != msg.master:
+                raise ValueError(f'link_status: scale {msg.master!r} does not watch a link '
+                                 f'to {msg.remote!r} (only the master, and the first of two '
+                                 'remote scales joined by a link, do)')
+            # What the far end's warden says of its agent matters to fencing only over a
+            # link from the master: the decider reaches that scale through it.
+            key, peer_agent = link_observation_key(d, link), None
         available = msg.bandwidth_available_kbps
         if available is not None and available < 0:
             raise ValueError(f'link_status.bandwidth_available_kbps: negative ({available})')
-        self.links[msg.remote] = LinkObs(up=msg.up, stamp=now, available_kbps=available,
-                                         used_kbps=max(0.0, msg.bandwidth_used_kbps),
-                                         rtt_ms=msg.rtt_ms, peer_agent=msg.peer_agent)
+        self.links[key] = LinkObs(up=msg.up, stamp=now, available_kbps=available,
+                                  used_kbps=max(0.0, msg.bandwidth_used_kbps),
+                                  rtt_ms=msg.rtt_ms, peer_agent=peer_agent)
+        return key
 
     def connection_status(self, msg: ConnectionStatus, now: float) -> None:
         self._scale(msg.scale, 'connection_status.scale')
@@ -198,25 +212,31 @@ class ObservationBook:
                          if link.up and link.peer_agent in states and now - link.stamp <= max_age)
 
     def unjudged_links(self, now: float) -> FrozenSet[str]:
-        """Remote scales whose link report is missing or stale while the master's agent, the
-        link monitor's host, is silent, or was heard again less than LINK_MONITOR_START_S plus
-        observation_max_age_s ago (its new link monitor has not judged the link yet)."""
+        """Keys of ``links`` (remote scales for the links from the master) whose report is
+        missing or stale while the agent that watches the link is silent, or was heard again
+        less than LINK_MONITOR_START_S plus observation_max_age_s ago (its new link monitor
+        has not judged the link yet)."""
         max_age = self.settings.observation_max_age_s
-        master = self.agents.get(self.deployment.master.name)
-        quiet = master is None or now - master.received > max_age
-        starting = now - self.master_back_at <= LINK_MONITOR_START_S + max_age
+        d = self.deployment
+        master = d.master.name
+        watched = [(s, master, self.master_back_at) for s in d.scale_names if s != master]
+        watched += [(link_observation_key(d, link), d.link_monitor(link),
+                     self.back_at.get(d.link_monitor(link), self.started))
+                    for link in d.links if master not in link.ends]
         out = set()
-        for s in self.deployment.scale_names:
-            link = self.links.get(s)
-            if s == self.deployment.master.name or (link is not None
-                                                    and now - link.stamp <= max_age):
+        for key, host, back_at in watched:
+            link = self.links.get(key)
+            if link is not None and now - link.stamp <= max_age:
                 continue
+            agent = self.agents.get(host)
+            quiet = agent is None or now - agent.received > max_age
+            starting = now - back_at <= LINK_MONITOR_START_S + max_age
             # A stale report is the link's silence only if the monitor's host was heard after
             # it went stale: an agent that dies can be heard last a moment after its monitor
             # (a SIGKILLed robot agent was; the link was then judged silent before the agent).
             stale_at = (link.stamp if link is not None else self.started) + max_age
-            if quiet or starting or master.received <= stale_at:
-                out.add(s)
+            if quiet or starting or agent.received <= stale_at:
+                out.add(key)
         return frozenset(out)
 
     def silent_agents(self, now: float) -> Dict[str, float]:

@@ -63,11 +63,12 @@ class Observations:
     now: float
     running: Mapping[str, str]                       # node -> scale where it actually runs
     scales: Mapping[str, ScaleObs] = field(default_factory=frozen_map)
-    links: Mapping[str, LinkObs] = field(default_factory=frozen_map)   # keyed by remote scale
+    links: Mapping[str, LinkObs] = field(default_factory=frozen_map)   # link_observation_key
     connections: Mapping[str, ConnectionObs] = field(default_factory=frozen_map)
     lost_scales: FrozenSet[str] = frozenset()        # scales whose agent went silent
-    # Remote scales whose link has no fresh report because the master's agent, which hosts the
-    # link monitor, is silent or has just started: a dead agent is not a cut link.
+    # Keys of ``links`` with no fresh report because the agent that watches the link (the
+    # master's, or a remote scale's for a link between two remote scales) is silent or has
+    # just started: a dead agent is not a cut link.
     unjudged_links: FrozenSet[str] = frozenset()
     # Scales whose agent has not been heard for observation_max_age_s (never heard: counted from
     # the start of watching), with how long: nothing is placed there. Lost scales are among them.

@@ -423,8 +423,8 @@ class MigrationPolicy:
         # A link down (or silent) brings back at once everything placed beyond it, running
         # or still starting there: waiting for the connections' Δ would be too late.
         for link_name, load in report.links.items():
-            if load.up:
-                continue
+            if load.up or self.master not in load.ends:
+                continue        # a link between two remote scales: the do-while below
             far = [e for e in load.ends if e != self.master]
             beyond = [n for n in migrated if self.desired.get(n) in far or running.get(n) in far]
             if beyond:
@@ -437,6 +437,8 @@ class MigrationPolicy:
                 for n in beyond:
                     back(n, reason)
         for v in report.of_kind(LINK_DOWN, FREQUENCY):
+            if v.kind == LINK_DOWN and self.master not in report.links[v.subject].ends:
+                continue        # only the connections crossing it move: the do-while below
             culprits = [n for n in v.nodes if n in migrated]
             actionable = actionable or bool(culprits)
             for n in culprits:
@@ -462,6 +464,8 @@ class MigrationPolicy:
         # do ... while required_BW > network_BW: pick, among the migrated nodes crossing an
         # overloaded link, the one whose return frees the most bandwidth on it (ties: the most
         # recently migrated), until every link fits. Moves already asked for count as done.
+        # A link between two remote scales that is down carries nothing: what crosses it
+        # moves, one node at a time, to where nothing does (the rest stays where it is).
         for _ in range(len(migrated) + 1):
             over = self._overloaded_links(report, placed)
             if not over:
@@ -480,9 +484,14 @@ class MigrationPolicy:
             if best is None:
                 break
             actionable = True
-            back(best, f'link {link_name}: required {required:.0f} kbit/s > usable '
-                       f'{usable:.0f} kbit/s{report.links[link_name].cap_note}; {best} frees '
-                       f'{best_gain:.0f} kbit/s')
+            load = report.links[link_name]
+            if not load.up:
+                back(best, f'{load.reason}: {required:.0f} kbit/s cross it; {best} frees '
+                           f'{best_gain:.0f} kbit/s')
+            else:
+                back(best, f'link {link_name}: required {required:.0f} kbit/s > usable '
+                           f'{usable:.0f} kbit/s{load.cap_note}; {best} frees '
+                           f'{best_gain:.0f} kbit/s')
         return out, actionable
 
     def _next_best(self, obs: Observations, placed: Mapping[str, str],
@@ -509,6 +518,10 @@ class MigrationPolicy:
             if held:
                 refused.append(held)
                 continue
+            cut = self._handover_cut(report, leaving, scale)
+            if cut:
+                refused.append(f'{scale}: {cut}')
+                continue
             ok, why = self._can_host(obs, without, report, (node,), cpu, scale,
                                      sent.get(scale, 0.0))
             if ok:
@@ -516,12 +529,23 @@ class MigrationPolicy:
             refused.append(f'{scale}: {why}')
         return self.master, '; '.join(refused)
 
+    def _handover_cut(self, report: ConstraintReport, leaving: Optional[str],
+                      scale: str) -> str:
+        """Why a node may not move from ``leaving`` straight to ``scale`` now ('' when it
+        may): the link between them is down. The copy that stops and the one that starts hear
+        each other's reports over it; across a cut, the handover would wait out its timeouts."""
+        link = self.deployment.link_between(leaving, scale) if leaving is not None else None
+        if link is None or report.links[link.name].up:
+            return ''
+        return f'{report.links[link.name].reason} (the handover from {leaving} needs it)'
+
     def _overloaded_links(self, report: ConstraintReport,
                           running: Mapping[str, str]) -> List[Tuple[str, float, float]]:
         required = required_kbps(self.deployment, running)
         out = []
         for name, load in report.links.items():
-            if load.up and required[name] > load.usable_kbps:
+            watched = load.up or self.master not in load.ends     # down: usable 0
+            if watched and required[name] > load.usable_kbps:
                 out.append((name, required[name], load.usable_kbps))
         return out
 
@@ -598,7 +622,7 @@ class MigrationPolicy:
                 gain = cpu * (d.scale(scale).gain - d.scale(here).gain)
                 if scale == here or gain < s.rebalance_min_gain or gain <= 0:
                     continue
-                if self._held(unit, scale, now):
+                if self._held(unit, scale, now) or self._handover_cut(report, here, scale):
                     continue
                 ok, why = self._can_host(obs, without, report, unit, cpu, scale)
                 if not ok:

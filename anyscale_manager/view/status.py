@@ -120,7 +120,11 @@ class StatusBook:
             elif topic == p.TOPIC_LINK_STATUS:
                 m = p.LinkStatus.from_json(text, topic)
                 if self._verified(topic, text, m):
-                    self._keep(self.links, m.remote, m, now, m.remote in scales)
+                    # Keyed by link: the monitor of each is one of its ends.
+                    link = self.deployment.link_between(m.master, m.remote) \
+                        if m.master in scales and m.remote in scales else None
+                    ours = link is not None and self.deployment.link_monitor(link) == m.master
+                    self._keep(self.links, link.name if ours else None, m, now, ours)
             elif topic == p.TOPIC_CONNECTION_STATUS:
                 m = p.ConnectionStatus.from_json(text, topic)
                 known = {c.name for c in self.deployment.connections}
@@ -278,12 +282,10 @@ def _link_rows(book: StatusBook, now: float) -> List[str]:
     d = book.deployment
     max_age = d.decider.observation_max_age_s
     rows = [['LINK', 'ENDS', 'STATE', 'RTT', 'AVAILABLE / NOMINAL kbit/s', 'USED kbit/s']]
-    master = d.master.name
     for link in d.links:
-        remote = link.other(master) if master in link.ends else None
-        state, rtt, avail, used = 'not monitored', '-', f'- / {link.bandwidth_kbps:.0f}', '-'
-        if remote is not None and remote in book.links:
-            ls, at = book.links[remote]
+        state, rtt, avail, used = 'not heard', '-', f'- / {link.bandwidth_kbps:.0f}', '-'
+        if link.name in book.links:
+            ls, at = book.links[link.name]
             silent = now - at > max_age
             if silent:
                 state = f'SILENT, {stale_mark(now - at)} (counts as down)'
@@ -295,8 +297,6 @@ def _link_rows(book: StatusBook, now: float) -> List[str]:
                 else ls.bandwidth_available_age_s + (now - at)
             avail = bandwidth_text(ls.bandwidth_available_kbps, link.bandwidth_kbps,
                                    ls.up and not silent, age, bandwidth_stale_after_s(d))
-        elif remote is not None:
-            state = 'not heard'
         rows.append([link.name, '-'.join(link.ends), state, rtt, avail, used])
     return _table(rows)
 

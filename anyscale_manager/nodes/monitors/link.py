@@ -71,8 +71,10 @@ class _Remote:
 
 
 class LinkMonitor:
-    """Master: heartbeats, RTT, loss, up/down and bandwidth of the link to each remote.
-    Remote: serves the throughput probe (its warden answers the heartbeats)."""
+    """The watching end of a link (the master for its links, the first of two remote scales
+    for theirs: Deployment.link_monitor): heartbeats, RTT, loss, up/down, congestion and
+    bandwidth. A remote scale also serves the throughput probe (its warden answers the
+    heartbeats)."""
 
     def __init__(self, node, deployment: Deployment, scale: str,
                  sealer: Optional[Sealer] = None):
@@ -100,14 +102,17 @@ class LinkMonitor:
         self._lock = threading.Lock()
         self._beats_lock = threading.RLock()    # the trackers: the echo thread and the executor
         self.last: Dict[str, p.LinkStatus] = {}
-        if self._scale.is_master:
-            self._start_master(settings)
-        else:
+        if not self._scale.is_master:
             self._start_remote(settings)
+        # The master watches its link to every remote scale; a remote scale, its links to the
+        # remote scales after it (Deployment.link_monitor): every link that can carry a flow.
+        self._watching = self._scale.is_master or bool(deployment.watched_from(scale))
+        if self._watching:
+            self._start_watching(settings, deployment.watched_from(scale))
 
-    # master side ----------------------------------------------------------------------------
-    def _start_master(self, settings) -> None:
-        for remote in self._deployment.remote_scales:
+    # the watching end -----------------------------------------------------------------------
+    def _start_watching(self, settings, far: Tuple[str, ...]) -> None:
+        for remote in (self._deployment.scale(name) for name in far):
             link = self._deployment.link_between(self._scale.name, remote.name)
             estimate = None
             if link is not None:
@@ -440,7 +445,7 @@ class LinkMonitor:
             self._node.destroy_timer(timer)
         for sub in self._subs:
             self._node.destroy_subscription(sub)
-        if self._scale.is_master:
+        if self._watching:
             self._closing = True
             self._sock.close()
             self._receiver.join(1.0)
