@@ -532,6 +532,35 @@ def test_link_monitor_trackers_judge_congestion_over_half_a_second_at_any_beat_r
     assert strict.queueing_delay_s(now + 0.3) > 0.05
 
 
+def test_a_stall_of_the_judge_is_no_queue_on_the_link():
+    """Four beats go out on time, then the judging process is starved until 6.75 s: their
+    echoes are read then, 0.45-0.75 s after they were sent, as a full queue would return them.
+    Its next beat, late by more than the congestion threshold (0.05 s), starts the judgement
+    afresh: no verdict until five beats after it, and they find no queue. Without the
+    threshold the stall reads as 0.45 s of queueing delay. A real queue is still seen."""
+    from anyscale_manager.nodes.monitors.link import heartbeat_tracker
+    judge, blind = heartbeat_tracker(0.1, 3, 0.05), heartbeat_tracker(0.1, 3)
+    for hb in (judge, blind):
+        now = 0.0
+        for _ in range(60):
+            hb.echo(now + 0.002, hb.next_beat(now))
+            now += 0.1
+        for seq in [hb.next_beat(6.0 + 0.1 * i) for i in range(4)]:
+            hb.echo(6.75, seq)
+        hb.echo(6.752, hb.next_beat(6.75))
+    assert blind.queueing_delay_s(6.76) == pytest.approx(0.45 - 0.002)
+    assert judge.queueing_delay_s(6.76) is None
+    now = 6.75
+    for _ in range(4):
+        now += 0.1
+        judge.echo(now + 0.002, judge.next_beat(now))
+    assert judge.queueing_delay_s(now + 0.01) == pytest.approx(0.0)
+    for _ in range(5):          # beats on time, their echoes 0.2 s late: a queue
+        now += 0.1
+        judge.echo(now + 0.2, judge.next_beat(now))
+    assert judge.queueing_delay_s(now + 0.3) == pytest.approx(0.2 - 0.002)
+
+
 def test_beats_sent_in_one_burst_after_a_stall_are_no_cut():
     """The judging process was not scheduled for a second: its beat timer catches up with
     three beats at once, and the echoes of the beats before the stall wait in its queue. Down

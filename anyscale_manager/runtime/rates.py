@@ -149,11 +149,17 @@ class HeartbeatTracker:
     as reached by ``agree`` of the last ``recent`` beats, an unanswered beat counting as waiting
     since it was sent (a lower bound that keeps growing if it was dropped). One late echo (a
     scheduling hiccup on a loaded scale) does not make it; a queue that holds every beat does.
+    Nor does a stall of the judge itself: a beat sent more than ``stall_s`` after its period
+    (the process was starved, and the echoes of the beats before it were read late, as late as
+    a full queue would return them) starts the judgement afresh from that beat.
     """
 
     def __init__(self, period_s: float, misses_down: int, loss_window: int = 40,
-                 base_window: int = 240, recent: int = 4, agree: int = 3):
+                 base_window: int = 240, recent: int = 4, agree: int = 3,
+                 stall_s: float = math.inf):
         self.period_s = _positive(period_s, 'period_s')
+        self.stall_s = stall_s if stall_s == math.inf else _positive(stall_s, 'stall_s')
+        self._judged_from = -math.inf      # beats sent earlier say nothing of a queue
         if not isinstance(misses_down, int) or misses_down < 1:
             raise ValueError(f'misses_down must be an integer >= 1, got {misses_down!r}')
         if loss_window < 1:
@@ -186,6 +192,8 @@ class HeartbeatTracker:
 
     def next_beat(self, now: float) -> int:
         """Register a beat sent at ``now`` and return its sequence number."""
+        if self._last and now - self._last[-1][1] > self.period_s + self.stall_s:
+            self._judged_from = now
         seq = self._next_seq
         self._next_seq += 1
         self._sent[seq] = now
@@ -260,6 +268,7 @@ class HeartbeatTracker:
         that many beats were sent at or after ``since`` (e.g. the link's return, or the end of
         a throughput probe that filled the queue on purpose) or before any echo."""
         base = self.base_rtt_s()
+        since = max(since, self._judged_from)
         beats = [e for e in self._last if e[1] >= since]
         if base is None or len(beats) < self.recent:
             return None

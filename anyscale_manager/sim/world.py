@@ -5,7 +5,8 @@ Each period the world is refreshed at the robot's position, turned into the same
 applied with a start-up delay. The semantics follow the real monitors:
 
 * a link whose coverage is lost reads ``up=False`` with 0 kbit/s available; while up, its
-  available bandwidth is the schedule's goodput at the robot's position;
+  available bandwidth is the schedule's goodput at the robot's position; a link between two
+  remote scales is always up at its nominal bandwidth;
 * a connection whose ends are on scales that cannot reach each other reads 0 Hz, and a node
   that receives none of its inputs publishes nothing; ``below_for_s`` is how long a connection has
   been below its freq_min, as the probes track it;
@@ -21,6 +22,7 @@ applied with a start-up delay. The semantics follow the real monitors:
 from typing import Dict, Iterable, List, Mapping, Optional, Tuple
 
 from ..model.types import STOP_BEFORE_START, Deployment, frozen_map
+from ..runtime.constraints import link_observation_key, required_kbps
 from ..runtime.observations import ConnectionObs, Decision, LinkObs, Observations, ScaleObs
 from .model import PathModel, SimSystem, node_rate, robot_speed
 from .path import LinkSchedule
@@ -166,6 +168,15 @@ class World:
         links = {r: LinkObs(up=self.link_up[r], stamp=t, available_kbps=self.link_kbps[r],
                             used_kbps=used[r] if self.link_up[r] else 0.0)
                  for r in self.remotes}
+        # A link between two remote scales (wired, off the robot's path) is always up at its
+        # nominal bandwidth, reported by the agent that watches it as any link is.
+        master = self.deployment.master.name
+        required = required_kbps(self.deployment, self.placement)
+        for link in self.deployment.links:
+            if master not in link.ends:
+                links[link_observation_key(self.deployment, link)] = LinkObs(
+                    up=True, stamp=t, available_kbps=link.bandwidth_kbps,
+                    used_kbps=required[link.name])
         connections = {}
         for c in self._monitored:
             since = self._below_since[c.name]

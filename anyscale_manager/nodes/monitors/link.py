@@ -40,14 +40,18 @@ LOSS_SPAN_S = 10.0
 BASE_SPAN_S = 60.0
 
 
-def heartbeat_tracker(period_s: float, misses_down: int) -> HeartbeatTracker:
+def heartbeat_tracker(period_s: float, misses_down: int,
+                      congestion_s: float = 0.0) -> HeartbeatTracker:
     """A tracker whose windows span CONGESTION_SPAN_S (queueing delay reached by 3 of the last 4
-    beats at 2-8 Hz, 4 of 5 at 10 Hz), LOSS_SPAN_S and BASE_SPAN_S, at any beat rate."""
+    beats at 2-8 Hz, 4 of 5 at 10 Hz), LOSS_SPAN_S and BASE_SPAN_S, at any beat rate. A beat
+    sent ``congestion_s`` late restarts the queueing judgement: this process stalled that long,
+    and read the echoes in flight as late as a full queue would have returned them."""
     recent = max(4, math.ceil(CONGESTION_SPAN_S / period_s - 1e-9))
     loss = max(40, math.ceil(LOSS_SPAN_S / period_s - 1e-9))
     return HeartbeatTracker(period_s, misses_down, loss_window=loss,
                             base_window=max(240, loss, math.ceil(BASE_SPAN_S / period_s - 1e-9)),
-                            recent=recent, agree=recent - max(1, recent // 5))
+                            recent=recent, agree=recent - max(1, recent // 5),
+                            stall_s=congestion_s if congestion_s > 0 else math.inf)
 
 
 @dataclass
@@ -120,7 +124,8 @@ class LinkMonitor:
                                              link.bandwidth_kbps)
             self._remotes[remote.name] = _Remote(
                 remote, link.name if link else f'{self._scale.name}-{remote.name}',
-                heartbeat_tracker(self._period, settings.heartbeat_misses_down), estimate,
+                heartbeat_tracker(self._period, settings.heartbeat_misses_down,
+                                  settings.congestion_delay_ms / 1000.0), estimate,
                 started=time.monotonic())
         # (scale, conn) -> (B/s over the probe window, B/s over DELIVERY_SPAN_S, when heard)
         self._readings: Dict[Tuple[str, str], Tuple[float, float, float]] = {}
