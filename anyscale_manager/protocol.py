@@ -17,7 +17,7 @@ PREFIX = '/anyscale'
 TOPIC_LAYOUT = PREFIX + '/layout'                  # decider -> agents, latched
 TOPIC_AGENT_STATE = PREFIX + '/agent_state'        # agents -> decider, latched per agent
 TOPIC_SCALE_STATUS = PREFIX + '/scale_status'      # scale monitor (in each agent)
-TOPIC_LINK_STATUS = PREFIX + '/link_status'        # link monitor (in the master's agent)
+TOPIC_LINK_STATUS = PREFIX + '/link_status'        # link monitors (each link's watching agent)
 # A link monitor that starts publishes no LinkStatus until its first echo, for at most this
 # long: before the remote has discovered it, silence says nothing of the link.
 LINK_MONITOR_START_S = 3.0

@@ -13,6 +13,7 @@ import os
 import time
 
 from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.runtime.constraints import link_observation_key
 from anyscale_manager.runtime.layout import master_layout
 from anyscale_manager.runtime.observations import (ConnectionObs, LinkObs, Observations,
                                                    ScaleObs)
@@ -34,7 +35,9 @@ def measure(path: str, steps: int) -> str:
         obs = Observations(
             now=now, running=dict(running),
             scales={s: ScaleObs(cpu_total=10.0, stamp=now) for s in d.scale_names},
-            links={s.name: LinkObs(up=True, stamp=now) for s in d.remote_scales},
+            links={**{s.name: LinkObs(up=True, stamp=now) for s in d.remote_scales},
+                   **{link_observation_key(d, link): LinkObs(up=True, stamp=now)
+                      for link in d.links if d.master.name not in link.ends}},
             connections={c.name: ConnectionObs(rate_hz=c.freq_opt_hz or c.freq_min_hz or 1.0,
                                                stamp=now) for c in d.connections})
         t0 = time.perf_counter()

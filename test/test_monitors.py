@@ -487,6 +487,36 @@ def test_probe_server_of_another_deployment_or_scale_is_not_measured():
         server.close()
 
 
+def test_a_slow_request_does_not_hold_the_probe_server():
+    """A sender trickling its request a byte at a time is dropped REQUEST_S after it began:
+    the one probe server is free again for the master (which waits up to its timeout)."""
+    from anyscale_manager.nodes.monitors import throughput
+    port = free_port()
+    server = ProbeServer('127.0.0.1', port, deployment='lab', scale='laptop')
+    stop, connected = threading.Event(), threading.Event()
+
+    def trickle():
+        with socket.create_connection(('127.0.0.1', port), timeout=3.0) as s:
+            connected.set()             # in the backlog first: the server takes it first
+            for byte in throughput.PROBE_MAGIC + bytes(100):
+                if stop.wait(0.5):      # the header alone would take 7 s
+                    return
+                try:
+                    s.sendall(bytes([byte]))
+                except OSError:
+                    return          # dropped
+    slow = threading.Thread(target=trickle, daemon=True)
+    try:
+        slow.start()
+        assert connected.wait(5.0)
+        assert probe_throughput('127.0.0.1', port, 0.1, timeout_s=throughput.REQUEST_S + 3.0,
+                                deployment='lab', scale='laptop') > 0
+    finally:
+        stop.set()
+        slow.join(5.0)
+        server.close()
+
+
 def test_link_monitor_refuses_unknown_scale(ros, deployment):
     make, _ = ros
     with pytest.raises(ValueError, match='no scale'):

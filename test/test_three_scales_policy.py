@@ -38,6 +38,7 @@ class World:
         # Keyed as Observations.links: the links from the master by their remote end, the
         # backhaul between laptop and server (watched by the laptop) as 'laptop-server'.
         self.link_up = {'laptop': True, 'server': True, 'laptop-server': True}
+        self.link_kbps: Dict[str, float] = {}        # measured; none: the nominal
         self.agent_alive = {s: True for s in d.scale_names}
         self.cpu_extra: Dict[str, float] = {}
         self.noise: Optional[Callable[[], float]] = None
@@ -58,7 +59,7 @@ class World:
             cpu = sum(d.node(n).cpu for n, w in self.running.items() if w == s)
             cpu += self.cpu_extra.get(s, 0.0) + (self.noise() if self.noise else 0.0)
             scales[s] = ScaleObs(cpu_total=max(0.0, cpu), stamp=t)
-        links = {s: LinkObs(up=up, stamp=t, available_kbps=None)
+        links = {s: LinkObs(up=up, stamp=t, available_kbps=self.link_kbps.get(s))
                  for s, up in self.link_up.items()}
         conns = {c.name: ConnectionObs(rate_hz=c.freq_opt_hz, stamp=t)
                  for c in d.connections if c.monitored}
@@ -248,3 +249,32 @@ def test_a_backhaul_never_reported_counts_as_down_but_cuts_off_no_scale():
     out = w.run(w.t + 4.0)
     assert moves(out) == [(MIGRATE_BACK, 'ar', 'laptop', 'robot')]
     assert 'link backhaul between laptop and server silent' in out[0][1].reason
+
+
+def test_a_down_link_nothing_can_relieve_does_not_hold_back_an_overloaded_one():
+    """A pair of nodes pinned one to the laptop, one to the server, talk over the backhaul
+    (first in the file's links); it is cut: nothing can move for it. The server's WiFi then
+    shrinks below what AR needs: AR still comes off it."""
+    with open(THREE) as f:
+        data = yaml.safe_load(f)
+    params = data['/**']['ros__parameters']
+    params['links']['names'] = ['backhaul', 'ethernet', 'wifi']
+    nodes, conns = params['nodes'], params['connections']
+    for name, scale in (('mapper', 'laptop'), ('planner', 'server')):
+        nodes['names'].append(name)
+        nodes[name] = dict(nodes['user'], cpu=5.0, residence=[scale])
+    conns['names'].append('mapper_planner')
+    conns['mapper_planner'] = dict(conns['amcl_ekf'], publisher='mapper', subscriber='planner',
+                                   topic='/plan_map')
+    d = load_mapping(data, 'three scales, a pinned pair over the backhaul')
+    w = settled_on_server(d)
+    w.link_up['laptop-server'] = False
+    assert not moves(w.run(w.t + 2.0))                # nothing to move for it
+    w.link_kbps = {'server': 5000.0}                  # AR's 6 Mbit/s no longer fits
+    out = w.run(w.t + 2.0)
+    # Home (the laptop is across the cut backhaul from the server), then out to the laptop,
+    # which home reaches: two handovers where the cut forbids the direct one.
+    assert moves(out) == [(MIGRATE_BACK, 'ar', 'server', 'robot'),
+                          (MIGRATE, 'ar', 'robot', 'laptop')], moves(out)
+    assert 'link wifi: required' in out[0][1].reason
+    assert 'the handover from server needs it' in out[0][1].reason

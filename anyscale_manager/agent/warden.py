@@ -8,8 +8,9 @@ The agent starts it (once: a second warden of the same state file exits at once)
 two things an agent cannot do for itself, because both must hold while the agent is dead or
 replacing itself:
 
-- **The heartbeat echo.** The master's link monitor sends a UDP datagram to every remote
-  scale's warden (``warden_port``) and times the answer: the link's round trip, loss, queueing
+- **The heartbeat echo.** The link monitor of each link's watching end (the master, or the
+  first of two remote scales) sends a UDP datagram to the far end's warden (``warden_port``)
+  and times the answer: the link's round trip, loss, queueing
   delay and up/down. The answer also says how the scale's agent is (``alive``, ``restarting``,
   ``gone`` or ``fenced``, and for how long), so a dead or restarting agent is never taken for a
   cut link, and a cut link is still one (no answer at all). With the deployment's key, beats

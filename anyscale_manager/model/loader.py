@@ -522,7 +522,7 @@ def _all_read(ctx: _Context, collection: str, *keys: str) -> bool:
         and not any(ctx.damaged(f'{collection}.{n}.{k}') for n in names for k in keys)
 
 
-LOOPBACK_HOSTS = ('localhost', '127.0.0.1', '::1', '')
+LOOPBACK_HOSTS = ('localhost', '127.0.0.1', '::1', '', '0.0.0.0')
 
 
 def _port_check(ctx: _Context, d: t.Deployment) -> None:
@@ -540,7 +540,7 @@ def _port_check(ctx: _Context, d: t.Deployment) -> None:
                              f'{d.scale_names.index(s.name)} = {port} is past 65535: give it a '
                              'port or lower the base')
             continue
-        host = 'localhost' if s.host in LOOPBACK_HOSTS else s.host
+        host = 'localhost' if s.host.lower() in LOOPBACK_HOSTS else s.host.lower()
         other = taken.setdefault((host, port), s.name)
         if other != s.name:
             ctx.error(where, f'port {port} on host {s.host!r} is also scale {other!r}\'s: the '

@@ -145,7 +145,7 @@ class DeciderNode(Node):
         self._links_kbps: Dict[str, float] = {}  # -> last reported available
         self._link_lost = False
         self._crash_heard = False
-        self._fenced: Dict[str, bool] = {}       # remote scale -> its warden said 'fenced'
+        self._fenced: Dict[str, bool] = {}       # -> its warden said 'fenced' (master links)
         self.host = socket.gethostname()
         self.identity = p.DeciderIdentity(id=secrets.token_hex(8), host=self.host[:256],
                                           pid=os.getpid(), started=time.time())

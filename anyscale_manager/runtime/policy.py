@@ -466,23 +466,26 @@ class MigrationPolicy:
         # recently migrated), until every link fits. Moves already asked for count as done.
         # A link between two remote scales that is down carries nothing: what crosses it
         # moves, one node at a time, to where nothing does (the rest stays where it is).
+        # An overloaded link that no move can relieve (what crosses it is pinned there, or
+        # already moving) does not hold back the others.
         for _ in range(len(migrated) + 1):
-            over = self._overloaded_links(report, placed)
-            if not over:
+            pick = None
+            for link_name, required, usable in self._overloaded_links(report, placed):
+                best, best_gain = None, 0.0
+                for n in reversed(migrated):
+                    if n in taken or placed.get(n, self.master) == self.master:
+                        continue
+                    where, _ = self._next_best(obs, placed, report, n, placed[n], sent)
+                    trial = dict(placed, **{n: where})
+                    gain = required - required_kbps(self.deployment, trial)[link_name]
+                    if gain > best_gain:
+                        best, best_gain = n, gain
+                if best is not None:
+                    pick = (link_name, required, usable, best, best_gain)
+                    break
+            if pick is None:
                 break
-            link_name, required, usable = over[0]
-            current = required
-            best, best_gain = None, 0.0
-            for n in reversed(migrated):
-                if n in taken or placed.get(n, self.master) == self.master:
-                    continue
-                where, _ = self._next_best(obs, placed, report, n, placed[n], sent)
-                trial = dict(placed, **{n: where})
-                gain = current - required_kbps(self.deployment, trial)[link_name]
-                if gain > best_gain:
-                    best, best_gain = n, gain
-            if best is None:
-                break
+            link_name, required, usable, best, best_gain = pick
             actionable = True
             load = report.links[link_name]
             if not load.up:

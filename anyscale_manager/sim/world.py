@@ -168,8 +168,8 @@ class World:
         links = {r: LinkObs(up=self.link_up[r], stamp=t, available_kbps=self.link_kbps[r],
                             used_kbps=used[r] if self.link_up[r] else 0.0)
                  for r in self.remotes}
-        # A link between two remote scales (wired, off the robot's path) is always up at its
-        # nominal bandwidth, reported by the agent that watches it as any link is.
+        # A link between two remote scales (off the robot's path) is always up at its nominal
+        # bandwidth, reported by the agent that watches it as any link is.
         master = self.deployment.master.name
         required = required_kbps(self.deployment, self.placement)
         for link in self.deployment.links:

@@ -121,10 +121,14 @@ class StatusBook:
                 m = p.LinkStatus.from_json(text, topic)
                 if self._verified(topic, text, m):
                     # Keyed by link: the monitor of each is one of its ends.
-                    link = self.deployment.link_between(m.master, m.remote) \
-                        if m.master in scales and m.remote in scales else None
-                    ours = link is not None and self.deployment.link_monitor(link) == m.master
-                    self._keep(self.links, link.name if ours else None, m, now, ours)
+                    known = m.master in scales and m.remote in scales
+                    link = self.deployment.link_between(m.master, m.remote) if known else None
+                    # The master also watches remote scales it has no declared link to: kept
+                    # by no row, and not foreign either.
+                    if link is not None and self.deployment.link_monitor(link) == m.master:
+                        self._keep(self.links, link.name, m, now, True)
+                    elif not known:
+                        self._keep(self.links, None, m, now, False)
             elif topic == p.TOPIC_CONNECTION_STATUS:
                 m = p.ConnectionStatus.from_json(text, topic)
                 known = {c.name for c in self.deployment.connections}

@@ -1,5 +1,6 @@
-"""LinkMonitor: heartbeats, RTT, loss, up/down and bandwidth of the link to each remote
-scale.
+"""LinkMonitor: heartbeats, RTT, loss, up/down and bandwidth of each link its scale watches
+(Deployment.link_monitor: the master's links, and a link between two remote scales from its end
+first in scales.names).
 
 The heartbeats are UDP datagrams to each remote scale's warden (agent/warden.py), a process
 that outlives the agent: its answer proves the link, and says how the scale's agent is (alive,

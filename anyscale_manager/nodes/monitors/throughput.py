@@ -16,6 +16,7 @@ from ...runtime.bandwidth import steady_throughput_bps
 # another deployment or scale (a port shared by mistake) refuses rather than be measured.
 PROBE_MAGIC = b'ASBWPRB2'
 MAX_IDENTITY = 1024
+REQUEST_S = 2.0                      # the whole request must arrive within this
 PROBE_MAX_DURATION_S = 2.0           # the server never receives longer than this
 PROBE_CHUNK = 64 * 1024
 PROBE_RECV_BYTES = 1 << 20
@@ -35,6 +36,9 @@ def probe_throughput(host: str, port: int, duration_s: float, timeout_s: float =
     chunk = bytes(PROBE_CHUNK)
     with socket.create_connection((host, port), timeout=timeout_s) as sock:
         identity = json.dumps({'d': deployment, 'to': scale}).encode('utf-8')
+        if len(identity) > MAX_IDENTITY:
+            raise ValueError(f'throughput probe to {host}:{port}: deployment and scale names '
+                             f'too long ({len(identity)} bytes > {MAX_IDENTITY})')
         sock.sendall(PROBE_MAGIC + struct.pack('!IH', duration_ms, len(identity)) + identity)
         sock.setblocking(False)
         reply = b''
@@ -62,8 +66,9 @@ def probe_throughput(host: str, port: int, duration_s: float, timeout_s: float =
         answer = json.loads(reply.split(b'\n', 1)[0].decode('ascii'))
         bps = float(answer['bytes_per_s'])
     except (ValueError, KeyError, TypeError, UnicodeDecodeError):
-        raise ValueError(f'throughput probe to {host}:{port}: bad answer {reply[:60]!r}') \
-            from None
+        what = 'no answer (a server of an older version, or not a probe server?)' if not reply \
+            else f'bad answer {reply[:60]!r}'
+        raise ValueError(f'throughput probe to {host}:{port}: {what}') from None
     if not bps > 0:
         raise ValueError(f'throughput probe to {host}:{port}: {answer.get("error", "no data")}')
     return bps
@@ -87,10 +92,15 @@ def _drain_ready(conn: socket.socket, buffer: bytearray) -> int:
     return total
 
 
-def _read_exactly(conn: socket.socket, size: int):
-    """``size`` bytes from ``conn``, or None when it closes first."""
+def _read_exactly(conn: socket.socket, size: int, deadline: float):
+    """``size`` bytes from ``conn``, or None when it closes first; socket.timeout (an OSError)
+    past ``deadline``: a slow sender holds the one server no longer than that."""
     data = b''
     while len(data) < size:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            raise socket.timeout('the request took too long to arrive')
+        conn.settimeout(min(2.0, left))
         chunk = conn.recv(size - len(data))
         if not chunk:
             return None
@@ -143,24 +153,31 @@ class ProbeServer:
                                              throttle_duration_sec=60.0)
 
     def _receive(self, conn: socket.socket) -> None:
-        conn.settimeout(2.0)
-        header = _read_exactly(conn, 14)
+        deadline = time.monotonic() + REQUEST_S
+        header = _read_exactly(conn, 14, deadline)
         if header is None or header[:8] != PROBE_MAGIC:
             return         # not ours: drop the connection without an answer
         duration_ms, size = struct.unpack('!IH', header[8:])
-        raw = _read_exactly(conn, size) if size <= MAX_IDENTITY else None
-        try:
-            asked = json.loads(raw.decode('utf-8')) if raw is not None else None
-        except (ValueError, UnicodeDecodeError):
-            asked = None
+        asked = None
+        if size <= MAX_IDENTITY:
+            raw = _read_exactly(conn, size, deadline)
+            try:
+                asked = json.loads(raw.decode('utf-8')) if raw is not None else None
+            except (ValueError, UnicodeDecodeError):
+                pass
+        conn.settimeout(2.0)
         if not isinstance(asked, dict):
+            _answer(conn, {'bytes': 0, 'bytes_per_s': 0.0,
+                           'error': 'a request without a readable deployment and scale'})
             return
         if asked != self._identity:
             mine, theirs = self._identity, asked
+            which = 'two deployments share' if theirs.get('d') != mine['d'] else \
+                'two scales of this deployment share'
             error = (f"this port is scale {mine['to']!r} of deployment {mine['d']!r}, not "
-                     f"scale {theirs.get('to')!r} of deployment {theirs.get('d')!r}: two "
-                     'deployments share a port (set monitoring.bandwidth_probe_port or the '
-                     "scales' port apart)")
+                     f"scale {str(theirs.get('to'))[:60]!r} of deployment "
+                     f"{str(theirs.get('d'))[:60]!r}: {which} a port (set the scales' port, "
+                     'or monitoring.bandwidth_probe_port, apart)')
             _answer(conn, {'bytes': 0, 'bytes_per_s': 0.0, 'error': error})
             return
         duration = min(max(duration_ms / 1000.0, 0.05), PROBE_MAX_DURATION_S)
