@@ -172,10 +172,10 @@ def mutate(fn):
     (lambda p: p['scales']['laptop'].update(port=70000), 'scales.laptop.port', 'out of range'),
     (lambda p: [p['scales'][s].update(host='127.0.0.1' if s == 'robot' else 'localhost',
                                       port=47000) for s in ('robot', 'laptop')],
-     'scales.laptop.port', "port 47000 on host 'localhost' is also scale 'robot'"),
+     'scales.laptop.port', "port 47000 on host 'localhost' is also the port of scale 'robot'"),
     (lambda p: [p['scales']['laptop'].update(host='robot'),
                 p['scales']['robot'].update(port=47802)],
-     'scales.laptop.port', "is also scale 'robot'"),
+     'scales.laptop.port', "is also the port of scale 'robot'"),
     (lambda p: p['monitoring'].update(bandwidth_probe_port=65534), 'scales.laptop.port',
      'past 65535'),
 ])

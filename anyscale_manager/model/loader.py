@@ -543,9 +543,9 @@ def _port_check(ctx: _Context, d: t.Deployment) -> None:
         host = 'localhost' if s.host.lower() in LOOPBACK_HOSTS else s.host.lower()
         other = taken.setdefault((host, port), s.name)
         if other != s.name:
-            ctx.error(where, f'port {port} on host {s.host!r} is also scale {other!r}\'s: the '
-                             'warden and probe server of each scale need their own (set port, '
-                             'or leave it out on both to derive one per scale)')
+            ctx.error(where, f'port {port} on host {s.host!r} is also the port of scale '
+                             f'{other!r}: the warden and probe server of each scale need their '
+                             'own (set port, or leave it out on both to derive one per scale)')
 
 
 def _cross_check(ctx: _Context, d: t.Deployment) -> None:
