@@ -37,7 +37,7 @@ def measure(path: str, steps: int) -> str:
             scales={s: ScaleObs(cpu_total=10.0, stamp=now) for s in d.scale_names},
             links={**{s.name: LinkObs(up=True, stamp=now) for s in d.remote_scales},
                    **{link_observation_key(d, link): LinkObs(up=True, stamp=now)
-                      for link in d.links if d.master.name not in link.ends}},
+                      for link in d.remote_links}},
             connections={c.name: ConnectionObs(rate_hz=c.freq_opt_hz or c.freq_min_hz or 1.0,
                                                stamp=now) for c in d.connections})
         t0 = time.perf_counter()

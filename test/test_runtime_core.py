@@ -303,6 +303,25 @@ def test_book_running_lost_and_refusals(d):
     assert any('ghost' in k for k in book.ignored)
 
 
+def test_book_says_which_link_reports_call_for_a_decision_now(d):
+    book = ObservationBook(d, d.decider, started=0.0)
+
+    def report(up=True, kbps=None, agent='alive'):
+        return book.link_status(p.LinkStatus(
+            master='robot', remote='laptop', stamp=0.0, up=up, rtt_ms=1.0, loss=0.0,
+            bandwidth_available_kbps=kbps, bandwidth_available_age_s=None,
+            bandwidth_used_kbps=0.0, peer_agent=agent), 1.0)
+    assert not report(up=False)               # first heard down: nothing was beyond it yet
+    assert not report()
+    assert report(up=False)                   # up -> down
+    assert not report(up=False) and not report()
+    assert not report(kbps=52000.0)           # within 5 % of the nominal 54000
+    assert report(kbps=40000.0)               # shrank
+    assert not report(kbps=39000.0) and not report()   # 2.5 % less; no figure: kept
+    assert report(agent='fenced')             # its warden stopped the dead agent's nodes
+    assert not report(agent='fenced')
+
+
 def test_book_prefers_the_subscribers_probe(d):
     book = ObservationBook(d, d.decider, started=0.0)
     reading = p.ConnectionReading(rate_hz=0.0, bytes_per_s=0.0, below_for_s=1.0, level=1)

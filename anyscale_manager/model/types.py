@@ -390,9 +390,13 @@ class Deployment:
         with and comes before in scales.names."""
         if scale == self.master.name:
             return tuple(s.name for s in self.remote_scales)
-        return tuple(link.other(scale) for link in self.links
-                     if scale in link.ends and self.link_monitor(link) == scale
-                     and self.master.name not in link.ends)
+        return tuple(link.other(scale) for link in self.remote_links
+                     if scale in link.ends and self.link_monitor(link) == scale)
+
+    @cached_property
+    def remote_links(self) -> Tuple[Link, ...]:
+        """The links between two remote scales (the master's own are not among them)."""
+        return tuple(link for link in self.links if self.master.name not in link.ends)
 
     def connections_of(self, node: str) -> Tuple[Connection, ...]:
         return self._connections_of.get(node, ())

@@ -140,12 +140,8 @@ class DeciderNode(Node):
         self.core = DeciderTurn(self.deployment, self.settings, started)
         self._rejected = 0
         self._bad = ThrottledLog(self.get_logger())   # bad input: one line per kind and 10 s
-        # Keyed as Observations.links: a remote scale (its link from the master), or 'A-B'.
-        self._links_up: Dict[str, bool] = {}     # -> last reported up
-        self._links_kbps: Dict[str, float] = {}  # -> last reported available
         self._link_lost = False
         self._crash_heard = False
-        self._fenced: Dict[str, bool] = {}       # -> its warden said 'fenced' (master links)
         self.host = socket.gethostname()
         self.identity = p.DeciderIdentity(id=secrets.token_hex(8), host=self.host[:256],
                                           pid=os.getpid(), started=time.time())
@@ -441,22 +437,8 @@ class DeciderNode(Node):
             self._tick()
 
     def _link_status(self, status: p.LinkStatus, now: float) -> None:
-        key = self.book.link_status(status, now)
-        was_up = self._links_up.get(key, False)
-        self._links_up[key] = status.up
-        if was_up and not status.up and self.layout is not None:
+        if self.book.link_status(status, now) and self.layout is not None:
             self._link_lost = True
-        available = status.bandwidth_available_kbps
-        if available is not None:
-            link = self.deployment.link_between(status.master, status.remote)
-            before = self._links_kbps.get(key, link.bandwidth_kbps if link else math.inf)
-            if available < 0.95 * before and self.layout is not None:
-                self._link_lost = True
-            self._links_kbps[key] = available
-        fenced = status.up and self.book.links[key].peer_agent == 'fenced'
-        if fenced and not self._fenced.get(key) and self.layout is not None:
-            self._link_lost = True      # its nodes are stopped: place them elsewhere now
-        self._fenced[key] = fenced
 
     def _on_connection_status(self, msg: String) -> None:
         self._intake(msg, p.ConnectionStatus, p.TOPIC_CONNECTION_STATUS,

@@ -139,9 +139,11 @@ class ObservationBook:
             out[node] = sum(values) / len(values)
         return out
 
-    def link_status(self, msg: LinkStatus, now: float) -> str:
-        """File a link monitor's report; return its key in ``links``
-        (constraints.link_observation_key)."""
+    def link_status(self, msg: LinkStatus, now: float) -> bool:
+        """File a link monitor's report (under constraints.link_observation_key). True when it
+        calls for a decision now rather than at the next period: the link went down, its
+        figure shrank by more than 5 %, or its far end's warden has just fenced the dead
+        agent's nodes; what was beyond it must be placed before the connections' Δ runs out."""
         d = self.deployment
         master = d.master.name
         self._scale(msg.master, 'link_status.master')
@@ -162,10 +164,21 @@ class ObservationBook:
         available = msg.bandwidth_available_kbps
         if available is not None and available < 0:
             raise ValueError(f'link_status.bandwidth_available_kbps: negative ({available})')
-        self.links[key] = LinkObs(up=msg.up, stamp=now, available_kbps=available,
-                                  used_kbps=max(0.0, msg.bandwidth_used_kbps),
-                                  rtt_ms=msg.rtt_ms, peer_agent=peer_agent)
-        return key
+        before = self.links.get(key)
+        fresh = LinkObs(up=msg.up, stamp=now, available_kbps=available,
+                        used_kbps=max(0.0, msg.bandwidth_used_kbps), rtt_ms=msg.rtt_ms,
+                        peer_agent=peer_agent)
+        self.links[key] = fresh
+        if before is None:
+            before = LinkObs(up=False, stamp=now)
+        link = d.link_between(msg.master, msg.remote)
+        last = before.available_kbps if before.available_kbps is not None else (
+            link.bandwidth_kbps if link is not None else math.inf)
+        lost = before.up and not fresh.up
+        shrank = available is not None and available < 0.95 * last
+        fenced = fresh.up and fresh.peer_agent == 'fenced' \
+            and not (before.up and before.peer_agent == 'fenced')
+        return lost or shrank or fenced
 
     def connection_status(self, msg: ConnectionStatus, now: float) -> None:
         self._scale(msg.scale, 'connection_status.scale')
@@ -220,9 +233,10 @@ class ObservationBook:
         d = self.deployment
         master = d.master.name
         watched = [(s, master, self.master_back_at) for s in d.scale_names if s != master]
-        watched += [(link_observation_key(d, link), d.link_monitor(link),
-                     self.back_at.get(d.link_monitor(link), self.started))
-                    for link in d.links if master not in link.ends]
+        for link in d.remote_links:
+            host = d.link_monitor(link)
+            watched.append((link_observation_key(d, link), host,
+                            self.back_at.get(host, self.started)))
         out = set()
         for key, host, back_at in watched:
             link = self.links.get(key)

@@ -170,13 +170,11 @@ class World:
                  for r in self.remotes}
         # A link between two remote scales (off the robot's path) is always up at its nominal
         # bandwidth, reported by the agent that watches it as any link is.
-        master = self.deployment.master.name
         required = required_kbps(self.deployment, self.placement)
-        for link in self.deployment.links:
-            if master not in link.ends:
-                links[link_observation_key(self.deployment, link)] = LinkObs(
-                    up=True, stamp=t, available_kbps=link.bandwidth_kbps,
-                    used_kbps=required[link.name])
+        for link in self.deployment.remote_links:
+            links[link_observation_key(self.deployment, link)] = LinkObs(
+                up=True, stamp=t, available_kbps=link.bandwidth_kbps,
+                used_kbps=required[link.name])
         connections = {}
         for c in self._monitored:
             since = self._below_since[c.name]
