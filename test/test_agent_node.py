@@ -490,3 +490,20 @@ def test_restart_in_place_keeps_every_node_running_and_adopts_it(setup, tmp_path
 
     assert a.stop(signal.SIGINT) == 0 and b.stop(signal.SIGINT) == 0
     assert all(gone(pid) for pid in pids.values())
+
+
+def test_a_layout_is_word_from_the_master_a_remote_agent_long_alone_serves_what_it_places(
+        setup):
+    """A remote agent that has heard nothing from the master for longer than agent_timeout_s
+    (the link was down since it started) takes the layout that arrives when the link comes
+    back as word from there: it starts what the layout places on it at once, rather than
+    taking the silence before it for a cut and holding the node until a newer layout."""
+    h, agent, _, _ = setup
+    b = agent('b')
+    h.wait(lambda: 'b' in h.states, what='the agent of b reporting')
+    alone_since = first_time(h.history, 'b', 'talker', ('stopped',)) or time.monotonic()
+    h.wait(lambda: time.monotonic() - alone_since > 3.5, timeout=10.0,
+           what='the agent of b alone for longer than agent_timeout_s (3 s)')
+    h.publish(1, {'talker': 'b'})
+    h.wait(lambda: h.running('b', 'talker'), timeout=15.0, what='talker running on b')
+    assert 'cut off from a' not in b.text()

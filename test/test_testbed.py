@@ -344,9 +344,9 @@ s.close()
 '''
 
 
-def _throughput_kbps(net, connect_timeout_s=5.0):
-    out = net.run('robot', [sys.executable, '-c', TCP_SEND, net.addresses['laptop'],
-                            str(connect_timeout_s)], timeout=20)
+def _throughput_kbps(net, connect_timeout_s=5.0, src='robot', dst='laptop'):
+    out = net.run(src, [sys.executable, '-c', TCP_SEND, net.addresses[dst],
+                        str(connect_timeout_s)], timeout=20)
     return float(out.strip())
 
 
@@ -388,6 +388,48 @@ def test_network_shapes_cuts_throttles_and_leaves_nothing_behind():
     assert sink.wait(timeout=10) is not None          # teardown killed what was left inside
     assert not names & set(netns.list_namespaces())
     assert not any(os.path.exists(g) for g in groups)
+
+
+@needs_netns
+def test_three_scale_network_shapes_and_cuts_each_link_alone_and_forwards_nothing():
+    """Robot, laptop and server: each pair joined by its own link. Each scale has one address
+    for all its links; a packet crosses only the link joining its two ends (a cut link is not
+    bypassed through the third scale), and each link is throttled and cut on its own."""
+    env = {'PATH': os.environ.get('PATH', '/usr/bin:/bin')}
+    net = netns.Network(scales=('robot', 'laptop', 'server'),
+                        links=[('ethernet', 'robot', 'laptop', 100000.0),
+                               ('wifi', 'robot', 'server', 20000.0),
+                               ('backhaul', 'laptop', 'server', 4000.0)])
+    with net:
+        neighbours = [net.addresses['robot'], net.addresses['laptop']]
+        assert sorted(net.peers('server')) == sorted(neighbours)
+        with pytest.raises(ValueError, match='name a link'):
+            net.cut()
+        sink = net.popen('server', [sys.executable, '-c', TCP_SINK], env)
+
+        def rate(src):
+            return _throughput_kbps(net, 1.0, src=src, dst='server')
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                wifi = rate('robot')
+                break
+            except netns.TestbedError:
+                assert time.monotonic() < deadline, 'the sink never came up'
+                time.sleep(0.2)
+        assert 12000 <= wifi <= 26000, wifi
+        assert 2000 <= rate('laptop') <= 6000                 # the backhaul's own rate
+        net.cut('wifi')
+        assert 'blackhole' in net.qdisc('server', 'wifi')
+        assert 'tbf' in net.qdisc('server', 'backhaul')
+        assert not net.link_state('wifi').up and net.link_state('backhaul').up
+        with pytest.raises(netns.TestbedError):
+            rate('robot')                                     # not through the laptop
+        assert 2000 <= rate('laptop') <= 6000
+        net.restore('wifi')
+        net.throttle(8000.0, 'wifi')
+        assert 5000 <= rate('robot') <= 10000
+        assert sink.poll() is None
 
 
 @needs_netns

@@ -339,6 +339,11 @@ class AgentNode(Node):
             return
         if follow.reason:
             self.get_logger().info(follow.reason)
+        # The decider runs on the master scale: its layout, even one latched and delivered
+        # when the link comes back, is word from there now. Counted before the layout is
+        # applied, so that the first tick after it does not take the silence before it for a
+        # cut and stop what the layout just placed here.
+        self.reconciler.heard_master(now)
         if not follow.switched and layout.generation == self.reconciler.generation:
             return      # the followed decider's re-publication: its lease, nothing new
         verdict = self.reconciler.apply_layout(layout, now, new_decider=follow.switched)

@@ -1,19 +1,24 @@
 """The test-bed harness: the whole system on one machine, started and torn down as one thing.
 
-``Testbed`` builds the network (``netns.Network``: robot and laptop namespaces, a shaped link,
-CPU quotas in the paper's power ratio), starts the decider and one agent per scale exactly as a
-person would (``--ros-args --params-file DEPLOYMENT -p scale:=...``, with per-run state and log
-folders), and an observer node in the robot's namespace whose output fills a ``Record`` (and,
-with namespaces, a second one on the laptop that hears only the agents' reports, so that the
-laptop's are known while the link is cut: ``laptop_view``). The link is cut, restored and
-throttled from here, agents and the decider can be killed and started again, one managed
-node's process can be signalled, and ``stop()`` (also from ``__exit__`` and on errors) stops
-everything gracefully, then kills whatever is left, removes the namespaces and cgroups, and
-says what it had to clean.
+``Testbed`` builds the network (``netns.Network``: a namespace per scale of the deployment, a
+shaped link per link of the file, CPU quotas in the file's power ratio), starts the decider and
+one agent per scale exactly as a person would (``--ros-args --params-file DEPLOYMENT -p
+scale:=...``, with per-run state and log folders), and an observer node in each scale's
+namespace whose output fills that scale's ``Record`` (``views``; ``record`` is the master's).
+The master's observer hears every connection's topic; another scale's hears the project's
+topics (so its agent's reports are known while its link to the master is cut) and, with three
+scales or more, the topics of the connections whose publisher may run there (a topic whose
+publisher is pinned elsewhere is not pulled across a link for the observer's sake). Each link
+is cut, restored and throttled from here, agents and the decider can be killed and started
+again, one managed node's process can be signalled, and ``stop()`` (also from ``__exit__`` and
+on errors) stops everything gracefully, then kills whatever is left, removes the namespaces and
+cgroups, and says what it had to clean.
 
-Without the rights to build namespaces the harness runs everything on loopback and emulates the
-link: a cut freezes (SIGSTOP) the laptop agent and every process it started, a restore thaws
-them; a throttle cannot be emulated there and is refused with the reason.
+The test-bed runs two scales (the ICAR robot and laptop) or more (``config/
+three_scales_testbed.yaml``: robot, laptop and server), the master named ``robot``. Without the
+rights to build namespaces it runs two scales on loopback and emulates the link: a cut freezes
+(SIGSTOP) the laptop agent and every process it started, a restore thaws them; a throttle cannot
+be emulated there and is refused with the reason; three scales need namespaces.
 """
 
 import ctypes
@@ -78,6 +83,7 @@ class Options:
     deployment_path: str
     domain_id: int
     mode: str = 'auto'                       # auto | netns | loopback
+    # the link's rate with two scales; with more, each link starts at its nominal bandwidth
     rate_kbps: float = netns.DEFAULT_RATE_KBPS
     reference_core: float = REFERENCE_CORE   # one robot core, in cores of this machine
     cpu_quota: bool = True
@@ -92,41 +98,63 @@ class Testbed:
     def __init__(self, options: Options):
         self.options = options
         self.deployment: Deployment = load_deployment(options.deployment_path)
-        names = self.deployment.scale_names
-        if len(names) != 2 or self.deployment.master.name != 'robot' or 'laptop' not in names:
-            raise HarnessError(f'{options.deployment_path}: the test-bed needs exactly the '
-                               f'scales robot (master) and laptop, got {", ".join(names)}')
+        d = self.deployment
+        names = d.scale_names
+        if d.master.name != 'robot' or len(names) < 2 or \
+                (len(names) == 2 and 'laptop' not in names):
+            raise HarnessError(f'{options.deployment_path}: the test-bed needs the master scale '
+                               f'robot and the laptop, or three scales or more, got '
+                               f'{", ".join(names)}')
+        joined = {frozenset(link.ends) for link in d.links}
+        alone = [s for s in names if not any(s in pair for pair in joined)]
+        if alone:
+            raise HarnessError(f'{options.deployment_path}: scale {alone[0]} has no link')
         if options.mode not in ('auto', NETNS, LOOPBACK):
             raise HarnessError(f'unknown mode {options.mode!r}')
+        if len(names) > 2 and options.mode == LOOPBACK:
+            raise HarnessError('three scales or more need network namespaces: loopback can '
+                               'emulate one link only')
         self.mode = options.mode
         self.mode_reason = ''
         self.network: Optional[netns.Network] = None
         self.procs: Dict[str, Proc] = {}
-        self.record = Record(self.deployment)
-        # The agents' reports as heard on the laptop (netns mode only): the laptop's own are
-        # there while the link is cut, when the robot hears nothing of them.
-        self.laptop_view = Record(self.deployment)
-        if self.deployment.security.key_file:
+        # What each scale's observer heard; the master's is ``record``. Another scale's own
+        # agent reports are there while its link to the master is cut.
+        self.views: Dict[str, Record] = {s: Record(d) for s in names}
+        self.record = self.views[d.master.name]
+        if d.security.key_file:
             # The observers' records check signatures as the agents do: a forged or replayed
             # layout or state is not taken for what the system did.
             try:
-                key = protocol_auth.load_key(self.deployment.security.key_file)
+                key = protocol_auth.load_key(d.security.key_file)
             except protocol_auth.KeyFileError as e:
                 raise HarnessError(str(e)) from None
-            self.record.key = self.laptop_view.key = key
+            for view in self.views.values():
+                view.key = key
         self.lock = threading.Lock()
         self.t0 = time.monotonic()
         self._observers: List[Proc] = []
         self._readers: List[threading.Thread] = []
         self._frozen: List[int] = []
-        self._link_up = True
-        self._rate_kbps = options.rate_kbps
+        if len(d.links) == 1:
+            self._links = {d.links[0].name: (True, float(options.rate_kbps))}
+        else:
+            self._links = {link.name: (True, float(link.bandwidth_kbps)) for link in d.links}
         self._own_run_dir = not options.run_dir
         self.run_dir = options.run_dir or tempfile.mkdtemp(prefix='anyscale-testbed-')
         self.cleanup_notes: List[str] = []
         self.cpu_cores = {s.name: s.capacity_cpu / 100.0 * options.reference_core
                           for s in self.deployment.scales}
         self._probe_port = 0
+
+    @property
+    def laptop_view(self) -> Record:
+        """The laptop observer's record (the two-scale test-bed's remote scale)."""
+        return self.views['laptop']
+
+    @property
+    def remote_scales(self) -> List[str]:
+        return [s for s in self.deployment.scale_names if s != self.deployment.master.name]
 
     # --- life cycle ---------------------------------------------------------------------------
     def start(self, ready_timeout_s: float = 90.0) -> 'Testbed':
@@ -158,22 +186,31 @@ class Testbed:
         if self.mode == NETNS:
             netns.remove_stale()
             cores = self.cpu_cores if self.options.cpu_quota else {}
-            self.network = netns.Network(rate_kbps=self.options.rate_kbps,
-                                         cpu_cores=cores).setup()
+            d = self.deployment
+            self.network = netns.Network(
+                cpu_cores=cores, scales=d.scale_names,
+                links=[(link.name, link.ends[0], link.ends[1], self._links[link.name][1])
+                       for link in d.links]).setup()
         else:
             self._probe_port = _free_tcp_port()
         self.t0 = time.monotonic()
-        self.record.link_set(self.t0, True, self._rate_kbps)
+        for link, (up, rate) in self._links.items():
+            self.record.link_set(self.t0, up, rate, link)
         if not self.options.link_up_at_start and self.network is not None:
-            self.cut()
-        self._start_observer('robot', self.record, sorted(
-            {f'{c.topic}:{c.msg_type}' if c.msg_type else c.topic
-             for c in self.deployment.connections}))
+            for link in self.master_links():
+                self.cut(link)
+        master = self.deployment.master.name
+        self._start_observer(master, self.record, self._topics(master))
         if self.network is not None:
-            self._start_observer('laptop', self.laptop_view, [],
-                                 project=[protocol.TOPIC_AGENT_STATE])
-        self.start_agent('robot')
-        self.start_agent('laptop')
+            many = len(self.deployment.scale_names) > 2
+            for scale in self.remote_scales:
+                # With two scales the laptop's observer hears the agents' reports only (as
+                # before three scales existed: its CPU stays out of the measured figures).
+                self._start_observer(scale, self.views[scale],
+                                     self._topics(scale) if many else [],
+                                     project=None if many else [protocol.TOPIC_AGENT_STATE])
+        for scale in self.deployment.scale_names:
+            self.start_agent(scale)
         if not self.options.link_up_at_start and self.network is None:
             self.cut()
         robot_group = self.network.groups.get('robot') if self.network else None
@@ -194,6 +231,19 @@ class Testbed:
             robot_group.set_cores(self.cpu_cores['robot'])
             self.mark(f'robot CPU quota {self.cpu_cores["robot"]:.2f} cores')
 
+    def _topics(self, scale: str) -> List[str]:
+        """The connection topics an observer on ``scale`` hears (``TOPIC:TYPE``): every one on
+        the master; elsewhere those whose publisher may run there."""
+        d = self.deployment
+        return sorted({f'{c.topic}:{c.msg_type}' if c.msg_type else c.topic
+                       for c in d.connections
+                       if scale == d.master.name or scale in d.allowed_scales(c.publisher)})
+
+    def master_links(self) -> List[str]:
+        """The links that touch the master scale."""
+        master = self.deployment.master.name
+        return [link.name for link in self.deployment.links if master in link.ends]
+
     def stop(self) -> List[str]:
         """Stop everything; return what had to be force-cleaned (empty on a clean stop)."""
         notes: List[str] = []
@@ -208,7 +258,8 @@ class Testbed:
                 notes.append(f'could not lift the robot CPU quota for the teardown: {e}')
         # Every decider (a standby's too), then the agents.
         system = [n for n in self.procs if n.startswith('decider')]
-        system += ['agent_laptop', 'agent_robot']
+        system += [f'agent_{s}' for s in self.remote_scales]
+        system += [f'agent_{self.deployment.master.name}']
         for name in system:
             proc = self.procs.get(name)
             if proc and proc.popen.poll() is None:
@@ -264,7 +315,7 @@ class Testbed:
     def _env(self, scale: str) -> Dict[str, str]:
         peer = None
         if self.mode == NETNS:
-            peer = self.network.addresses['laptop' if scale == 'robot' else 'robot']
+            peer = ';'.join(self.network.peers(scale))
         return child_env(self.options.domain_id, os.path.join(self.run_dir, 'ros_log'), peer)
 
     def _deployment_args(self) -> List[str]:
@@ -313,6 +364,7 @@ class Testbed:
             argv += ['--topic', topic]
         for topic in project or ():
             argv += ['--project', topic]
+        record.topics = frozenset(topic.partition(':')[0] for topic in topics)
         name = f'observer_{scale}'
         observer = self._spawn(name, scale, argv, quota=False, stdout=subprocess.PIPE)
         self.procs.pop(name)
@@ -396,7 +448,7 @@ class Testbed:
         against the process's environment) and, for a fatal signal, wait until it is gone;
         return the pid."""
         with self.lock:
-            report = self.record.copies(scale).get(node)
+            report = self.views[scale].copies(scale).get(node)
         if report is None:
             raise HarnessError(f'the {scale} agent reports no live process of {node}')
         pid = report.pid
@@ -437,56 +489,78 @@ class Testbed:
                 continue
         return live
 
-    # --- the link -----------------------------------------------------------------------------
-    def cut(self) -> None:
+    # --- the links ----------------------------------------------------------------------------
+    def _link_name(self, link: Optional[str]) -> str:
+        if link is None:
+            if len(self._links) != 1:
+                raise HarnessError(f'name the link: this test-bed has {", ".join(self._links)}')
+            return next(iter(self._links))
+        if link not in self._links:
+            raise HarnessError(f'unknown link {link!r}; this test-bed has '
+                               f'{", ".join(self._links)}')
+        return link
+
+    def _link_set(self, link: str, up: bool, rate_kbps: float, text: str) -> None:
         now = time.monotonic()
+        self._links[link] = (up, float(rate_kbps))
+        with self.lock:
+            for view in self.views.values():
+                view.link_set(now, up, rate_kbps, link)
+        self.mark(text)
+
+    def cut(self, link: Optional[str] = None) -> None:
+        """Cut a link (the only one, or the one named): every packet dropped both ways."""
+        link = self._link_name(link)
         if self.network is not None:
-            self.network.cut()
+            self.network.cut(link)
         else:
             self._freeze()
-        self._link_up = False
-        with self.lock:
-            self.record.link_set(now, False, self._rate_kbps)
-        self.mark('link cut')
+        many = len(self._links) > 1
+        self._link_set(link, False, self._links[link][1],
+                       f'link {link} cut' if many else 'link cut')
 
-    def restore(self) -> None:
-        now = time.monotonic()
+    def restore(self, link: Optional[str] = None) -> None:
+        link = self._link_name(link)
         if self.network is not None:
-            self.network.restore()
+            self.network.restore(link)
         else:
             self._thaw()
-        self._link_up = True
-        with self.lock:
-            self.record.link_set(now, True, self._rate_kbps)
-        self.mark('link restored')
+        many = len(self._links) > 1
+        self._link_set(link, True, self._links[link][1],
+                       f'link {link} restored' if many else 'link restored')
 
-    def throttle(self, rate_kbps: float) -> None:
+    def throttle(self, rate_kbps: float, link: Optional[str] = None) -> None:
+        link = self._link_name(link)
         if self.network is None:
             raise HarnessError('cannot throttle on loopback: bandwidth shaping needs network '
                                'namespaces (root)')
-        now = time.monotonic()
-        self.network.throttle(rate_kbps)
-        self._rate_kbps = float(rate_kbps)
-        with self.lock:
-            self.record.link_set(now, self._link_up, self._rate_kbps)
-        self.mark(f'link shaped to {rate_kbps:g} kbit/s')
+        self.network.throttle(rate_kbps, link)
+        named = f'link {link}' if len(self._links) > 1 else 'link'
+        self._link_set(link, self._links[link][0], rate_kbps,
+                       f'{named} shaped to {rate_kbps:g} kbit/s')
 
     def apply(self, step) -> None:
-        """One step of a link schedule (``schedule.Step``: cut, restore or throttle). A step
-        this test-bed cannot take (a throttle on loopback) is marked skipped in the record."""
+        """One step of a link schedule (``schedule.Step``: cut, restore or throttle, of the
+        only link or the one it names). A step this test-bed cannot take (a throttle on
+        loopback) is marked skipped in the record."""
+        link = step.link or None
         try:
             if step.action == 'cut':
-                self.cut()
+                self.cut(link)
             elif step.action == 'restore':
-                self.restore()
+                self.restore(link)
             else:
-                self.throttle(step.rate_kbps)
+                self.throttle(step.rate_kbps, link)
         except HarnessError as e:
             self.mark(f'{step} skipped: {e}')
 
     @property
     def link(self) -> Tuple[bool, float]:
-        return self._link_up, self._rate_kbps
+        """(up, rate kbit/s) of the only link."""
+        return self._links[self._link_name(None)]
+
+    def link_state(self, link: str) -> Tuple[bool, float]:
+        return self._links[self._link_name(link)]
 
     def _laptop_pids(self) -> List[int]:
         proc = self.procs.get('agent_laptop')

@@ -1,12 +1,14 @@
-"""Two network namespaces joined by a shaped veth link, and CPU quota cgroups, for one run.
+"""Network namespaces joined by shaped veth links, and CPU quota cgroups, for one run.
 
-``Network`` builds the ICAR test-bed's plumbing on one Linux machine: a namespace per scale
-("robot" and "laptop"), a veth pair between them with a private /30, loopback up and a multicast
-route (so DDS discovery stays on the pair), a token bucket (tbf) on both ends at the WiFi's
-54 Mbit/s, and a CPU quota cgroup per scale. The link can be cut (both ends' root qdisc replaced
-by ``blackhole``: every packet is dropped while the interfaces stay up, as when a robot drives out
-of WiFi coverage; multicast loop-back inside a namespace is untouched, so nodes on one scale keep
-discovering each other), restored and throttled at any time.
+``Network`` builds a test-bed's plumbing on one Linux machine: a namespace per scale (by default
+the ICAR test-bed's "robot" and "laptop"), a veth pair per link (by default one, the WiFi), each
+scale with one address on all its links and a host route to each neighbour (so DDS discovery and
+data between two scales stay on their own link), loopback up and a multicast route, a token
+bucket (tbf) on both ends of each link at its rate, and a CPU quota cgroup per scale. Each link
+can be cut (both ends' root qdisc replaced by ``blackhole``: every packet is dropped while the
+interfaces stay up, as when a robot drives out of WiFi coverage; multicast loop-back inside a
+namespace is untouched, so nodes on one scale keep discovering each other), restored and
+throttled at any time, on its own.
 
 Every name carries the creating process's pid and a per-process counter (``asm-<pid>-<n>-robot``),
 so concurrent runs never collide, and ``remove_stale()`` removes what a killed run left behind.
@@ -33,7 +35,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 SCALES = ('robot', 'laptop')
 NAME_PREFIX = 'asm'
 DEFAULT_RATE_KBPS = 54000.0
-DEFAULT_SUBNET = '10.77.0.'        # .1 = robot, .2 = laptop, /30
+DEFAULT_SUBNET = '10.77.0.'        # .1 = the first scale (robot), .2 the second, ...
 CFS_PERIOD_US = 10000      # a short period: a throttled scale stalls for ms, not 100 ms
 NETNS_RUN_DIR = '/var/run/netns'
 _NAME_RE = re.compile(r'^%s-(\d+)-(\d+)-(\w+)$' % NAME_PREFIX)
@@ -258,11 +260,20 @@ def _alive(pid: int) -> bool:
         return True
 
 
-# --- the namespaces and the link -------------------------------------------------------------
+# --- the namespaces and the links ------------------------------------------------------------
 
 @dataclass(frozen=True)
 class LinkState:
     up: bool
+    rate_kbps: float
+
+
+@dataclass(frozen=True)
+class Wire:
+    """One link of the test-bed: a veth pair between two scales' namespaces."""
+
+    name: str
+    ends: Tuple[str, str]
     rate_kbps: float
 
 
@@ -276,23 +287,56 @@ def tbf_arguments(rate_kbps: float) -> List[str]:
             'latency', '100ms']
 
 
+def _interface(link: str, scale: str, index: int) -> str:
+    """A link end's interface name (the kernel allows 15 characters)."""
+    name = f'{link}-{scale}'
+    return name if len(name) <= 15 else f'l{index}-{scale}'[:15]
+
+
 class Network:
-    """The robot and laptop namespaces, their shaped veth link and per-scale CPU quotas."""
+    """One namespace per scale, a shaped veth link per pair of scales the caller names, and
+    per-scale CPU quotas.
+
+    Each scale has one address (``addresses``: 10.77.0.1 for the first scale, .2 for the
+    second, ...), set on every interface of its namespace, with a host route to each neighbour
+    over the link that joins them; nothing is forwarded, so a packet between two scales crosses
+    only their own link, and a scale reached over two links (the server, from the robot and from
+    the laptop) has one address for both, as a host name does. By default: the ICAR test-bed's
+    robot and laptop joined by one WiFi link (``wifi``) at ``rate_kbps``.
+    """
 
     def __init__(self, rate_kbps: float = DEFAULT_RATE_KBPS,
                  cpu_cores: Optional[Mapping[str, Optional[float]]] = None,
-                 subnet: str = DEFAULT_SUBNET, tag: Optional[str] = None):
+                 subnet: str = DEFAULT_SUBNET, tag: Optional[str] = None,
+                 scales: Sequence[str] = SCALES,
+                 links: Optional[Sequence[Tuple[str, str, str, float]]] = None):
+        """``links``: (name, end, end, rate kbit/s) each; default one link ``wifi`` joining
+        the first two scales at ``rate_kbps``."""
         self.tag = tag or f'{NAME_PREFIX}-{os.getpid()}-{next(_counter)}'
-        self.namespaces = {s: f'{self.tag}-{s}' for s in SCALES}
-        self.interfaces = {s: f'wifi-{s}' for s in SCALES}
-        self.addresses = {'robot': subnet + '1', 'laptop': subnet + '2'}
+        self.scales = tuple(scales)
+        if len(set(self.scales)) != len(self.scales) or len(self.scales) < 2 \
+                or len(self.scales) > 250:
+            raise ValueError(f'scales must be 2 to 250 distinct names, got {self.scales}')
+        if links is None:
+            links = [('wifi', self.scales[0], self.scales[1], rate_kbps)]
+        self.wires: Dict[str, Wire] = {}
+        for name, a, b, rate in links:
+            if a not in self.scales or b not in self.scales or a == b:
+                raise ValueError(f'link {name!r}: ends {a!r}, {b!r} must be two of '
+                                 f'{", ".join(self.scales)}')
+            if name in self.wires or any({a, b} == set(w.ends) for w in self.wires.values()):
+                raise ValueError(f'link {name!r}: a second link of that name or pair')
+            tbf_arguments(rate)      # validate before building anything
+            self.wires[name] = Wire(name, (a, b), float(rate))
+        self.namespaces = {s: f'{self.tag}-{s}' for s in self.scales}
+        self.addresses = {s: f'{subnet}{i + 1}' for i, s in enumerate(self.scales)}
+        self.interfaces = {(w.name, s): _interface(w.name, s, i)
+                           for i, w in enumerate(self.wires.values()) for s in w.ends}
         self.cpu_cores = dict(cpu_cores or {})
         self.groups: Dict[str, CpuGroup] = {}
-        self._rate_kbps = float(rate_kbps)
-        self._up = True
+        self._state = {name: LinkState(True, w.rate_kbps) for name, w in self.wires.items()}
         self._built = False
-        self._generation: Dict[str, int] = {}     # the last root qdisc handle, per scale
-        tbf_arguments(rate_kbps)      # validate before building anything
+        self._generation: Dict[Tuple[str, str], int] = {}     # the last root qdisc handle
 
     # -- life cycle --
     def setup(self) -> 'Network':
@@ -300,21 +344,31 @@ class Network:
             return self
         self._built = True            # from here on, teardown() has something to undo
         try:
-            robot, laptop = self.namespaces['robot'], self.namespaces['laptop']
-            for ns in (robot, laptop):
+            for ns in self.namespaces.values():
                 _run(['ip', 'netns', 'add', ns])
                 _run(['ip', '-n', ns, 'link', 'set', 'lo', 'up'])
-            _run(['ip', 'link', 'add', self.interfaces['robot'], 'netns', robot, 'type', 'veth',
-                  'peer', 'name', self.interfaces['laptop'], 'netns', laptop])
-            for scale in SCALES:
-                ns, dev = self.namespaces[scale], self.interfaces[scale]
-                _run(['ip', '-n', ns, 'addr', 'add', self.addresses[scale] + '/30', 'dev', dev])
-                _run(['ip', '-n', ns, 'link', 'set', dev, 'multicast', 'on', 'up'])
-                # DDS discovery multicast goes over the pair (there is no default route).
-                _run(['ip', '-n', ns, 'route', 'add', '224.0.0.0/4', 'dev', dev])
-                self._shape(scale)
+            multicast_set = set()
+            for wire in self.wires.values():
+                a, b = wire.ends
+                _run(['ip', 'link', 'add', self.interfaces[(wire.name, a)], 'netns',
+                      self.namespaces[a], 'type', 'veth', 'peer', 'name',
+                      self.interfaces[(wire.name, b)], 'netns', self.namespaces[b]])
+                for scale, other in ((a, b), (b, a)):
+                    ns, dev = self.namespaces[scale], self.interfaces[(wire.name, scale)]
+                    mine = self.addresses[scale]
+                    _run(['ip', '-n', ns, 'addr', 'add', mine + '/32', 'dev', dev])
+                    _run(['ip', '-n', ns, 'link', 'set', dev, 'multicast', 'on', 'up'])
+                    _run(['ip', '-n', ns, 'route', 'add', self.addresses[other] + '/32',
+                          'dev', dev, 'src', mine])
+                    if scale not in multicast_set:
+                        # DDS discovery multicast leaves by one link (a route per prefix);
+                        # the neighbours over the others are static unicast peers
+                        # (``peers``), and multicast loops back inside the namespace.
+                        _run(['ip', '-n', ns, 'route', 'add', '224.0.0.0/4', 'dev', dev])
+                        multicast_set.add(scale)
+                    self._shape(wire.name, scale)
             for scale, cores in self.cpu_cores.items():
-                if scale not in SCALES:
+                if scale not in self.scales:
                     raise ValueError(f'unknown scale {scale!r} for a CPU quota')
                 group = CpuGroup(f'{self.tag}-{scale}')
                 self.groups[scale] = group
@@ -369,52 +423,78 @@ class Network:
         pids.discard(os.getpid())
         return sorted(pids)
 
-    # -- the link --
-    def _shape(self, scale: str) -> None:
-        ns, dev = self.namespaces[scale], self.interfaces[scale]
-        qdisc = tbf_arguments(self._rate_kbps) if self._up else ['blackhole']
+    def peers(self, scale: str) -> List[str]:
+        """The addresses of the scales one link away from ``scale`` (its DDS static peers)."""
+        return [self.addresses[other] for w in self.wires.values() if scale in w.ends
+                for other in w.ends if other != scale]
+
+    # -- the links --
+    def _wire(self, link: Optional[str]) -> Wire:
+        if link is None:
+            if len(self.wires) != 1:
+                raise ValueError(f'name a link: this network has {", ".join(self.wires)}')
+            return next(iter(self.wires.values()))
+        if link not in self.wires:
+            raise ValueError(f'unknown link {link!r}; this network has '
+                             f'{", ".join(self.wires)}')
+        return self.wires[link]
+
+    def _shape(self, link: str, scale: str) -> None:
+        ns, dev = self.namespaces[scale], self.interfaces[(link, scale)]
+        state = self._state[link]
+        qdisc = tbf_arguments(state.rate_kbps) if state.up else ['blackhole']
         # Every change grafts a new root qdisc (its handle alternates 1:/2:). Replacing a tbf
         # with a tbf of the same handle only changes it in place, and a veth whose tbf is
-        # changed with packets queued can stall for good (seen here: a throttle left 5-12
-        # packets stuck, and the link silent, in about 1 change of 12); a grafted qdisc starts
-        # clean and drops what the old one held, as a WiFi rate change loses its queue.
-        self._generation[scale] = self._generation.get(scale, 0) % 2 + 1
-        handle = f'{self._generation[scale]}:'
+        # changed with packets queued can stall for good (a throttle left 5-12 packets stuck,
+        # and the link silent, in about 1 change of 12); a grafted qdisc starts clean and
+        # drops what the old one held, as a WiFi rate change loses its queue.
+        key = (link, scale)
+        self._generation[key] = self._generation.get(key, 0) % 2 + 1
+        handle = f'{self._generation[key]}:'
         _run(['tc', '-n', ns, 'qdisc', 'replace', 'dev', dev, 'root', 'handle', handle] + qdisc)
 
-    def cut(self) -> None:
+    def _set(self, wire: Wire, up: bool, rate_kbps: float) -> None:
+        before = self._state[wire.name]
+        self._state[wire.name] = LinkState(up, float(rate_kbps))
+        if before.up or up:          # a throttle of a cut link applies on restore
+            for scale in wire.ends:
+                self._shape(wire.name, scale)
+
+    def cut(self, link: Optional[str] = None) -> None:
         """Drop every packet on the link, both ways (interfaces stay up)."""
-        self._up = False
-        for scale in SCALES:
-            self._shape(scale)
+        wire = self._wire(link)
+        self._set(wire, False, self._state[wire.name].rate_kbps)
 
-    def restore(self) -> None:
-        self._up = True
-        for scale in SCALES:
-            self._shape(scale)
+    def restore(self, link: Optional[str] = None) -> None:
+        wire = self._wire(link)
+        self._set(wire, True, self._state[wire.name].rate_kbps)
 
-    def throttle(self, rate_kbps: float) -> None:
+    def throttle(self, rate_kbps: float, link: Optional[str] = None) -> None:
         """Shape both directions to ``rate_kbps`` (applies at once if up, else on restore)."""
         tbf_arguments(rate_kbps)
-        self._rate_kbps = float(rate_kbps)
-        if self._up:
-            for scale in SCALES:
-                self._shape(scale)
+        wire = self._wire(link)
+        self._set(wire, self._state[wire.name].up, rate_kbps)
 
     @property
     def link(self) -> LinkState:
-        return LinkState(self._up, self._rate_kbps)
+        """The state of the only link (a network of several links: ``link_state(name)``)."""
+        return self._state[self._wire(None).name]
 
-    def qdisc(self, scale: str) -> str:
+    def link_state(self, link: str) -> LinkState:
+        return self._state[self._wire(link).name]
+
+    def qdisc(self, scale: str, link: Optional[str] = None) -> str:
         """The kernel's view of one end's root qdisc (for checks and the status table)."""
+        wire = self._wire(link)
         return _run(['tc', '-n', self.namespaces[scale], 'qdisc', 'show', 'dev',
-                     self.interfaces[scale]]).strip()
+                     self.interfaces[(wire.name, scale)]]).strip()
 
     # -- processes --
     def command(self, scale: str, argv: Sequence[str], cpu_quota: bool = True) -> List[str]:
         """argv wrapped to run in ``scale``'s namespace (and its cgroup, joined before exec)."""
-        if scale not in SCALES:
-            raise ValueError(f'unknown scale {scale!r}; expected one of {", ".join(SCALES)}')
+        if scale not in self.scales:
+            raise ValueError(f'unknown scale {scale!r}; expected one of '
+                             f'{", ".join(self.scales)}')
         # nsenter switches only the network namespace; ``ip netns exec`` would also remount
         # /sys, hiding /sys/fs/cgroup from the scale monitor inside.
         nsenter = shutil.which('nsenter') or '/usr/bin/nsenter'
@@ -481,5 +561,5 @@ def remove_stale() -> List[str]:
     return removed
 
 
-__all__ = ['CpuGroup', 'LinkState', 'Network', 'SCALES', 'TestbedError', 'available',
+__all__ = ['CpuGroup', 'LinkState', 'Network', 'SCALES', 'TestbedError', 'Wire', 'available',
            'cgroup_mode', 'list_namespaces', 'remove_stale', 'tbf_arguments']

@@ -56,10 +56,14 @@ class Record:
     arrivals: Dict[str, List[float]] = field(default_factory=dict)
     # Each arrival's publication sequence number (-1: not given), when the observer sends them.
     arrival_seqs: Dict[str, List[int]] = field(default_factory=dict)
-    link_truth: List[Tuple[float, bool, float]] = field(default_factory=list)
+    # link -> (time, up, rate kbit/s) of each change the harness made
+    link_truth: Dict[str, List[Tuple[float, bool, float]]] = field(default_factory=dict)
     marks: List[Tuple[float, str]] = field(default_factory=list)
     problems: List[str] = field(default_factory=list)
     observer_ready: Optional[float] = None
+    # The connection topics the observer subscribed to (None: every one); a connection whose
+    # topic it does not hear is not judged from this record.
+    topics: Optional[frozenset] = None
     heard_until: float = -math.inf     # the observer's clock at its latest line: judge no later
     # The deployment's key, when it has one: layouts, agent states and objectives that fail
     # its check, or repeat a sender's sequence number (a replay), are kept apart in
@@ -147,8 +151,27 @@ class Record:
             if self._authentic(t, topic, data, objective.decider, objective.seq):
                 self.objectives.append((t, objective))
 
-    def link_set(self, t: float, up: bool, rate_kbps: float) -> None:
-        self.link_truth.append((t, up, rate_kbps))
+    def link_set(self, t: float, up: bool, rate_kbps: float, link: str = '') -> None:
+        """The harness set ``link`` (default: the deployment's only link) up or down, at a
+        rate."""
+        self.link_truth.setdefault(link or self._only_link(), []).append((t, up, rate_kbps))
+
+    def _only_link(self) -> str:
+        links = self.deployment.links
+        if len(links) != 1:
+            raise ValueError(f'name the link: the deployment has '
+                             f'{", ".join(x.name for x in links)}')
+        return links[0].name
+
+    def link_reports(self, link: Optional[str] = None) -> List[Tuple[float, p.LinkStatus]]:
+        """The link monitors' reports: all of them, or those about ``link`` (by its ends)."""
+        if link is None:
+            return self.link_status
+        found = [x for x in self.deployment.links if x.name == link]
+        if not found:
+            raise ValueError(f'unknown link {link!r}')
+        ends = set(found[0].ends)
+        return [(t, s) for t, s in self.link_status if {s.master, s.remote} == ends]
 
     def mark(self, t: float, text: str) -> None:
         self.marks.append((t, text))
@@ -277,7 +300,7 @@ class Record:
         """Stretches in [start, end] where the observer's subscriber lived below the
         connection's freq_min, by the package's one Δ rule (runtime/delta.py) on its own
         arrival times (a stretch still open at ``end`` closes there)."""
-        if not conn.monitored:
+        if not conn.monitored or (self.topics is not None and conn.topic not in self.topics):
             return []
         return below_spans(self.arrivals.get(conn.topic, []), conn.freq_min_hz, start, end)
 
@@ -320,7 +343,7 @@ class Record:
         for conn in self.deployment.connections:
             spans = [b - a for a, b in self.below_spans(conn, start, end)
                      if self.into(conn, scale, a)]
-            if conn.monitored:
+            if conn.monitored and (self.topics is None or conn.topic in self.topics):
                 out[conn.name] = round(max(spans, default=0.0), 2)
         return out
 
@@ -426,10 +449,12 @@ class Record:
                              'ready_s': ready_s, 'left_s': left_s})
         return rows
 
-    def congestion_onsets(self, t0: float, t1: float) -> List[float]:
-        """Times in [t0, t1] at which the link monitor began to report the link congested."""
+    def congestion_onsets(self, t0: float, t1: float, link: Optional[str] = None
+                          ) -> List[float]:
+        """Times in [t0, t1] at which the link monitor began to report the link (the only
+        one, or the one named) congested."""
         out, was = [], False
-        for t, s in self.link_status:
+        for t, s in self.link_reports(link):
             now = s.up and s.congested
             if now and not was and t0 <= t <= t1:
                 out.append(t)
@@ -437,7 +462,8 @@ class Record:
         return out
 
     def timeline(self, t0: float, t1: float, nodes: Sequence[str] = ('amcl', 'ar'),
-                 scale: str = 'robot', topic: str = '/amcl_pose') -> Dict[str, object]:
+                 scale: str = 'robot', topic: str = '/amcl_pose',
+                 link: Optional[str] = None) -> Dict[str, object]:
         """What happened between t0 and t1 (a cut), in seconds from t0: the link reported down,
         the link's state as its monitor reported it, the layouts, the scale's agent reports of
         the nodes (state, pid: a new pid is a cold start, the same pid a standby copy
@@ -456,9 +482,10 @@ class Record:
                 if last.get(n) != now:
                     reports.append((rel(t), n) + now)
                     last[n] = now
-        down = [rel(t) for t, s in self.link_status if t >= t0 and not s.up][:1]
-        link, seen = [], None
-        for t, s in self.link_status:
+        history = self.link_reports(link)
+        down = [rel(t) for t, s in history if t >= t0 and not s.up][:1]
+        changes, seen = [], None
+        for t, s in history:
             if not t0 - 1.0 <= t <= t1:
                 continue
             avail = None if s.bandwidth_available_kbps is None \
@@ -466,14 +493,14 @@ class Record:
             key = (s.up, s.congested, avail)
             if key != seen:
                 delay = None if s.queueing_delay_ms is None else round(s.queueing_delay_ms)
-                link.append((rel(t), 'up' if s.up else 'down',
-                             'congested' if s.congested else '', delay, avail,
-                             round(s.bandwidth_used_kbps)))
+                changes.append((rel(t), 'up' if s.up else 'down',
+                                'congested' if s.congested else '', delay, avail,
+                                round(s.bandwidth_used_kbps)))
                 seen = key
         return {
             'link_down_reported': down,
             # (time, up/down, congested, queueing delay ms, available, used kbit/s) on change
-            'link': link,
+            'link': changes,
             'layouts': [(rel(t), {n: lay.assignments.get(n) for n in nodes})
                         for t, lay in self.layouts if t0 <= t <= t1],
             'reports': reports,

@@ -21,11 +21,13 @@ CATEGORIES = {
     ('robot', 'laptop'): ('only AR on the laptop', '#e6c300'),         # yellow
 }
 UNKNOWN = ('moving or not running', '#bbbbbb')
+# With three scales or more: a colour per scale AMCL runs on, lighter when AR runs elsewhere.
+SCALE_COLOURS = ('#d62728', '#1f77b4', '#2ca02c', '#9467bd', '#8c564b', '#e377c2')
 LEVELS = {p.OK: 'OK', p.WARN: 'BELOW', p.ERROR: 'VIOLATED', p.STALE: 'STALE'}
 
 
 def location(record: Record, node: str, t: float) -> str:
-    """'laptop' if a remote scale runs it (ready), else 'robot' if the master does, else ''."""
+    """The remote scale that runs it (ready), else the master if it does, else ''."""
     scales = record.where(node, t)
     master = record.deployment.master.name
     remote = [s for s in scales if s != master]
@@ -36,13 +38,30 @@ def location(record: Record, node: str, t: float) -> str:
 
 def category(record: Record, t: float, pair: Tuple[str, str] = ('amcl', 'ar')
              ) -> Tuple[str, str]:
+    """(label, colour) of where the pair runs: the paper's Fig. 5 categories with two scales;
+    with more, each pair of scales its own label and colour."""
     key = (location(record, pair[0], t), location(record, pair[1], t))
-    return CATEGORIES.get(key, UNKNOWN)
+    names = record.deployment.scale_names
+    if len(names) == 2:
+        return CATEGORIES.get(key, UNKNOWN)
+    if '' in key:
+        return UNKNOWN
+    base = SCALE_COLOURS[names.index(key[0]) % len(SCALE_COLOURS)]
+    colour = base if key[0] == key[1] else _lighter(base, 0.25 + 0.2 * names.index(key[1]))
+    return f'{pair[0].upper()} on {key[0]}, {pair[1].upper()} on {key[1]}', colour
 
 
-def link_at(record: Record, t: float) -> Tuple[bool, float]:
+def _lighter(colour: str, amount: float) -> str:
+    rgb = [int(colour[i:i + 2], 16) for i in (1, 3, 5)]
+    return '#' + ''.join(f'{int(c + (255 - c) * min(amount, 0.85)):02x}' for c in rgb)
+
+
+def link_at(record: Record, t: float, link: Optional[str] = None) -> Tuple[bool, float]:
+    """(up, rate) the harness had set ``link`` (default: the only one) to at time t."""
+    if link is None:
+        link = next(iter(record.link_truth), '')
     up, rate = True, math.nan
-    for when, u, r in record.link_truth:
+    for when, u, r in record.link_truth.get(link, []):
         if when > t:
             break
         up, rate = u, r
@@ -53,13 +72,23 @@ def link_at(record: Record, t: float) -> Tuple[bool, float]:
 
 def status_table(record: Record, now: float, t0: float, mode: str) -> str:
     d: Deployment = record.deployment
-    lines = []
-    up, rate = link_at(record, now)
+    lines = [f't = {now - t0:6.1f} s   [{mode}]']
+    for link in d.links:
+        lines.extend(_link_lines(record, link.name, now))
+    lines.append('')
+    return _status_rest(record, now, lines)
+
+
+def _link_lines(record: Record, name: str, now: float) -> List[str]:
+    """The link as the harness set it, and as its monitor last reported it."""
+    d: Deployment = record.deployment
+    up, rate = link_at(record, now, name)
     seen = ''
-    if record.link_status:
+    reports = record.link_reports(name)
+    if reports:
         # The same judgement as `anyscale-manager status` (view.status): no RTT on a link that
         # is down, the measured bandwidth against the nominal, old figures marked stale.
-        heard, link_obs = record.link_status[-1]
+        heard, link_obs = reports[-1]
         link = d.link_between(link_obs.master, link_obs.remote)
         silent = now - heard > d.decider.observation_max_age_s
         measurable = link_obs.up and not silent
@@ -74,14 +103,15 @@ def status_table(record: Record, now: float, t0: float, mode: str) -> str:
         avail = '-' if link is None else bandwidth_text(
             link_obs.bandwidth_available_kbps, link.bandwidth_kbps, measurable, age,
             bandwidth_stale_after_s(d), mbit=True)
-        seen = (f'monitor: {state}, rtt {rtt_text(measurable, link_obs.rtt_ms)}, loss '
+        seen = (f'  monitor: {state}, rtt {rtt_text(measurable, link_obs.rtt_ms)}, loss '
                 f'{link_obs.loss:.0%}, available {avail}, used '
                 f'{link_obs.bandwidth_used_kbps / 1000:.2f} Mbit/s')
-    lines.append(f't = {now - t0:6.1f} s   [{mode}]   link: '
-                 f'{"UP" if up else "CUT"} {rate / 1000:.1f} Mbit/s')
-    if seen:
-        lines.append(seen)
-    lines.append('')
+    lines = [f'link {name}: {"UP" if up else "CUT"} {rate / 1000:.1f} Mbit/s']
+    return lines + ([seen] if seen else [])
+
+
+def _status_rest(record: Record, now: float, lines: List[str]) -> str:
+    d: Deployment = record.deployment
     lines.append(f'{"scale":8} {"CPU":>13}   nodes running')
     placement = record.placement(now, ready_only=False)
     for s in d.scales:
@@ -145,34 +175,40 @@ def draw_timeline(record: Record, path: str, t0: float, t1: float, title: str = 
     migratable = set(d.migratable_nodes)
     conns = [c for c in d.connections
              if c.monitored and (c.publisher in migratable or c.subscriber in migratable)]
-    rows = 2 + len(conns)
+    links = list(record.link_truth)
+    rows = 1 + len(links) + len(conns)
     fig, axes = plt.subplots(rows, 1, figsize=(11, 1.2 + 1.6 * rows), sharex=True,
-                             gridspec_kw={'height_ratios': [0.8, 0.5] + [1.4] * len(conns)})
+                             gridspec_kw={'height_ratios': [0.8] + [0.5] * len(links) +
+                                          [1.4] * len(conns)})
     ax = axes[0]
     for start, end, _, colour in spans(record, t0, t1):
         ax.axvspan(start, end, color=colour, lw=0)
     ax.set_yticks([])
     ax.set_ylabel('layout', rotation=0, ha='right', va='center')
     used = {label for _, _, label, _ in spans(record, t0, t1)}
-    handles = [Patch(color=c, label=lab) for lab, c in list(CATEGORIES.values()) + [UNKNOWN]
-               if lab in used]
+    seen = {label: colour for _, _, label, colour in spans(record, t0, t1)}
+    known = list(CATEGORIES.values()) if len(d.scale_names) == 2 else list(seen.items())
+    handles = [Patch(color=c, label=lab) for lab, c in known + [UNKNOWN] if lab in used]
     ax.legend(handles=handles, loc='upper center', bbox_to_anchor=(0.5, 1.9), ncol=4,
               fontsize=8, frameon=False)
 
-    ax = axes[1]
-    truth = [(t - t0, up, rate) for t, up, rate in record.link_truth] + [(t1 - t0, None, None)]
-    full = max((r for _, _, r in truth if r), default=1.0)
-    for (a, up, rate), (b, _, _) in zip(truth, truth[1:]):
-        if up is None:
-            continue
-        colour = '#222222' if not up else ('#8fd18f' if rate >= full else '#f0a040')
-        ax.axvspan(max(a, 0.0), b, color=colour, lw=0)
-        if up and rate < full:
-            ax.text(max(a, 0.0) + 0.3, 0.5, f'{rate / 1000:g} Mbit/s', va='center', fontsize=7)
-    ax.set_yticks([])
-    ax.set_ylabel('link', rotation=0, ha='right', va='center')
+    for ax, link in zip(axes[1:], links):
+        truth = [(t - t0, up, rate) for t, up, rate in record.link_truth[link]] + \
+            [(t1 - t0, None, None)]
+        full = max((r for _, _, r in truth if r), default=1.0)
+        for (a, up, rate), (b, _, _) in zip(truth, truth[1:]):
+            if up is None:
+                continue
+            colour = '#222222' if not up else ('#8fd18f' if rate >= full else '#f0a040')
+            ax.axvspan(max(a, 0.0), b, color=colour, lw=0)
+            if up and rate < full:
+                ax.text(max(a, 0.0) + 0.3, 0.5, f'{rate / 1000:g} Mbit/s', va='center',
+                        fontsize=7)
+        ax.set_yticks([])
+        ax.set_ylabel('link' if len(links) == 1 else f'link {link}', rotation=0, ha='right',
+                      va='center')
 
-    for ax, c in zip(axes[2:], conns):
+    for ax, c in zip(axes[1 + len(links):], conns):
         pts = [(t - t0, r.rate_hz) for t, _, r in record.readings.get(c.name, [])
                if t0 <= t <= t1]
         if pts:

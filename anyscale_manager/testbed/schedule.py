@@ -1,4 +1,7 @@
-"""Link schedules: when the test-bed's link is cut, restored or throttled. Pure."""
+"""Link schedules: when the test-bed's links are cut, restored or throttled. Pure.
+
+A step names its link after ``@`` (``20:cut@wifi``); without one it means the test-bed's only
+link (the two-scale test-bed's WiFi)."""
 
 import math
 from dataclasses import dataclass
@@ -12,14 +15,17 @@ class Step:
     at_s: float                       # seconds after the schedule starts
     action: str                       # cut | restore | throttle
     rate_kbps: Optional[float] = None  # throttle only
+    link: str = ''                    # '' = the only link
 
     def __str__(self) -> str:
         extra = f'={self.rate_kbps:g}' if self.rate_kbps is not None else ''
-        return f'{self.at_s:g}:{self.action}{extra}'
+        where = f'@{self.link}' if self.link else ''
+        return f'{self.at_s:g}:{self.action}{extra}{where}'
 
 
-def check(steps: Sequence[Step]) -> Tuple[Step, ...]:
-    """Validate and sort; ValueError names the bad step."""
+def check(steps: Sequence[Step], links: Optional[Sequence[str]] = None) -> Tuple[Step, ...]:
+    """Validate and sort; ValueError names the bad step. ``links``: the names a step may give
+    (with '' among them when a step may name none)."""
     for i, s in enumerate(steps):
         if s.action not in ACTIONS:
             raise ValueError(f'step {i + 1} ({s}): unknown action {s.action!r}; expected one '
@@ -32,16 +38,22 @@ def check(steps: Sequence[Step]) -> Tuple[Step, ...]:
                                  'e.g. 30:throttle=4000')
         elif s.rate_kbps is not None:
             raise ValueError(f'step {i + 1} ({s}): only throttle takes a rate')
+        if links is not None and s.link not in links:
+            known = ', '.join(links)
+            raise ValueError(f'step {i + 1} ({s}): ' + (
+                f'name a link after @ (this test-bed has {known})' if not s.link else
+                f'unknown link {s.link!r}; this test-bed has {known}'))
     return tuple(sorted(steps, key=lambda s: s.at_s))
 
 
-def parse(text: str) -> Tuple[Step, ...]:
-    """'20:cut,35:restore,40:throttle=4000' -> steps."""
+def parse(text: str, links: Optional[Sequence[str]] = None) -> Tuple[Step, ...]:
+    """'20:cut,35:restore,40:throttle=4000' (or '20:cut@wifi', ...) -> steps."""
     steps = []
     for i, item in enumerate(x.strip() for x in text.split(',')):
         if not item:
             continue
         at, sep, rest = item.partition(':')
+        rest, _, link = rest.partition('@')
         action, _, rate = rest.partition('=')
         if not sep:
             raise ValueError(f'schedule item {i + 1} {item!r}: expected SECONDS:ACTION')
@@ -50,8 +62,8 @@ def parse(text: str) -> Tuple[Step, ...]:
             rate_kbps = float(rate) if rate else None
         except ValueError:
             raise ValueError(f'schedule item {i + 1} {item!r}: not a number') from None
-        steps.append(Step(at_s, action.strip(), rate_kbps))
-    return check(steps)
+        steps.append(Step(at_s, action.strip(), rate_kbps, link.strip()))
+    return check(steps, links)
 
 
 def paper_schedule(duration_s: float, full_kbps: float = 54000.0,
@@ -69,10 +81,31 @@ def paper_schedule(duration_s: float, full_kbps: float = 54000.0,
                   Step(0.82 * d, 'cut')])
 
 
-def up_fraction(steps: Sequence[Step], duration_s: float) -> float:
-    """Fraction of [0, duration] the link is up (starting up)."""
+def three_scales_schedule(duration_s: float, full_kbps: float = 54000.0,
+                          throttle_kbps: float = 5000.0) -> Tuple[Step, ...]:
+    """A run for the three-scale test-bed: the server's WiFi throttled below AR's need (AR to
+    the next-best scale, the laptop), cut (AMCL there too), restored (both return to the server
+    once the hysteresis has passed), then the laptop-server backhaul cut and restored, and the
+    robot's Ethernet to the laptop cut and restored."""
+    if not duration_s > 0:
+        raise ValueError(f'duration must be > 0 s, got {duration_s!r}')
+    d = duration_s
+    return check([Step(0.10 * d, 'throttle', throttle_kbps, 'wifi'),
+                  Step(0.22 * d, 'cut', None, 'wifi'),
+                  Step(0.36 * d, 'throttle', full_kbps, 'wifi'),
+                  Step(0.36 * d, 'restore', None, 'wifi'),
+                  Step(0.70 * d, 'cut', None, 'backhaul'),
+                  Step(0.78 * d, 'restore', None, 'backhaul'),
+                  Step(0.86 * d, 'cut', None, 'ethernet'),
+                  Step(0.94 * d, 'restore', None, 'ethernet')])
+
+
+def up_fraction(steps: Sequence[Step], duration_s: float, link: str = '') -> float:
+    """Fraction of [0, duration] a link (the only one, or the one named) is up (starting up)."""
     up, last, total = True, 0.0, 0.0
     for s in check(steps):
+        if s.link != link:
+            continue
         at = min(s.at_s, duration_s)
         if up:
             total += at - last
@@ -86,4 +119,5 @@ def up_fraction(steps: Sequence[Step], duration_s: float) -> float:
     return total / duration_s if duration_s > 0 else 0.0
 
 
-__all__ = ['ACTIONS', 'Step', 'check', 'paper_schedule', 'parse', 'up_fraction']
+__all__ = ['ACTIONS', 'Step', 'check', 'paper_schedule', 'parse', 'three_scales_schedule',
+           'up_fraction']
