@@ -263,6 +263,10 @@ def test_timeline_png_and_event_log_are_written(record, tmp_path):
     (['--schedule', '5:fly'], 'unknown action'),
     (['--config', '/nonexistent/deployment.yaml'], 'cannot read'),
     (['--domain-id', '999'], 'out of range'),
+    (['--three-scales', '--config', 'x.yaml'], 'leave out --config'),
+    (['--three-scales', '--mode', 'loopback'], 'loopback emulates one'),
+    (['--three-scales', '--schedule', '5:cut'], 'name a link after @'),
+    (['--three-scales', '--schedule', '5:cut@radio'], "unknown link 'radio'"),
 ])
 def test_demo_refuses_bad_input_before_starting_anything(args, message, tmp_path, python,
                                                          ros_env):

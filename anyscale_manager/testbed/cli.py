@@ -4,6 +4,8 @@ Builds the test-bed (network namespaces, a shaped link, CPU quotas; or loopback 
 emulated when there are no rights), runs the default deployment, drives the link through a
 schedule modelled on the paper's run while it shows a live status table, then writes the
 timeline figure, the event log and a summary, prints where they are, and tears everything down.
+``--three-scales`` runs the robot, laptop and edge server of config/three_scales_testbed.yaml
+instead (namespaces only), with a schedule that throttles, cuts and restores each link.
 """
 
 import argparse
@@ -11,6 +13,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import replace
 from typing import List, Optional
 
 from .. import config_files
@@ -19,11 +22,12 @@ from ..view.screen import LiveScreen
 from . import schedule as sched
 
 CONFIG_NAME = 'icar2015_testbed.yaml'
+THREE_SCALES_NAME = 'three_scales_testbed.yaml'
 
 
-def default_config() -> Optional[str]:
+def default_config(name: str = CONFIG_NAME) -> Optional[str]:
     """The installed share/anyscale_manager/config file, else the source tree's config/."""
-    return config_files.find(CONFIG_NAME)
+    return config_files.find(name)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,9 +38,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              '(default ./anyscale_demo_<time>)')
     parser.add_argument('--config', default='', metavar='DEPLOYMENT.yaml',
                         help=f'deployment to run (default: the packaged {CONFIG_NAME})')
+    parser.add_argument('--three-scales', action='store_true',
+                        help=f'run the packaged {THREE_SCALES_NAME} (robot, laptop on '
+                             'Ethernet, edge server on WiFi) with a schedule for each link; '
+                             'needs network namespaces')
     parser.add_argument('--schedule', default='', metavar='STEPS',
                         help='link schedule instead of the paper-like default, e.g. '
-                             '"20:cut,35:restore,40:throttle=4000" (seconds after start)')
+                             '"20:cut,35:restore,40:throttle=4000" (seconds after start); '
+                             "with several links, name each step's link after @: "
+                             '"20:cut@wifi,30:restore@wifi"')
     parser.add_argument('--mode', choices=('auto', 'netns', 'loopback'), default='auto',
                         help='netns needs root; auto falls back to loopback and says so')
     parser.add_argument('--no-migration', action='store_true',
@@ -60,17 +70,30 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f'--duration must be between 0 and 86400 s, got {args.duration:g}')
     if not args.refresh > 0:
         return _fail('--refresh must be > 0')
-    config = args.config or default_config()
+    if args.three_scales and args.config:
+        return _fail('--three-scales runs the packaged three-scale file: leave out --config')
+    name = THREE_SCALES_NAME if args.three_scales else CONFIG_NAME
+    config = args.config or default_config(name)
     if not config:
-        return _fail(f'cannot find {CONFIG_NAME} (not installed, not in a source tree); '
+        return _fail(f'cannot find {name} (not installed, not in a source tree); '
                      'pass --config')
     try:
-        load_deployment(config)
+        deployment = load_deployment(config)
     except DeploymentError as e:
         return _fail(str(e))
+    links = [link.name for link in deployment.links]
+    many = len(links) > 1
+    if many and args.mode == 'loopback':
+        return _fail(f'{config} has {len(links)} links: loopback emulates one; use '
+                     '--mode netns (root)')
     try:
-        steps = sched.parse(args.schedule) if args.schedule else \
-            sched.paper_schedule(args.duration)
+        if args.schedule:
+            steps = sched.parse(args.schedule, links if many else ['', links[0]])
+        elif many:
+            steps = sched.three_scales_schedule(args.duration)
+            sched.check(steps, links)
+        else:
+            steps = sched.paper_schedule(args.duration)
     except ValueError as e:
         return _fail(f'--schedule: {e}')
     domain = args.domain_id
@@ -107,10 +130,11 @@ def run(args: argparse.Namespace) -> int:
         testbed.start()
         print(f'mode: {testbed.mode}: {testbed.mode_reason}')
         if testbed.mode == 'netns':
-            c = testbed.cpu_cores
-            print(f'CPU quotas: robot {c["robot"]:.2f} cores, laptop {c["laptop"]:.2f} cores of '
-                  f'this machine (one reference core = {options.reference_core:g} core); '
-                  f'link {options.rate_kbps / 1000:g} Mbit/s')
+            quotas = ', '.join(f'{s} {c:.2f}' for s, c in testbed.cpu_cores.items())
+            rates = ', '.join(f'{link} {testbed.link_state(link)[1] / 1000:g}'
+                              for link in links)
+            print(f'CPU quotas: {quotas} cores of this machine (one reference core = '
+                  f'{options.reference_core:g} core); links (Mbit/s): {rates}')
         # The run is judged from a steady start: every probe on the robot reports its
         # connection within limits (right after the boot they read 0 Hz until discovery).
         monitored = [c.name for c in testbed.deployment.connections if c.monitored]
@@ -119,11 +143,14 @@ def run(args: argparse.Namespace) -> int:
                              30.0, "every connection within its limits at the robot's probes")
         except HarnessError as e:
             print(f'note: starting the schedule anyway: {e}', flush=True)
+        up = ', '.join(f'{link} {_up_fraction(steps, args.duration, link, many):.0%}'
+                       for link in links)
         print('schedule: ' + ', '.join(str(s) for s in steps) +
-              f' (link up {sched.up_fraction(steps, args.duration):.0%} of the run)', flush=True)
+              f' (up: {up} of the run)', flush=True)
         t0 = time.monotonic()
         testbed.mark('schedule started')
-        testbed.restore()
+        for link in testbed.master_links():
+            testbed.restore(link)
         pending = list(steps)
         next_show = t0
         # One screen redrawn in place on a terminal (left, also on an error or Ctrl-C, with
@@ -160,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
     record = testbed.record
     files = []
     if t1 > t0:
-        title = (f'ICAR 2015 test-bed, {testbed.mode}, '
+        title = (f'{"three-scale" if many else "ICAR 2015"} test-bed, {testbed.mode}, '
                  f'{"migration disabled" if args.no_migration else "migration on"}')
         files.append(draw_timeline(record, os.path.join(out, 'timeline.png'), t0, t1, title))
     files.extend(write_event_log(record, out, t0))
@@ -175,9 +202,9 @@ def run(args: argparse.Namespace) -> int:
     if summary['objective_integral'] is not None:
         print(f'time-integrated performance (decider objective): '
               f'{summary["objective_integral"]:.1f}')
+    where = 'every scale' if many else testbed.deployment.master.name
     print(f'connections past their Δ: {summary["violations"]} reported by the probes, '
-          f'{summary["observed_violations"]} heard by the observer at the '
-          f'{testbed.deployment.master.name}')
+          f'{summary["observed_violations"]} heard by the observer at {where}')
     print('written:')
     for path in files:
         print(f'  {path}')
@@ -193,13 +220,19 @@ def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> di
     with testbed.lock:
         objective = [o for t, o in record.objectives if t0 <= t <= t1]
         violations = record.reported_violations(t0, t1, serving_only=True)
-        # The same rule judged on what the harness's observer heard at the master scale (a
-        # reader no agent started).
-        observed = record.delta_violations(t0, t1, testbed.deployment.master.name)
+        # The same rule judged on what the harness's observers heard at each scale (readers no
+        # agent started: the master's hears every connection into it, another scale's those
+        # whose publisher may run there).
+        observed = sorted((v for scale, view in testbed.views.items()
+                           for v in view.delta_violations(t0, t1, scale)),
+                          key=lambda v: v.start)
         return {
             'mode': testbed.mode, 'mode_reason': testbed.mode_reason,
             'duration_s': round(t1 - t0, 2), 'schedule': [str(s) for s in steps],
-            'link_up_fraction': round(sched.up_fraction(steps, args.duration), 3),
+            'link_up_fraction': {
+                link.name: round(_up_fraction(steps, args.duration, link.name,
+                                              len(testbed.deployment.links) > 1), 3)
+                for link in testbed.deployment.links},
             'migration': not args.no_migration,
             'moves': len(record.moves(t0, t1)),
             'placement_shares': {k: round(v, 3) for k, v in
@@ -219,3 +252,10 @@ def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> di
             'teardown_notes': notes,
             'observer_problems': record.problems[:20],
         }
+
+
+def _up_fraction(steps, duration_s: float, link: str, many: bool) -> float:
+    """A link's share of the run up: steps name it, or (one link) may name none."""
+    if many:
+        return sched.up_fraction(steps, duration_s, link)
+    return sched.up_fraction([replace(s, link='') for s in steps], duration_s)
