@@ -112,16 +112,26 @@ def server_cuts(tb, args):
         tb.restore('wifi')
         tb.wait_for(only_on(tb, 'server'), 90.0, 'amcl and ar back on the server')
         with tb.lock:
-            t_back = tb.views['server'].serving_since('server', MOVING, t_restore) or tb.now()
+            # Back = the server serves both again after the last of the moves that returned
+            # them (its own copies stood down during the cut).
+            returned = [t for t, e in tb.record.moves(since=t_restore) if e.to_scale == 'server']
+            t_back = tb.views['server'].serving_since(
+                'server', MOVING, max(returned, default=t_restore)) or tb.now()
+            t_down = next((t for t, state in tb.views['server'].agent_states.get('server', [])
+                           if t >= t_cut and not any(
+                               state.nodes.get(n) is not None and state.nodes[n].ready
+                               and state.nodes[n].state == 'running' for n in MOVING)), None)
         row = {'cut': i + 1, 'serving_s': round(t_serving - t_cut, 3),
+               'server_stood_down_s': None if t_down is None else round(t_down - t_cut, 2),
                'home_first': [m for m in cut_moves if m[4] == 'robot'],
                'violations': bad, 'known_open': known,
                'return_s': round(t_back - t_restore, 2),
                'return_after_hysteresis_s': round(
                    t_back - max(t_restore, left_at + args.hysteresis), 2),
                'moves': cut_moves}
-        print(f'server cut {i + 1}: serving on the laptop after {row["serving_s"]:.2f} s; home '
-              f'first {row["home_first"]}; Δ violations {bad} (known open {known}); back on '
+        print(f'server cut {i + 1}: serving on the laptop after {row["serving_s"]:.2f} s, the '
+              f'server stood down after {row["server_stood_down_s"]} s; home first '
+              f'{row["home_first"]}; Δ violations {bad} (known open {known}); back on '
               f'the server {row["return_s"]:.1f} s after the restore, '
               f'{row["return_after_hysteresis_s"]:.1f} s after T', flush=True)
         rows.append(row)
@@ -130,6 +140,8 @@ def server_cuts(tb, args):
             'max_s': max(served, default=float('nan')),
             'violations': sum(len(r['violations']) for r in rows),
             'home_first': sum(bool(r['home_first']) for r in rows),
+            'server_stood_down_max_s': max((r['server_stood_down_s'] or float('inf')
+                                            for r in rows), default=float('nan')),
             'return_after_hysteresis_p50_s': percentile(
                 [r['return_after_hysteresis_s'] for r in rows], 0.5),
             'return_after_hysteresis_p95_s': percentile(
@@ -216,7 +228,8 @@ def main():
         out['teardown_notes'] = tb.stop()
     s, b = out['server_cuts'], out['backhaul_cuts']
     print(f'\nserver link cut -> amcl and ar serving on the laptop over {len(s["cuts"])} cuts: '
-          f'p50 {s["p50_s"]:.2f} s, p95 {s["p95_s"]:.2f} s, max {s["max_s"]:.2f} s; home first '
+          f'p50 {s["p50_s"]:.2f} s, p95 {s["p95_s"]:.2f} s, max {s["max_s"]:.2f} s; the cut-off '
+          f'server stood down within {s["server_stood_down_max_s"]:.2f} s; home first '
           f'in {s["home_first"]} cuts; Δ violations {s["violations"]}; back on the server '
           f'after T: p50 {s["return_after_hysteresis_p50_s"]:.2f} s, p95 '
           f'{s["return_after_hysteresis_p95_s"]:.2f} s')

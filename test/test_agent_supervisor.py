@@ -578,3 +578,49 @@ def test_the_master_itself_is_never_cut_off():
     r.apply_layout(layout(1, {'sbs': 'a', 'sbs2': 'a', 'pinned': 'a'}), 0.0)
     assert not r.cut_off(100.0)
     assert r.desired(100.0, ('sbs', 'sbs2', 'pinned')) == {'sbs', 'sbs2', 'pinned'}
+
+
+def test_a_copy_cut_off_from_the_master_stands_down_when_a_peer_serves_it_under_a_newer_layout():
+    """Three scales: the server (c) is cut off from the master (a) but still hears the laptop
+    (b). The decider moved 'sbs' from c to b; b reports it serving under the newer layout. c
+    stands its copy down about a second after the master fell silent, not agent_timeout_s
+    later: b's subscribers never hear two copies for long."""
+    d = load_mapping({'/**': {'ros__parameters': {
+        'deployment': {'name': 'unit'},
+        'scales': {'names': ['a', 'b', 'c'],
+                   'a': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100.0},
+                   'b': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 300.0},
+                   'c': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 600.0}},
+        'links': {'names': ['ab', 'ac', 'bc'],
+                  'ab': {'ends': ['a', 'b'], 'bandwidth_kbps': 1000.0},
+                  'ac': {'ends': ['a', 'c'], 'bandwidth_kbps': 1000.0},
+                  'bc': {'ends': ['b', 'c'], 'bandwidth_kbps': 1000.0}},
+        'nodes': {'names': ['sbs'],
+                  'sbs': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0}},
+    }}})
+    r = Reconciler(d, 'c', ('sbs',), readiness_timeout_s=10.0, agent_timeout_s=4.0)
+    r.heard_master(0.0)
+    r.apply_layout(layout(3, {'sbs': 'c'}), 0.0)
+    assert r.desired(0.5, ('sbs',)) == {'sbs'}
+
+    def laptop(gen, at, decider=None, term=None):
+        state = agent_state('b', gen, {'sbs': ('running', True)})
+        state.decider, state.term = decider, term
+        r.peer_state(state, at)
+    # Heard from the master 0.5 s ago: the layout is on its way; the handover decides.
+    r.heard_master(0.5)
+    laptop(4, 1.0)
+    assert r.desired(1.0, ('sbs',)) == {'sbs'}
+    # A second of silence from the master: stand down.
+    laptop(4, 1.4)
+    assert r.desired(1.5, ('sbs',)) == set()
+    assert 'stood down: b serves it under layout generation 4' in r.waiting['sbs']
+    # A peer under the same generation, or following another decider, is not a reason.
+    r2 = Reconciler(d, 'c', ('sbs',), readiness_timeout_s=10.0, agent_timeout_s=4.0)
+    r2.heard_master(0.0)
+    r2.apply_layout(layout(3, {'sbs': 'c'}), 0.0)
+    for gen, decider in ((3, None), (9, 'another')):
+        state = agent_state('b', gen, {'sbs': ('running', True)})
+        state.decider = decider
+        r2.peer_state(state, 1.4)
+        assert r2.desired(1.5, ('sbs',)) == {'sbs'}

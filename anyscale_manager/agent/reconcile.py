@@ -40,6 +40,11 @@ NO_GENERATION = -1
 # How long a losing scale keeps its copy past the new copy's ready report while it has not heard
 # the new copy (its inputs may not reach it yet; or the copies' sequence numbers overlap).
 HEAR_PATIENCE_S = 5.0
+# A remote scale that has not heard from the master for this long, while a peer it still hears
+# serves one of its nodes under a newer layout, stands its copy down (Reconciler.superseded_by):
+# longer than the master's word normally takes (its agent reports at 2 Hz, the decider's
+# objective every turn), far shorter than agent_timeout_s.
+SUPERSEDED_QUIET_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -50,6 +55,8 @@ class Peer:
     generation: int
     heard: float
     nodes: Mapping[str, Tuple[str, bool]]     # node -> (state, ready)
+    decider: str = ''                         # the decider whose layouts it follows
+    term: int = 0                             # that decider's leadership term
 
 
 @dataclass(frozen=True)
@@ -80,6 +87,8 @@ class Reconciler:
         self.master = deployment.master.name
         self._migratable = frozenset(deployment.migratable_nodes)
         self.contact: Optional[float] = None  # last word from the master's agent or the decider
+        self.decider = ''                     # the decider of the applied layout, its term
+        self.term = 0
         self._cut_generation: Optional[int] = None   # the layout held when contact was lost
 
     @property
@@ -136,6 +145,8 @@ class Reconciler:
                 self._released.discard(node)
             self.assignments[node] = scale
         self.generation = layout.generation
+        self.decider = layout.decider.id if layout.decider is not None else ''
+        self.term = layout.term or 0
         self._cut_generation = None
         return LayoutVerdict(True, tuple(warnings))
 
@@ -159,7 +170,25 @@ class Reconciler:
             self.heard_master(now)
         self.peers[state.scale] = Peer(
             scale=state.scale, generation=state.generation, heard=now,
-            nodes={n: (r.state, r.ready) for n, r in state.nodes.items()})
+            nodes={n: (r.state, r.ready) for n, r in state.nodes.items()},
+            decider=state.decider or '', term=state.term or 0)
+        return None
+
+    def superseded_by(self, node: str, now: float) -> Optional[Peer]:
+        """A peer that serves ``node`` under a newer layout of the decider this scale follows,
+        while this scale has not heard from the master for ``SUPERSEDED_QUIET_S``: the decider
+        has moved the node there (this scale is cut off from the master, not from that peer),
+        so the copy here stands down at once instead of after agent_timeout_s, and the peer's
+        subscribers do not hear two copies. Heard from the master within that time, the layout
+        itself is on its way and the usual handover applies."""
+        if self.contact is None or now - self.contact < SUPERSEDED_QUIET_S:
+            return None
+        for peer in self._fresh(now):
+            if peer.decider == self.decider and peer.term == self.term \
+                    and peer.generation > self.generation \
+                    and peer.nodes.get(node) == ('running', True) \
+                    and now - peer.heard <= SUPERSEDED_QUIET_S:
+                return peer
         return None
 
     def _fresh(self, now: float) -> List[Peer]:
@@ -196,6 +225,14 @@ class Reconciler:
                     want.add(node)   # no layout places it: leave it as it is (fail-static)
                 continue
             order = self.deployment.node(node).move_order
+            peer = self.superseded_by(node, now) if target == self.scale and here \
+                and node in self._migratable else None
+            if peer is not None:
+                self.waiting[node] = (f'stood down: {peer.scale} serves it under layout '
+                                      f'generation {peer.generation}, newer than the '
+                                      f'{self.generation} held here, and nothing was heard '
+                                      f'from {self.master} for {now - self.contact:.1f} s')
+                continue
             if target == self.scale and self._cut_generation is not None \
                     and node in self._migratable:
                 self.waiting[node] = (f'stopped: cut off from {self.master}, whose decider '
