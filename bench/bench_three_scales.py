@@ -33,7 +33,7 @@ from anyscale_manager.testbed.known import KNOWN_OPEN
 HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'three_scales_testbed.yaml')
 MOVING = ('amcl', 'ar')
-NOISE = """
+NOISE = '''
 import random, time
 random.seed(7)
 while True:
@@ -43,7 +43,7 @@ while True:
         while time.time() - t < duty * 0.05:
             pass
         time.sleep((1.0 - duty) * 0.05)
-"""
+'''
 
 
 def percentile(values, q):
