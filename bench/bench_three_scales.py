@@ -152,6 +152,9 @@ def backhaul_cuts(tb, args):
     rows = []
     for i in range(args.backhaul_cuts):
         out_to_server(tb)
+        # The previous restore reported: a late "down" of the last cut is not this one's.
+        tb.wait_for(lambda r: bool(r.link_reports('backhaul'))
+                    and r.link_reports('backhaul')[-1][1].up, 20.0, 'the backhaul reported up')
         t_cut = tb.now()
         tb.cut('backhaul')
 
