@@ -227,15 +227,19 @@ def test_the_demo_table_judges_the_link_as_status_does(d):
     def heard(t, message):
         record.ingest({'t': t, 'topic': TOPICS[type(message)], 'data': message.to_json()})
 
+    def monitor_line(now):
+        lines = status_table(record, now, 0.0, 'loopback').splitlines()
+        assert lines[1].startswith('link wifi: ')
+        return lines[2].strip()
     heard(1.0, link(up=True, rtt_ms=0.4, kbps=LOOPBACK_KBPS, age_s=0.5))
-    monitor = status_table(record, 1.5, 0.0, 'loopback').splitlines()[1]
+    monitor = monitor_line(1.5)
     assert monitor.startswith('monitor: up, rtt 0.4 ms')
     assert 'available 54.0 / 54.0 Mbit/s >nominal (loopback?)' in monitor
     heard(2.0, link(up=False, rtt_ms=0.4, kbps=LOOPBACK_KBPS, age_s=1.5))
-    monitor = status_table(record, 2.5, 0.0, 'loopback').splitlines()[1]
+    monitor = monitor_line(2.5)
     assert monitor.startswith('monitor: DOWN, rtt -,')
     assert '>nominal (loopback?) STALE 2.0 s' in monitor
-    monitor = status_table(record, 9.0, 0.0, 'loopback').splitlines()[1]
+    monitor = monitor_line(9.0)
     assert monitor.startswith('monitor: SILENT, STALE 7.0 s, rtt -,')
 
 
