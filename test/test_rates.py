@@ -242,6 +242,27 @@ def test_foreign_and_late_echoes_are_ignored():
     assert hb.echo(-5.0, hb.next_beat(1.5)) is None     # an echo before its beat is nonsense
 
 
+def test_an_echo_read_late_is_filed_at_its_arrival_and_later_beats_still_wait():
+    """The monitor reads echoes just before it judges, each with the kernel's arrival time:
+    an echo that came long ago answers its own beat, not the ones sent after it came."""
+    hb = HeartbeatTracker(0.25, 3)
+    first = hb.next_beat(0.0)
+    for k in range(1, 4):
+        hb.next_beat(0.25 * k)                         # 0.25, 0.5, 0.75: never answered
+    assert hb.echo(0.01, first) == pytest.approx(0.01)   # read at 0.76, arrived at 0.01
+    assert not hb.up(0.8)                              # three beats unanswered since 0.01
+    assert 'no echo for 0.79 s, 3 beats unanswered' in hb.silence(0.8)
+
+
+def test_echoes_read_late_in_a_burst_keep_a_working_link_up():
+    hb = HeartbeatTracker(0.1, 3)
+    seqs = [hb.next_beat(0.1 * k) for k in range(6)]     # 0.0 .. 0.5
+    for k, seq in enumerate(seqs[:5]):                     # each answered 10 ms later ...
+        hb.echo(0.1 * k + 0.01, seq)                       # ... all read at 0.55
+    assert hb.up(0.55)
+    assert hb.rtt_s() == pytest.approx(0.01)
+
+
 @pytest.mark.parametrize('period, misses', [(0, 3), (0.25, 0), (0.25, 1.5)])
 def test_heartbeat_tracker_rejects_bad_settings(period, misses):
     with pytest.raises(ValueError):

@@ -216,9 +216,13 @@ class HeartbeatTracker:
                 entry[2] = rtt
         self.last_rtt_s = rtt
         if self.last_echo is None or now >= self.last_echo:
+            # ``now`` is when the echo arrived, which can be before beats this process has
+            # sent since (it read the echo late): those are still waiting for an answer.
             self.last_echo = now
-            self._sent_since_echo = 0
+            later = [t for t in self._pending_times if t > now]
             self._pending_times.clear()
+            self._pending_times.extend(later)
+            self._sent_since_echo = sum(1 for t in self._sent.values() if t > now)
         return rtt
 
     def _expire(self, now: float) -> None:

@@ -26,6 +26,7 @@ from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import BandwidthEstimate, crossing_connections, used_kbps
 from ...runtime.rates import HeartbeatTracker
 from .common import LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, status
+from .echoes import EchoSocket
 from .throughput import ProbeServer, probe_throughput
 from ..throttled_log import ThrottledLog
 
@@ -105,7 +106,7 @@ class LinkMonitor:
         self._connections_gate = StatusGate(self._sealer.key, window)
         self._states_gate = Gate(self._sealer.key, window)
         self._lock = threading.Lock()
-        self._beats_lock = threading.RLock()    # the trackers: the echo thread and the executor
+        self._beats_lock = threading.RLock()    # the trackers (reentrant: a beat judges too)
         self.last: Dict[str, p.LinkStatus] = {}
         if not self._scale.is_master:
             self._start_remote(settings)
@@ -132,17 +133,13 @@ class LinkMonitor:
         self._readings: Dict[Tuple[str, str], Tuple[float, float, float]] = {}
         self._running: Dict[str, Dict[str, str]] = {}          # scale -> node -> scale
         self._out = Publishers(self._node, p.TOPIC_LINK_STATUS, self._sealer)
-        # Echoes are read by a thread of their own and stamped as they arrive (the trackers are
-        # shared under _beats_lock); the executor judges up and down CHECKS_PER_BEAT times a
-        # period, so a cut is published within a quarter period of the rule being met.
+        # Echoes carry the kernel's arrival time (EchoSocket) and are read by the executor
+        # just before every judgement: a starved process reads them late but knows when they
+        # came, so its own stall is never taken for the link's silence. Up and down are judged
+        # CHECKS_PER_BEAT times a period, so a cut is published within a quarter period of the
+        # rule being met.
         self._monitor_id = secrets.token_hex(8)   # echoes answer this process's beats only
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind(('', 0))
-        self._sock.settimeout(0.5)
-        self._closing = False
-        self._receiver = threading.Thread(target=self._receive, daemon=True,
-                                          name='anyscale-echoes')
-        self._receiver.start()
+        self._sock = EchoSocket(warden.MAX_DATAGRAM)
         self._subs.append(self._node.create_subscription(
             String, p.TOPIC_CONNECTION_STATUS, self._on_connections, STATUS_QOS,
             callback_group=self._group))
@@ -165,18 +162,9 @@ class LinkMonitor:
             self._bad.warn(topic, f'link monitor: ignoring a bad message: {e}')
             return None
 
-    def _receive(self) -> None:
-        while not self._closing:
-            try:
-                data, _ = self._sock.recvfrom(warden.MAX_DATAGRAM + 1)
-            except socket.timeout:
-                continue
-            except OSError:
-                if self._closing:
-                    return
-                time.sleep(0.05)
-                continue
-            at = time.monotonic()
+    def _read_echoes(self) -> None:
+        """File every echo waiting in the socket at its arrival time (under _beats_lock)."""
+        for at, data in self._sock.drain():
             echo = warden.parse_echo(data, self._deployment.name, self._sealer.key,
                                      self._monitor_id)
             if echo is None:
@@ -187,9 +175,8 @@ class LinkMonitor:
             remote = self._remotes.get(scale)
             if remote is None:
                 continue
-            with self._beats_lock:
-                if remote.beats.echo(at, seq) is not None:
-                    remote.peer_agent, remote.peer_for_s, remote.peer_at = agent, for_s, at
+            if remote.beats.echo(at, seq) is not None and at >= remote.peer_at:
+                remote.peer_agent, remote.peer_for_s, remote.peer_at = agent, for_s, at
 
     def _on_connections(self, msg: String) -> None:
         now = time.monotonic()
@@ -366,6 +353,7 @@ class LinkMonitor:
 
     def _check_locked(self) -> None:
         self._bad.flush()
+        self._read_echoes()
         now = time.monotonic()
         for remote in self._remotes.values():
             up = remote.beats.up(now)
@@ -452,9 +440,7 @@ class LinkMonitor:
         for sub in self._subs:
             self._node.destroy_subscription(sub)
         if self._watching:
-            self._closing = True
             self._sock.close()
-            self._receiver.join(1.0)
             self._out.destroy()
         if self._server is not None:
             self._server.close()
