@@ -11,6 +11,7 @@ receiver's own clock.
 import json
 import math
 from dataclasses import asdict, dataclass, field
+from enum import StrEnum
 from typing import Any, Dict, Mapping, Optional, Type, TypeVar
 
 PREFIX = '/anyscale'
@@ -44,15 +45,61 @@ MAX_GENERATION_STEP = 1_000_000
 # Diagnostic levels as plain ints (DiagnosticStatus.level is bytes in Python).
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
-NODE_STATES = ('starting', 'running', 'stopping', 'stopped', 'crashed', 'backoff', 'failed',
-               'standby')
-# ScaleStatus.cpu_source (runtime/cpu.py): what a scale's cpu_total measures.
-CPU_SOURCES = ('cgroup', 'machine', 'processes')
-
 
 class ProtocolError(ValueError):
     """A message that does not match its topic's schema."""
 
+
+class _Vocabulary(StrEnum):
+    """A closed set of words read from the wire: a member is its word (it compares equal to
+    it and serialises as it), and a word outside the set is refused with the set named."""
+
+    @classmethod
+    def parse(cls, word: Any, where: str = ''):
+        try:
+            return cls(word)
+        except ValueError:
+            raise ProtocolError(f'{where or cls.__name__}: expected one of '
+                                f'{", ".join(cls)}, got {word!r:.40}') from None
+
+
+class ProcState(_Vocabulary):
+    """A node's state in an agent's report: the supervisor's process states (agent/supervisor.py),
+    STANDBY for a live lifecycle copy kept inactive (agent/lifecycle.py), and CRASHED, a word of
+    the wire that readers count as down though the supervisor reports a crash as BACKOFF."""
+
+    STARTING = 'starting'
+    RUNNING = 'running'
+    STOPPING = 'stopping'
+    STOPPED = 'stopped'
+    CRASHED = 'crashed'
+    BACKOFF = 'backoff'
+    FAILED = 'failed'
+    STANDBY = 'standby'
+
+
+class LifecycleState(_Vocabulary):
+    """A managed node's state as its get_state service labels it: the four primary states, the
+    transition states it passes through, and UNKNOWN (not read yet)."""
+
+    UNKNOWN = 'unknown'
+    UNCONFIGURED = 'unconfigured'
+    INACTIVE = 'inactive'
+    ACTIVE = 'active'
+    FINALIZED = 'finalized'
+    CONFIGURING = 'configuring'
+    CLEANINGUP = 'cleaningup'
+    SHUTTINGDOWN = 'shuttingdown'
+    ACTIVATING = 'activating'
+    DEACTIVATING = 'deactivating'
+    ERRORPROCESSING = 'errorprocessing'
+
+
+NODE_STATES = tuple(ProcState)
+# A copy that runs, or is on its way to running, its node's work (not stopping, not standby).
+LIVE_STATES = (ProcState.STARTING, ProcState.RUNNING)
+# ScaleStatus.cpu_source (runtime/cpu.py): what a scale's cpu_total measures.
+CPU_SOURCES = ('cgroup', 'machine', 'processes')
 
 T = TypeVar('T', bound='Message')
 
@@ -79,6 +126,10 @@ def _check(value: Any, kind: Any, where: str) -> Any:
         if not isinstance(value, str):
             raise ProtocolError(f'{where}: expected a string, got {value!r:.60}')
         return value
+    if isinstance(kind, type) and issubclass(kind, _Vocabulary):
+        if not isinstance(value, str):
+            raise ProtocolError(f'{where}: expected a string, got {value!r:.60}')
+        return kind.parse(value, where)
     if isinstance(kind, tuple) and kind[0] == 'optional':
         return None if value is None else _check(value, kind[1], where)
     if isinstance(kind, tuple) and kind[0] == 'map':
@@ -273,20 +324,15 @@ class Layout(Message):
 class NodeReport(Message):
     """What an agent knows of one node it supervises."""
 
-    state: str
+    state: ProcState
     pid: int
     since: float
     restarts: int
     ready: bool
     exit_reason: str
-    lifecycle: Optional[str] = None     # a lifecycle node's state ('inactive', 'active', ...)
-    SCHEMA = {'state': str, 'pid': int, 'since': float, 'restarts': int, 'ready': bool,
-              'exit_reason': str, 'lifecycle': ('optional', str)}
-
-    def validate(self, where: str) -> None:
-        if self.state not in NODE_STATES:
-            raise ProtocolError(f'{where}.state: expected one of {", ".join(NODE_STATES)}, '
-                                f'got {self.state!r:.40}')
+    lifecycle: Optional[LifecycleState] = None     # a lifecycle node's state
+    SCHEMA = {'state': ProcState, 'pid': int, 'since': float, 'restarts': int, 'ready': bool,
+              'exit_reason': str, 'lifecycle': ('optional', LifecycleState)}
 
 
 @dataclass
@@ -331,7 +377,7 @@ class AgentState(Message):
         return out
 
     def running(self) -> Dict[str, NodeReport]:
-        return {k: v for k, v in self.nodes.items() if v.state in ('starting', 'running')}
+        return {k: v for k, v in self.nodes.items() if v.state in LIVE_STATES}
 
 
 @dataclass
@@ -568,7 +614,7 @@ class PlanCheck(Message):
 
 __all__ = [
     'AgentState', 'ConnectionReading', 'ConnectionStatus', 'DeciderBeat', 'DeciderIdentity',
-    'ERROR', 'Event',
-    'Layout', 'LinkStatus', 'MAX_GENERATION', 'MAX_GENERATION_STEP', 'Message', 'NodeReport', 'OK',
-    'Objective', 'PlanCheck', 'PlanNode', 'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
+    'ERROR', 'Event', 'LIVE_STATES', 'Layout', 'LifecycleState', 'LinkStatus', 'MAX_GENERATION',
+    'MAX_GENERATION_STEP', 'Message', 'NODE_STATES', 'NodeReport', 'OK', 'Objective',
+    'PlanCheck', 'PlanNode', 'ProcState', 'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
 ]

@@ -68,6 +68,7 @@ import yaml
 from scales import SPIN, Listener, Loopback, Namespaces, choose, run_inside
 
 from anyscale_manager.agent.procs import stop_popen
+from anyscale_manager.protocol import LIVE_STATES, ProcState
 
 TALKER = r'''
 import os, sys
@@ -339,7 +340,7 @@ def bench_moves(tmp, moves, place, jitter_s=3.0, standby=False):
                                    'its log:\n' + (tail(listener.log_path) if listener else ''))
             if standby and not b.spin_until(
                     lambda: getattr(b.states.get('b'), 'nodes', {}).get(node) is not None
-                    and b.states['b'].nodes[node].state == 'standby', 30.0):
+                    and b.states['b'].nodes[node].state == ProcState.STANDBY, 30.0):
                 rep = getattr(b.states.get('b'), 'nodes', {}).get(node)
                 raise RuntimeError(
                     f'--standby: agent b never reported {node} as a standby copy (its report: '
@@ -361,7 +362,7 @@ def bench_moves(tmp, moves, place, jitter_s=3.0, standby=False):
                 def new_copy():
                     r = b.states.get(where)
                     rep = r.nodes.get(node) if r else None
-                    if rep is None or rep.state not in ('starting', 'running') or not rep.pid:
+                    if rep is None or rep.state not in LIVE_STATES or not rep.pid:
                         return None
                     return rep
 
@@ -373,7 +374,7 @@ def bench_moves(tmp, moves, place, jitter_s=3.0, standby=False):
                 def ready_new():
                     r = b.states.get(where)
                     rep = new_copy()
-                    if rep is not None and rep.state == 'running' and rep.ready \
+                    if rep is not None and rep.state == ProcState.RUNNING and rep.ready \
                             and r.generation == gen and not ready_at:
                         ready_at.append(time.monotonic() - t0)
                     return moved() and bool(ready_at)
@@ -399,8 +400,8 @@ def bench_moves(tmp, moves, place, jitter_s=3.0, standby=False):
                     old = b.states.get('a' if where == 'b' else 'b')
                     orep = old.nodes.get(node) if old else None
                     new = b.states[where].nodes[node]
-                    return orep is not None and orep.state in ('stopped', 'standby') \
-                        and new.ready
+                    return orep is not None and new.ready \
+                        and orep.state in (ProcState.STOPPED, ProcState.STANDBY)
 
                 b.spin_until(settled, 30.0)
                 b.heard.clear()
@@ -488,7 +489,7 @@ def bench_cpu(tmp, seconds, place):
         idle = cpu_of(agent.pid, seconds)
         b.publish(2, {n: 'a' for n in names})
         if not b.spin_until(lambda: all(
-                b.states['a'].nodes[n].state == 'running' and b.states['a'].nodes[n].ready
+                b.states['a'].nodes[n].state == ProcState.RUNNING and b.states['a'].nodes[n].ready
                 for n in names), 120.0):
             raise RuntimeError('the ten nodes never became ready')
         b.spin_until(lambda: False, 3.0)

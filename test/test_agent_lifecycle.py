@@ -3,6 +3,7 @@
 import pytest
 
 from anyscale_manager import protocol
+from anyscale_manager import protocol_auth as auth
 from anyscale_manager.agent import lifecycle as lc
 from anyscale_manager.agent.catalogue import build_catalogue
 from anyscale_manager.agent.reconcile import Reconciler
@@ -250,3 +251,81 @@ def test_goals_follow_the_layout_and_keep_live_copies_before_the_first_one():
     goals, run = lc.goals(names, set(), ['ar'], has_layout=False, live=['amcl', 'old'])
     assert goals == {'amcl': None, 'ar': lc.INACTIVE, 'old': None}
     assert run == {'amcl', 'ar', 'old'}
+
+
+# An agent's report as every reader has decoded it, byte for byte: the states are words of the
+# wire, whatever type the agent holds them in.
+AGENT_STATE_JSON = (
+    '{"decider":"d1","generation":7,"host":"robot-1","host_id":"h",'
+    '"instance":"0123456789abcdef","nodes":{'
+    '"amcl":{"exit_reason":"","lifecycle":"inactive","pid":4242,"ready":false,"restarts":1,'
+    '"since":1700000000.25,"state":"standby"},'
+    '"planner":{"exit_reason":"","lifecycle":"active","pid":4343,"ready":true,"restarts":0,'
+    '"since":1700000001.5,"state":"running"},'
+    '"talker":{"exit_reason":"killed by SIGKILL (Killed)","lifecycle":null,"pid":0,'
+    '"ready":false,"restarts":3,"since":1700000002.0,"state":"backoff"}},'
+    '"scale":"robot","seq":12,"stamp":1700000003.125,"term":2}')
+
+
+def pinned_report():
+    d = driver()
+    d.state, d.goal = lc.INACTIVE, lc.INACTIVE
+    standby = lc.report(protocol.ProcState.RUNNING, True, '', d)
+    d.state, d.goal = lc.ACTIVE, lc.ACTIVE
+    serving = lc.report(protocol.ProcState.RUNNING, True, '', d)
+    nodes = {name: protocol.NodeReport(state=state, pid=pid, since=since, restarts=restarts,
+                                       ready=ready, exit_reason=reason, lifecycle=label)
+             for name, (state, ready, reason, label), pid, since, restarts in [
+                 ('amcl', standby, 4242, 1700000000.25, 1),
+                 ('planner', serving, 4343, 1700000001.5, 0),
+                 ('talker', (protocol.ProcState.BACKOFF, False, 'killed by SIGKILL (Killed)',
+                             None), 0, 1700000002.0, 3)]}
+    return protocol.AgentState(scale='robot', generation=7, stamp=1700000003.125, nodes=nodes,
+                               decider='d1', instance='0123456789abcdef', seq=12, host_id='h',
+                               host='robot-1', term=2)
+
+
+def test_an_agent_state_report_is_the_same_json_and_reads_back_as_states():
+    report = pinned_report()
+    assert report.to_json() == AGENT_STATE_JSON
+    key = b'k' * 32
+    assert auth.seal(key, report) == auth.seal(key, protocol.AgentState.from_json(
+        AGENT_STATE_JSON))
+    back = protocol.AgentState.from_json(AGENT_STATE_JSON)
+    assert back.to_json() == AGENT_STATE_JSON
+    amcl = back.nodes['amcl']
+    assert amcl.state is protocol.ProcState.STANDBY and amcl.state == 'standby'
+    assert amcl.lifecycle is protocol.LifecycleState.INACTIVE
+    assert back.nodes['talker'].lifecycle is None
+    assert set(back.running()) == {'planner'}
+
+
+@pytest.mark.parametrize('field,word,expected', [
+    ('state', 'zombie', 'AgentState.nodes.talker.state: expected one of starting, running, '
+                        "stopping, stopped, crashed, backoff, failed, standby, got 'zombie'"),
+    ('state', 'Running', 'AgentState.nodes.talker.state: expected one of starting'),
+    ('state', 3, 'AgentState.nodes.talker.state: expected a string, got 3'),
+    ('lifecycle', 'asleep', 'AgentState.nodes.talker.lifecycle: expected one of unknown, '
+                            'unconfigured, inactive, active, finalized, configuring'),
+])
+def test_an_unknown_state_from_the_wire_is_refused_with_the_words_it_may_be(
+        field, word, expected):
+    import json
+    data = json.loads(AGENT_STATE_JSON)
+    data['nodes']['talker'][field] = word
+    with pytest.raises(protocol.ProtocolError) as caught:
+        protocol.AgentState.from_json(json.dumps(data))
+    assert str(caught.value).startswith(expected)
+
+
+def test_a_label_outside_the_lifecycle_state_machine_is_read_again():
+    d = driver()
+    d.set_goal(lc.ACTIVE)
+    assert d.next_request(0.0, True).kind == 'get'
+    answer(d, 0.0, state='dozing')
+    assert d.state is lc.UNKNOWN and not d.known
+    assert d.next_request(0.4, True) is None
+    assert d.next_request(0.5, True).kind == 'get'
+    answer(d, 0.5, state='configuring')
+    assert d.next_request(0.6, True) is None
+    assert d.state is protocol.LifecycleState.CONFIGURING and d.known

@@ -17,11 +17,13 @@ when the goal was to finalize it, signals it anyway. Reaching the goal clears th
 from dataclasses import dataclass
 from typing import Dict, Iterable, List, Optional, Set, Tuple
 
-UNKNOWN = 'unknown'
-UNCONFIGURED = 'unconfigured'
-INACTIVE = 'inactive'
-ACTIVE = 'active'
-FINALIZED = 'finalized'
+from ..protocol import LIVE_STATES, LifecycleState, ProcState
+
+UNKNOWN = LifecycleState.UNKNOWN
+UNCONFIGURED = LifecycleState.UNCONFIGURED
+INACTIVE = LifecycleState.INACTIVE
+ACTIVE = LifecycleState.ACTIVE
+FINALIZED = LifecycleState.FINALIZED
 PRIMARY = (UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED)
 GOALS = (ACTIVE, INACTIVE, FINALIZED)
 
@@ -41,12 +43,21 @@ _PATH = {
 }
 
 
-def next_transition(state: str, goal: str) -> Optional[str]:
+def next_transition(state: LifecycleState, goal: LifecycleState) -> Optional[str]:
     """The transition to ask for from primary ``state`` towards ``goal`` (None: there, or no
     way there, as from finalized)."""
     if goal not in _PATH:
         raise ValueError(f'unknown lifecycle goal {goal!r} (expected one of {", ".join(GOALS)})')
     return _PATH[goal].get(state)
+
+
+def label_state(label: str) -> LifecycleState:
+    """The state a get_state answer labels; UNKNOWN for a label outside the ROS 2 lifecycle
+    state machine, which is looked at again like a transition in progress."""
+    try:
+        return LifecycleState(label)
+    except ValueError:
+        return UNKNOWN
 
 
 @dataclass(frozen=True)
@@ -75,14 +86,14 @@ class Driver:
         self.backoff_s = backoff_s
         self.backoff_max_s = backoff_max_s
         self.max_failures = max_failures
-        self.goal: Optional[str] = None
+        self.goal: Optional[LifecycleState] = None
         self.events: List[Tuple[str, str]] = []     # (level, text), drained by the caller
         self._serial = 0
         self.reset()
 
     def reset(self) -> None:
         """A new process (started or adopted): nothing is known of it yet."""
-        self.state = UNKNOWN
+        self.state: LifecycleState = UNKNOWN
         self.pending: Optional[Request] = None
         self.failures = 0
         self.retry_at = 0.0
@@ -91,7 +102,7 @@ class Driver:
         self.check_at = 0.0     # not before then
 
     # --- what the caller asks ---------------------------------------------------------------
-    def set_goal(self, goal: Optional[str]) -> None:
+    def set_goal(self, goal: Optional[LifecycleState]) -> None:
         if goal is not None and goal not in GOALS:
             raise ValueError(f'unknown lifecycle goal {goal!r}')
         if goal != self.goal:
@@ -140,7 +151,7 @@ class Driver:
         if not self._is_pending(serial):
             return
         self.pending = None
-        self.state = label or UNKNOWN
+        self.state = label_state(label)
         self._check = self.state not in PRIMARY
         if self._check:
             # A transition in progress (another client's, or ours that timed out): look again.
@@ -207,27 +218,27 @@ class Driver:
                             f'{self.name}: lifecycle: {why}{tail}'))
 
 
-def report(state: str, ready: bool, reason: str, driver: Driver) -> tuple:
+def report(state: ProcState, ready: bool, reason: str, driver: Driver) -> tuple:
     """(state, ready, reason, lifecycle label) of a lifecycle copy for the agent's report:
-    'running' and ready only while active (what serves), 'standby' for a live copy kept
-    inactive, 'starting' on its way to active, 'stopping' on its way out."""
-    if state not in ('starting', 'running'):
-        return state, False, reason, driver.state if state == 'stopping' else None
+    RUNNING and ready only while active (what serves), STANDBY for a live copy kept
+    inactive, STARTING on its way to active, STOPPING on its way out."""
+    if state not in LIVE_STATES:
+        return state, False, reason, driver.state if state == ProcState.STOPPING else None
     if driver.failed:
         reason = f'lifecycle: {driver.problem}'
     elif driver.problem:
         reason = f'lifecycle (retrying): {driver.problem}'
     if driver.state == ACTIVE and driver.goal != FINALIZED:
-        return 'running', True, reason, driver.state
+        return ProcState.RUNNING, True, reason, driver.state
     if driver.goal == FINALIZED:
-        return 'stopping', False, reason, driver.state
+        return ProcState.STOPPING, False, reason, driver.state
     if driver.goal == INACTIVE or (driver.goal is None and driver.state == INACTIVE):
-        return 'standby', False, reason, driver.state
-    return 'starting', False, reason, driver.state
+        return ProcState.STANDBY, False, reason, driver.state
+    return ProcState.STARTING, False, reason, driver.state
 
 
 def goals(names: Iterable[str], want: Set[str], standby_here: Iterable[str], has_layout: bool,
-          live: Iterable[str]) -> Tuple[Dict[str, Optional[str]], Set[str]]:
+          live: Iterable[str]) -> Tuple[Dict[str, Optional[LifecycleState]], Set[str]]:
     """The goal of each lifecycle copy on this scale, and the nodes whose process must run.
 
     ``want``: the nodes the layout places here; ``standby_here``: those it keeps a standby
@@ -236,8 +247,8 @@ def goals(names: Iterable[str], want: Set[str], standby_here: Iterable[str], has
     adopting its copies) a live copy keeps the state it reports (goal None) until the layout
     says otherwise. An inactive copy's process runs too."""
     standby = set(standby_here)
-    out: Dict[str, Optional[str]] = {n: ACTIVE if n in want else INACTIVE if n in standby
-                                     else FINALIZED for n in names}
+    out: Dict[str, Optional[LifecycleState]] = {
+        n: ACTIVE if n in want else INACTIVE if n in standby else FINALIZED for n in names}
     run = set(want)
     if not has_layout:
         kept = set(live) & set(out)

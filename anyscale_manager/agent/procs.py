@@ -176,7 +176,8 @@ def stop_popen(proc: 'subprocess.Popen', sigint_grace_s: float,
     ``sigterm_grace_s`` is None), then SIGKILL after ``sigterm_grace_s``; to its whole session
     when it was started in one of its own (``start_new_session=True``), else to it alone.
     Returns its exit status (None if even SIGKILL did not end it within ``kill_wait_s``). The
-    one escalation of the project: the agent, the test-bed, the benches and the tests use it."""
+    one blocking escalation of the project, for the test-bed, the benches and the tests; the
+    agent runs the same steps without blocking, one state per ``Supervisor.step``."""
     steps = [(signal.SIGINT, sigint_grace_s)]
     if sigterm_grace_s is not None:
         steps.append((signal.SIGTERM, sigterm_grace_s))

@@ -33,9 +33,10 @@ from dataclasses import dataclass
 from typing import Callable, Dict, FrozenSet, Iterable, List, Mapping, Optional, Set, Tuple
 
 from ..model import types as t
-from ..protocol import MAX_GENERATION_STEP, AgentState, Layout
+from ..protocol import MAX_GENERATION_STEP, AgentState, Layout, ProcState
 
-LIVE = ('starting', 'running', 'stopping')
+# A copy whose process runs there: it must stop before this scale starts its own.
+LIVE = (ProcState.STARTING, ProcState.RUNNING, ProcState.STOPPING)
 NO_GENERATION = -1
 # How long a losing scale keeps its copy past the new copy's ready report while it has not heard
 # the new copy (its inputs may not reach it yet; or the copies' sequence numbers overlap).
@@ -54,7 +55,7 @@ class Peer:
     scale: str
     generation: int
     heard: float
-    nodes: Mapping[str, Tuple[str, bool]]     # node -> (state, ready)
+    nodes: Mapping[str, Tuple[ProcState, bool]]     # node -> (state, ready)
     decider: str = ''                         # the decider whose layouts it follows
     term: int = 0                             # that decider's leadership term
 
@@ -186,7 +187,7 @@ class Reconciler:
         for peer in self._fresh(now):
             if peer.decider == self.decider and peer.term == self.term \
                     and peer.generation > self.generation \
-                    and peer.nodes.get(node) == ('running', True) \
+                    and peer.nodes.get(node) == (ProcState.RUNNING, True) \
                     and now - peer.heard <= SUPERSEDED_QUIET_S:
                 return peer
         return None
@@ -269,7 +270,7 @@ class Reconciler:
 
     def _held_elsewhere(self, node: str, now: float) -> str:
         for p in sorted(self._fresh(now), key=lambda p: p.scale):
-            state = p.nodes.get(node, ('stopped', False))[0]
+            state = p.nodes.get(node, (ProcState.STOPPED, False))[0]
             if state in LIVE:
                 return f'waiting for {p.scale} to stop it (there: {state})'
             if p.generation < self.generation:
@@ -283,5 +284,5 @@ class Reconciler:
             return False
         if peer.generation < self._moved_gen.get(node, self.generation):
             return False
-        state, ready = peer.nodes.get(node, ('stopped', False))
-        return state == 'running' and ready
+        state, ready = peer.nodes.get(node, (ProcState.STOPPED, False))
+        return state == ProcState.RUNNING and ready

@@ -26,19 +26,22 @@ from typing import Callable, Dict, Iterable, List, Mapping, Optional, Tuple
 from . import procs, shm
 from .catalogue import ENV_INSTANCE, Entry
 from ..model.types import AgentSettings
+from ..protocol import LIVE_STATES, ProcState
 
 STATE_VERSION = 1
 # A state file records a few lines per node: anything much larger is not one of ours.
 MAX_STATE_BYTES = 1 << 20
 LOG_ROTATE_BYTES = 10 * 1024 * 1024
-ACTIVE = ('starting', 'running', 'stopping')
+ACTIVE = (ProcState.STARTING, ProcState.RUNNING, ProcState.STOPPING)
+# A crashed or unstartable node, waiting for its restart.
+DOWN = (ProcState.BACKOFF, ProcState.FAILED)
 
 
 @dataclass(frozen=True)
 class Report:
     """What the supervisor knows of one node (``since`` on the caller's monotonic clock)."""
 
-    state: str
+    state: ProcState
     pid: int
     since: float
     restarts: int
@@ -49,7 +52,7 @@ class Report:
 @dataclass
 class _Proc:
     entry: Entry
-    state: str = 'stopped'
+    state: ProcState = ProcState.STOPPED
     wanted: bool = False
     popen: Optional[subprocess.Popen] = None
     pid: int = 0
@@ -110,7 +113,7 @@ class Supervisor:
                           p.restarts, p.ready, p.exit_reason)
                 for n, p in self._procs.items()}
 
-    def state(self, name: str) -> str:
+    def state(self, name: str) -> ProcState:
         return self._procs[name].state
 
     def active(self) -> Tuple[str, ...]:
@@ -142,7 +145,7 @@ class Supervisor:
                 if not p.wanted:
                     p.wanted = True
                     p.backoff_s = 0.0
-                    if p.state in ('stopped', 'failed', 'backoff'):
+                    if p.state not in ACTIVE:
                         self._spawn(p, now)
             elif p.wanted:
                 p.wanted = False
@@ -155,7 +158,7 @@ class Supervisor:
         """Replace the live process of ``name`` with a fresh one at the next step, without
         backoff: for a copy alive but unusable (its lifecycle stuck). False if it is not live."""
         p = self._procs.get(name)
-        if p is None or p.state not in ('starting', 'running') or not p.pid:
+        if p is None or p.state not in LIVE_STATES or not p.pid:
             return False
         procs.signal_session(p.pid, signal.SIGKILL, p.strays)
         if p.popen is not None:
@@ -177,7 +180,7 @@ class Supervisor:
         """Skip the graces: SIGKILL every group now (a second shutdown request)."""
         self.set_wanted((), now)
         for p in list(self._procs.values()) + list(self._ghosts.values()):
-            if p.state == 'stopping' and p.stop_phase < 2:
+            if p.state == ProcState.STOPPING and p.stop_phase < 2:
                 p.stop_phase = 2
                 p.stop_deadline = now
                 procs.signal_session(p.pid, signal.SIGKILL, p.strays)
@@ -190,7 +193,7 @@ class Supervisor:
             self._step_one(p, now, visible)
         for name, p in list(self._ghosts.items()):
             self._step_stopping(p, now)
-            if p.state != 'stopping':
+            if p.state != ProcState.STOPPING:
                 del self._ghosts[name]
                 self._dirty = True
         changed = self.reports() != before
@@ -200,18 +203,18 @@ class Supervisor:
         return changed
 
     def _step_one(self, p: _Proc, now: float, visible: Callable[[Entry], bool]) -> None:
-        if p.state in ('starting', 'running'):
+        if p.state in LIVE_STATES:
             code, gone = self._leader_exit(p)
             if gone:
                 self._crashed(p, now, code)
                 return
             seen = bool(visible(p.entry))
-            if p.state == 'starting':
+            if p.state == ProcState.STARTING:
                 if seen:
-                    self._set(p, 'running', now, ready=True, reason='')
+                    self._set(p, ProcState.RUNNING, now, ready=True, reason='')
                     p.running_since = now
                 elif now >= p.ready_deadline:
-                    self._set(p, 'running', now, ready=False,
+                    self._set(p, ProcState.RUNNING, now, ready=False,
                               reason=f'not visible in the ROS graph as {p.entry.ros_name!r} '
                                      f'within {self.settings.readiness_timeout_s:g} s')
                     p.running_since = now
@@ -225,9 +228,9 @@ class Supervisor:
                 if now - p.running_since >= self.settings.restart_backoff_max_s:
                     # A long healthy run: its next crash is not part of a loop.
                     p.backoff_s = 0.0
-        elif p.state == 'stopping':
+        elif p.state == ProcState.STOPPING:
             self._step_stopping(p, now)
-        elif p.state in ('backoff', 'failed'):
+        elif p.state in DOWN:
             if p.wanted and now >= p.restart_at:
                 p.restarts += 1
                 self._spawn(p, now)
@@ -242,7 +245,7 @@ class Supervisor:
             reason = 'stopped' if code is None else f'stopped ({procs.describe_exit(code)})'
             if p.stop_phase >= 1:
                 reason += f' after {("SIGTERM", "SIGKILL")[min(p.stop_phase, 2) - 1]}'
-            self._set(p, 'stopped', now, ready=False, reason=reason)
+            self._set(p, ProcState.STOPPED, now, ready=False, reason=reason)
             p.pid = 0
             p.popen = None
             self._dirty = True
@@ -267,7 +270,7 @@ class Supervisor:
             procs.signal_session(p.pid, signal.SIGKILL, p.strays)
 
     # --- transitions ----------------------------------------------------------------------
-    def _set(self, p: _Proc, state: str, now: float, ready: bool, reason: str) -> None:
+    def _set(self, p: _Proc, state: ProcState, now: float, ready: bool, reason: str) -> None:
         if state != p.state:
             p.since = now
         p.state = state
@@ -291,7 +294,7 @@ class Supervisor:
     def _spawn(self, p: _Proc, now: float) -> None:
         entry = p.entry
         if not entry.startable:
-            self._set(p, 'failed', now, ready=False, reason=entry.problem or 'no argv')
+            self._set(p, ProcState.FAILED, now, ready=False, reason=entry.problem or 'no argv')
             p.restart_at = now + self.settings.restart_backoff_max_s
             self._event('error', f'{entry.name}: cannot start: {p.exit_reason}')
             return
@@ -345,7 +348,7 @@ class Supervisor:
         p.strays = ()
         p.failed_spawns = 0
         p.ready_deadline = now + self.settings.readiness_timeout_s
-        self._set(p, 'starting', now, ready=False, reason='')
+        self._set(p, ProcState.STARTING, now, ready=False, reason='')
         self._event('info', f'{entry.name}: started pid {p.pid} (log {p.log_path})')
         # Recorded at once: an agent killed right now must still find it when it comes back.
         self.save()
@@ -354,7 +357,7 @@ class Supervisor:
         p.failed_spawns += 1
         p.popen = None
         p.pid = 0
-        self._set(p, 'failed', now, ready=False, reason=reason)
+        self._set(p, ProcState.FAILED, now, ready=False, reason=reason)
         p.restart_at = now + self._next_backoff(p)
         self._event('error', f'{p.entry.name}: {reason}')
 
@@ -396,24 +399,24 @@ class Supervisor:
         self._event('error', f'{p.entry.name}: crashed: {reason}; restarting in {delay:g} s '
                              f'(restart {p.restarts + 1})')
         if not p.wanted:
-            self._set(p, 'stopped', now, ready=False, reason=reason)
+            self._set(p, ProcState.STOPPED, now, ready=False, reason=reason)
 
     def _gone(self, p: _Proc, now: float, reason: str, restart_at: float) -> None:
         """The process is gone (killed or exited): back off until ``restart_at``."""
         p.popen = None
         p.pid = 0
-        self._set(p, 'backoff', now, ready=False, reason=reason)
+        self._set(p, ProcState.BACKOFF, now, ready=False, reason=reason)
         p.restart_at = restart_at
         self._dirty = True
 
     def _begin_stop(self, p: _Proc, now: float) -> None:
-        if p.state in ('backoff', 'failed'):
-            self._set(p, 'stopped', now, ready=False, reason=p.exit_reason)
+        if p.state in DOWN:
+            self._set(p, ProcState.STOPPED, now, ready=False, reason=p.exit_reason)
             return
-        if p.state not in ('starting', 'running'):
+        if p.state not in LIVE_STATES:
             return
         p.strays = tuple(set(p.strays) | set(procs.descendants(p.pid)))
-        self._set(p, 'stopping', now, ready=False, reason='')
+        self._set(p, ProcState.STOPPING, now, ready=False, reason='')
         p.stop_phase = 0
         p.stop_deadline = now + self.settings.sigint_grace_s
         procs.signal_session(p.pid, signal.SIGINT, p.strays)
@@ -429,7 +432,7 @@ class Supervisor:
             if p.state in ACTIVE and p.pid:
                 nodes[name] = {'pid': p.pid, 'started': p.started, 'instance': p.instance,
                                'argv': list(p.entry.argv), 'restarts': p.restarts,
-                               'stopping': p.state == 'stopping',
+                               'stopping': p.state == ProcState.STOPPING,
                                'fence': name in self.fenceable}
         data = dict(self.identity, version=STATE_VERSION, agent_pid=os.getpid(), nodes=nodes,
                     agent_started=self.agent_started, restarting=self.restarting,
@@ -553,6 +556,6 @@ class Supervisor:
         p.restarts = restarts if isinstance(restarts, int) and 0 <= restarts < 2 ** 31 else 0
         p.backoff_s = 0.0
         p.ready_deadline = now + self.settings.readiness_timeout_s
-        self._set(p, 'starting', now, ready=False, reason='')
+        self._set(p, ProcState.STARTING, now, ready=False, reason='')
         # Report the process's own start time on the caller's clock.
         p.since = now - max(0.0, wall_now - started)

@@ -44,6 +44,7 @@ from ..agent.host import this_host
 from ..agent.reconcile import Reconciler
 from ..agent.supervisor import Supervisor
 from ..model.loader import DeploymentError, load_from_parameters
+from ..protocol import LIVE_STATES, ProcState
 from ..runtime.hosts import HostBook
 from ..interrupt import restore_ctrl_c
 
@@ -414,7 +415,7 @@ class AgentNode(Node):
             clients = self._lifecycle.get(name)
             if clients is None:
                 out.add(name)
-            elif sup.state(name) != 'stopping':
+            elif sup.state(name) != ProcState.STOPPING:
                 d = clients.driver
                 if d.state == lc.ACTIVE or (d.known and d.goal == lc.ACTIVE and not d.failed):
                     out.add(name)
@@ -450,7 +451,7 @@ class AgentNode(Node):
             goals = {n: lc.FINALIZED for n in self._lifecycle}
         else:
             placed = self.reconciler.desired(now, self._serving(), heard_here=self._heard_here)
-            live = [n for n in self._lifecycle if sup.state(n) in ('starting', 'running')]
+            live = [n for n in self._lifecycle if sup.state(n) in LIVE_STATES]
             goals, want = lc.goals(self._lifecycle, placed, self.reconciler.standby_here,
                                    self.reconciler.has_layout, live)
             waiting = self.reconciler.waiting
@@ -487,7 +488,7 @@ class AgentNode(Node):
             self._published_view = view
             self._publish_state()
         self._update_probes()
-        stopping = any(sup.state(n) == 'stopping' for n in sup.names)
+        stopping = any(sup.state(n) == ProcState.STOPPING for n in sup.names)
         if stopping == self._stopping_timer.is_canceled():
             if stopping:
                 self._stopping_timer.reset()
@@ -502,7 +503,7 @@ class AgentNode(Node):
         """Whether a lifecycle copy that must stop keeps its process a while longer: until it
         is finalized, its driver gave up, or lifecycle_timeout_s has passed since it was asked
         (a node that does not answer is signalled all the same)."""
-        if self.supervisor.state(name) not in ('starting', 'running'):
+        if self.supervisor.state(name) not in LIVE_STATES:
             self._finalize_since.pop(name, None)
             return False
         driver = self._lifecycle[name].driver
@@ -526,7 +527,7 @@ class AgentNode(Node):
         sup = self.supervisor
         for name, clients in self._lifecycle.items():
             driver = clients.driver
-            if sup.state(name) not in ('starting', 'running'):
+            if sup.state(name) not in LIVE_STATES:
                 continue
             if driver.failed and driver.goal in (lc.ACTIVE, lc.INACTIVE):
                 sup.restart(name, now, f'its lifecycle did not reach {driver.goal}: '

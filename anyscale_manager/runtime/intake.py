@@ -14,14 +14,14 @@ from typing import Collection, Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
 from ..protocol import (ERROR, LINK_MONITOR_START_S, WARN, AgentState, ConnectionStatus,
-                        LinkStatus, ScaleStatus)
+                        LinkStatus, ProcState, ScaleStatus)
 from .constraints import link_observation_key
 from .observations import ConnectionObs, CopyObs, LinkObs, Observations, ScaleObs
 
-_RANK = {'running': 2, 'starting': 1}
+_RANK = {ProcState.RUNNING: 2, ProcState.STARTING: 1}
 # A copy in one of these states is not running against its will: it exited, or was killed to
 # be restarted, and waits for its restart.
-DOWN_STATES = ('backoff', 'failed', 'crashed')
+DOWN_STATES = (ProcState.BACKOFF, ProcState.FAILED, ProcState.CRASHED)
 MAX_IGNORED_KINDS = 100
 
 
@@ -86,7 +86,7 @@ class ObservationBook:
         for name, report in msg.nodes.items():
             key = (msg.scale, name)
             old = before.nodes.get(name) if before is not None else None
-            if report.state == 'running' and report.ready:
+            if report.state == ProcState.RUNNING and report.ready:
                 self.crashes.pop(key, None)
             elif report.state in DOWN_STATES and (old is None or old.state not in DOWN_STATES):
                 self.crashes[key] = (now, report.exit_reason)
@@ -308,7 +308,8 @@ class ObservationBook:
             if scale in lost:
                 continue
             for name, report in seen.state.running().items():
-                if name not in known or (name in active_only and report.state != 'running'):
+                if name not in known \
+                        or (name in active_only and report.state != ProcState.RUNNING):
                     continue
                 wanted = 1 if desired is not None and desired.get(name) == scale else 0
                 rank = (_RANK.get(report.state, 0), wanted, scale)

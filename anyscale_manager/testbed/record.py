@@ -19,7 +19,9 @@ from ..runtime.delta import below_spans
 from ..runtime.rates import RateWindow
 
 MIGRATION_KINDS = ('migrate', 'migrate_back', 'move_away', 'rebalance')
-LIVE_STATES = ('starting', 'running', 'standby', 'stopping')     # a process the agent holds
+# A process the agent holds: serving, standing by, on its way up or on its way out.
+LIVE_STATES = (p.ProcState.STARTING, p.ProcState.RUNNING, p.ProcState.STANDBY,
+               p.ProcState.STOPPING)
 
 
 @dataclass
@@ -194,7 +196,7 @@ class Record:
         are stale)."""
         for t, state in self.agent_states.get(scale, []):
             if t >= since and all(state.nodes.get(n) is not None and state.nodes[n].ready
-                                  and state.nodes[n].state == 'running' for n in nodes):
+                                  and state.nodes[n].state == p.ProcState.RUNNING for n in nodes):
                 return t
         return None
 
@@ -213,7 +215,7 @@ class Record:
         if state is None:
             return {}
         return {n: r for n, r in state.running().items()
-                if not ready_only or (r.state == 'running' and r.ready)}
+                if not ready_only or (r.state == p.ProcState.RUNNING and r.ready)}
 
     def copies(self, scale: str, t: Optional[float] = None,
                max_age_s: Optional[float] = None) -> Dict[str, p.NodeReport]:
@@ -230,7 +232,7 @@ class Record:
                    max_age_s: Optional[float] = None) -> Dict[str, p.NodeReport]:
         """The scale's standby copies (live, inactive) as its agent last reported them."""
         return {n: r for n, r in self.copies(scale, t, max_age_s).items()
-                if r.state == 'standby'}
+                if r.state == p.ProcState.STANDBY}
 
     def placement(self, t: Optional[float] = None, ready_only: bool = True,
                   max_age_s: Optional[float] = None) -> Dict[str, Tuple[str, ...]]:
@@ -424,8 +426,8 @@ class Record:
             if e.kind != 'migrate' or e.from_scale != scale:
                 continue
             ready_s = first(e.to_scale, t, e.node, lambda r: r is not None
-                            and r.state == 'running' and r.ready)
-            left_s = first(scale, t, e.node, lambda r: r is None or r.state != 'running')
+                            and r.state == p.ProcState.RUNNING and r.ready)
+            left_s = first(scale, t, e.node, lambda r: r is None or r.state != p.ProcState.RUNNING)
             for c in self.deployment.connections:
                 if c.publisher != e.node or c.freq_min_hz is None:
                     continue

@@ -311,10 +311,11 @@ def _placement(book: StatusBook) -> Tuple[Dict[str, Tuple[str, str, float]], Dic
     standby: Dict[str, list] = {}
     for scale, (a, at) in book.agents.items():
         for n, r in a.nodes.items():
-            if r.state == 'standby':
-                standby.setdefault(n, []).append(scale if r.lifecycle == 'inactive'
+            if r.state == p.ProcState.STANDBY:
+                standby.setdefault(n, []).append(scale if r.lifecycle == p.LifecycleState.INACTIVE
                                                  else f'{scale} ({r.lifecycle})')
-            elif n not in running or r.state == 'running' or running[n][1] == 'stopped':
+            elif n not in running or r.state == p.ProcState.RUNNING \
+                    or running[n][1] == p.ProcState.STOPPED:
                 running[n] = (scale, r.state, at)
     return running, standby
 
