@@ -2,8 +2,8 @@
 """Simulator speed: simulated seconds of robot time per wall-clock second.
 
 Drives laps of the three system sizes with each policy (the runtime heuristic and the
-planner-backed policy) and the oracle, and prints the rate per lap kind. Every lap steps the
-policy once per decider period (0.5 s), as the live decider does.
+planner-backed policy) and the oracle, and prints the rate per lap kind. Every lap runs the
+decider's turn around the policy once per decider period (0.5 s), as the live decider does.
 
     python bench/bench_sim.py [--laps 5] [--seed 0]
 """

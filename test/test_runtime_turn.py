@@ -144,3 +144,54 @@ def test_a_takeover_gives_a_grace_period_only_to_nodes_not_yet_where_placed(d):
     placed = dict(master_layout(d), amcl='laptop')
     turn.take_over(10.0, placed, 4, 'takeover')
     assert set(turn.policy.last_move) == {'amcl'} and set(turn.policy.pending) == {'amcl'}
+
+
+# --- which layout a decider that comes to lead starts from ----------------------------------
+
+TAKEOVER = 'decider a (term 1) silent for 0.30 s'
+
+
+def test_leading_on_from_the_leaders_layout_when_heard(d):
+    where = dict(master_layout(d), amcl='laptop')
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    feed(turn, d, 10.0, master_layout(d), generation=11)
+    # What the leader last published wins over what the agents report (AMCL still starting).
+    out = turn.lead(10.0, TAKEOVER, took_over=True, heard=(12, where))
+    assert out is not None and out.layouts == [(13, where, TAKEOVER)]
+    assert out.events == [('layout', '', '', '', TAKEOVER, 13),
+                          ('takeover', '', '', '', TAKEOVER, 13)]
+    assert turn.layout == where and turn.generation == 13
+
+
+def test_leading_on_from_what_runs_when_the_leaders_layout_was_not_heard(d):
+    runs = dict(master_layout(d), amcl='laptop')
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    feed(turn, d, 10.0, runs, generation=5)
+    out = turn.lead(10.0, TAKEOVER, took_over=True)
+    reason = (f'{TAKEOVER}; its layout was not heard: what runs is adopted '
+              '(adopted amcl where it runs (laptop; planned robot))')
+    assert out is not None and out.layouts == [(6, runs, reason)]
+    assert [e[0] for e in out.events] == ['layout', 'takeover']
+    assert out.events[1][4] == TAKEOVER
+    assert ('info', f'generation 6: {reason}') in out.logs
+    # AMCL runs where the adopted layout has it: the next turn leaves it there.
+    feed(turn, d, 10.5, runs, generation=6)
+    assert all(m.node != 'amcl' for m in turn.turn(10.5).decisions)
+    assert turn.layout['amcl'] == 'laptop'
+
+
+def test_a_leader_that_stood_down_leads_on_from_its_own_layout(d):
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    feed(turn, d, 1.0, master_layout(d))
+    turn.turn(1.0)
+    mine, generation = dict(turn.layout), turn.generation
+    out = turn.lead(5.0, 'no leader heard for 0.40 s', took_over=False)
+    assert out is not None and out.layouts == [(generation + 1, mine,
+                                                'no leader heard for 0.40 s')]
+    assert [e[0] for e in out.events] == ['layout']         # no takeover: it led before
+
+
+def test_a_decider_that_leads_without_following_anyone_waits_for_its_first_turn(d):
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    assert turn.lead(3.0, 'no leader heard for 3 s', took_over=False) is None
+    assert turn.layout is None and turn.generation == 0

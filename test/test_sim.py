@@ -10,8 +10,9 @@ import sys
 import numpy as np
 import pytest
 
-from anyscale_manager.runtime.observations import MIGRATE, Decision
+from anyscale_manager.runtime.observations import MIGRATE, MIGRATE_BACK, Decision
 from anyscale_manager.runtime.policy import MigrationPolicy
+from anyscale_manager.runtime.turn import DeciderTurn
 from anyscale_manager.sim.model import PathModel, robot_speed
 from anyscale_manager.sim.oracle import MILP, Assignment, LinkBudget
 from anyscale_manager.sim.path import LinkSchedule, always_up, draw_schedule
@@ -237,6 +238,43 @@ def test_the_policy_is_the_runtime_one(testbed):
     assert lap.finished and lap.migrations > 0
     assert [d for _, d in policy.history] == world_log
     assert world_log[0].node == 'amcl'                      # the paper: AMCL first
+
+
+@pytest.mark.parametrize('name', [HEURISTIC, PLANNER])
+def test_a_lap_runs_the_deciders_turn(testbed, name):
+    """The live decider's turn decides in the simulator: its first layout, one layout and one
+    event per decision, its violation events, and its cost integral."""
+    policy = make_policy(name, testbed)
+    schedules = run_schedules(testbed, PATH, 0, 0)
+    turns = []
+    real_turn = DeciderTurn.turn
+
+    def spy(self, now, observed=None):
+        assert self.policy is policy and observed is not None and observed.now == now
+        out = real_turn(self, now, observed)
+        turns.append(out)
+        return out
+
+    said = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(DeciderTurn, 'turn', spy)
+        lap = drive(testbed, schedules, PATH, policy, said=said)
+    assert len(turns) == lap.steps and said == [e for out in turns for e in out.events]
+    assert said[0] == ('layout', '', '', '', 'first layout (master)', 1)
+    moves = [m for out in turns for m in out.decisions]
+    assert moves == [m for _, m in policy.history] and len(moves) == lap.migrations > 0
+    assert {MIGRATE, MIGRATE_BACK} <= {m.kind for m in moves}
+    assert [e[:5] for e in said if e[0] in {m.kind for m in moves}] == \
+        [(m.kind, m.node, m.from_scale, m.to_scale, m.reason) for m in moves]
+    # The first layout, then one more for each turn that moved something.
+    layouts = [g for out in turns for g, _, _ in out.layouts]
+    assert layouts == list(range(1, 2 + sum(1 for out in turns if out.decisions)))
+    # The link's holes are said as the live decider says them, and cleared.
+    assert any(e[0] == 'violation' and 'link' in e[4] for e in said)
+    assert any(e[0] == 'cleared' for e in said)
+    assert all(out.plan is not None and out.objective is not None for out in turns)
+    assert lap.perf_map_mean == pytest.approx(turns[-1].objective[1] / turns[-1].objective[2],
+                                              rel=0.05)
 
 
 def test_no_migration_is_zero_improvement(testbed3):

@@ -459,17 +459,12 @@ class DeciderNode(Node):
             return
         log.info(change.reason)
         previous = change.previous
-        layout = None if previous is None else self._layouts.get(previous.identity.id)
-        if layout is None and self.layout is not None:
-            layout = p.Layout(generation=self.generation, deployment=self.deployment.name,
-                              assignments=dict(self.layout), reason=self.core.reason, stamp=0.0)
-        if layout is not None:
-            self._emit(self.core.take_over(now, dict(layout.assignments), layout.generation,
-                                           change.reason))
-        elif previous is not None:
-            self._emit(self.core.take_over(now, None, 0, change.reason))
-        if previous is not None:
-            self._event('takeover', '', '', '', change.reason)
+        heard = None if previous is None else self._layouts.get(previous.identity.id)
+        out = self.core.lead(now, change.reason, took_over=previous is not None,
+                             heard=None if heard is None else (heard.generation,
+                                                               dict(heard.assignments)))
+        if out is not None:
+            self._emit(out)
         self._tick()
 
     def _on_timer(self) -> None:

@@ -6,11 +6,13 @@ policy, the liveness and single-machine watches, the cost integral, the layout a
 generation, the violations and notes already announced). The rclpy decider
 (nodes/decider.py) feeds the book from its topics, calls ``turn(now)`` once a period (and at
 once on a cut, a crash or a shrinking link) and publishes what comes back; the unit tests
-drive the same object with a hand-written clock. Nothing here reads a clock or touches ROS.
+drive the same object with a hand-written clock, and the simulator hands it the observations
+of its simulated world with the world's clock (``turn(now, observed)``). Nothing here reads a
+clock or touches ROS.
 """
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Set, Tuple
+from typing import Dict, List, Mapping, Optional, Protocol, Sequence, Set, Tuple
 
 from .. import protocol as p
 from ..model.types import DeciderSettings, Deployment
@@ -20,6 +22,7 @@ from .hosts import SingleMachineWatch
 from .intake import ObservationBook
 from .layout import adopt, initial_plan
 from .liveness import LivenessWatch
+from .observations import Decision, Observations
 from .plan_check import PlanCheckReport, check_plan, expectations
 from .policy import MigrationPolicy
 
@@ -27,6 +30,37 @@ from .policy import MigrationPolicy
 EventTuple = Tuple[str, str, str, str, str, int]
 # (generation, assignments, reason): one layout to publish.
 LayoutTuple = Tuple[int, Dict[str, str], str]
+# Said of a takeover whose leader's layout was not heard.
+NOT_HEARD = 'its layout was not heard: what runs is adopted'
+
+
+class TurnPolicy(Protocol):
+    """What the turn asks of its migration policy: ``MigrationPolicy`` (Algorithm 1) in the live
+    decider; the simulator may hand it another policy to judge under the same turn."""
+
+    @property
+    def last_report(self) -> Optional[ConstraintReport]: ...
+
+    @property
+    def notes(self) -> Tuple[str, ...]: ...
+
+    @property
+    def unplaceable(self) -> Mapping[str, str]: ...
+
+    @property
+    def migrated(self) -> Sequence[Tuple[str, str]]: ...
+
+    @property
+    def layout(self) -> Mapping[str, str]: ...
+
+    def step(self, obs: Observations) -> List[Decision]: ...
+
+    def reset(self, layout: Mapping[str, str], now: float,
+              running: Optional[Mapping[str, str]] = None, *, settled: bool = False) -> None: ...
+
+    def heard(self, kind: str, node: str, from_scale: str, now: float) -> None: ...
+
+    def update_settings(self, settings: DeciderSettings) -> None: ...
 
 
 @dataclass
@@ -35,6 +69,8 @@ class TurnOutput:
 
     # New layouts to publish, in order (a first layout and a first decision in one turn).
     layouts: List[LayoutTuple] = field(default_factory=list)
+    # The moves of this turn, in order (each is also an event): what the agents are to apply.
+    decisions: List[Decision] = field(default_factory=list)
     events: List[EventTuple] = field(default_factory=list)
     logs: List[Tuple[str, str]] = field(default_factory=list)      # (info|warn|error, text)
     # Perf_map now, its integral and the time it covers (None before the first layout).
@@ -48,13 +84,15 @@ class TurnOutput:
 class DeciderTurn:
     """The decider between and during its turns (see the module)."""
 
-    def __init__(self, deployment: Deployment, settings: DeciderSettings, started: float):
+    def __init__(self, deployment: Deployment, settings: DeciderSettings, started: float,
+                 policy: Optional[TurnPolicy] = None):
         self.deployment = deployment
         self.settings = settings
         self.started = started
         self.planned, self.placements = initial_plan(deployment, settings)
         self.book = ObservationBook(deployment, settings, started)
-        self.policy = MigrationPolicy(deployment, settings)
+        self.policy: TurnPolicy = policy if policy is not None else \
+            MigrationPolicy(deployment, settings)
         # Silent agents, lost scales and nodes with nowhere to go: said when they change.
         self.liveness = LivenessWatch(deployment, settings)
         # Scales whose agents report one machine (single-machine mode): said when it changes.
@@ -76,22 +114,28 @@ class DeciderTurn:
         self.liveness.settings = settings
 
     # --- one turn -----------------------------------------------------------------------------
-    def turn(self, now: float) -> TurnOutput:
+    def turn(self, now: float, observed: Optional[Observations] = None) -> TurnOutput:
+        """One turn at ``now``. ``observed``: a snapshot made elsewhere (the simulator's world),
+        taken instead of the book's; it is all there is to know, so the first layout is not
+        held back for the agents."""
         out = TurnOutput()
         if self.layout is None:
             waited = now - self.started
-            if not (self.book.all_agents_heard() or waited >= self.settings.agent_timeout_s):
+            if observed is None and not (self.book.all_agents_heard()
+                                         or waited >= self.settings.agent_timeout_s):
                 out.message = 'waiting for the agents to report what runs'
                 return out
-            self._start(now, out)
-        obs = self.book.snapshot(now, self.layout)
+            self._start(now, out, observed)
+        layout = self._layout()
+        obs = observed if observed is not None else self.book.snapshot(now, layout)
         decisions = self.policy.step(obs)
         report = self.policy.last_report
         self.last_report = report
         if decisions:
-            self.layout = dict(self.policy.layout)
+            self.layout = layout = dict(self.policy.layout)
             self.generation += 1
             self._new_layout('; '.join(f'{d.kind} {d.node}: {d.reason}' for d in decisions), out)
+            out.decisions.extend(decisions)
             for d in decisions:
                 self.decisions += 1
                 self._event(out, d.kind, d.node, d.from_scale, d.to_scale, d.reason)
@@ -99,7 +143,7 @@ class DeciderTurn:
                                          f'{d.reason}'))
         self._announce(report, out)
         self._single_machine(out)
-        for n in self.liveness.update(obs, self.policy.unplaceable, report, self.layout):
+        for n in self.liveness.update(obs, self.policy.unplaceable, report, layout):
             self._event(out, n.kind, n.node, n.scale, '', n.text)
             out.logs.append((n.level if n.level in ('error', 'warn') else 'info', n.text))
 
@@ -123,15 +167,17 @@ class DeciderTurn:
             # A silent agent or a node with nowhere to go says more than a violation it causes.
             level, message = live_level, live_message
         out.level, out.message = level, message
-        out.values = self.values(now, perf, integral, len(obs.running))
+        out.values = self.values(now, perf, integral, obs)
         return out
 
     def values(self, now: float, perf: float = 0.0, integral: float = 0.0,
-               running: int = 0) -> Dict[str, object]:
-        """The decider's diagnostic values that the turn knows."""
+               obs: Optional[Observations] = None) -> Dict[str, object]:
+        """The decider's diagnostic values that the turn knows (``obs``: this turn's)."""
+        lost = obs.lost_scales if obs is not None else self.book.lost_scales(now)
         return {
-            'generation': self.generation, 'nodes running': running,
-            'lost scales': ', '.join(sorted(self.book.lost_scales(now))),
+            'generation': self.generation,
+            'nodes running': len(obs.running) if obs is not None else 0,
+            'lost scales': ', '.join(sorted(lost)),
             'silent agents': ', '.join(sorted(self.liveness.silent_since)),
             'cannot be placed': ', '.join(sorted(self.liveness.unplaceable)),
             'migrated': ', '.join(f'{n}@{s}' for n, s in self.policy.migrated),
@@ -142,12 +188,22 @@ class DeciderTurn:
         }
 
     # --- the first layout ---------------------------------------------------------------------
-    def _start(self, now: float, out: TurnOutput) -> None:
-        # Adopt where nodes serve: a standby node's copies all start at boot, so only its
-        # active copy counts (a starting one adopted the laptop's fresh standby copies).
+    def _layout(self) -> Dict[str, str]:
+        if self.layout is None:
+            raise RuntimeError('the decider has no layout yet')
+        return self.layout
+
+    def _running(self, now: float) -> Dict[str, str]:
+        """Where nodes serve, as the agents report it: a standby node's copies all start at
+        boot, so only its active copy counts (a starting one adopted the laptop's fresh
+        standby copies)."""
         with_standby = [n for n in self.deployment.node_names
                         if self.deployment.standby_scales(n)]
-        running = self.book.running(now, active_only=with_standby)
+        return self.book.running(now, active_only=with_standby)
+
+    def _start(self, now: float, out: TurnOutput, observed: Optional[Observations]) -> None:
+        # Adopt where nodes serve.
+        running = dict(observed.running) if observed is not None else self._running(now)
         layout, notes = adopt(self.deployment, self.planned, running)
         # Above what the agents applied, so that their comparisons across scales stay sane;
         # agents take a new decider's first layout whatever its number, so near the bound
@@ -157,7 +213,8 @@ class DeciderTurn:
             self.generation = 1
         self.layout = layout
         self.policy.reset(layout, now, running)
-        lost = sorted(self.book.lost_scales(now))
+        lost = sorted(observed.lost_scales if observed is not None
+                      else self.book.lost_scales(now))
         reason = f'first layout ({self.settings.initial_layout})'
         if notes:
             reason += ': ' + '; '.join(notes)
@@ -174,20 +231,39 @@ class DeciderTurn:
         """The leader's decision (its event), remembered for hysteresis after a takeover."""
         self.policy.heard(kind, node, from_scale, now)
 
+    def lead(self, now: float, reason: str, took_over: bool,
+             heard: Optional[Tuple[int, Mapping[str, str]]] = None) -> Optional[TurnOutput]:
+        """This decider has just come to lead (``reason``: why); the layout it leads on from.
+
+        ``heard``: the last layout (generation, assignments) of the leader it takes over from,
+        when it heard one: that layout. Else its own last layout (a leader that stepped down
+        leads again). Else, ``took_over`` a leader whose layout it did not hear (it died just
+        after this decider found it): what runs, as the agents report it. A decider that leads
+        without having followed anyone returns None: its first turn makes the first layout.
+        A takeover is also said as an event of its own."""
+        if heard is not None:
+            out = self.take_over(now, dict(heard[1]), heard[0], reason)
+        elif self.layout is not None:
+            out = self.take_over(now, dict(self.layout), self.generation, reason)
+        elif took_over:
+            out = self.take_over(now, None, 0, reason)
+        else:
+            return None
+        if took_over:
+            self._event(out, 'takeover', '', '', '', reason)
+        return out
+
     def take_over(self, now: float, assignments: Optional[Dict[str, str]], generation: int,
                   reason: str) -> TurnOutput:
         """Lead on from the layout of the decider taken over from: nothing moves that it did
         not move; only the nodes not yet running where it placed them get a grace period.
-        ``assignments`` None: its layout was not heard (it died just after this standby found
-        it): what runs, as the agents report it, is adopted."""
+        ``assignments`` None: its layout was not heard: what runs, as the agents report it,
+        is adopted."""
         out = TurnOutput()
-        with_standby = [n for n in self.deployment.node_names
-                        if self.deployment.standby_scales(n)]
-        running = self.book.running(now, active_only=with_standby)
+        running = self._running(now)
         if assignments is None:
             assignments, notes = adopt(self.deployment, self.planned, running)
-            reason += ('; its layout was not heard: what runs is adopted'
-                       + (' (' + '; '.join(notes) + ')' if notes else ''))
+            reason += f'; {NOT_HEARD}' + (' (' + '; '.join(notes) + ')' if notes else '')
         layout = dict(self.layout or self.planned)
         for node, scale in assignments.items():
             if node in layout and scale in self.deployment.allowed_scales(node):
@@ -208,7 +284,7 @@ class DeciderTurn:
 
     def _new_layout(self, reason: str, out: TurnOutput) -> None:
         self.reason = reason[:2000]
-        out.layouts.append((self.generation, dict(self.layout), self.reason))
+        out.layouts.append((self.generation, dict(self._layout()), self.reason))
         self._event(out, 'layout', '', '', '', self.reason)
 
     def _announce(self, report: Optional[ConstraintReport], out: TurnOutput) -> None:

@@ -71,7 +71,8 @@ def parse_systems(text: Optional[str]) -> List[Tuple[int, int, int]]:
         match = SYSTEM_RE.match(part)
         if not match:
             raise ValueError(f'--systems: {part.strip()!r} is not NxMxK (for example 6x2x2)')
-        out.append(tuple(int(g) for g in match.groups()))
+        n, m, k = (int(g) for g in match.groups())
+        out.append((n, m, k))
     return out
 
 

@@ -18,12 +18,15 @@ planner-backed policy uses the deployment's node weights, which is all a live de
 import itertools
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+from functools import partial
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import Deployment
 from ..planning.highs import highspy, quiet_highs
 from .model import NodeProfile, node_rate, quality
 
+# (node, scale) -> its value in the objective, bonus included.
+Value = Callable[[str, str], float]
 COST_EPSILON = 1e-3     # the cost function only breaks ties between equal qualities
 BRANCH_AND_BOUND = 'branch_and_bound'
 MILP = 'milp'
@@ -131,7 +134,7 @@ class Assignment:
         def val(n: str, s: str) -> float:
             return self.value[(n, s)] + bonus.get((n, s), 0.0)
 
-        greedy = {n: max(cands[n], key=lambda s, n=n: val(n, s)) for n in self.nodes}
+        greedy = {n: max(cands[n], key=partial(val, n)) for n in self.nodes}
         if self.feasible(greedy, usable):
             return greedy
         if self.method == MILP:
@@ -139,7 +142,7 @@ class Assignment:
         return self._branch_and_bound(cands, usable, val)
 
     def _branch_and_bound(self, cands: Mapping[str, Sequence[str]],
-                          usable: Mapping[str, LinkBudget], val) -> Dict[str, str]:
+                          usable: Mapping[str, LinkBudget], val: Value) -> Dict[str, str]:
         """Depth-first over nodes (widest value range first), best scale first, pruned by the
         sum of the remaining nodes' best values; exact."""
         nodes = sorted(self.nodes, key=lambda n: -(max(val(n, s) for s in cands[n])
@@ -152,13 +155,14 @@ class Assignment:
         cpu_left = {s: self.cpu_budget(s, b) for s, b in usable.items()}
         kbps_left = {s: self.margin * b.available_kbps for s, b in usable.items()}
         chosen: List[str] = [self.master] * len(nodes)
-        best = [-math.inf, list(chosen)]
+        best_value, best = -math.inf, list(chosen)
 
         def visit(i: int, acc: float) -> None:
-            if acc + suffix[i] <= best[0] + 1e-12:
+            nonlocal best_value, best
+            if acc + suffix[i] <= best_value + 1e-12:
                 return
             if i == len(nodes):
-                best[0], best[1] = acc, list(chosen)
+                best_value, best = acc, list(chosen)
                 return
             n = nodes[i]
             for v, s in options[i]:
@@ -176,7 +180,7 @@ class Assignment:
                 kbps_left[s] += self.kbps[n]
 
         visit(0, 0.0)
-        return dict(zip(nodes, best[1]))
+        return dict(zip(nodes, best))
 
     def enumerate(self, usable: Mapping[str, LinkBudget],
                   bonus: Optional[Mapping[Tuple[str, str], float]] = None) -> Dict[str, str]:
@@ -194,7 +198,7 @@ class Assignment:
         return best if best is not None else {n: self.master for n in self.nodes}
 
     def _milp(self, cands: Mapping[str, Sequence[str]], usable: Mapping[str, LinkBudget],
-              val) -> Dict[str, str]:
+              val: Value) -> Dict[str, str]:
         h = quiet_highs()
         h.setOptionValue('mip_rel_gap', 0.0)
         x = {}

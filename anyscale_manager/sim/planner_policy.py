@@ -9,16 +9,19 @@ when that is better. Its objective uses only the deployment: each migratable nod
 the quality its rate reaches on a scale (freq_min on the master, scaled by the gain alpha, up to
 freq_opt), with the paper's cost function breaking ties. It judges constraints with the same
 ``runtime.constraints.evaluate`` as the heuristic; a node whose connections break their Δ on a
-remote scale for another reason than the link is kept off that scale for T.
+remote scale for another reason than the link is kept off that scale for T. It runs under the
+decider's turn (``runtime.turn.DeciderTurn``) as the heuristic does: ``reset`` gives it the
+first layout, ``layout`` and ``migrated`` say where it wants the nodes.
 """
 
 import math
 from typing import Dict, List, Mapping, Optional, Tuple
 
-from ..model.types import DeciderSettings, Deployment
-from ..runtime.constraints import CPU, FREQUENCY, DeltaTracker, evaluate, link_capacity, \
-    node_cpu, scale_cpu
-from ..runtime.observations import MIGRATE, MIGRATE_BACK, RELOCATE, Decision, Observations
+from ..model.types import DeciderSettings, Deployment, frozen_map
+from ..runtime.constraints import CPU, FREQUENCY, ConstraintReport, DeltaTracker, evaluate, \
+    link_capacity, node_cpu, scale_cpu
+from ..runtime.observations import MIGRATE, MIGRATE_BACK, MOVE_AWAY, RELOCATE, Decision, \
+    Observations
 from .model import profiles_from_deployment
 from .oracle import Assignment, LinkBudget
 
@@ -49,7 +52,40 @@ class PlannerPolicy:
         self.up_since: Dict[str, float] = {}
         self.started: Optional[float] = None
         self.history: List[Tuple[float, Decision]] = []
+        self.desired: Dict[str, str] = {}
+        self.last_report: Optional[ConstraintReport] = None
+        self.notes: Tuple[str, ...] = ()            # it always finds a layout: nothing to say
+        self.unplaceable: Mapping[str, str] = frozen_map()
         self._delta = DeltaTracker(deployment)
+
+    def update_settings(self, settings: DeciderSettings) -> None:
+        """New thresholds; the assignment keeps the headroom and margin it was built with."""
+        self.settings = settings
+
+    def reset(self, layout: Mapping[str, str], now: float,
+              running: Optional[Mapping[str, str]] = None, *, settled: bool = False) -> None:
+        """Start from ``layout``: nodes not yet running where it places them are pending and get
+        a grace period (without ``settled``, so do the nodes it places off the master)."""
+        self.desired = {n: s for n, s in layout.items() if n in self.deployment.node_names}
+        self.pending = {n: (s, now) for n, s in self.desired.items()
+                        if n in self.nodes and running is not None and running.get(n) != s}
+        self.last_move = {n: now for n, s in self.desired.items() if n in self.nodes
+                          and (n in self.pending or s != self.master and not settled)}
+        if self.started is None:
+            self.started = now
+
+    def heard(self, kind: str, node: str, from_scale: str, now: float) -> None:
+        """Another decider's move back from a scale keeps the node off it for T, as its own."""
+        if node in self.nodes and kind in (MIGRATE_BACK, MOVE_AWAY, RELOCATE):
+            self.barred[(node, from_scale)] = now + self.settings.hysteresis_s
+
+    @property
+    def layout(self) -> Mapping[str, str]:
+        return frozen_map(self.desired)
+
+    @property
+    def migrated(self) -> List[Tuple[str, str]]:
+        return [(n, s) for n, s in self.desired.items() if n in self.nodes and s != self.master]
 
     @property
     def grace_until(self) -> Mapping[str, float]:
@@ -62,11 +98,17 @@ class PlannerPolicy:
         d, s = self.deployment, self.settings
         running = dict(obs.running)
         timeout = d.agent.readiness_timeout_s + s.agent_timeout_s
+        if not self.desired:
+            self.desired = {n: running.get(n, self.master) for n in self.nodes}
         for node, (scale, asked) in list(self.pending.items()):
-            if running.get(node) == scale or now - asked > timeout:
+            if running.get(node) == scale:
                 del self.pending[node]
+            elif now - asked > timeout:
+                del self.pending[node]
+                self.desired[node] = running.get(node, self.master)   # never applied
         report = evaluate(d, s, obs, self.grace_until, below_for=self._delta.update(obs, s),
                           since=self.started)
+        self.last_report = report
         for v in report.of_kind(FREQUENCY, CPU):
             for n in v.nodes:
                 if n in self.nodes and running.get(n, self.master) != self.master:
@@ -94,6 +136,7 @@ class PlannerPolicy:
                 continue
             decisions.append(self._decision(obs, n, here, want, usable))
         for dec in decisions:
+            self.desired[dec.node] = dec.to_scale
             self.pending[dec.node] = (dec.to_scale, now)
             self.last_move[dec.node] = now
             self.history.append((now, dec))

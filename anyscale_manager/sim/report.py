@@ -3,7 +3,7 @@
 import csv
 import math
 import os
-from typing import List, Optional, Sequence
+from typing import List, Optional, Sequence, Tuple
 
 from .runner import Experiment
 
@@ -99,8 +99,10 @@ def write_figure(exp: Experiment, directory: str, other: Optional[Experiment] = 
     path = os.path.join(directory, 'fig7.png')
     labels = [s.label.replace(' x ', '\n') for s in exp.systems]
     x = list(range(len(exp.systems)))
-    series = [(f'{exp.policy} (link 45-65 %)', [s.improvement_pct for s in exp.systems],
-               [s.improvement_std_pct for s in exp.systems], '#4c72b0')]
+    # (label, values, error bars or None, colour)
+    series: List[Tuple[str, List[float], Optional[List[float]], str]] = [
+        (f'{exp.policy} (link 45-65 %)', [s.improvement_pct for s in exp.systems],
+         [s.improvement_std_pct for s in exp.systems], '#4c72b0')]
     if other is not None:
         series.append((f'{other.policy} (link 45-65 %)',
                        [s.improvement_pct for s in other.systems],

@@ -1,5 +1,10 @@
 """Laps and experiments: drive a policy around the path, compare with no migration and the oracle.
 
+A lap runs the live decider's turn (``runtime.turn.DeciderTurn``) around the policy: every
+period the turn gets the world's observations and the world's clock, and the world applies the
+moves it returns. The first layout, the events, the plan check and the cost integral (Eq. 2)
+are the turn's, as in the live decider.
+
 Improvement of a lap = (1 - T_lap / T_no_migration) x 100: the share of the path time saved, as
 the paper reports the test-bed's 28 %. Distance from the oracle = (1 - T_oracle / T_lap) x 100:
 the share of the optimum's performance (1 / time) the policy gives up.
@@ -12,12 +17,13 @@ comparison across K and across policies is not blurred by different draws.
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
-from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Protocol, Sequence, Tuple
 
 import numpy as np
 
-from ..runtime.cost import CostIntegrator
+from ..model.types import DeciderSettings
 from ..runtime.policy import MigrationPolicy
+from ..runtime.turn import DeciderTurn, EventTuple, TurnPolicy
 from .model import PathModel, SimSystem, node_rate, robot_speed
 from .oracle import Assignment, LinkBudget
 from .path import LinkSchedule, best_case_schedules, draw_schedules
@@ -31,8 +37,16 @@ POLICIES = (HEURISTIC, PLANNER)
 ORACLE_KBPS_STEP = 100.0   # the oracle sees available bandwidth rounded down to this
 
 
+class SimPolicy(TurnPolicy, Protocol):
+    """A policy the simulator drives: what the turn asks of it, and the settings it runs on
+    (the turn runs on the same)."""
+
+    @property
+    def settings(self) -> DeciderSettings: ...
+
+
 def make_policy(name: str, system: SimSystem, migration: bool = True,
-                overrides: Optional[Mapping[str, object]] = None):
+                overrides: Optional[Mapping[str, Any]] = None) -> SimPolicy:
     """The real runtime policy (``heuristic``) or the planner-backed one, fresh for one lap.
 
     ``overrides`` changes decider settings (e.g. ``hysteresis_s``) for a sensitivity study.
@@ -64,27 +78,30 @@ def peak_kbps(system: SimSystem, path: PathModel) -> Dict[str, float]:
 
 
 def drive(system: SimSystem, schedules: Mapping[str, LinkSchedule], path: PathModel,
-          policy, max_time_s: Optional[float] = None,
-          trace: Optional[List[Tuple[float, float, float, Dict[str, str]]]] = None) -> Lap:
-    """One lap with ``policy`` deciding every period; ``trace`` collects (t, s, v, layout)."""
+          policy: SimPolicy, max_time_s: Optional[float] = None,
+          trace: Optional[List[Tuple[float, float, float, Dict[str, str]]]] = None,
+          said: Optional[List[EventTuple]] = None) -> Lap:
+    """One lap: the decider's turn around ``policy`` every period, on the world's observations
+    and clock. ``trace`` collects (t, s, v, layout), ``said`` every event the turn said."""
     world = World(system, schedules, path)
-    cost = CostIntegrator(system.deployment)
-    dt = system.deployment.decider.period_s
+    turn = DeciderTurn(system.deployment, policy.settings, world.t, policy)
+    dt = policy.settings.period_s
     limit = max_time_s if max_time_s is not None else 20.0 * path.length_m / path.speed_min_mps
     steps = 0
-    while not world.finished and world.t < limit:
-        obs = world.observe()
-        world.apply(policy.step(obs))
-        cpu = {n: x for so in obs.scales.values() for n, x in so.cpu_by_node.items()}
-        cost.update(world.t, obs.running, cpu)
+    while world.finish_time_s is None and world.t < limit:
+        out = turn.turn(world.t, world.observe())
+        world.apply(out.decisions)
+        if said is not None:
+            said.extend(out.events)
         if trace is not None:
             trace.append((world.t, world.s, world.speed_mps(), dict(world.placement)))
         world.advance(dt)
         steps += 1
-    end = world.finish_time_s if world.finished else world.t
-    cost.update(end, dict(world.placement))
+    end = world.finish_time_s if world.finish_time_s is not None else world.t
+    # The integral closes at the lap's end, with the layout that held until then.
+    turn.cost.update(end, dict(world.placement))
     return Lap(time_s=end if world.finished else math.inf, finished=world.finished,
-               migrations=world.migrations, perf_map_mean=cost.mean, steps=steps)
+               migrations=world.migrations, perf_map_mean=turn.cost.mean, steps=steps)
 
 
 def oracle_lap(system: SimSystem, schedules: Mapping[str, LinkSchedule],

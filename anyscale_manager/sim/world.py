@@ -109,7 +109,8 @@ class World:
             ok = self.connected(self.placement[c.publisher], self.placement[c.subscriber])
             rate = out[c.publisher] if ok else 0.0
             self.connection_hz[c.name] = rate
-            if rate < c.freq_min_hz - EPS:
+            low = c.freq_min_hz if c.freq_min_hz is not None else 0.0    # set when monitored
+            if rate < low - EPS:
                 if self._below_since[c.name] is None:
                     self._below_since[c.name] = self.t
             else:
