@@ -53,6 +53,16 @@ def ros_env():
 
 
 @pytest.fixture
+def ros():
+    """This test's own rclpy context, initialised, with an executor and the nodes it destroys
+    (spinning.RosContext): ``ros.node(name)``, ``ros.add(node)``, ``ros.spin_until(...)``; shut
+    down after the test."""
+    from spinning import RosContext
+    with RosContext() as context:
+        yield context
+
+
+@pytest.fixture
 def testbed_path():
     return TESTBED
 
