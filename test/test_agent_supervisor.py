@@ -624,3 +624,118 @@ def test_a_copy_cut_off_from_the_master_stands_down_when_a_peer_serves_it_under_
         state.decider = decider
         r2.peer_state(state, 1.4)
         assert r2.desired(1.5, ('sbs',)) == {'sbs'}
+
+
+# --- timers ---------------------------------------------------------------------------------
+def test_a_cadence_runs_each_job_at_its_period_from_one_tick():
+    from anyscale_manager.nodes.monitors.common import Cadence
+    runs = []
+    c = Cadence(0.05, start=10.0)
+    c.every(0.05, lambda: runs.append('drain'))
+    c.every(0.2, lambda: runs.append('publish'))
+    c.every(1.0, lambda: runs.append('resolve'))
+    # A timer's ticks, a little early or late: each job keeps its own period.
+    for i in range(1, 41):
+        c.run(10.0 + 0.05 * i + (0.004 if i % 2 else -0.004))
+    assert runs.count('drain') == 40 and runs.count('publish') == 10
+    assert runs.count('resolve') == 2
+    assert runs[:5] == ['drain'] * 4 + ['publish']      # due together: in the order added
+    # Periods missed while the executor was busy are skipped, not caught up.
+    runs.clear()
+    c.run(20.0)
+    c.run(20.05)
+    assert runs == ['drain', 'publish', 'resolve', 'drain']
+    with pytest.raises(ValueError, match='faster than the tick'):
+        c.every(0.01, lambda: None)
+
+
+class _TimerCountingNode:
+    """Enough of an rclpy node for the monitors to be built on: it counts their timers."""
+
+    def __init__(self, name='anyscale_agent_a', *args, **kwargs):
+        self.name = name
+        self.timers = []
+        self.context = None
+
+    def create_timer(self, period_s, callback, callback_group=None):
+        self.timers.append((period_s, callback))
+        return object()
+
+    def create_publisher(self, *args, **kwargs):
+        return object()
+
+    def create_subscription(self, *args, **kwargs):
+        return object()
+
+    def get_logger(self):
+        import logging
+        return logging.getLogger('timer-count')
+
+    def get_name(self):
+        return self.name
+
+    def get_namespace(self):
+        return '/'
+
+    def resolve_topic_name(self, topic):
+        return topic
+
+    def destroy_timer(self, timer):
+        pass
+
+    destroy_subscription = destroy_publisher = destroy_timer
+
+    def destroy_node(self):
+        pass
+
+
+def many_connections_deployment(count=40):
+    nodes = {f'n{i}': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0} for i in range(count)}
+    connections = {f'c{i}': {'topic': f'/t{i}', 'publisher': f'n{i}',
+                             'subscriber': f'n{(i + 1) % count}',
+                             'msg_type': 'std_msgs/msg/String', 'freq_min_hz': 5.0,
+                             'tolerance_s': 2.0}
+                   for i in range(count)}
+    data = deployment_dict(nodes)
+    params = data['/**']['ros__parameters']
+    params['scales'] = {'names': ['a', 'b', 'c'],
+                        'a': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100.0},
+                        'b': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100.0},
+                        'c': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100.0}}
+    params['connections'] = dict({'names': list(connections)}, **connections)
+    return load_mapping(data)
+
+
+def test_the_monitors_use_one_timer_each_however_many_connections_and_links(monkeypatch):
+    """rclpy's events executor warns from 8 timers on one clock, and every monitor shares the
+    agent node's: the agent keeps 3 (its loop, its heartbeat, the one-shot exit wake)."""
+    from anyscale_manager.nodes import monitors
+    from anyscale_manager.nodes.monitors import probes
+    monkeypatch.setattr(probes, 'Node', _TimerCountingNode)
+    d = many_connections_deployment()
+    node = _TimerCountingNode()
+    built = [monitors.ScaleMonitor(node, d, 'a', pids=dict)]
+    try:
+        built.append(monitors.LinkMonitor(node, d, 'a'))      # it watches two links
+        built.append(monitors.ProbeManager(node, d, 'a', watch_node=_TimerCountingNode()))
+        built[-1].set_connections(c.name for c in d.connections)
+        assert len(built[-1].connections) == 40
+        assert len(node.timers) == 3
+    finally:
+        for monitor in built:
+            monitor.destroy()
+
+
+def test_the_scale_monitor_says_what_cores_the_file_declares_against_what_it_measures():
+    from types import SimpleNamespace
+    from anyscale_manager.nodes.monitors.scale import cores_note
+    robot = SimpleNamespace(name='robot', cores=1, capacity_cpu=100.0)
+    text = cores_note(robot, 2.0, quota_confined=False)
+    assert 'this machine has 2 CPUs' in text and 'one busy CPU reads 50' in text
+    assert 'the decider judges readings against capacity_cpu 100' in text
+    assert 'declares scales.robot.cores: 1, not 2' in text
+    assert 'CPU quota of 1 (systemd CPUQuota=100%' in text and 'set scales.robot.cores' in text
+    quota = cores_note(SimpleNamespace(name='robot', cores=2, capacity_cpu=200.0), 1.5, True)
+    assert quota.startswith('scale monitor for robot: its CPU quota allows 1.5 CPUs')
+    same = cores_note(SimpleNamespace(name='robot', cores=2, capacity_cpu=200.0), 2.0, False)
+    assert 'declares' not in same and same.endswith('against capacity_cpu 200')

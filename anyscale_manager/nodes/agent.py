@@ -203,9 +203,9 @@ class AgentNode(Node):
             # remote scale cut off from it no longer gets (see Reconciler).
             self.reconciler.heard_master(time.monotonic())
             self.create_subscription(String, protocol.TOPIC_OBJECTIVE, self._on_objective, 10)
-        self.create_timer(TICK_S, self._tick)
-        self._stopping_timer = self.create_timer(STOPPING_TICK_S, self._tick)
-        self._stopping_timer.cancel()
+        # One timer drives the loop, at STOPPING_TICK_S while a node is stopping (_tick).
+        self._tick_s = TICK_S
+        self._tick_timer = self.create_timer(TICK_S, self._tick)
         self.create_timer(1.0 / self.settings.heartbeat_rate_hz, self._publish_state)
         self._start_monitors()
         self._start_warden(stem)
@@ -489,11 +489,11 @@ class AgentNode(Node):
             self._publish_state()
         self._update_probes()
         stopping = any(sup.state(n) == ProcState.STOPPING for n in sup.names)
-        if stopping == self._stopping_timer.is_canceled():
-            if stopping:
-                self._stopping_timer.reset()
-            else:
-                self._stopping_timer.cancel()
+        tick_s = STOPPING_TICK_S if stopping else TICK_S
+        if tick_s != self._tick_s:
+            self._tick_s = tick_s
+            self._tick_timer.timer_period_ns = round(tick_s * 1e9)
+            self._tick_timer.reset()
 
     def _lifecycle_view(self) -> Dict[str, tuple]:
         return {n: (c.driver.state, c.driver.goal, c.driver.failed)

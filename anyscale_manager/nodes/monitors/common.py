@@ -1,9 +1,9 @@
 """What the monitors share: QoS profiles, the publishers of a project topic and of
-/diagnostics, message types by name, settings checks."""
+/diagnostics, message types by name, settings checks, and one timer's cadence of jobs."""
 
 import importlib
 import re
-from typing import List, Mapping, Optional
+from typing import Callable, List, Mapping, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from std_msgs.msg import String
@@ -78,6 +78,43 @@ class Publishers:
     def destroy(self) -> None:
         self.node.destroy_publisher(self.own)
         self.node.destroy_publisher(self.diagnostics)
+
+
+class Cadence:
+    """Periodic jobs served by one timer that ticks every ``tick_s``: a job runs at the first
+    tick within half a tick of its due time, then is due one period later; periods missed
+    while the executor was busy are skipped, as rcl skips a timer's.
+
+    One timer per monitor: rclpy's events executor manages the timers of a clock in a list it
+    scans at every wake-up, and says so in the log from 8 timers on; every monitor and the
+    agent itself share the agent node's clock.
+    """
+
+    def __init__(self, tick_s: float, start: float):
+        if not tick_s > 0:
+            raise ValueError(f'a cadence needs a positive tick, got {tick_s!r}')
+        self.tick_s = tick_s
+        self._start = start
+        self._jobs: List[list] = []       # [period_s, due, job], in the order they were added
+
+    def every(self, period_s: float, job: Callable[[], None]) -> None:
+        """Run ``job`` every ``period_s`` (at least a tick), the first time one period in."""
+        if not period_s >= self.tick_s:
+            raise ValueError(f'a job every {period_s!r} s is faster than the tick of its '
+                             f'cadence, {self.tick_s:g} s')
+        self._jobs.append([period_s, self._start + period_s, job])
+
+    def run(self, now: float) -> None:
+        """Run, in the order they were added, the jobs due at ``now``. Each is rescheduled
+        before it runs: one that raises does not run twice, and the rest run at the next tick."""
+        slack = self.tick_s / 2
+        for entry in self._jobs:
+            period_s, due, job = entry
+            if now < due - slack:
+                continue
+            due += period_s
+            entry[1] = due if due > now else now + period_s
+            job()
 
 
 def period_of(rate_hz: float, what: str) -> float:

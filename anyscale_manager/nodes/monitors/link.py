@@ -146,10 +146,10 @@ class LinkMonitor:
         self._subs.append(self._node.create_subscription(
             String, p.TOPIC_AGENT_STATE, self._on_agent_state, LATCHED_QOS,
             callback_group=self._group))
-        self._timers.append(self._node.create_timer(self._period, self._beat,
-                                                    callback_group=self._group))
+        # One timer: each tick judges up and down, and every CHECKS_PER_BEAT-th also beats.
+        self._ticks = 0
         self._timers.append(self._node.create_timer(self._period / CHECKS_PER_BEAT,
-                                                    self._check, callback_group=self._group))
+                                                    self._on_tick, callback_group=self._group))
         self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
         self._probe_duration = settings.bandwidth_probe_duration_s
         self._congestion_s = settings.congestion_delay_ms / 1000.0
@@ -237,6 +237,13 @@ class LinkMonitor:
             if now - at <= self._readings_max_age:
                 fresh[name] = (bps, recent)
         return fresh
+
+    def _on_tick(self) -> None:
+        self._ticks += 1
+        if self._ticks % CHECKS_PER_BEAT == 0:
+            self._beat()        # judges first, then beats
+        else:
+            self._check()
 
     def _beat(self) -> None:
         with self._beats_lock:

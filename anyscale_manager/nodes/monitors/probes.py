@@ -22,7 +22,8 @@ from ...protocol_auth import Sealer
 from ...runtime.bandwidth import DELIVERY_SPAN_S
 from ...runtime.delta import DeltaJudge
 from ...runtime.rates import RateWindow, WriterStreams
-from .common import PROBE_QOS, Publishers, import_message_class, period_of, scale_of, status
+from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, scale_of,
+                     status)
 
 TYPE_RESOLVE_PERIOD_S = 1.0
 # Every 50 ms: the probe QoS holds 100 messages, a 1 kHz topic's 0.1 s, twice the period.
@@ -79,11 +80,13 @@ class ProbeManager:
         self._reader = Node(f'_{node.get_name()}_probes', namespace=node.get_namespace(),
                             context=node.context, start_parameter_services=False,
                             enable_rosout=False)
-        self._timer = node.create_timer(period, self._publish, callback_group=self._group)
-        self._resolver = node.create_timer(TYPE_RESOLVE_PERIOD_S, self._resolve_pending,
-                                           callback_group=self._group)
-        self._drainer = node.create_timer(DRAIN_PERIOD_S, self.drain,
-                                          callback_group=self._group)
+        # One timer drains, resolves types and publishes, each at its own period.
+        tick_s = min(DRAIN_PERIOD_S, period)
+        self._cadence = Cadence(tick_s, time.monotonic())
+        self._cadence.every(tick_s, self.drain)
+        self._cadence.every(max(TYPE_RESOLVE_PERIOD_S, tick_s), self._resolve_pending)
+        self._cadence.every(period, self._publish)
+        self._timer = node.create_timer(tick_s, self._on_tick, callback_group=self._group)
 
     @property
     def connections(self) -> Tuple[str, ...]:
@@ -169,6 +172,9 @@ class ProbeManager:
         probe.type_name, probe.problem, probe.fatal = type_name, '', False
         probe.msg_class = cls
         self._ensure_watch(probe)
+
+    def _on_tick(self) -> None:
+        self._cadence.run(time.monotonic())
 
     def _resolve_pending(self) -> None:
         with self._lock:
@@ -272,8 +278,6 @@ class ProbeManager:
 
     def destroy(self) -> None:
         self._node.destroy_timer(self._timer)
-        self._node.destroy_timer(self._resolver)
-        self._node.destroy_timer(self._drainer)
         with self._lock:
             for probe in self._topics.values():
                 if probe.subscription is not None:

@@ -82,6 +82,27 @@ class _SystemCpu:
         return self.cgroup_usage_path or 'psutil.cpu_times'
 
 
+def cores_note(scale, measured_cores: float, quota_confined: bool) -> str:
+    """What the scale monitor says at its start of the CPUs it measures against the ``cores``
+    the deployment declares: readings are spread over the CPUs measured, and the decider judges
+    them against ``capacity_cpu`` whatever ``cores`` says."""
+    name, declared, capacity = scale.name, scale.cores, scale.capacity_cpu
+    offered = 'its CPU quota allows' if quota_confined else 'this machine has'
+    cpus = f'{measured_cores:g} CPU{"" if measured_cores == 1 else "s"}'
+    head = (f'scale monitor for {name}: {offered} {cpus}; a reading of '
+            f'{capacity:g} (capacity_cpu) means all of them busy, one busy CPU reads '
+            f'{capacity / measured_cores:.3g}, and the decider judges readings against '
+            f'capacity_cpu {capacity:g}')
+    if float(declared) == measured_cores:
+        return head
+    return (f'{head}. The deployment declares scales.{name}.cores: {declared}, not '
+            f'{measured_cores:g}: if this scale should have {declared} '
+            f'core{"" if declared == 1 else "s"}, give its agent a CPU quota of {declared} '
+            f'(systemd CPUQuota={declared * 100}%, or cgroup cpu.max); if it has the {cpus}, '
+            f'set scales.{name}.cores to match and capacity_cpu to what they are worth in '
+            'reference-core percent')
+
+
 def _read(path: str) -> str:
     try:
         with open(path) as f:
@@ -124,14 +145,14 @@ class ScaleMonitor:
         self.last: Optional[p.ScaleStatus] = None
         self._sample()     # prime every counter now, so the first tick already has a reading
         self._timer = node.create_timer(period, self._tick, callback_group=self._group)
-        # What this process can use against what the file declares, said apart: a machine (or
-        # quota) of 2 CPUs running a scale declared with 1 core is not an error, but worth seeing.
-        declared = self._scale.cores
-        node.get_logger().info(
-            f'scale monitor for {self._scale.name}: measures {self._system.cores:g} CPUs here '
-            f'({self._system.source}); the deployment declares {declared} core'
-            f'{"s" if declared != 1 else ""} and a capacity of {self._scale.capacity_cpu:g} '
-            'reference-core percent, which the decider judges against')
+        # What this process can use against what the file declares: a machine (or quota) of 2
+        # CPUs running a scale declared with 1 core is not an error, but the readings then mean
+        # something else than the file suggests, and the log says what to change.
+        text = cores_note(self._scale, self._system.cores, self._system.quota_confined)
+        if float(self._scale.cores) == self._system.cores:
+            node.get_logger().info(f'{text} (measured from {self._system.source})')
+        else:
+            node.get_logger().warning(f'{text} (measured from {self._system.source})')
 
     def _choose_source(self) -> None:
         """Single-machine mode or not, from the other agents' reports; said when it changes."""
