@@ -9,7 +9,7 @@ from .interrupt import restore_ctrl_c
 
 # name -> (module with add_arguments(parser) and run(args) -> int, one-line help)
 SUBCOMMANDS = {
-    'validate': ('anyscale_manager.model.cli', 'check deployment files and summarise them'),
+    'validate': ('anyscale_manager.validate', 'check deployment files and summarise them'),
     'plan': ('anyscale_manager.planning.cli',
              'choose node settings and the first layout (IROS 2016 Problems 1 and 2)'),
     'simulate': ('anyscale_manager.sim.cli', 'reproduce the ICAR 2015 evaluation in simulation'),

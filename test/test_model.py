@@ -320,3 +320,173 @@ def test_a_standby_node_without_a_lifecycle_is_said_with_every_other_problem():
     text = str(e.value)
     assert 'expected exactly one scale with role master' in text
     assert 'nodes.amcl.standby: a standby copy is an inactive lifecycle node' in text
+
+
+STANDBY_PLAIN = ('t.yaml: nodes.ekf.standby: a standby copy is an inactive lifecycle node: set '
+                 'lifecycle: true (and make the node a lifecycle node, docs/lifecycle.md)')
+
+
+@pytest.mark.parametrize('change, other', [
+    # A name in nodes.names that is not a string: the other nodes are still read and checked.
+    (lambda p: p['nodes']['names'].__setitem__(0, 7), 't.yaml: nodes.names[0]: expected '
+                                                      'strings, got 7'),
+    (lambda p: p['nodes']['ekf'].update(wieght=2.0),
+     't.yaml: nodes.ekf.wieght: unknown key (did you mean weight?)'),
+    (lambda p: p['decider'].update(period_s=0.0),
+     't.yaml: decider.period_s: 0.0 is out of range: expected a value in (0, 3600] s'),
+    (lambda p: p['connections']['names'].__setitem__(0, None),
+     't.yaml: connections.names[0]: expected strings, got None'),
+])
+def test_a_standby_plain_node_is_reported_with_an_unrelated_problem_in_one_go(change, other):
+    found = problems_of(mutate(lambda p: (p['nodes']['ekf'].update(standby=True), change(p))))
+    assert other in found and STANDBY_PLAIN in found, found
+
+
+def test_a_names_list_with_a_bad_entry_reports_each_and_reads_the_rest():
+    found = problems_of(mutate(lambda p: (p['nodes']['names'].__setitem__(0, 7),
+                                          p['nodes']['names'].__setitem__(1, None),
+                                          p['nodes']['amcl'].update(weight=-1.0))))
+    assert found[:2] == ['t.yaml: nodes.names[0]: expected strings, got 7',
+                         't.yaml: nodes.names[1]: expected strings, got None']
+    assert any(p.startswith('t.yaml: nodes.amcl.weight: -1.0 is out of range') for p in found)
+    # The sections of the unreadable names are left out, not reported as unlisted as well.
+    assert not any('not listed' in p for p in found), found
+
+
+# --- one declaration per setting --------------------------------------------------------------
+
+def _live_settings():
+    from dataclasses import fields
+    from anyscale_manager.model.types import DeciderSettings
+    return [f.name for f in fields(DeciderSettings) if f.metadata.get('live')]
+
+
+@pytest.mark.parametrize('name', _live_settings())
+@pytest.mark.parametrize('value', [-1.0, 0.0, 0.5, 7, 1e12, True, 'node', 'x', None])
+def test_a_live_change_is_checked_as_the_same_key_in_a_file_is(name, value):
+    """The decider's run-time changes and the loader read a setting through one declaration:
+    whatever one accepts the other does, with the same words for what it refuses."""
+    from anyscale_manager.model.sections import settings_with
+    d = load_deployment(TESTBED)
+    try:
+        changed = settings_with(d.decider, {name: value})
+    except ValueError as e:
+        refused = str(e)
+    else:
+        refused = None
+    try:
+        loaded = load_mapping(mutate(lambda p: p['decider'].update({name: value})), 't.yaml')
+    except DeploymentError as e:
+        assert refused is not None, f'the file refuses what a live change takes: {e}'
+        assert f't.yaml: {refused}' in [str(p) for p in e.problems]
+    else:
+        assert refused is None, f'a live change refuses what the file takes: {refused}'
+        assert changed == loaded.decider
+
+
+def test_a_setting_not_taken_while_the_decider_runs_is_refused():
+    from anyscale_manager.model.sections import settings_with
+    d = load_deployment(TESTBED)
+    with pytest.raises(ValueError, match='decider.lease_s: cannot be changed while the decider'):
+        settings_with(d.decider, {'lease_s': 2.0})
+
+
+# --- the validate command's output -------------------------------------------------------------
+
+class _Streams:
+    """stdout and stderr as one reader that merges the two sees them: each write a chunk."""
+
+    def __init__(self):
+        self.chunks = []
+
+    def stream(self, name):
+        streams = self
+
+        class Stream:
+            def write(self, text):
+                streams.chunks.append((name, text))
+                return len(text)
+
+            def flush(self):
+                pass
+        return Stream()
+
+
+def test_validate_writes_whole_lines_so_a_warning_starts_its_own_line(tmp_path, monkeypatch):
+    """However stdout (the summary) and stderr (the warnings) are merged, a warning never starts
+    inside a line of the summary: each write validate makes ends its lines."""
+    import argparse
+    from anyscale_manager import validate
+    data = load_testbed_dict()
+    for s in params(data)['scales']['names']:
+        params(data)['scales'][s].pop('host', None)   # both on this machine: the summary says so
+    path = tmp_path / 'one_machine.yaml'
+    path.write_text(yaml.safe_dump(data))
+    streams = _Streams()
+    monkeypatch.setattr(sys, 'stdout', streams.stream('out'))
+    monkeypatch.setattr(sys, 'stderr', streams.stream('err'))
+    parser = argparse.ArgumentParser()
+    validate.add_arguments(parser)
+    assert validate.run(parser.parse_args([str(path)])) == 0
+    written = [(name, text) for name, text in streams.chunks if text]
+    assert [name for name, _ in written] == ['out', 'err']
+    assert all(text.endswith('\n') for _, text in written), written
+    merged = ''.join(text for _, text in written)
+    assert '(docs/monitoring.md)\nwarning: ' in merged
+    assert all(line.startswith('warning: ') for line in written[1][1].splitlines())
+
+
+# --- the pure core knows nothing of ROS nor of the agent --------------------------------------
+
+PACKAGE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                       'anyscale_manager')
+CORE = ('model', 'planning', 'runtime')
+FORBIDDEN = ('rclpy', 'anyscale_manager.agent', 'anyscale_manager.nodes')
+
+
+def _core_modules():
+    for part in CORE:
+        for name in sorted(os.listdir(os.path.join(PACKAGE, part))):
+            if name.endswith('.py'):
+                yield os.path.join(PACKAGE, part, name), \
+                    f'anyscale_manager.{part}.{name[:-3]}'.replace('.__init__', '')
+
+
+def _imports(path, module):
+    """Every module ``path`` imports, at its top or inside a function, as an absolute name."""
+    import ast
+    with open(path, encoding='utf-8') as f:
+        tree = ast.parse(f.read(), path)
+    package = module if path.endswith('__init__.py') else module.rpartition('.')[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            yield from (alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package
+            for _ in range(node.level - 1):
+                base = base.rpartition('.')[0]
+            here = f'{base}.{node.module}' if node.level and node.module else \
+                base if node.level else node.module
+            yield here
+            yield from (f'{here}.{alias.name}' for alias in node.names)
+
+
+def _forbidden(name):
+    return any(name == f or name.startswith(f'{f}.') for f in FORBIDDEN)
+
+
+@pytest.mark.parametrize('path, module', list(_core_modules()))
+def test_no_core_module_imports_ros_or_the_agent(path, module):
+    assert not [n for n in _imports(path, module) if _forbidden(n)]
+
+
+def test_importing_the_whole_core_loads_neither_ros_nor_the_agent():
+    names = [module for _, module in _core_modules()]
+    code = ('import importlib, sys\n'
+            f'for name in {names!r}:\n'
+            '    importlib.import_module(name)\n'
+            'print("\\n".join(sorted(sys.modules)))\n')
+    r = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120,
+                       cwd=os.path.dirname(PACKAGE))
+    assert r.returncode == 0, r.stderr
+    assert not [m for m in r.stdout.split() if _forbidden(m)]

@@ -9,8 +9,8 @@ import sys
 import pytest
 import yaml
 
+from anyscale_manager import validate
 from anyscale_manager.model import DeploymentError, load_deployment, load_mapping
-from anyscale_manager.model import cli as validate
 from anyscale_manager.agent.launch_check import launch_problems
 from conftest import CONFIG, TESTBED
 

@@ -3,7 +3,11 @@
 from dataclasses import dataclass, field, fields
 from functools import cached_property
 from types import MappingProxyType
-from typing import Dict, Mapping, Optional, Tuple
+from typing import Any, ClassVar, Dict, FrozenSet, List, Mapping, Optional, Protocol, Tuple, \
+    TypeVar
+
+K = TypeVar('K')
+V = TypeVar('V')
 
 MASTER = 'master'
 REMOTE = 'remote'
@@ -18,8 +22,14 @@ INITIAL_LAYOUTS = ('master', 'problem1', 'problem2', 'explicit')
 HYSTERESIS_SCOPES = ('scale', 'node')
 
 
-def frozen_map(mapping: Optional[Mapping] = None) -> Mapping:
+def frozen_map(mapping: Optional[Mapping[K, V]] = None) -> Mapping[K, V]:
     return MappingProxyType(dict(mapping or {}))
+
+
+class Dataclass(Protocol):
+    """Any dataclass (what ``dataclasses.fields`` and ``replace`` take)."""
+
+    __dataclass_fields__: ClassVar[Dict[str, Any]]
 
 
 @dataclass(frozen=True)
@@ -151,8 +161,10 @@ def setting(default, help: str, *, low=None, high=None, low_open: bool = False,
             choices: Optional[Tuple[str, ...]] = None, unit: str = '', live: bool = False,
             factory=None):
     """One setting of a deployment file, declared once: its default, what it means, its range
-    or choices and unit (model/loader.py checks a file against them; the decider declares its
-    ROS parameters with them), and whether the decider takes a change while it runs."""
+    or choices and unit, and whether the decider takes a change while it runs. Everything else
+    derives from it: model/sections.py checks a file and a live change against it, the decider
+    declares its ROS parameters (descriptions, ranges) with it, and model/settings_doc.py makes
+    the table of docs/configuration.md from it."""
     check = {k: v for k, v in (('low', low), ('high', high), ('choices', choices))
              if v is not None}
     if low_open:
@@ -325,22 +337,23 @@ class Deployment:
     # --- look-ups (indexes built once: a Deployment never changes) --------------------------
     # cached_property writes straight into the instance dict, which a frozen dataclass allows.
     @cached_property
-    def _index(self) -> Mapping[str, Mapping[str, object]]:
-        return frozen_map({
-            'scale': frozen_map({s.name: s for s in self.scales}),
-            'node': frozen_map({n.name: n for n in self.nodes}),
-            'connection': frozen_map({c.name: c for c in self.connections}),
-            'link': frozen_map({frozenset(link.ends): link for link in self.links}),
-        })
+    def _scales(self) -> Mapping[str, Scale]:
+        return frozen_map({s.name: s for s in self.scales})
 
-    def _lookup(self, kind: str, key) -> object:
-        try:
-            return self._index[kind][key]
-        except KeyError:
-            raise KeyError(f'unknown {kind} {key!r}') from None
+    @cached_property
+    def _nodes(self) -> Mapping[str, Node]:
+        return frozen_map({n.name: n for n in self.nodes})
+
+    @cached_property
+    def _connections(self) -> Mapping[str, Connection]:
+        return frozen_map({c.name: c for c in self.connections})
+
+    @cached_property
+    def _links(self) -> Mapping[FrozenSet[str], Link]:
+        return frozen_map({frozenset(link.ends): link for link in self.links})
 
     def scale(self, name: str) -> Scale:
-        return self._lookup('scale', name)
+        return _lookup('scale', self._scales, name)
 
     def scale_port(self, name: str) -> int:
         """The port of ``name``'s warden (UDP heartbeats) and throughput probe server (TCP):
@@ -352,10 +365,10 @@ class Deployment:
         return self.monitoring.bandwidth_probe_port + 1 + self.scale_names.index(name)
 
     def node(self, name: str) -> Node:
-        return self._lookup('node', name)
+        return _lookup('node', self._nodes, name)
 
     def connection(self, name: str) -> Connection:
-        return self._lookup('connection', name)
+        return _lookup('connection', self._connections, name)
 
     @cached_property
     def scale_names(self) -> Tuple[str, ...]:
@@ -374,7 +387,7 @@ class Deployment:
         return tuple(s for s in self.scales if not s.is_master)
 
     def link_between(self, a: str, b: str) -> Optional[Link]:
-        return self._index['link'].get(frozenset((a, b))) if a != b else None
+        return self._links.get(frozenset((a, b))) if a != b else None
 
     def link_monitor(self, link: Link) -> str:
         """The scale whose agent watches ``link`` (heartbeats, congestion, probes): the master
@@ -403,7 +416,7 @@ class Deployment:
 
     @cached_property
     def _connections_of(self) -> Mapping[str, Tuple[Connection, ...]]:
-        out = {}
+        out: Dict[str, List[Connection]] = {}
         for c in self.connections:
             out.setdefault(c.publisher, []).append(c)
             if c.subscriber != c.publisher:
@@ -571,6 +584,13 @@ class Deployment:
             if master in allowed and len(allowed) > 1:
                 out.append(n.name)
         return tuple(out)
+
+
+def _lookup(kind: str, index: Mapping[str, V], name: str) -> V:
+    try:
+        return index[name]
+    except KeyError:
+        raise KeyError(f'unknown {kind} {name!r}') from None
 
 
 def _listed(names, limit: int = 3) -> str:

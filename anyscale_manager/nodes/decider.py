@@ -13,14 +13,13 @@ decisions, publishes only its beat and diagnostics, and takes over within ``take
 leader's silence from the leader's last layout.
 """
 
-import math
 import os
 import secrets
 import socket
 import sys
 import threading
 import time
-from dataclasses import fields, replace
+from dataclasses import fields
 from typing import Any, Dict, List, Optional
 
 import rclpy
@@ -39,6 +38,7 @@ from .. import protocol as p
 from .. import protocol_auth as auth
 from ..model.advice import UNSIGNED
 from ..model.loader import DeploymentError, load_from_parameters
+from ..model.sections import settings_with
 from ..model.types import DeciderSettings, Deployment
 from ..runtime.constraints import ConstraintReport
 from ..runtime.leadership import LEADER, STANDBY, Change, Leadership
@@ -56,34 +56,6 @@ MONITOR_QOS = qos.MONITOR_READER
 # decider.* parameters a person may change while it runs (model/types.py declares each once:
 # its meaning, range and unit).
 LIVE = {f.name: f.metadata for f in fields(DeciderSettings) if f.metadata.get('live')}
-
-
-def settings_with(settings: DeciderSettings, changes: Dict[str, Any]) -> DeciderSettings:
-    """New decider settings from parameter changes; ValueError names the bad one."""
-    values = {}
-    for name, value in changes.items():
-        meta = LIVE.get(name)
-        if meta is None:
-            raise ValueError(f'decider.{name}: cannot be changed while the decider runs')
-        check, default = meta['check'], getattr(DeciderSettings(), name)
-        if isinstance(default, bool):
-            if not isinstance(value, bool):
-                raise ValueError(f'decider.{name}: expected true or false, got {value!r:.40}')
-        elif 'choices' in check:
-            if value not in check['choices']:
-                raise ValueError(f'decider.{name}: expected one of '
-                                 f'{", ".join(check["choices"])}, got {value!r:.40}')
-        else:
-            if isinstance(value, bool) or not isinstance(value, (int, float)) \
-                    or not math.isfinite(value):
-                raise ValueError(f'decider.{name}: expected a number, got {value!r:.40}')
-            low, high, low_open = check['low'], check['high'], check.get('low_open', False)
-            if (value <= low if low_open else value < low) or value > high:
-                raise ValueError(f'decider.{name}: {value} out of range '
-                                 f'{"(" if low_open else "["}{low:g}, {high:g}]')
-            value = float(value)
-        values[name] = value
-    return replace(settings, **values)
 
 
 def describe(name: str) -> ParameterDescriptor:

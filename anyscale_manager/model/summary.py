@@ -1,25 +1,17 @@
-"""anyscale-manager validate FILE...: check deployments and print a readable summary."""
+"""A deployment in words: what validate prints for a file it accepts.
 
-import sys
+Pure: a deployment in, text out; what the file declares and what follows from it (which nodes
+may move, which are pinned and why, the links each connection may cross).
+"""
+
 import textwrap
-from typing import List, Tuple
+from typing import Optional
 
-from .advice import single_machine, warnings
-from .loader import DeploymentError, did_you_mean, load_deployment
+from .advice import single_machine
 from .types import Deployment
-from ..protocol_auth import KeyFileError, load_key
 
 
-def add_arguments(parser) -> None:
-    parser.add_argument('files', nargs='+', metavar='FILE', help='deployment YAML files')
-    parser.add_argument('--quiet', action='store_true', help='print only errors and warnings')
-    parser.add_argument('--scale', metavar='NAME',
-                        help='validate for the scale this machine is: a node that may run on it '
-                             'and cannot be started here is an error (without it, a warning); '
-                             'the launches of nodes that never run on it are not checked')
-
-
-def _fmt(x) -> str:
+def _fmt(x: Optional[float]) -> str:
     return '-' if x is None else f'{x:g}'
 
 
@@ -35,6 +27,7 @@ def _crosses(d: Deployment, publisher: str, subscriber: str) -> str:
 
 
 def summary(d: Deployment) -> str:
+    """The deployment, one line per scale, link, node and connection."""
     about = f' ({d.description})' if d.description else ''
     lines = [f'{d.source}: deployment {d.name!r}{about}']
     lines.append(f'  scales ({len(d.scales)}):')
@@ -77,7 +70,7 @@ def summary(d: Deployment) -> str:
         if n.lifecycle:
             standby = d.standby_scales(n.name)
             tags.append(f'lifecycle, standby on {", ".join(standby)}' if standby else 'lifecycle')
-        if n.configurable:
+        if n.settings is not None and n.settings.configurable:
             tags.append(f'configurable {n.settings.parameter}')
         allowed = d.allowed_scales(n.name)
         where = 'any scale' if len(allowed) == len(d.scales) else ', '.join(allowed)
@@ -93,61 +86,3 @@ def summary(d: Deployment) -> str:
     if shared:
         lines += textwrap.wrap(shared, 99, initial_indent='  ', subsequent_indent='    ')
     return '\n'.join(lines)
-
-
-def machine_check(d: Deployment, scale: str = '') -> Tuple[List[str], List[str]]:
-    """(errors, warnings) about launches this machine cannot start; with ``scale``, the file is
-    validated for that scale: its nodes' launches are errors, other nodes' are not looked at."""
-    # The command asks how an agent here would resolve each launch; the model itself knows
-    # nothing of agents.
-    from ..agent.launch_check import launch_problems
-    errors, notes = [], []
-    for node, problem in launch_problems(d).items():
-        if not scale:
-            notes.append(f'{d.source}: nodes.{node}.launch: {problem}: an agent on this machine '
-                         'cannot start it (validate --scale NAME makes this an error)')
-        elif scale in d.allowed_scales(node):
-            errors.append(f'{d.source}: nodes.{node}.launch: {problem}: the agent of scale '
-                          f'{scale}, on this machine, cannot start it')
-    return errors, notes
-
-
-def run(args) -> int:
-    failed = False
-    scale = args.scale or ''
-    for path in args.files:
-        try:
-            d = load_deployment(path)
-        except DeploymentError as e:
-            failed = True
-            _print_problems(path, [str(p) for p in e.problems])
-            continue
-        problems = []
-        if scale and scale not in d.scale_names:
-            problems.append(f'{path}: --scale: unknown scale {scale!r}'
-                            f'{did_you_mean(scale, d.scale_names)}; the scales of this file '
-                            f'are {", ".join(d.scale_names)}')
-        if d.security.key_file:
-            try:
-                load_key(d.security.key_file)
-            except KeyFileError as e:
-                problems.append(f'{path}: {e}')
-        errors, notes = machine_check(d, scale if scale in d.scale_names else '')
-        problems += errors
-        if problems:
-            failed = True
-            _print_problems(path, problems)
-            continue
-        if not args.quiet:
-            # Flushed before the warnings (stderr): on one terminal or pipe they follow it on
-            # lines of their own, never inside it.
-            print(summary(d), flush=True)
-        for w in warnings(d) + notes:
-            print(f'warning: {w}', file=sys.stderr)
-    return 2 if failed else 0
-
-
-def _print_problems(path: str, problems: List[str]) -> None:
-    print(f'{path}: {len(problems)} problem(s):', file=sys.stderr)
-    for p in problems:
-        print(f'  {p}', file=sys.stderr)
