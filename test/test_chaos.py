@@ -1,5 +1,6 @@
-"""The chaos soak's pure parts: the seeded fault schedule, the judges, the hostile forger, and
-the record's signature check. No ROS, no processes (the soak itself: test_e2e_soak.py)."""
+"""The chaos soak's pure parts: the seeded fault schedule, the fault registry, the judges, the
+samples' census, the verdict and the report, the hostile forger, and the record's signature
+check. No ROS, no processes (the soak itself: test_e2e_soak.py)."""
 
 import json
 import random
@@ -9,7 +10,7 @@ import pytest
 from anyscale_manager import protocol as p
 from anyscale_manager import protocol_auth as auth
 from anyscale_manager.model.loader import load_deployment
-from anyscale_manager.testbed import chaos
+from anyscale_manager.testbed import chaos, faults, samples, soak_report, verdict
 from anyscale_manager.testbed.hostile import LABELS, Forger
 from anyscale_manager.testbed.record import Record
 
@@ -272,3 +273,100 @@ def test_every_hostile_message_is_refused_by_a_keyed_receiver():
         assert auth.check_signature(KEY, text) or data.get('deployment') == 'another_robot', \
             (label, text[:200])
     assert labels == set(LABELS) - {'state_replay'}
+
+
+# --- the soak: its fault registry, samples, verdict and report ----------------------------------
+
+def test_every_kind_the_schedule_draws_has_a_handler_and_every_handler_a_kind():
+    assert set(faults.REGISTRY) == set(chaos.KINDS)
+    assert set(chaos.WEIGHTS) == set(chaos.KINDS) == set(chaos.EXTRA_S)
+    drawn = {f.kind for seed in range(5) for f in chaos.generate(seed, 600.0, ensure_each=True)}
+    assert drawn <= set(faults.REGISTRY)
+    assert all(callable(handler) for handler in faults.REGISTRY.values())
+    assert set(verdict.NO_MOVE_BACK) | set(verdict.NOTED_MOVE_BACK) <= set(chaos.KINDS)
+
+
+def test_a_move_back_counts_after_the_faults_that_give_no_reason_for_one():
+    def fault(kind, copy=''):
+        return chaos.Fault(0, 10.0, kind, node='amcl' if copy else '', copy=copy)
+    assert verdict.no_move_back(fault('kill_decider'))
+    assert verdict.no_move_back(fault('kill_node', 'standby'))
+    assert not verdict.no_move_back(fault('kill_node', 'active'))
+    assert not verdict.no_move_back(fault('cut'))
+    assert verdict.noted_move_back(fault('rival_decider'))
+    assert not verdict.noted_move_back(fault('kill_agent_laptop'))
+
+
+def test_the_census_counts_a_second_live_copy_on_one_scale_past_its_bound_once():
+    said = []
+    s = samples.Samples(said.append)
+    two = {('amcl', 'robot'): 2, ('ekf', 'robot'): 1}
+    s.count(0.0, two)
+    s.count(1.0, {('amcl', 'robot'): 1, ('amcl', 'laptop'): 1})    # one per scale: no duplicate
+    s.count(2.0, two)
+    s.count(2.0 + samples.DUPLICATE_PROCESS_S - 0.5, two)           # not yet past the bound
+    assert s.duplicates == []
+    for t in (5.5, 6.5):
+        s.count(t, two)
+    assert s.duplicates == [{'node': 'amcl', 'scale': 'robot', 'since': 2.0, 'count': 2}]
+    assert len(said) == 1 and 'amcl' in said[0]
+    assert s.processes[1] == (1.0, {'amcl': 2})
+    assert s.processes[0] == (0.0, {'amcl': 2, 'ekf': 1})
+
+
+def _decider(pid, ident):
+    return p.DeciderIdentity(ident, 'robot', pid, 1.0)
+
+
+def _followed(t, scale, ident, generation):
+    return (t, p.AgentState(scale, generation, t, {}, decider=ident))
+
+
+def test_the_verdict_tells_forged_rival_and_real_leaders_apart_and_counts_moves_back():
+    d = load_deployment(TESTBED)
+    robot, laptop = Record(d), Record(d)
+    for t, gen, ident, pid in ((1.0, 1, 'real', 42), (2.0, 1, 'rival', 99)):
+        robot.layouts.append((t, p.Layout(gen, 'icar2015_testbed', {}, 'r', t,
+                                          _decider(pid, ident))))
+    robot.agent_states['robot'] = [_followed(1.5, 'robot', 'real', 1),
+                                   _followed(2.5, 'robot', 'rival', 1),
+                                   _followed(3.0, 'robot', 'real', 7),        # no such layout
+                                   _followed(50.0, 'robot', 'forger', 1)]     # after the soak
+    laptop.agent_states['laptop'] = [_followed(4.0, 'laptop', 'forger', 1)]
+    robot.events += [(t, p.Event(t, 'migrate_back', 'amcl', 'laptop', 'robot', 'back', 2))
+                     for t in (11.0, 30.0)]
+    tally = verdict.Tally(decider_pids={42}, rival_pids={99})
+    tally.results.append({'index': 0, 'kind': 'kill_decider', 'what': 'x', 'at_s': 10.0,
+                          'end_s': 12.0, 'no_move_back': True, 'noted_move_back': False})
+    found = verdict.judge(d, robot, laptop, tally, [], 0.0, 40.0)
+    assert found['forged_applied'] == [(3.0, 'robot', 'real', 7), (4.0, 'laptop', 'forger', 1)]
+    assert found['rival_followed'] == [(2.5, 'robot', 'rival')]
+    assert [(x['fault'], x['at_s']) for x in found['unneeded_moves_back']] == [(0, 11.0)]
+    assert found['moves_back_noted'] == [] and found['duplicates'] == []
+
+
+def _report(**changes):
+    tally = verdict.Tally(**changes)
+    found = {'duplicates': [], 'delta_violations': [], 'nowhere': [], 'unneeded_moves_back': [],
+             'forged_applied': [], 'forged_applied_count': 0, 'rival_followed': [],
+             'rival_followed_count': 0, 'delta_excused': [], 'delta_known_open': []}
+    teardown = {'leftovers': [], 'tracebacks': [], 'resources_end': {'decider': None}}
+    bounds = {'overlap_s': 3.0, 'nowhere_s': 7.0, 'restart_s': 1.0, 'duplicate_process_s': 3.0}
+    return soak_report.build(
+        seed=7, planned_s=120.0, hysteresis_s=8.0, kinds=chaos.KINDS, bounds=bounds, t0=100.0,
+        t_end=220.04, schedule=chaos.generate(7, 120.0), system=('decider',), tally=tally,
+        samples=samples.Samples(), verdict=found, teardown=teardown, run_dir='/run')
+
+
+def test_the_report_passes_only_when_every_count_is_0():
+    report = _report()
+    assert report['ok'] and set(report['counts'].values()) == {0}
+    assert report['duration_s'] == 120.0 and 'resources_end' not in report
+    assert report['resource_window_s'] == soak_report.resource_window_s(120.0) == 24.0
+    assert soak_report.format_report(report).endswith('PASS: every count is 0')
+    exit_ = {'t': 3.0, 'name': 'decider', 'pid': 5, 'code': -9, 'intended': False}
+    failed = _report(missed=1, exits=[exit_])
+    assert not failed['ok']
+    assert failed['counts']['missed_reactions'] == 1 == failed['counts']['unexpected_exits']
+    text = soak_report.format_report(failed)
+    assert 'unexpected exits:' in text and text.endswith('FAIL: see the counts above')

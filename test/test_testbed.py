@@ -4,16 +4,18 @@ network namespaces with their shaped link and CPU quotas (those skip, saying why
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
 
+import psutil
 import pytest
 
 from anyscale_manager import protocol as p
 from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.runtime.delta import STALL_ALLOWANCE_S
-from anyscale_manager.testbed import netns
+from anyscale_manager.testbed import harness, links, netns
 from anyscale_manager.testbed import schedule as sched
 from anyscale_manager.testbed.record import Record
 from anyscale_manager.testbed.report import (category, draw_timeline, event_log, spans,
@@ -301,6 +303,157 @@ def test_demo_finds_the_packaged_deployment():
     path = default_config()
     assert path and os.path.basename(path) == 'icar2015_testbed.yaml'
     load_deployment(path)
+
+
+# --- each network mode's link control (no root, no ROS) ----------------------------------------
+
+def test_the_mode_is_chosen_with_its_reason():
+    def there():
+        return True, 'namespaces here'
+
+    def not_there():
+        return False, 'not root'
+    assert links.choose('loopback', there) == (links.LOOPBACK,
+                                               'loopback asked for: the link is emulated')
+    assert links.choose('auto', there) == (links.NETNS, 'namespaces here')
+    assert links.choose('netns', there) == (links.NETNS, 'namespaces here')
+    mode, why = links.choose('auto', not_there)
+    assert mode == links.LOOPBACK and 'not root' in why and 'no bandwidth shaping' in why
+    with pytest.raises(harness.HarnessError, match='not available: not root'):
+        links.choose('netns', not_there)
+    with pytest.raises(harness.HarnessError, match='unknown mode'):
+        links.choose('wifi', there)
+
+
+def test_nothing_built_cuts_nothing_and_starts_nothing(tmp_path):
+    idle = links.LinkControl()
+    idle.cut('wifi')
+    idle.restore('wifi')
+    idle.release()
+    assert idle.teardown() == [] and idle.network is None and idle.cpu_group('robot') is None
+    assert idle.discovery_peers('laptop') is None and idle.ros_parameters() == []
+    with pytest.raises(harness.HarnessError):
+        idle.throttle(5000.0, 'wifi')
+    with pytest.raises(harness.HarnessError):
+        idle.popen('robot', ['true'], {}, True, None, None)
+    tb = harness.Testbed(harness.Options(TESTBED, 0, mode='loopback', run_dir=str(tmp_path)))
+    assert tb.network is None and isinstance(tb.link_control, links.LinkControl)
+
+
+def _all_stopped(pids, stopped=True, timeout_s=5.0):
+    """Wait until every pid is stopped (or, ``stopped=False``, none is): a signal takes effect
+    when the process is next scheduled. False if that is not so within ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        if all((psutil.Process(pid).status() == psutil.STATUS_STOPPED) == stopped
+               for pid in pids):
+            return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+
+
+def test_loopback_cuts_by_freezing_the_laptop_agent_and_what_it_started(tmp_path):
+    """The harness drives the emulated link through its control: a cut stops the laptop agent
+    and its children and is recorded, a throttle is refused and skipped in a schedule, a restore
+    thaws them; the agents learn the scales' loopback hosts and the probes' port."""
+    tb = harness.Testbed(harness.Options(TESTBED, 0, mode='loopback', run_dir=str(tmp_path)))
+    control = links.LoopbackLinks(tb.deployment.scale_names, tb._laptop_agent_pid)
+    control.setup()
+    tb.link_control = control
+    agent = control.popen('laptop', ['sh', '-c', 'sleep 30 & wait'], {'PATH': os.environ['PATH']},
+                          True, subprocess.DEVNULL, subprocess.DEVNULL)
+    try:
+        assert os.getsid(agent.pid) == agent.pid                    # a session of its own
+        tb.procs['agent_laptop'] = harness.Proc('agent_laptop', 'laptop', [], agent, '', 0.0)
+        deadline = time.monotonic() + 5.0
+        while not psutil.Process(agent.pid).children() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        child = psutil.Process(agent.pid).children()[0].pid
+        tb.cut()
+        assert _all_stopped([agent.pid, child])
+        assert tb.link == (False, netns.DEFAULT_RATE_KBPS)
+        with pytest.raises(harness.HarnessError, match='cannot throttle on loopback'):
+            tb.throttle(5000.0)
+        tb.apply(sched.Step(1.0, 'throttle', 5000.0))
+        assert tb.link == (False, netns.DEFAULT_RATE_KBPS)
+        tb.restore()
+        assert _all_stopped([agent.pid, child], stopped=False)
+        assert [text for _, text in tb.record.marks] == [
+            'link cut', '1:throttle=5000 skipped: cannot throttle on loopback: bandwidth '
+            'shaping needs network namespaces (root)', 'link restored']
+        args = tb._deployment_args()
+        assert {'scales.robot.host:=127.0.0.1', 'scales.laptop.host:=127.0.0.1',
+                f'monitoring.bandwidth_probe_port:={control.probe_port}'} <= set(args)
+        assert control.probe_port > 0
+        assert tb._env('laptop')['ROS_AUTOMATIC_DISCOVERY_RANGE'] == 'LOCALHOST'
+        assert tb.cpu_seconds().keys() <= {'agent_laptop'}
+    finally:
+        os.killpg(agent.pid, signal.SIGKILL)
+        agent.wait()
+
+
+class _Group:
+    def __init__(self, used_s):
+        self.used_s = used_s
+
+
+class _Network:
+    """What NamespaceLinks reads of a built netns.Network."""
+
+    addresses = {'robot': '10.77.0.1', 'laptop': '10.77.0.2'}
+    groups = {'robot': _Group(1.5)}
+
+    def __init__(self):
+        self.calls = []
+
+    def peers(self, scale):
+        return [a for s, a in self.addresses.items() if s != scale]
+
+    def cut(self, link):
+        self.calls.append(('cut', link))
+
+    def restore(self, link):
+        self.calls.append(('restore', link))
+
+    def throttle(self, rate_kbps, link):
+        self.calls.append(('throttle', rate_kbps, link))
+
+    def cpu_usage_s(self, scale):
+        group = self.groups.get(scale)
+        return group.used_s if group else None
+
+    def leftover_pids(self):
+        return [77]
+
+    def teardown(self):
+        return ['cgroup busy']
+
+
+def test_namespaces_act_on_the_network_and_keep_discovery_on_the_link(tmp_path):
+    control = links.NamespaceLinks(('robot', 'laptop'), [('wifi', 'robot', 'laptop', 54000.0)],
+                                   {'robot': 0.3})
+    assert control.observer_per_scale and not control.cuts_processes
+    control.network = net = _Network()
+    tb = harness.Testbed(harness.Options(TESTBED, 0, mode='netns', run_dir=str(tmp_path)))
+    tb.link_control = control
+    assert tb.network is net
+    tb.cut()
+    tb.throttle(5000.0)
+    tb.restore('wifi')
+    assert net.calls == [('cut', 'wifi'), ('throttle', 5000.0, 'wifi'), ('restore', 'wifi')]
+    assert tb.link == (True, 5000.0)
+    env = tb._env('laptop')
+    assert env['ROS_STATIC_PEERS'] == '10.77.0.1' and env['ROS_AUTOMATIC_DISCOVERY_RANGE'] == \
+        'SUBNET'
+    args = tb._deployment_args()
+    assert {'scales.robot.host:=10.77.0.1', 'scales.laptop.host:=10.77.0.2'} <= set(args)
+    assert not any('bandwidth_probe_port' in a for a in args)
+    assert control.cpu_group('robot') is net.groups['robot']
+    assert control.cpu_group('laptop') is None
+    assert tb.cpu_seconds() == {'scale_robot': 1.5}
+    assert control.teardown() == ['processes left in the namespaces/cgroups: [77]',
+                                  'cgroup busy']
 
 
 # --- namespaces, link and quotas (root only) ----------------------------------------------------

@@ -18,7 +18,9 @@ The test-bed runs two scales (the ICAR robot and laptop) or more (``config/
 three_scales_testbed.yaml``: robot, laptop and server), the master named ``robot``. Without the
 rights to build namespaces it runs two scales on loopback and emulates the link: a cut freezes
 (SIGSTOP) the laptop agent and every process it started, a restore thaws them; a throttle cannot
-be emulated there and is refused with the reason; three scales need namespaces.
+be emulated there and is refused with the reason; three scales need namespaces. The mode is
+chosen once, at the start: its ``links.LinkControl`` cuts, restores and throttles the links and
+starts every process where its scale is.
 """
 
 import ctypes
@@ -41,15 +43,12 @@ from ..agent.catalogue import ENV_NODE, ENV_SCALE
 from ..model.loader import load_deployment
 from ..model.types import Deployment
 from ..nodes.workload import REFERENCE_CORE
-from . import netns
+from . import links, netns
+from .errors import HarnessError
+from .links import LOOPBACK, NETNS
 from .record import Record
 
-NETNS, LOOPBACK = 'netns', 'loopback'
 PR_SET_CHILD_SUBREAPER = 36
-
-
-class HarnessError(RuntimeError):
-    """The test-bed could not be started or driven; the message says which step and why."""
 
 
 def _become_subreaper() -> bool:
@@ -59,13 +58,6 @@ def _become_subreaper() -> bool:
         return libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) == 0
     except (OSError, AttributeError):
         return False
-
-
-def _free_tcp_port() -> int:
-    import socket
-    with socket.socket() as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
 
 
 @dataclass
@@ -109,14 +101,16 @@ class Testbed:
         alone = [s for s in names if not any(s in pair for pair in joined)]
         if alone:
             raise HarnessError(f'{options.deployment_path}: scale {alone[0]} has no link')
-        if options.mode not in ('auto', NETNS, LOOPBACK):
+        if options.mode not in links.MODES:
             raise HarnessError(f'unknown mode {options.mode!r}')
         if len(names) > 2 and options.mode == LOOPBACK:
             raise HarnessError('three scales or more need network namespaces: loopback can '
                                'emulate one link only')
         self.mode = options.mode
         self.mode_reason = ''
-        self.network: Optional[netns.Network] = None
+        # What cuts, restores and throttles the links and starts the processes: the mode's,
+        # built at the start; nothing built before it and after the stop.
+        self.link_control: links.LinkControl = links.LinkControl()
         self.procs: Dict[str, Proc] = {}
         # What each scale's observer heard; the master's is ``record``. Another scale's own
         # agent reports are there while its link to the master is cut.
@@ -135,7 +129,6 @@ class Testbed:
         self.t0 = time.monotonic()
         self._observers: List[Proc] = []
         self._readers: List[threading.Thread] = []
-        self._frozen: List[int] = []
         if len(d.links) == 1:
             self._links = {d.links[0].name: (True, float(options.rate_kbps))}
         else:
@@ -145,7 +138,11 @@ class Testbed:
         self.cleanup_notes: List[str] = []
         self.cpu_cores = {s.name: s.capacity_cpu / 100.0 * options.reference_core
                           for s in self.deployment.scales}
-        self._probe_port = 0
+
+    @property
+    def network(self) -> Optional[netns.Network]:
+        """The namespaces, links and cgroups while the test-bed runs in namespaces, else None."""
+        return self.link_control.network
 
     @property
     def laptop_view(self) -> Record:
@@ -169,39 +166,30 @@ class Testbed:
 
     def _start(self, ready_timeout_s: float) -> None:
         _become_subreaper()
-        if self.mode in ('auto', NETNS):
-            ok, why = netns.available()
-            if ok:
-                self.mode, self.mode_reason = NETNS, why
-            elif self.mode == NETNS:
-                raise HarnessError(f'network namespaces not available: {why}')
-            else:
-                self.mode = LOOPBACK
-                self.mode_reason = (f'no network namespaces ({why}): running on loopback with '
-                                    "the link emulated (a cut freezes the laptop's processes; "
-                                    'no bandwidth shaping, no CPU quotas)')
-        else:
-            self.mode_reason = 'loopback asked for: the link is emulated'
+        self.mode, self.mode_reason = links.choose(self.mode)
         os.makedirs(os.path.join(self.run_dir, 'logs'), exist_ok=True)
+        d = self.deployment
+        control: links.LinkControl
         if self.mode == NETNS:
-            netns.remove_stale()
-            cores = self.cpu_cores if self.options.cpu_quota else {}
-            d = self.deployment
-            self.network = netns.Network(
-                cpu_cores=cores, scales=d.scale_names,
-                links=[(link.name, link.ends[0], link.ends[1], self._links[link.name][1])
-                       for link in d.links]).setup()
+            control = links.NamespaceLinks(
+                d.scale_names,
+                [(link.name, link.ends[0], link.ends[1], self._links[link.name][1])
+                 for link in d.links],
+                self.cpu_cores if self.options.cpu_quota else {})
         else:
-            self._probe_port = _free_tcp_port()
+            control = links.LoopbackLinks(d.scale_names, self._laptop_agent_pid)
+        control.setup()
+        self.link_control = control
         self.t0 = time.monotonic()
         for link, (up, rate) in self._links.items():
             self.record.link_set(self.t0, up, rate, link)
-        if not self.options.link_up_at_start and self.network is not None:
+        boot_cut = not self.options.link_up_at_start
+        if boot_cut and not control.cuts_processes:
             for link in self.master_links():
                 self.cut(link)
         master = self.deployment.master.name
         self._start_observer(master, self.record, self._topics(master))
-        if self.network is not None:
+        if control.observer_per_scale:
             many = len(self.deployment.scale_names) > 2
             for scale in self.remote_scales:
                 # With two scales the laptop's observer hears the agents' reports only (as
@@ -211,9 +199,9 @@ class Testbed:
                                      project=None if many else [protocol.TOPIC_AGENT_STATE])
         for scale in self.deployment.scale_names:
             self.start_agent(scale)
-        if not self.options.link_up_at_start and self.network is None:
+        if boot_cut and control.cuts_processes:
             self.cut()
-        robot_group = self.network.groups.get('robot') if self.network else None
+        robot_group = control.cpu_group('robot')
         if robot_group is not None:
             # Boot: ten Python nodes starting at once would keep an Atom-sized robot saturated
             # for many seconds and starve the monitors. The agents read their quota when they
@@ -247,8 +235,8 @@ class Testbed:
     def stop(self) -> List[str]:
         """Stop everything; return what had to be force-cleaned (empty on a clean stop)."""
         notes: List[str] = []
-        self._thaw()
-        robot_group = self.network.groups.get('robot') if self.network else None
+        self.link_control.release()
+        robot_group = self.link_control.cpu_group('robot')
         if robot_group is not None:
             # Ten Python nodes shutting down at once under the robot's quota take many seconds;
             # nothing is measured any more, so the teardown gets the whole machine (as the boot).
@@ -293,12 +281,8 @@ class Testbed:
             for p in leftovers:
                 _kill(p.pid, signal.SIGKILL)
             psutil.wait_procs(leftovers, timeout=5.0)
-        if self.network is not None:
-            stray = self.network.leftover_pids()
-            if stray:
-                notes.append(f'processes left in the namespaces/cgroups: {stray}')
-            notes.extend(self.network.teardown())
-            self.network = None
+        notes.extend(self.link_control.teardown())
+        self.link_control = links.LinkControl()
         _reap(exclude={p.popen.pid for p in self.procs.values()})
         if self._own_run_dir and not self.options.keep_run_dir:
             shutil.rmtree(self.run_dir, ignore_errors=True)
@@ -313,20 +297,12 @@ class Testbed:
 
     # --- processes ----------------------------------------------------------------------------
     def _env(self, scale: str) -> Dict[str, str]:
-        peer = None
-        if self.mode == NETNS:
-            peer = ';'.join(self.network.peers(scale))
-        return child_env(self.options.domain_id, os.path.join(self.run_dir, 'ros_log'), peer)
+        return child_env(self.options.domain_id, os.path.join(self.run_dir, 'ros_log'),
+                         self.link_control.discovery_peers(scale))
 
     def _deployment_args(self) -> List[str]:
         args = ['--ros-args', '--params-file', self.options.deployment_path]
-        if self.mode == NETNS:
-            for scale, ip in self.network.addresses.items():
-                args += ['-p', f'scales.{scale}.host:={ip}']
-        else:
-            for scale in self.deployment.scale_names:
-                args += ['-p', f'scales.{scale}.host:=127.0.0.1']
-            args += ['-p', f'monitoring.bandwidth_probe_port:={self._probe_port}']
+        args += self.link_control.ros_parameters()
         args += ['-p', f'agent.state_dir:={os.path.join(self.run_dir, "state")}',
                  '-p', f'agent.log_dir:={os.path.join(self.run_dir, "nodes")}']
         return args
@@ -337,12 +313,8 @@ class Testbed:
         log = open(log_path, 'ab')
         env = self._env(scale)
         try:
-            if self.network is not None:
-                popen = self.network.popen(scale, argv, env, cpu_quota=quota,
-                                           stdout=stdout or log, stderr=log)
-            else:
-                popen = subprocess.Popen(list(argv), env=env, stdout=stdout or log, stderr=log,
-                                         start_new_session=True)
+            popen = self.link_control.popen(scale, argv, env, quota, stdout=stdout or log,
+                                            stderr=log)
         finally:
             log.close()
         proc = Proc(name, scale, list(argv), popen, log_path, time.monotonic())
@@ -511,30 +483,21 @@ class Testbed:
     def cut(self, link: Optional[str] = None) -> None:
         """Cut a link (the only one, or the one named): every packet dropped both ways."""
         link = self._link_name(link)
-        if self.network is not None:
-            self.network.cut(link)
-        else:
-            self._freeze()
+        self.link_control.cut(link)
         many = len(self._links) > 1
         self._link_set(link, False, self._links[link][1],
                        f'link {link} cut' if many else 'link cut')
 
     def restore(self, link: Optional[str] = None) -> None:
         link = self._link_name(link)
-        if self.network is not None:
-            self.network.restore(link)
-        else:
-            self._thaw()
+        self.link_control.restore(link)
         many = len(self._links) > 1
         self._link_set(link, True, self._links[link][1],
                        f'link {link} restored' if many else 'link restored')
 
     def throttle(self, rate_kbps: float, link: Optional[str] = None) -> None:
         link = self._link_name(link)
-        if self.network is None:
-            raise HarnessError('cannot throttle on loopback: bandwidth shaping needs network '
-                               'namespaces (root)')
-        self.network.throttle(rate_kbps, link)
+        self.link_control.throttle(rate_kbps, link)
         named = f'link {link}' if len(self._links) > 1 else 'link'
         self._link_set(link, self._links[link][0], rate_kbps,
                        f'{named} shaped to {rate_kbps:g} kbit/s')
@@ -562,26 +525,12 @@ class Testbed:
     def link_state(self, link: str) -> Tuple[bool, float]:
         return self._links[self._link_name(link)]
 
-    def _laptop_pids(self) -> List[int]:
+    def _laptop_agent_pid(self) -> Optional[int]:
+        """The laptop agent's pid while it runs (on loopback a cut freezes its processes)."""
         proc = self.procs.get('agent_laptop')
         if proc is None or proc.popen.poll() is not None:
-            return []
-        try:
-            root = psutil.Process(proc.popen.pid)
-            return [root.pid] + [c.pid for c in root.children(recursive=True)]
-        except psutil.Error:
-            return []
-
-    def _freeze(self) -> None:
-        pids = self._laptop_pids()
-        for pid in pids:
-            _kill(pid, signal.SIGSTOP)
-        self._frozen = pids
-
-    def _thaw(self) -> None:
-        for pid in self._frozen:
-            _kill(pid, signal.SIGCONT)
-        self._frozen = []
+            return None
+        return proc.popen.pid
 
     # --- observing ----------------------------------------------------------------------------
     def mark(self, text: str) -> None:
@@ -635,11 +584,10 @@ class Testbed:
                 out[name] = t.user + t.system
             except psutil.Error:
                 continue
-        if self.network is not None:
-            for scale in self.deployment.scale_names:
-                used = self.network.cpu_usage_s(scale)
-                if used is not None:
-                    out[f'scale_{scale}'] = used
+        for scale in self.deployment.scale_names:
+            used = self.link_control.cpu_usage_s(scale)
+            if used is not None:
+                out[f'scale_{scale}'] = used
         return out
 
 
