@@ -19,7 +19,8 @@ import yaml
 from anyscale_manager import cli
 from anyscale_manager.model import advice
 from anyscale_manager.model.loader import load_deployment, load_mapping
-from anyscale_manager.model.types import MonitorSettings
+from anyscale_manager.agent.catalogue import build_argv
+from anyscale_manager.model.types import Launch, MonitorSettings, Node
 from anyscale_manager.profiling import graph as g
 from anyscale_manager.profiling import processes as pr
 from anyscale_manager.profiling import skeleton as sk
@@ -363,6 +364,101 @@ def test_skeleton_of_an_empty_graph_is_refused():
     profile = synthetic_profile()
     with pytest.raises(ValueError, match='at least one node'):
         sk.render(sk.Profile(profile.name, profile.host, '1', 1.0, 'now', (), ()))
+
+
+# --- the launch a node gets ------------------------------------------------------------------
+TALKER = ('/usr/bin/python3', '/opt/demo/talker.py', '--rate', '10')
+
+
+def agent_argv(scale='robot', lifecycle=True, ros_name='', parameters=None):
+    """The command line an agent runs for a node whose launch is TALKER."""
+    node = Node(name='talker', cpu=10.0, performance=1.0, lifecycle=lifecycle,
+                launch=Launch(command=TALKER[:2], arguments=TALKER[2:], ros_name=ros_name,
+                              parameters=parameters or {}))
+    argv, problem = build_argv(node, '', scale=scale)
+    assert not problem
+    return argv
+
+
+@pytest.mark.parametrize('scale', ['robot', 'laptop'])
+@pytest.mark.parametrize('ros_name', ['', '/r1/talker'])
+def test_the_launch_of_a_node_an_agent_started_is_what_its_file_says(scale, ros_name):
+    argv = agent_argv(scale, ros_name=ros_name)
+    assert any(a.startswith('~/change_state:=~/') for a in argv)
+    launch = suggest.suggest_launch(argv)
+    assert launch.command == TALKER and launch.lifecycle
+    assert f'~/get_state:=~/{scale}/get_state' in launch.dropped
+    # Its parameters stay: an agent would set them from launch.parameters, and a command with
+    # them starts the same node.
+    launch = suggest.suggest_launch(agent_argv(scale, parameters={'rate': 5}))
+    assert launch.command == TALKER + ('--ros-args', '-p', 'rate:=5')
+
+
+@pytest.mark.parametrize('cmdline', [
+    TALKER,
+    TALKER + ('--ros-args', '-r', '__node:=speaker'),          # a launch file's own remap
+    TALKER + ('--ros-args', '-r', '~/get_state:=~/mine'),      # not an agent's
+    TALKER + ('--ros-args', '-r', '~/get_state:=~/robot/get_state_of_another'),
+    agent_argv(lifecycle=False),                               # nothing tells it apart
+])
+def test_a_command_line_without_an_agents_lifecycle_remaps_is_kept(cmdline):
+    launch = suggest.suggest_launch(cmdline)
+    assert launch.command == cmdline and not launch.lifecycle and not launch.dropped
+    assert suggest.suggest_launch(cmdline, lifecycle_seen=True).lifecycle
+
+
+def test_an_emptied_ros_args_section_goes_with_its_end_marker():
+    argv = TALKER + ('--ros-args', '-r', '~/get_state:=~/robot/get_state', '--', 'extra')
+    assert suggest.suggest_launch(argv).command == TALKER + ('extra',)
+
+
+def test_the_graph_tells_a_lifecycle_node_by_its_transition_events():
+    graph = g.GraphSeen()
+    graph.add(0.0, ['/talker', '/listener'], [
+        g.Endpoint('/talker', '/talker/robot/transition_event', suggest.LIFECYCLE_EVENT_TYPE,
+                   g.PUB),
+        g.Endpoint('/listener', '/talker/robot/transition_event',
+                   suggest.LIFECYCLE_EVENT_TYPE, g.SUB)])
+    assert graph.publishes_type('/talker', suggest.LIFECYCLE_EVENT_TYPE)
+    assert not graph.publishes_type('/listener', suggest.LIFECYCLE_EVENT_TYPE)
+
+
+@pytest.mark.parametrize('seen, cmdline', [(False, agent_argv()), (True, TALKER), (True, ())])
+def test_skeleton_says_a_node_is_a_lifecycle_node_and_offers_standby(seen, cmdline):
+    profile = synthetic_profile()
+    nodes = tuple(sk.NodeReport('/laser', cpu=n.cpu, process=n.process, cmdline=cmdline,
+                                lifecycle=seen) if n.name == '/laser' else n
+                  for n in profile.nodes)
+    text = sk.render(sk.Profile(profile.name, profile.host, profile.domain_id,
+                                profile.duration_s, profile.started, nodes, profile.edges,
+                                profile.topics))
+    d = load_mapping(yaml.safe_load(text), 'skeleton')     # valid as it is
+    assert not d.node('laser').lifecycle
+    lines = text.splitlines()
+    section = lines[lines.index('      laser:'):lines.index('      names_node:')]
+    body = ' '.join(line.strip().lstrip('# ') for line in section)     # comments unwrapped
+    assert 'lifecycle node: ' in body and 'standby: true is then possible' in body
+    assert 'a move is an activation' in body
+    assert ('transition events' in body) == seen
+    assert "an agent's lifecycle remaps" in body or seen
+    assert '        # lifecycle: true' in section and '        # standby: true' in section
+    assert '~/change_state' not in ''.join(line for line in section if 'command' in line)
+    if cmdline:
+        start = section.index('        # launch:')
+        block = [line.replace('# ', '', 1) for line in section[start:]
+                 if line.startswith('        #   ') or line == '        # launch:']
+        assert yaml.safe_load('\n'.join(block)) == {'launch': {'command': list(TALKER)}}
+    # With a launch and without managed: false, the uncommented line loads: a lifecycle node.
+    data = yaml.safe_load(text)
+    laser = data['/**']['ros__parameters']['nodes']['laser']
+    laser.update(launch={'command': list(TALKER)}, lifecycle=True)
+    del laser['managed']
+    assert load_mapping(data, 'skeleton').node('laser').lifecycle
+
+
+def test_a_plain_node_gets_no_lifecycle_words():
+    text = sk.render(synthetic_profile())
+    assert 'lifecycle' not in text and 'standby' not in text
 
 
 # --- the command: arguments -------------------------------------------------------------------

@@ -170,5 +170,11 @@ class GraphSeen:
     def subscribes(self, node: str) -> List[str]:
         return sorted({e.topic for e in self.edges() if e.subscriber == node})
 
+    def publishes_type(self, node: str, msg_type: str) -> bool:
+        """Whether ``node`` publishes a topic of ``msg_type``, whoever listens (a lifecycle
+        node's transition events go to its manager, often no node of the profile)."""
+        return any(e.node == node and e.kind == PUB and e.msg_type == msg_type
+                   for e in self.endpoints)
+
     def seen(self, node: str) -> Optional[NodeSeen]:
         return self.nodes.get(node)

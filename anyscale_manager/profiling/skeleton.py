@@ -18,7 +18,7 @@ from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 from .graph import Edge, MSG_TYPE_RE
 from .processes import ProcessMatch
 from .stats import CpuSummary, RateSummary, round_sig
-from .suggest import Suggestion, suggest
+from .suggest import LIFECYCLE_EVENT_TYPE, LaunchSuggestion, Suggestion, suggest, suggest_launch
 
 KEY_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 PLAIN_RE = re.compile(r'^[A-Za-z_/.][A-Za-z0-9_/.+-]*$')
@@ -47,6 +47,7 @@ class NodeReport:
     shares_with: Tuple[str, ...] = ()     # other nodes of the same process
     copies: int = 1                       # nodes of this name seen at once
     gone_s: float = 0.0                   # left the graph this long before the end
+    lifecycle: bool = False               # it published its lifecycle transition events
 
 
 @dataclass(frozen=True)
@@ -358,13 +359,16 @@ def _node(w: _Writer, node: NodeReport, keys: Mapping[str, str], roles: _Roles,
         w.flow_list(8, 'coresidence', others)
     # A node of the root namespace is known by its bare name, as the default (its key) is.
     ros_name = node.name.lstrip('/') if node.name.count('/') == 1 else node.name
+    launch = suggest_launch(node.cmdline, node.lifecycle)
     if ros_name != key:
         w.line(8, 'launch:')
         w.line(10, f'ros_name: {scalar(ros_name)}', 'its name in the graph')
-        _launch_hint(w, 10, node, inside=True)
+        _launch_hint(w, 10, launch, inside=True)
     else:
-        _launch_hint(w, 8, node, inside=False)
+        _launch_hint(w, 8, launch, inside=False)
     w.line(8, 'managed: false', 'TODO: delete once it has a launch')
+    if launch.lifecycle:
+        _lifecycle_hint(w, 8, node, launch)
     if node.cpu is not None:
         w.line(8, f'cpu: {scalar(_cpu_percent(node.cpu))}',
                f'measured: mean over {len(node.cpu.readings)} one-second readings (max '
@@ -373,19 +377,40 @@ def _node(w: _Writer, node: NodeReport, keys: Mapping[str, str], roles: _Roles,
         w.line(8, 'cpu: 0.0', f'TODO: not measured: {node.no_cpu_reason or "no process found"}')
 
 
-def _launch_hint(w: _Writer, indent: int, node: NodeReport, inside: bool) -> None:
+def _launch_hint(w: _Writer, indent: int, launch: LaunchSuggestion, inside: bool) -> None:
+    seen = ' The command line seen on this host' if launch.command else ''
+    if seen and launch.dropped:
+        seen += (', less the remaps an agent adds itself when it starts the node (its name, '
+                 "and its lifecycle services under the scale's name)")
+    seen += ':' if seen else ''
     if inside:
         w.comment(indent, 'TODO: how an agent starts it: package and executable, or command.'
-                  + (' The command line seen on this host:' if node.cmdline else ''))
-        if node.cmdline:
-            w.commented_list(indent, 'command', node.cmdline)
+                  + seen)
+        if launch.command:
+            w.commented_list(indent, 'command', launch.command)
         return
     w.comment(indent, 'TODO launch: how an agent starts it (package and executable, or '
-                      'command).' + (' The command line seen on this host:'
-                                     if node.cmdline else ''))
-    if node.cmdline:
+                      'command).' + seen)
+    if launch.command:
         w.raw_comment(indent, 'launch:')
-        w.commented_list(indent, 'command', node.cmdline, inner=2)
+        w.commented_list(indent, 'command', launch.command, inner=2)
+
+
+def _lifecycle_hint(w: _Writer, indent: int, node: NodeReport,
+                    launch: LaunchSuggestion) -> None:
+    how = []
+    if node.lifecycle:
+        how.append(f'it publishes its transition events ({LIFECYCLE_EVENT_TYPE})')
+    if launch.dropped:
+        how.append("its command line carries an agent's lifecycle remaps")
+    w.comment(indent, f'lifecycle node: {" and ".join(how)}. Once it has a launch and no '
+                      'managed: false, declare it (lifecycle: true): agents then configure it '
+                      'and activate it where the layout places it (docs/lifecycle.md). '
+                      'standby: true is then possible once it may run on a second scale: an '
+                      'inactive copy waits on every scale it may run on, and a move is an '
+                      'activation (milliseconds) instead of a process start.')
+    w.raw_comment(indent, 'lifecycle: true')
+    w.raw_comment(indent, 'standby: true')
 
 
 def _connection(w: _Writer, edge: Edge, key: str, keys: Mapping[str, str], profile: Profile,

@@ -19,12 +19,22 @@ connection that falls below half its usual rate for longer than Δ does:
 
 A connection with fewer than 3 readings (a latched or one-shot topic, a topic that started at
 the end of the watch) or a median of 0 gets no thresholds: it stays unmonitored.
+
+A node's launch (``suggest_launch``) is the command line its process ran, less what an agent
+adds when it starts a copy itself: the remaps that move a lifecycle node's services and
+transition topic under the scale's name (``-r ~/change_state:=~/robot/change_state``, ...). The
+agent adds them again on whichever scale it starts the node, so a launch that carried them
+would serve the lifecycle twice under one scale's name. A ``--ros-args`` left empty goes too.
+The node is a lifecycle node when it publishes its transition events
+(``lifecycle_msgs/msg/TransitionEvent``) or its command line carries those remaps.
 """
 
 import math
+import re
 from dataclasses import dataclass
-from typing import Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
+from ..agent.catalogue import LIFECYCLE_SERVICES, LIFECYCLE_TOPICS
 from .stats import RateSummary, round_sig
 
 MIN_READINGS = 3
@@ -85,3 +95,73 @@ def suggest(rate: Optional[RateSummary]) -> Suggestion:
                 f'{rate.lowest_hz:.3g} Hz)',)
     return Suggestion(freq_min_hz=fmin, freq_opt_hz=opt, tolerance_s=tolerance,
                       bandwidth_kbps=bandwidth_kbps(p50, rate.mean_bytes), why=why)
+
+
+LIFECYCLE_EVENT_TYPE = 'lifecycle_msgs/msg/TransitionEvent'
+ROS_ARGS, END_ROS_ARGS = '--ros-args', '--'
+REMAP_FLAGS = ('-r', '--remap')
+_LIFECYCLE_NAMES = frozenset(LIFECYCLE_SERVICES + LIFECYCLE_TOPICS)
+NAME_REMAP_RE = re.compile(r'^(?:[^:]+:)?__(?:node|ns):=')
+
+
+@dataclass(frozen=True)
+class LaunchSuggestion:
+    """What to write as a node's launch, from the command line its process ran."""
+
+    command: Tuple[str, ...]          # launch.command; () when no command line was seen
+    lifecycle: bool                   # a lifecycle node: ``lifecycle: true``, then ``standby``
+    dropped: Tuple[str, ...] = ()     # the agent's own arguments left out of ``command``
+
+
+def is_agent_remap(rule: str) -> bool:
+    """``~/NAME:=~/SCALE/NAME`` for a lifecycle service or topic: what an agent adds."""
+    source, sep, target = rule.partition(':=')
+    if not sep or not source.startswith('~/'):
+        return False
+    name = source[2:]
+    parts = target.split('/')
+    return (name in _LIFECYCLE_NAMES and len(parts) == 3 and parts[0] == '~'
+            and bool(parts[1]) and parts[2] == name)
+
+
+def suggest_launch(cmdline: Sequence[str], lifecycle_seen: bool = False) -> LaunchSuggestion:
+    """The launch command a user writes for a node seen running ``cmdline`` (see the module);
+    ``lifecycle_seen``: the graph showed it publishing its transition events."""
+    args = list(cmdline)
+    # (section, index of the rule) of every remap: the section counts the --ros-args seen.
+    remaps: List[Tuple[int, int]] = []
+    section, inside = 0, False
+    for i, arg in enumerate(args):
+        if arg == ROS_ARGS:
+            section, inside = section + 1, True
+        elif arg == END_ROS_ARGS:
+            inside = False
+        elif inside and arg in REMAP_FLAGS and i + 1 < len(args):
+            remaps.append((section, i + 1))
+    agents = {sec for sec, i in remaps if is_agent_remap(args[i])}
+    # The section an agent appended also names the node (__node, __ns), from the name the
+    # deployment gives it: the agent adds those again.
+    drop = {i for sec, i in remaps
+            if is_agent_remap(args[i]) or sec in agents and NAME_REMAP_RE.match(args[i])}
+    kept = [a for i, a in enumerate(args) if i not in drop and i + 1 not in drop]
+    dropped = [a for i, a in enumerate(args) if i in drop or i + 1 in drop]
+    return LaunchSuggestion(command=_without_empty_ros_args(kept),
+                            lifecycle=lifecycle_seen or bool(agents), dropped=tuple(dropped))
+
+
+def _without_empty_ros_args(args: Sequence[str]) -> Tuple[str, ...]:
+    """``args`` without a ``--ros-args`` that opens nothing (and the ``--`` closing it)."""
+    out = []
+    i = 0
+    while i < len(args):
+        if args[i] == ROS_ARGS:
+            following = args[i + 1] if i + 1 < len(args) else None
+            if following in (None, ROS_ARGS):
+                i += 1
+                continue
+            if following == END_ROS_ARGS:
+                i += 2
+                continue
+        out.append(args[i])
+        i += 1
+    return tuple(out)

@@ -22,6 +22,7 @@ from .graph import Endpoint, GraphSeen, PUB, SUB, TopicPlan, full_name, skipped_
 from .processes import ProcessInfo, ProcessMatch, match_node, shared_processes
 from .skeleton import HostInfo, NodeReport, Profile, TopicReport
 from .stats import CpuMeter, CpuSummary, TopicMeter
+from .suggest import LIFECYCLE_EVENT_TYPE
 
 GRAPH_PERIOD_S = 0.5        # graph snapshots: new nodes and topics are picked up this fast
 PROCESS_PERIOD_S = 1.0      # process table scans while some node has no process yet
@@ -61,7 +62,8 @@ class WatchResult:
                 no_cpu_reason=self.no_match.get(node, '') if not match else
                 ('' if cpu else 'its process gave no reading'),
                 shares_with=tuple(others), copies=seen.copies if seen else 1,
-                gone_s=gone if gone > GRAPH_PERIOD_S * 2 else 0.0))
+                gone_s=gone if gone > GRAPH_PERIOD_S * 2 else 0.0,
+                lifecycle=self.graph.publishes_type(node, LIFECYCLE_EVENT_TYPE)))
         topics = {}
         for topic, plan in self.plans.items():
             meter = self.meters.get(topic)
