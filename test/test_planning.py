@@ -11,11 +11,12 @@ import pytest
 
 from anyscale_manager.cli import main as cli_main
 from anyscale_manager.model import load_deployment
-from anyscale_manager.model.types import (Connection, Deployment, Launch, Link, Node, Scale,
-                                          Settings)
+from anyscale_manager.model.types import (Connection, DeciderSettings, Deployment, Launch,
+                                          Link, Node, Scale, Settings)
 from anyscale_manager.planning import Instance, Regression, check_layout, fit_profile, solve
 from anyscale_manager.planning.generate import generate_deployment
 from anyscale_manager.planning.instance import own_scales_of_all
+from anyscale_manager.runtime.constraints import usable_cpu
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 IROS = os.path.join(REPO, 'config', 'iros2016')
@@ -23,7 +24,9 @@ TESTBED = os.path.join(REPO, 'config', 'icar2015_testbed.yaml')
 
 
 def instance(i: int) -> Deployment:
-    return load_deployment(os.path.join(IROS, f'instance_{i}.yaml'))
+    """A case-study instance as the paper models it: every computer's whole capacity usable."""
+    d = load_deployment(os.path.join(IROS, f'instance_{i}.yaml'))
+    return replace(d, decider=replace(d.decider, cpu_headroom=1.0))
 
 
 def sig3(x: float) -> str:
@@ -206,6 +209,51 @@ def test_no_feasible_layout_is_reported_with_reasons(solver):
 def test_solve_rejects_bad_arguments(kwargs, message):
     with pytest.raises(ValueError, match=message):
         solve(tiny(), **kwargs)
+
+
+def headroom_case(headroom: float) -> Deployment:
+    """a (50) and b (44) fit a robot of 100 together, but not the 90 a headroom of 0.9 leaves."""
+    return Deployment(
+        name='headroom', source='<test>',
+        scales=(scale('r', 100.0, master=True), scale('s', 400.0, kind='server')),
+        links=(Link('r_s', ('r', 's'), 1000.0, 'wireless'),),
+        nodes=(node('a', 50.0), node('b', 44.0)),
+        connections=(conn('a', 'b', 1.0),),
+        decider=DeciderSettings(cpu_headroom=headroom))
+
+
+@pytest.mark.parametrize('solver', ['greedy', 'paper-greedy', 'exact'])
+def test_problem2_fills_a_scale_only_to_what_the_decider_lets_it_use(solver):
+    whole = solve(headroom_case(1.0), problem=2, solver=solver)
+    assert whole.scale_load['r'] == 94.0 and whole.objective == 0.0
+    d = headroom_case(0.9)
+    plan = solve(d, problem=2, solver=solver)
+    assert plan.feasible, plan.violations
+    assert plan.scale_load['r'] == 50.0 and plan.objective == 44.0
+    assert plan.scale_load['r'] <= usable_cpu(d.scale('r').capacity_cpu, d.decider) == 90.0
+
+
+@pytest.mark.parametrize('solver', ['greedy', 'paper-greedy', 'exact'])
+def test_problem1_respects_the_usable_cpu_too(solver):
+    d = replace(headroom_case(0.9), scales=(scale('r', 100.0, master=True), scale('t', 60.0)),
+                links=(Link('r_t', ('r', 't'), 1000.0, 'wireless'),))
+    plan = solve(d, problem=1, solver=solver)
+    assert plan.feasible, plan.violations
+    assert plan.scale_load['r'] <= 90.0 and plan.scale_load['t'] <= 54.0
+
+
+def test_the_checker_and_the_reasons_speak_of_usable_cpu():
+    d = headroom_case(0.9)
+    found = check_layout(d, {'a': 'r', 'b': 'r'})
+    assert [v.kind for v in found] == ['cpu']
+    assert 'needs CPU 94' in found[0].reason and '90 usable' in found[0].reason
+    assert 'capacity 100 x cpu_headroom 0.9' in found[0].reason
+    assert check_layout(headroom_case(1.0), {'a': 'r', 'b': 'r'}) == ()
+    pinned = replace(d, nodes=(node('a', 50.0, residence=('r',)),
+                               node('b', 44.0, residence=('r',))))
+    plan = solve(pinned, problem=1)
+    assert not plan.feasible
+    assert any('90 usable' in v and '94' in v for v in plan.violations), plan.violations
 
 
 # --- the case study -----------------------------------------------------------------------

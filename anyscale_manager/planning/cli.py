@@ -11,6 +11,7 @@ import yaml
 
 from ..model.loader import DeploymentError, load_deployment, load_mapping
 from ..model.types import Deployment
+from ..runtime.constraints import usable_cpu
 from .instance import SETTINGS
 from .plan import SOLVERS, Plan, solve
 
@@ -131,8 +132,10 @@ def render(d: Deployment, plan: Plan) -> str:
             cap = plan.server_capacity[s.name]
             note = 'capacity grown to its load'
         else:
-            cap = s.capacity_cpu
+            cap = usable_cpu(s.capacity_cpu, d.decider)
             note = f'{100 * load / cap:.0f}% used' if cap else ''
+            note += (f' (usable: capacity {_num(s.capacity_cpu)} x cpu_headroom '
+                     f'{d.decider.cpu_headroom:g})')
         lines.append(f'  {s.name:<10} {s.kind:<7} CPU {_num(load):>7} of {_num(cap):>7}  {note}')
     if d.links:
         lines.append('links (both directions summed):')

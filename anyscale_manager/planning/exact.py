@@ -256,7 +256,7 @@ def _classes(inst: Instance) -> Optional[List[List[int]]]:
 
 def _scale_orbits(inst: Instance, classes: List[List[int]]) -> List[List[int]]:
     """Groups of scales any two of which can be swapped without changing the model."""
-    signature = {}
+    signature: Dict[Tuple[object, Tuple[int, ...]], int] = {}
     for units in classes:
         u = units[0]
         sig = tuple(sorted((tuple((o.cpu, o.performance) for o in inst.options[n]),
@@ -307,7 +307,9 @@ def _build_aggregated(m: _Model, inst: Instance, classes: List[List[int]]
         for s in allowed:
             if fixed_cpu:
                 cpu_terms[s][count[s]] = fixed_cpu
-        kind, extra = 'fixed', {}
+        kind = 'fixed'
+        level: Dict[int, int] = {}              # concave: scale -> its total-share variable
+        picks: Dict[int, List[int]] = {}        # choice: scale -> a count variable per option
         if conf:
             n = conf[0]
             opts = inst.options[n]
@@ -321,7 +323,7 @@ def _build_aggregated(m: _Model, inst: Instance, classes: List[List[int]]
                     m.row({v: 1.0, count[s]: -lo}, 0.0, INF)
                     _chords(m, opts, p, v, count[s])
                     cpu_terms[s][v] = cpu_terms[s].get(v, 0.0) + 1.0
-                    extra[s] = v
+                    level[s] = v
             else:
                 kind = 'choice'
                 for s in allowed:
@@ -332,8 +334,8 @@ def _build_aggregated(m: _Model, inst: Instance, classes: List[List[int]]
                     m.row(row, 0.0, 0.0)
                     for w, o in zip(ws, opts):
                         cpu_terms[s][w] = o.cpu
-                    extra[s] = ws
-        parts.append((units, count, kind, extra, conf))
+                    picks[s] = ws
+        parts.append((units, count, kind, level, picks, conf))
     _capacity_rows(m, inst, cpu_terms)
     # Interchangeable scales (same capacity, and swapping them maps every class onto a class
     # alike): order them by load, which keeps one of each set of mirror-image layouts.
@@ -347,18 +349,18 @@ def _build_aggregated(m: _Model, inst: Instance, classes: List[List[int]]
     def extract(col: List[float]) -> Tuple[List[int], List[int]]:
         placement = [-1] * len(inst.nodes)
         choice = [0] * len(inst.nodes)
-        for units, count, kind, extra, conf in parts:
+        for units, count, kind, level, picks, conf in parts:
             todo = list(units)
             for s, c in count.items():
                 here = [todo.pop(0) for _ in range(min(int(round(col[c])), len(todo)))]
                 settings: List[int] = []
                 if kind == 'concave' and here:
                     n0 = conf[0]
-                    base, more = divmod(int(round(col[extra[s]])), len(here))
+                    base, more = divmod(int(round(col[level[s]])), len(here))
                     settings = [_option_at(inst, n0, base + (1 if i < more else 0))
                                 for i in range(len(here))]
                 elif kind == 'choice':
-                    for k, w in enumerate(extra[s]):
+                    for k, w in enumerate(picks[s]):
                         settings += [k] * int(round(col[w]))
                 for i, u in enumerate(here):
                     for n in inst.units[u]:
@@ -380,7 +382,9 @@ def _configurations(inst: Instance, classes: List[List[int]], s: int
     q = inst.quantum
     size = int(math.floor(inst.capacity[s] / q + 1e-9)) + 1
     here = [i for i, units in enumerate(classes) if s in inst.unit_allowed[units[0]]]
-    info = []
+    # Per class here: its fixed CPU, its configurable node's smallest share, and that node's
+    # (steps on the grid, values) per option, None when it has none.
+    info: List[Tuple[float, float, Optional[Tuple[np.ndarray, np.ndarray]]]] = []
     for i in here:
         members = inst.units[classes[i][0]]
         conf = [n for n in members if len(inst.options[n]) > 1]
@@ -390,9 +394,9 @@ def _configurations(inst: Instance, classes: List[List[int]], s: int
             opts = inst.options[n]
             steps = np.array([int(round((o.cpu - opts[0].cpu) / q)) for o in opts])
             values = np.array([inst.value(n, k) for k in range(len(opts))])
-            info.append((fixed, opts[0].cpu, steps, values))
+            info.append((fixed, opts[0].cpu, (steps, values)))
         else:
-            info.append((fixed, 0.0, None, None))
+            info.append((fixed, 0.0, None))
     out: List[Tuple[Tuple[int, ...], float]] = []
     counts = [0] * len(classes)
     grid = np.arange(size)
@@ -410,7 +414,7 @@ def _configurations(inst: Instance, classes: List[List[int]], s: int
             out.append((tuple(counts), float(dp[min(spare, size - 1)])))
             return True
         i = here[j]
-        fixed, low, steps, values = info[j]
+        fixed, low, curve = info[j]
         pinned = len(inst.unit_allowed[classes[i][0]]) == 1
         k_min = len(classes[i]) if pinned else 0
         for k in range(0, len(classes[i]) + 1):
@@ -421,8 +425,8 @@ def _configurations(inst: Instance, classes: List[List[int]], s: int
                 if not walk(j + 1, used, dp):
                     return False
             used += fixed + low
-            if steps is not None:
-                dp = add(dp, steps, values)
+            if curve is not None:
+                dp = add(dp, *curve)
         counts[i] = 0
         return True
 

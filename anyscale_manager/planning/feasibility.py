@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import Deployment
+from ..runtime.constraints import usable_cpu
 from .instance import Instance, own_scales_of_all
 
 TOLERANCE = 1e-6
@@ -41,14 +42,23 @@ def _residence_reason(d: Deployment, node: str, allowed: Tuple[str, ...]) -> str
     return f'is a data provider and stays on {where}'
 
 
+def _usable(d: Deployment, scale: str, cpu: float, given: bool = False) -> str:
+    """A scale's CPU limit in words: given outright, or its capacity less the headroom."""
+    if given:
+        return f'capacity {cpu:g}'
+    return (f'{cpu:g} usable (capacity {d.scale(scale).capacity_cpu:g} x cpu_headroom '
+            f'{d.decider.cpu_headroom:g})')
+
+
 def check_layout(deployment: Deployment, layout: Mapping[str, str],
                  cpu: Optional[Mapping[str, float]] = None,
                  capacity: Optional[Mapping[str, float]] = None,
                  tolerance: float = TOLERANCE) -> Tuple[Violation, ...]:
     """Every violated constraint of ``layout`` (node -> scale); empty when feasible.
 
-    ``cpu`` gives each node's planned CPU share (default: its nominal ``cpu``); ``capacity``
-    overrides scale capacities (Problem 2's grown servers).
+    ``cpu`` gives each node's planned CPU share (default: its nominal ``cpu``). A scale's CPU
+    limit is what the decider lets nodes use there (``capacity_cpu`` x ``cpu_headroom``), unless
+    ``capacity`` gives it (Problem 2's servers, grown to their load).
     """
     d = deployment
     out: List[Violation] = []
@@ -73,12 +83,13 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str],
                 out.append(Violation('residence', n.name, f'node {n.name} is on {scale} but '
                                      + _residence_reason(d, n.name, own)))
         share = cpu.get(n.name, n.cpu)
-        if n.configurable:
-            s = n.settings
-            if not (s.cpu_min - tolerance <= share <= s.cpu_max + tolerance):
+        profiled = n.settings
+        if profiled is not None and profiled.configurable:
+            if not (profiled.cpu_min - tolerance <= share <= profiled.cpu_max + tolerance):
                 out.append(Violation('setting', n.name,
                                      f'node {n.name} is given CPU {share:g}, outside its '
-                                     f'profiled range {s.cpu_min:g}-{s.cpu_max:g}'))
+                                     f'profiled range {profiled.cpu_min:g}-'
+                                     f'{profiled.cpu_max:g}'))
         elif abs(share - n.cpu) > tolerance:
             out.append(Violation('setting', n.name, f'node {n.name} has a fixed CPU share of '
                                                     f'{n.cpu:g}, not {share:g}'))
@@ -94,13 +105,15 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str],
     for n in d.nodes:
         if layout.get(n.name) in scales:
             load[layout[n.name]] += cpu.get(n.name, n.cpu)
-    cap = {s.name: s.capacity_cpu for s in d.scales}
-    cap.update(capacity or {})
-    for s in d.scale_names:
-        if load[s] > cap[s] + tolerance:
+    given = dict(capacity or {})
+    for sc in d.scales:
+        s = sc.name
+        cap = given.get(s, usable_cpu(sc.capacity_cpu, d.decider))
+        if load[s] > cap + tolerance:
             on = sorted((n.name for n in d.nodes if layout.get(n.name) == s))
-            out.append(Violation('cpu', s, f'scale {s} needs CPU {load[s]:g} but has capacity '
-                                           f'{cap[s]:g} (nodes: {", ".join(on)})'))
+            out.append(Violation('cpu', s, f'scale {s} needs CPU {load[s]:g} but has '
+                                           f'{_usable(d, s, cap, s in given)} (nodes: '
+                                           f'{", ".join(on)})'))
     link_load: Dict[str, float] = {link.name: 0.0 for link in d.links}
     for c in d.connections:
         a, b = layout.get(c.publisher), layout.get(c.subscriber)
@@ -250,6 +263,7 @@ class Loads:
 
 def explain_infeasible(inst: Instance) -> Tuple[str, ...]:
     """Constraints that cannot all be met, found by necessary conditions (may be empty)."""
+    d = inst.deployment
     reasons: List[str] = []
     pinned_load = [0.0] * len(inst.scales)
     pinned_units: List[List[str]] = [[] for _ in inst.scales]
@@ -265,13 +279,14 @@ def explain_infeasible(inst: Instance) -> Tuple[str, ...]:
         if need > room + TOLERANCE:
             reasons.append(f'CPU: {label} needs at least {need:g} but the largest scale it may '
                            f'run on ({", ".join(inst.scales[s] for s in allowed)}) has '
-                           f'{room:g}')
+                           f'{room:g} usable')
         if len(allowed) == 1:
             pinned_load[allowed[0]] += need
             pinned_units[allowed[0]].append(label)
     for s, load in enumerate(pinned_load):
         if not inst.growable[s] and load > inst.capacity[s] + TOLERANCE:
-            reasons.append(f'CPU: scale {inst.scales[s]} has capacity {inst.capacity[s]:g} but '
+            name = inst.scales[s]
+            reasons.append(f'CPU: scale {name} has {_usable(d, name, inst.capacity[s])} but '
                            f'the nodes that may run only there need {load:g} '
                            f'({", ".join(pinned_units[s])})')
     if not any(inst.growable):
@@ -279,7 +294,7 @@ def explain_infeasible(inst: Instance) -> Tuple[str, ...]:
         cap = sum(inst.capacity)
         if total > cap + TOLERANCE:
             reasons.append(f'CPU: the nodes need at least {total:g} in total but all scales '
-                           f'together have {cap:g}')
+                           f'together have {cap:g} usable')
     link_pinned: Dict[int, float] = {}
     for p, q, bw, name in inst.connections:
         ap, aq = inst.unit_allowed[inst.unit_of[p]], inst.unit_allowed[inst.unit_of[q]]

@@ -2,7 +2,7 @@
 
 import random
 from dataclasses import replace
-from typing import List
+from typing import List, Tuple
 
 from ..model.types import (MASTER, REMOTE, ROBOT, SERVER, WIRED, WIRELESS, Connection,
                            Deployment, Launch, Link, Node, Scale, Settings)
@@ -57,7 +57,7 @@ def generate_deployment(nodes: int = 1000, computers: int = 50, seed: int = 0,
     out: List[Node] = []
     for i in range(nodes):
         name = f'n{i}'
-        residence = ()
+        residence: Tuple[str, ...] = ()
         settings = None
         if rng.random() < configurable_share:
             k = rng.randrange(len(PROFILES)) if servers else rng.randrange(1, len(PROFILES))
@@ -80,10 +80,10 @@ def generate_deployment(nodes: int = 1000, computers: int = 50, seed: int = 0,
     free = [i for i, n in enumerate(out) if not n.residence and n.settings is None]
     rng.shuffle(free)
     pairs = free[:max(0, nodes // 40) * 2]
-    for a, b in zip(pairs[::2], pairs[1::2]):
-        out[a] = _with(out[a], coresidence=(out[b].name,))
-        out[b] = _with(out[b], coresidence=(out[a].name,))
-    connections = []
+    for first, second in zip(pairs[::2], pairs[1::2]):
+        out[first] = _with(out[first], coresidence=(out[second].name,))
+        out[second] = _with(out[second], coresidence=(out[first].name,))
+    connections: List[Connection] = []
     for i in range(1, nodes):
         for _ in range(1 + (rng.random() < 0.5)):
             j = rng.randrange(max(0, i - 50), i)

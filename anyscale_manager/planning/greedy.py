@@ -22,6 +22,9 @@ NEAR_TARGETS = 6
 # Swaps are tried between every pair of units up to this many units.
 ALL_SWAPS_UP_TO = 80
 
+# A scale's best weighted performance from its configurable nodes, and the option of each.
+ScaleValue = Tuple[float, Dict[int, int]]
+
 
 @dataclass
 class Outcome:
@@ -166,7 +169,7 @@ class _ScaleValues:
         self.inst = inst
         self.cache: Dict[Tuple[int, FrozenSet[int]], Optional[Tuple[float, Dict[int, int]]]] = {}
 
-    def __call__(self, s: int, units: FrozenSet[int]):
+    def __call__(self, s: int, units: FrozenSet[int]) -> Optional[ScaleValue]:
         key = (s, units)
         if key not in self.cache:
             inst = self.inst
@@ -200,7 +203,7 @@ def improve_problem1(inst: Instance, loads: Loads, clock: Clock, deadline: float
     values = _ScaleValues(inst)
     members = [frozenset(m) for m in loads.members]
 
-    def apply(s: int, result) -> None:
+    def apply(s: int, result: ScaleValue) -> None:
         for n, k in result[1].items():
             loads.set_choice(n, k)
 
@@ -227,8 +230,9 @@ def improve_problem1(inst: Instance, loads: Loads, clock: Clock, deadline: float
             if clock() >= deadline:
                 break
             s = loads.unit_scale(u)
-            best = (TOLERANCE, None)
-            candidates = [((u, t),) for t in _targets(inst, loads, u, s)]
+            best_gain, best = TOLERANCE, None
+            candidates: List[Tuple[Tuple[int, int], ...]] = [
+                ((u, t),) for t in _targets(inst, loads, u, s)]
             if swaps:
                 candidates += [((u, loads.unit_scale(v)), (v, s)) for v in range(len(inst.units))
                                if v != u and loads.unit_scale(v) != s
@@ -250,22 +254,23 @@ def improve_problem1(inst: Instance, loads: Loads, clock: Clock, deadline: float
                 if vt is None:
                     continue
                 gain = vs[0] + vt[0] - current[s] - current[t]
-                if gain > best[0] and _links_allow(loads, moves):
-                    best = (gain, (moves, t, vs, vt, frozenset(new_s), frozenset(new_t)))
-            if best[1] is None:
+                if gain > best_gain and _links_allow(loads, moves):
+                    best_gain = gain
+                    best = (moves, t, vs, vt, frozenset(new_s), frozenset(new_t))
+            if best is None:
                 continue
-            moves, t, vs, vt, new_s, new_t = best[1]
+            moves, t, vs, vt, chosen_s, chosen_t = best
             for moved, _ in moves:
                 loads.unplace(moved)
             for moved, target in moves:
                 loads.place(moved, target)
             for scale in (s, t):
-                for w in (new_s if scale == s else new_t):
+                for w in (chosen_s if scale == s else chosen_t):
                     for n in inst.units[w]:
                         loads.set_choice(n, 0)
             apply(s, vs)
             apply(t, vt)
-            members[s], members[t] = new_s, new_t
+            members[s], members[t] = chosen_s, chosen_t
             current[s], current[t] = vs[0], vt[0]
             improved = True
     return loads, not improved
@@ -348,7 +353,8 @@ def improve_problem2(inst: Instance, loads: Loads, clock: Clock, deadline: float
         for f in fixed:
             if clock() >= deadline:
                 break
-            stay, pool = [], []
+            stay: List[int] = []
+            pool: List[int] = []
             for u in range(len(inst.units)):
                 s = loads.unit_scale(u)
                 if s == f:

@@ -13,7 +13,8 @@ from typing import Any
 try:
     import highspy
 except ImportError:  # optional on a plain ROS install: only the exact solvers need it
-    highspy = None
+    # None marks the package as missing: every user checks it (or available()) first.
+    highspy = None  # type: ignore[assignment]
 
 
 def available() -> bool:

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
 
 from ..model.types import SERVER, Deployment
+from ..runtime.constraints import usable_cpu
 from .regression import NodeProfile, fit_profile
 
 PROBLEMS = (1, 2)
@@ -87,7 +88,10 @@ class Instance:
         self.settings = settings
         self.scales: Tuple[str, ...] = d.scale_names
         self.scale_index = {s: i for i, s in enumerate(self.scales)}
-        self.capacity: Tuple[float, ...] = tuple(s.capacity_cpu for s in d.scales)
+        # The CPU the decider lets nodes use on each scale (capacity less its headroom): a
+        # layout that filled a scale beyond it would be judged over capacity at its first turn.
+        self.capacity: Tuple[float, ...] = tuple(usable_cpu(s.capacity_cpu, d.decider)
+                                                 for s in d.scales)
         # Problem 2 grows servers from 0; robots (and any other kind) keep their capacity.
         self.growable: Tuple[bool, ...] = tuple(problem == 2 and s.kind == SERVER
                                                 for s in d.scales)
@@ -128,9 +132,9 @@ class Instance:
         self.unit_of: Tuple[int, ...] = tuple(unit_of)
         own = own_scales_of_all(d)
         allowed_units = []
-        for members in self.units:
+        for unit in self.units:
             allowed = set(self.scales)
-            for m in members:
+            for m in unit:
                 allowed &= own[self.nodes[m]]
             allowed_units.append(tuple(i for i, s in enumerate(self.scales) if s in allowed))
         self.unit_allowed: Tuple[Tuple[int, ...], ...] = tuple(allowed_units)
@@ -146,12 +150,12 @@ class Instance:
         self.connections: List[Tuple[int, int, float, str]] = []
         self.neighbours: List[List[Tuple[int, float]]] = [[] for _ in self.nodes]
         for c in d.connections:
-            p, q = self.node_index[c.publisher], self.node_index[c.subscriber]
-            if unit_of[p] == unit_of[q]:
+            pub, sub = self.node_index[c.publisher], self.node_index[c.subscriber]
+            if unit_of[pub] == unit_of[sub]:
                 continue
-            self.connections.append((p, q, float(c.bandwidth_kbps), c.name))
-            self.neighbours[p].append((q, float(c.bandwidth_kbps)))
-            self.neighbours[q].append((p, float(c.bandwidth_kbps)))
+            self.connections.append((pub, sub, float(c.bandwidth_kbps), c.name))
+            self.neighbours[pub].append((sub, float(c.bandwidth_kbps)))
+            self.neighbours[sub].append((pub, float(c.bandwidth_kbps)))
         total_bw = sum(bw for _, _, bw, _ in self.connections)
         # A link that could carry every connection at once never binds: solvers skip it.
         self.link_may_bind = tuple(total_bw > cap + 1e-9 for cap in self.link_capacity)
@@ -170,9 +174,10 @@ class Instance:
     def parameter_value(self, n: int, k: int) -> Optional[float]:
         """The parameter value that gives node n the CPU share of its option k."""
         o = self.options[n][k]
-        if o.parameter_value is not None or self.profiles[n] is None:
+        profile = self.profiles[n]
+        if o.parameter_value is not None or profile is None:
             return o.parameter_value
-        return self.profiles[n].parameter_for_cpu(o.cpu)
+        return profile.parameter_for_cpu(o.cpu)
 
     def unit_cpu(self, u: int, choice: Sequence[int]) -> float:
         return sum(self.options[n][choice[n]].cpu for n in self.units[u])

@@ -141,7 +141,7 @@ def solve(deployment: Deployment, problem: int = 1, solver: str = 'greedy',
     if solver == 'exact':
         r = solve_exact(inst, time_limit_s)
         elapsed = clock() - start
-        if r.placement is None:
+        if r.placement is None or r.choice is None:
             found: Tuple[str, ...] = ()
             if not r.infeasible:
                 found = (f'the exact solver stopped ({r.status}) before finding a feasible '

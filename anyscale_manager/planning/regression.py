@@ -71,14 +71,16 @@ class Regression:
         self.x_range_ = (float(xs.min()), float(xs.max()))
         return self
 
-    def _check_fitted(self) -> None:
-        if self.coef_ is None:
+    def _fitted(self) -> Tuple[Tuple[float, ...], Tuple[float, float]]:
+        """The learned ``(coef_, x_range_)``; a RuntimeError before ``fit``."""
+        if self.coef_ is None or self.x_range_ is None:
             raise RuntimeError('this Regression is not fitted yet: call fit() first')
+        return self.coef_, self.x_range_
 
     def predict(self, x):
         """Fitted y at raw x (a number or an array)."""
-        self._check_fitted()
-        out = np.polyval(self.coef_, self._features(np.asarray(x, dtype=float)))
+        coef, _ = self._fitted()
+        out = np.polyval(coef, self._features(np.asarray(x, dtype=float)))
         return float(out) if np.ndim(out) == 0 else out
 
     def inverse(self, y: float, low: Optional[float] = None, high: Optional[float] = None
@@ -87,9 +89,9 @@ class Regression:
 
         The range defaults to the fitted samples' range: a fit is not trusted outside it.
         """
-        self._check_fitted()
-        lo = self.x_range_[0] if low is None else float(low)
-        hi = self.x_range_[1] if high is None else float(high)
+        _, x_range = self._fitted()
+        lo = x_range[0] if low is None else float(low)
+        hi = x_range[1] if high is None else float(high)
         if lo > hi:
             raise ValueError(f'empty range [{lo}, {hi}]')
         if lo == hi:
@@ -117,12 +119,12 @@ class Regression:
 
     def formula(self, var: str = 'x') -> str:
         """The fitted curve as text, e.g. ``66.62 ln x + 56.31``."""
-        self._check_fitted()
+        coef, _ = self._fitted()
         if self.form == 'log':
-            a, b = self.coef_
+            a, b = coef
             return f'{a:.5g} ln {var} {"+" if b >= 0 else "-"} {abs(b):.5g}'
         terms = []
-        for power, c in zip(range(self.degree, -1, -1), self.coef_):
+        for power, c in zip(range(self.degree, -1, -1), coef):
             suffix = f' {var}' if power == 1 else f' {var}^{power}' if power > 1 else ''
             term = f'{abs(c):.5g}{suffix}'
             sign = '-' if c < 0 else '+'

@@ -63,8 +63,9 @@ class BandwidthEstimate:
         if not link_up or congested:
             return False
         since = math.inf if self.last_attempt is None else now - self.last_attempt
-        if self.source == CONGESTION:
-            return since >= self.min_gap_s and now - self.measured_at >= self.min_gap_s
+        congestion_age_s = self._congestion_age_s(now)
+        if congestion_age_s is not None:
+            return since >= self.min_gap_s and congestion_age_s >= self.min_gap_s
         if since < self.interval_s:
             return False
         reference = self.available_kbps if self.available_kbps is not None \
@@ -94,7 +95,8 @@ class BandwidthEstimate:
         if not (math.isfinite(delivered_kbps) and math.isfinite(needed_kbps)) \
                 or needed_kbps <= 0 or delivered_kbps >= self.shortfall * needed_kbps:
             return None
-        if self.source == CONGESTION and now - self.measured_at < self.settle_s:
+        congestion_age_s = self._congestion_age_s(now)
+        if congestion_age_s is not None and congestion_age_s < self.settle_s:
             return None
         figure = self.shortfall * needed_kbps
         if self.available_kbps is not None:
@@ -110,6 +112,12 @@ class BandwidthEstimate:
 
     def age_s(self, now: float) -> Optional[float]:
         return None if self.measured_at is None else max(0.0, now - self.measured_at)
+
+    def _congestion_age_s(self, now: float) -> Optional[float]:
+        """How long ago the figure was read off a congestion; None when it came from a probe."""
+        if self.source != CONGESTION or self.measured_at is None:
+            return None
+        return now - self.measured_at
 
     def _set(self, now: float, kbps: float, source: str) -> None:
         self.available_kbps = kbps

@@ -38,6 +38,15 @@ KINDS = (FREQUENCY, CPU, BANDWIDTH, LINK_DOWN, STALE)
 _EMPTY: Mapping[str, float] = frozen_map()
 
 
+def usable_cpu(capacity_cpu: float, settings: DeciderSettings) -> float:
+    """The CPU of a scale that its nodes may use: its capacity times ``cpu_headroom``.
+
+    The one definition, used by the CPU rule, the migration policy and the planners alike, so
+    that a first layout the planners make is one the decider accepts.
+    """
+    return capacity_cpu * settings.cpu_headroom
+
+
 @dataclass(frozen=True)
 class Violation:
     """One broken constraint, with a reason a person can read."""
@@ -375,7 +384,8 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
     # (i) frequencies
     checks: Dict[str, ConnectionCheck] = {}
     for c in deployment.connections:
-        if not c.monitored:
+        # Monitored: both thresholds set (spelled out for the type checker).
+        if c.freq_min_hz is None or c.tolerance_s is None:
             continue
         reading = obs.connections.get(c.name)
         fresh = reading is not None and is_fresh(reading.stamp, now, settings)
@@ -387,7 +397,8 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
         both_run = c.publisher in running and c.subscriber in running
         # A connection measured by a silent (or just restarted) agent's probe: no verdict.
         measured = c.name not in obs.unjudged_connections
-        check = ConnectionCheck(connection=c.name, rate_hz=reading.rate_hz if fresh else None,
+        rate_hz = reading.rate_hz if reading is not None and fresh else None
+        check = ConnectionCheck(connection=c.name, rate_hz=rate_hz,
                                 freq_min_hz=c.freq_min_hz, tolerance_s=c.tolerance_s,
                                 below_for_s=below,
                                 judged=both_run and not in_grace and measured)
@@ -412,7 +423,7 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
         used, measured = scale_cpu(deployment, settings, obs, s.name, running)
         load = ScaleLoad(scale=s.name, cpu_used=used, measured=measured,
                          capacity_cpu=s.capacity_cpu,
-                         usable_cpu=s.capacity_cpu * settings.cpu_headroom)
+                         usable_cpu=usable_cpu(s.capacity_cpu, settings))
         scales[s.name] = load
         hosted = tuple(n for n, where in running.items() if where == s.name)
         so = obs.scales.get(s.name)
@@ -437,13 +448,13 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
         up, observed, available, why = link_capacity(deployment, settings, obs, link, since)
         conns = on_link[link.name]
         required = sum(c.bandwidth_kbps for c in conns)
-        load = LinkLoad(link=link.name, ends=link.ends, up=up, observed=observed,
-                        nominal_kbps=link.bandwidth_kbps, available_kbps=available,
-                        usable_kbps=available * settings.bandwidth_margin,
-                        required_kbps=required, connections=tuple(c.name for c in conns),
-                        reason=why,
-                        measured_kbps=measured_kbps(deployment, obs, link) if up else None)
-        links[link.name] = load
+        link_load = LinkLoad(link=link.name, ends=link.ends, up=up, observed=observed,
+                             nominal_kbps=link.bandwidth_kbps, available_kbps=available,
+                             usable_kbps=available * settings.bandwidth_margin,
+                             required_kbps=required, connections=tuple(c.name for c in conns),
+                             reason=why,
+                             measured_kbps=measured_kbps(deployment, obs, link) if up else None)
+        links[link.name] = link_load
         # Beyond a link from the master: everything on its remote end (cut off, it stops its
         # own copies). A link between two remote scales cuts off nothing: only the
         # connections that cross it.
@@ -454,14 +465,14 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
             violations.append(Violation(
                 LINK_DOWN, link.name, why,
                 _off_master(deployment, running, list(names) + list(hosted_far))))
-        elif up and required > load.usable_kbps:
-            names = [n for c in conns for n in (c.publisher, c.subscriber)]
+        elif up and required > link_load.usable_kbps:
+            ends = [n for c in conns for n in (c.publisher, c.subscriber)]
             violations.append(Violation(
                 BANDWIDTH, link.name,
                 f'link {link.name}: required {required:.0f} kbit/s > usable '
-                f'{load.usable_kbps:.0f} kbit/s ({available:.0f} available x margin '
-                f'{settings.bandwidth_margin:g}){load.cap_note}',
-                _off_master(deployment, running, names)))
+                f'{link_load.usable_kbps:.0f} kbit/s ({available:.0f} available x margin '
+                f'{settings.bandwidth_margin:g}){link_load.cap_note}',
+                _off_master(deployment, running, ends)))
     for c, a, b in unlinked:
         violations.append(Violation(
             BANDWIDTH, c.name, f'connection {c.name} joins {a} and {b}, which share no link',

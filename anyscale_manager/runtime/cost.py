@@ -58,7 +58,7 @@ class CostIntegrator:
 
     def update(self, now: float, running: Mapping[str, str],
                cpu_by_node: Optional[Mapping[str, float]] = None) -> Tuple[float, float]:
-        if self.started is None:
+        if self.started is None or self.last is None:
             self.started = self.last = now
         elif now > self.last:
             self.integral += self.current * (now - self.last)

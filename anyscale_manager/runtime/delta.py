@@ -50,8 +50,10 @@ class Verdict:
 
 
 def _check(value: Optional[float], what: str, allow_zero: bool) -> Optional[float]:
-    if value is None:
-        return None
+    return None if value is None else _number(value, what, allow_zero)
+
+
+def _number(value: float, what: str, allow_zero: bool) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) \
             or not math.isfinite(value) or value < 0 or (value == 0 and not allow_zero):
         raise ValueError(f'{what} must be a {"non-negative" if allow_zero else "positive"} '
@@ -73,9 +75,9 @@ class DeltaJudge:
                  stall_allowance_s: float = STALL_ALLOWANCE_S):
         self.freq_min_hz = _check(freq_min_hz, 'freq_min_hz', allow_zero=True) or None
         self.tolerance_s = _check(tolerance_s, 'tolerance_s', allow_zero=True)
-        self.window_s = _check(window_s, 'window_s', allow_zero=False)
-        self.stall_allowance_s = _check(stall_allowance_s, 'stall_allowance_s',
-                                        allow_zero=True)
+        self.window_s = _number(window_s, 'window_s', allow_zero=False)
+        self.stall_allowance_s = _number(stall_allowance_s, 'stall_allowance_s',
+                                         allow_zero=True)
         self.period_s = 1.0 / self.freq_min_hz if self.freq_min_hz else math.inf
         self.silence_s = self.period_s + self.stall_allowance_s
         self._last = started              # the last arrival, or when listening began

@@ -239,17 +239,17 @@ class ObservationBook:
                             self.back_at.get(host, self.started)))
         out = set()
         for key, host, back_at in watched:
-            link = self.links.get(key)
-            if link is not None and now - link.stamp <= max_age:
+            seen = self.links.get(key)
+            if seen is not None and now - seen.stamp <= max_age:
                 continue
             agent = self.agents.get(host)
-            quiet = agent is None or now - agent.received > max_age
             starting = now - back_at <= LINK_MONITOR_START_S + max_age
             # A stale report is the link's silence only if the monitor's host was heard after
             # it went stale: an agent that dies can be heard last a moment after its monitor
             # (a SIGKILLed robot agent was; the link was then judged silent before the agent).
-            stale_at = (link.stamp if link is not None else self.started) + max_age
-            if quiet or starting or agent.received <= stale_at:
+            stale_at = (seen.stamp if seen is not None else self.started) + max_age
+            if agent is None or now - agent.received > max_age or starting \
+                    or agent.received <= stale_at:
                 out.add(key)
         return frozenset(out)
 

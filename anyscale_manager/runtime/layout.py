@@ -5,6 +5,7 @@ is allowed, instead of restarting them where the plan would put them.
 """
 
 import importlib
+from dataclasses import replace
 from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment
@@ -34,9 +35,17 @@ def master_layout(deployment: Deployment) -> Dict[str, str]:
     return {n: default_scale(deployment, n) for n in managed_nodes(deployment)}
 
 
-def planned_layout(deployment: Deployment, problem: int
+def planned_layout(deployment: Deployment, problem: int,
+                   settings: Optional[DeciderSettings] = None
                    ) -> Tuple[Dict[str, str], Dict[str, Any]]:
-    """Problem 1 or 2 of the IROS 2016 paper, from the planning package: layout, placements."""
+    """Problem 1 or 2 of the IROS 2016 paper, from the planning package: layout, placements.
+
+    The planner fills each scale only to the CPU the decider lets nodes use there, by the
+    decider's ``settings`` (default: the deployment's): a first layout the CPU rule would judge
+    over capacity at once would be moved as soon as it started.
+    """
+    if settings is not None and settings != deployment.decider:
+        deployment = replace(deployment, decider=settings)
     try:
         planning = importlib.import_module('anyscale_manager.planning')
         solve = getattr(planning, 'solve')
@@ -72,7 +81,7 @@ def initial_plan(deployment: Deployment, settings: Optional[DeciderSettings] = N
     if mode == 'master':
         layout = master_layout(deployment)
     elif mode in PROBLEMS:
-        layout, placements = planned_layout(deployment, PROBLEMS[mode])
+        layout, placements = planned_layout(deployment, PROBLEMS[mode], settings)
     elif mode == 'explicit':
         if not settings.layout:
             raise LayoutError('initial_layout explicit: decider.layout is empty')

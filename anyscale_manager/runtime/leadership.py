@@ -138,16 +138,16 @@ class Leadership:
         """Before a beat and before anything this decider would command: the change of role or
         term that is due now, if any."""
         if self.role == LEADER:
-            stalled = self.last_beat is not None and now - self.last_beat > self.stall_s
-            # The deciders known when the stall began: a stall longer than lease_s would
-            # otherwise forget them all (their beats stamped before it).
-            known = self.last_beat is not None and any(
-                p.received >= self.last_beat - self.lease_s for p in self.peers.values())
-            if stalled and (known or now - self.last_beat >= self.discovery_s):
-                return self._step_down(now, f'could not beat for {now - self.last_beat:.2f} s '
-                                            f'(> {self.stall_s:.2f} s: takeover_s '
-                                            f'{self.takeover_s:g} s less the delivery of a beat'
-                                            '): another decider may lead now')
+            last = self.last_beat
+            if last is not None and now - last > self.stall_s:
+                # The deciders known when the stall began: a stall longer than lease_s would
+                # otherwise forget them all (their beats stamped before it).
+                known = any(p.received >= last - self.lease_s for p in self.peers.values())
+                if known or now - last >= self.discovery_s:
+                    return self._step_down(now, f'could not beat for {now - last:.2f} s '
+                                                f'(> {self.stall_s:.2f} s: takeover_s '
+                                                f'{self.takeover_s:g} s less the delivery of a '
+                                                'beat): another decider may lead now')
             if self.max_term > self.term:
                 # Another decider led at a higher term since this one took its own: it may
                 # lead now (its beats can arrive after an agent's report of its term). Stand

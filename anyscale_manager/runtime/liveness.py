@@ -123,7 +123,7 @@ class LivenessWatch:
                 f'silent past agent_timeout_s ({self.settings.agent_timeout_s:g} s)')
         link = self.deployment.link_between(self.master, scale)
         load = report.links.get(link.name) if report is not None and link is not None else None
-        if load is None:
+        if link is None or load is None:
             return f'{head} has been silent for {silent_s:.1f} s: {tail}'
         if not load.up:
             return (f'{head} has been silent for {silent_s:.1f} s and '

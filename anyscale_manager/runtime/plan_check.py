@@ -72,7 +72,7 @@ def _expected_hz(deployment: Deployment, node: Node, cpu: Optional[float],
         if len(st.values) == len(st.cpu):
             return _interpolate(st.cpu, st.values, at), 'parameter'
     outs = [c for c in deployment.connections if c.publisher == node.name]
-    rates = [c.freq_opt_hz or c.freq_min_hz for c in outs if (c.freq_opt_hz or c.freq_min_hz)]
+    rates = [rate for rate in (c.freq_opt_hz or c.freq_min_hz for c in outs) if rate]
     if rates:
         return max(rates), 'freq_opt'
     return None, ''

@@ -33,11 +33,12 @@ The policy decides the desired layout; it judges by what actually runs (``obs.ru
 
 import math
 from dataclasses import replace
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
 from .constraints import (CPU, FREQUENCY, LINK_DOWN, ConstraintReport, DeltaTracker, evaluate,
-                          is_fresh, link_capacity, node_cpu, required_kbps, scale_cpu)
+                          is_fresh, link_capacity, node_cpu, required_kbps, scale_cpu,
+                          usable_cpu)
 from .layout import adopt, default_scale, master_layout
 from .observations import (FAILOVER, MIGRATE, MIGRATE_BACK, MOVE_AWAY, REBALANCE, RELOCATE,
                            Decision, Observations)
@@ -109,6 +110,10 @@ class MigrationPolicy:
             self.started = now
 
     # --- views ----------------------------------------------------------------------------
+    def _since_start(self, now: float) -> float:
+        """Time since the first step (0 before it)."""
+        return 0.0 if self.started is None else now - self.started
+
     @property
     def layout(self) -> Mapping[str, str]:
         """The desired layout (node -> scale) for every managed node."""
@@ -233,8 +238,8 @@ class MigrationPolicy:
         out: List[Decision] = []
         report = None
         for node, scale in sorted(self.desired.items()):
-            copies = obs.copies.get(node)
-            here = copies.get(scale) if copies else None
+            copies = obs.copies.get(node) or frozen_map()
+            here = copies.get(scale)
             if here is None or here.crashed_at is None:
                 continue
             if self.crashed.get((node, scale), -math.inf) >= here.crashed_at:
@@ -285,7 +290,7 @@ class MigrationPolicy:
             if why:
                 return False, why
             used, _ = scale_cpu(self.deployment, self.settings, obs, scale)
-            usable = self.deployment.scale(scale).capacity_cpu * self.settings.cpu_headroom
+            usable = usable_cpu(self.deployment.scale(scale).capacity_cpu, self.settings)
             if used + cpu > usable:
                 return False, f'CPU {used:.0f} + {cpu:.0f} > usable {usable:.0f}'
             return True, ''
@@ -334,7 +339,9 @@ class MigrationPolicy:
                 + ('' if silent is None else f' for {silent:.1f} s')
                 + f' (> agent_timeout_s {self.settings.agent_timeout_s:g} s)')
         link = self.deployment.link_between(self.master, scale)
-        load = report.links.get(link.name) if link is not None else None
+        if link is None:
+            return text
+        load = report.links.get(link.name)
         if load is None:
             return text
         if not load.up:
@@ -370,8 +377,8 @@ class MigrationPolicy:
         cpu = self.deployment.node(node).cpu
         for scale in self._scales_by_power(usable):
             used, _ = scale_cpu(self.deployment, self.settings, obs, scale)
-            usable_cpu = self.deployment.scale(scale).capacity_cpu * self.settings.cpu_headroom
-            if used + extra_cpu.get(scale, 0.0) + cpu <= usable_cpu:
+            room = usable_cpu(self.deployment.scale(scale).capacity_cpu, self.settings)
+            if used + extra_cpu.get(scale, 0.0) + cpu <= room:
                 return scale, ''
         return self._scales_by_power(usable)[0], ''
 
@@ -406,7 +413,8 @@ class MigrationPolicy:
             if node in taken or node not in migrated:
                 return
             taken.add(node)
-            leaving = self.desired.get(node, running.get(node))
+            # Every managed node has a desired scale; what runs is the fallback.
+            leaving = self.desired.get(node) or running.get(node, '')
             target, why = self._next_best(obs, placed, report, node, leaving, sent)
             placed[node] = target         # one held for the master counts as back too
             if target == self.master:
@@ -568,7 +576,7 @@ class MigrationPolicy:
                 f'{n} to run on {s}' for n, (s, _) in sorted(self.pending.items())))
             return []
         max_age = self.settings.observation_max_age_s
-        if self.master not in obs.scales and now - self.started <= max_age:
+        if self.master not in obs.scales and self._since_start(now) <= max_age:
             # The nodes are ranked by their measured CPU: give the master's scale monitor the
             # same start-up allowance as every other observation (after it, nominal CPU).
             notes.append(f'waiting for a first CPU report from {self.master} (nodes are ranked '
@@ -651,7 +659,8 @@ class MigrationPolicy:
         """Each coresidence group of migratable nodes that all run where the layout places
         them, on one scale, with that scale (in deployment order)."""
         migratable = set(self.deployment.migratable_nodes)
-        seen, units = set(), []
+        seen: Set[str] = set()
+        units: List[Tuple[Tuple[str, ...], str]] = []
         for node in self.deployment.migratable_nodes:
             if node in seen:
                 continue
@@ -717,7 +726,7 @@ class MigrationPolicy:
             return seen, why
         used, _ = scale_cpu(d, s, obs, scale)
         used += sent_cpu
-        usable = d.scale(scale).capacity_cpu * s.cpu_headroom
+        usable = usable_cpu(d.scale(scale).capacity_cpu, s)
         if used + cpu > usable:
             return False, f'CPU {used:.0f} + {cpu:.0f} > usable {usable:.0f}'
         trial = dict(running, **{n: scale for n in unit})
@@ -747,7 +756,7 @@ class MigrationPolicy:
         so = obs.scales.get(scale)
         max_age = self.settings.observation_max_age_s
         if so is None or not is_fresh(so.stamp, obs.now, self.settings):
-            if so is None and obs.now - self.started <= max_age:
+            if so is None and self._since_start(obs.now) <= max_age:
                 return None, f'no CPU report from {scale} yet'
             last = 'never' if so is None else f'{obs.now - so.stamp:.1f} s ago'
             return False, (f'no fresh CPU report from {scale} (last {last}, max age '
