@@ -14,10 +14,8 @@ import os
 import sys
 import time
 
-import rclpy
 import yaml
 from rclpy.duration import Duration
-from rclpy.node import Node
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
@@ -26,6 +24,7 @@ from anyscale_manager.nodes import qos
 from anyscale_manager.nodes.agent import AgentNode
 from anyscale_manager.nodes.decider import DeciderNode
 from anyscale_manager.nodes.executor import make_executor
+from spinning import RosContext
 
 DEADLINE_S = 15.0
 
@@ -52,12 +51,8 @@ def write_deployment(tmp_path, decider=None):
 
 def test_an_agent_starting_late_hears_every_peers_latched_report(tmp_path):
     path, name = write_deployment(tmp_path)
-    peers_ctx, agent_ctx = rclpy.Context(), rclpy.Context()
-    rclpy.init(context=peers_ctx)
-    rclpy.init(context=agent_ctx)
-    peers = Node('agent_peers_harness', context=peers_ctx)
-    agent = None
-    try:
+    with RosContext() as peers_ros, RosContext(make_executor) as agent_ros:
+        peers = peers_ros.node('agent_peers_harness', spin=False)
         # Two peers' agents, each with its own writer, as each agent has.
         writers = []
         for scale in ('b', 'c'):
@@ -66,8 +61,8 @@ def test_an_agent_starting_late_hears_every_peers_latched_report(tmp_path):
                                  instance=f'{scale}-instance', seq=1)
             pub.publish(String(data=auth.seal(None, state)))
             writers.append(pub)
-        agent = AgentNode('a', context=agent_ctx,
-                          cli_args=['--ros-args', '--params-file', path])
+        agent = agent_ros.own(AgentNode('a', context=agent_ros.context,
+                                        cli_args=['--ros-args', '--params-file', path]))
         assert agent.deployment.name == name
         # Nothing spins the agent until both reports are in its reader: the case of reports
         # landing together.
@@ -78,39 +73,21 @@ def test_an_agent_starting_late_hears_every_peers_latched_report(tmp_path):
         # Both samples acknowledged by the agent's reader: both in its history, none taken yet.
         assert all(w.wait_for_all_acked(Duration(seconds=DEADLINE_S)) for w in writers), \
             'the agent never acknowledged both samples'
-        executor = make_executor(agent_ctx)
-        executor.add_node(agent)
-        try:
-            while time.monotonic() < end and set(agent.reconciler.peers) != {'b', 'c'}:
-                executor.spin_once(timeout_sec=0.05)
-        finally:
-            executor.remove_node(agent)
-            executor.shutdown()
-        assert set(agent.reconciler.peers) == {'b', 'c'}, (
-            f'the agent heard only {sorted(agent.reconciler.peers)} of the two latched reports')
-    finally:
-        if agent is not None:
-            agent.destroy_node()
-        peers.destroy_node()
-        rclpy.try_shutdown(context=agent_ctx)
-        rclpy.try_shutdown(context=peers_ctx)
+        agent_ros.add(agent)
+        agent_ros.spin_until(lambda: set(agent.reconciler.peers) == {'b', 'c'},
+                             end - time.monotonic(), 'the agent hearing both latched reports',
+                             state=lambda: f'heard {sorted(agent.reconciler.peers)}')
 
 
 def test_a_deciding_decider_hears_every_rivals_layout_landing_together(tmp_path):
     path, name = write_deployment(tmp_path, decider={'discovery_s': 0.2})
-    rivals_ctx, decider_ctx = rclpy.Context(), rclpy.Context()
-    rclpy.init(context=rivals_ctx)
-    rclpy.init(context=decider_ctx)
-    rivals = Node('decider_rivals_harness', context=rivals_ctx)
-    decider = executor = None
-    try:
-        decider = DeciderNode(context=decider_ctx, cli_args=['--ros-args', '--params-file', path])
-        executor = make_executor(decider_ctx)
-        executor.add_node(decider)
+    with RosContext() as rivals_ros, RosContext(make_executor) as decider_ros:
+        rivals = rivals_ros.node('decider_rivals_harness', spin=False)
+        decider = decider_ros.add(DeciderNode(context=decider_ros.context,
+                                              cli_args=['--ros-args', '--params-file', path]))
         end = time.monotonic() + DEADLINE_S
-        while time.monotonic() < end and decider.lead.role != 'leader':
-            executor.spin_once(timeout_sec=0.05)
-        assert decider.lead.role == 'leader', 'the decider never started leading'
+        decider_ros.spin_until(lambda: decider.lead.role == 'leader', end - time.monotonic(),
+                               'the decider leading')
         # Two other deciders of this deployment, started after it (at its term they yield),
         # each with its own latched writer, publish while nothing spins the decider.
         writers = [rivals.create_publisher(String, p.TOPIC_LAYOUT, qos.LATCHED) for _ in (1, 2)]
@@ -131,16 +108,7 @@ def test_a_deciding_decider_hears_every_rivals_layout_landing_together(tmp_path)
             seen.update(decider.lead.peers)
             return seen
 
-        while time.monotonic() < end and heard() != {'rival-1', 'rival-2'}:
-            executor.spin_once(timeout_sec=0.05)
-        assert heard() == {'rival-1', 'rival-2'}, (
-            f'the decider heard only {sorted(heard())} of the two latched layouts '
-            f'({len(decider._layouts)} layouts kept, {decider._rejected} refused)')
-    finally:
-        if executor is not None:
-            executor.shutdown()
-        if decider is not None:
-            decider.destroy_node()
-        rivals.destroy_node()
-        rclpy.try_shutdown(context=decider_ctx)
-        rclpy.try_shutdown(context=rivals_ctx)
+        decider_ros.spin_until(lambda: heard() == {'rival-1', 'rival-2'}, end - time.monotonic(),
+                               'the decider hearing both latched layouts',
+                               state=lambda: f'heard {sorted(heard())} ({len(decider._layouts)} '
+                               f'layouts kept, {decider._rejected} refused)')

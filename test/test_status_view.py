@@ -396,15 +396,12 @@ def test_a_dumb_terminal_gets_plain_snapshots(monkeypatch):
 class World:
     """Plays the decider, the agents and the monitors: publishes what status reads."""
 
-    def __init__(self):
-        import rclpy
+    def __init__(self, ros):
         from std_msgs.msg import String
 
         from anyscale_manager.nodes import qos
-        self.rclpy, self.String = rclpy, String
-        self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx)
-        self.node = rclpy.create_node(f'status_view_world_{os.getpid()}', context=self.ctx)
+        self.String = String
+        self.node = ros.node(f'status_view_world_{os.getpid()}', spin=False)
         self.layout_pub = self.node.create_publisher(String, p.TOPIC_LAYOUT, qos.LATCHED)
         # One latched writer per agent, as every agent has its own.
         self.agent_pubs = {s: self.node.create_publisher(String, p.TOPIC_AGENT_STATE,
@@ -439,16 +436,10 @@ class World:
         self.send(self.pubs[p.TOPIC_SCALE_STATUS], scale_status('robot', 50.0))
         self.send(self.pubs[p.TOPIC_CONNECTION_STATUS], readings(self.where, 9.5))
 
-    def close(self):
-        self.node.destroy_node()
-        self.rclpy.try_shutdown(context=self.ctx)
-
 
 @pytest.fixture
-def world():
-    w = World()
-    yield w
-    w.close()
+def world(ros):
+    return World(ros)
 
 
 def start_status(path, ros_env, **streams):
