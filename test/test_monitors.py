@@ -9,9 +9,7 @@ import threading
 import time
 
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
 from std_msgs.msg import String, UInt8MultiArray
 
 from anyscale_manager import protocol as p
@@ -22,6 +20,7 @@ from anyscale_manager.nodes.monitors import (LATCHED_QOS, STATUS_QOS, LinkMonito
                                              ProbeManager, ProbeServer, ScaleMonitor,
                                              import_message_class, probe_throughput)
 from anyscale_manager.nodes.workload_messages import build_message, parse_endpoint
+from spinning import spin_until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -42,38 +41,6 @@ def deployment(testbed_path):
         probe_window_s=1.0, probe_publish_rate_hz=10.0, bandwidth_probe_interval_s=0.5,
         bandwidth_probe_duration_s=0.2, bandwidth_probe_port=free_port())
     return dataclasses.replace(d, scales=scales, monitoring=monitoring)
-
-
-@pytest.fixture
-def ros(ros_env):
-    """A fresh context, an executor and a node factory; everything destroyed afterwards."""
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    nodes = []
-
-    def make(name):
-        node = rclpy.create_node(name, context=ctx)
-        executor.add_node(node)
-        nodes.append(node)
-        return node
-
-    yield make, executor
-    for node in nodes:
-        executor.remove_node(node)
-        node.destroy_node()
-    executor.shutdown()
-    rclpy.try_shutdown(context=ctx)
-
-
-def spin_until(executor, condition, timeout_s, what):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.05)
-        value = condition()
-        if value:
-            return value
-    pytest.fail(f'timed out after {timeout_s} s waiting for {what}')
 
 
 class Listener:
@@ -136,7 +103,7 @@ def reading(listener, name):
 # --- probes ------------------------------------------------------------------------------------
 
 def test_probe_reads_a_real_publisher_then_judges_its_stop(ros, deployment):
-    make, executor = ros
+    make, executor = ros.node, ros.executor
     agent = make('agent_probe')
     listener = Listener(make('listener'), p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus)
     probes = ProbeManager(agent, deployment, 'laptop')
@@ -182,7 +149,7 @@ def test_probe_places_arrivals_at_their_reception_time(ros, deployment):
     """The probe drains its subscription in batches (every 50 ms, and before each report): a
     batch taken late, here after 1.5 s in which nothing was spun (a starved agent), reads the
     rate the topic had, not a burst at the time of the take."""
-    make, executor = ros
+    make, executor = ros.node, ros.executor
     probes = ProbeManager(make('agent_batch'), deployment, 'laptop')
     probes.set_connections(['laser_amcl'])
     node = make('laser_batch')
@@ -206,10 +173,9 @@ def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deplo
     """What the agent asks before it lets a moving node's old copy go: has this scale heard the
     copy started elsewhere? Two real writers of /amcl_pose (AMCL is migratable), one long
     running, one started later."""
-    make, executor = ros
+    make, executor = ros.node, ros.executor
     agent = make('agent_watch')
-    watch = rclpy.create_node('agent_watch_handover', context=executor.context,
-                              start_parameter_services=False)      # spun by nobody
+    watch = ros.node('agent_watch_handover', spin=False, start_parameter_services=False)
     probes = ProbeManager(agent, deployment, 'robot', watch_node=watch)
     probes.set_connections(['amcl_ekf', 'laser_navigation'])
     try:
@@ -237,11 +203,10 @@ def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deplo
         old.stop()
     finally:
         probes.destroy()
-        watch.destroy_node()
 
 
 def test_probe_learns_the_type_from_the_graph_and_moves(ros, deployment):
-    make, executor = ros
+    make, executor = ros.node, ros.executor
     conns = tuple(dataclasses.replace(c, msg_type='') if c.name == 'camera_ar' else c
                   for c in deployment.connections)
     deployment = dataclasses.replace(deployment, connections=conns)
@@ -272,7 +237,7 @@ def test_probe_learns_the_type_from_the_graph_and_moves(ros, deployment):
 
 
 def test_unusable_message_type_is_stale_not_zero(ros, deployment):
-    make, executor = ros
+    make, executor = ros.node, ros.executor
     conns = tuple(dataclasses.replace(c, msg_type='no_such_pkg/msg/Nothing')
                   if c.name == 'amcl_ekf' else c for c in deployment.connections)
     deployment = dataclasses.replace(deployment, connections=conns)
@@ -309,7 +274,7 @@ BUSY_PARENT = ('import subprocess, sys, time\n'
 
 
 def test_scale_monitor_publishes_sane_values_with_children(ros, deployment, python):
-    make, executor = ros
+    make, executor = ros.node, ros.executor
     parent = subprocess.Popen([python, '-c', BUSY_PARENT], stdout=subprocess.PIPE, text=True)
     idle = subprocess.Popen([python, '-c', 'import time; time.sleep(60)'])
     try:
@@ -361,7 +326,7 @@ def psutil_tree(pid):
 
 
 def test_scale_monitor_survives_a_failing_pids_callback(ros, deployment):
-    make, executor = ros
+    make, executor = ros.node, ros.executor
     listener = Listener(make('listener'), p.TOPIC_SCALE_STATUS, p.ScaleStatus)
 
     def broken():
@@ -379,7 +344,7 @@ def test_scale_monitor_survives_a_failing_pids_callback(ros, deployment):
 
 def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment, python, tmp_path,
                                                     request):
-    make, executor = ros
+    make, executor = ros.node, ros.executor
     listener = Listener(make('listener'), p.TOPIC_LINK_STATUS, p.LinkStatus)
     master = LinkMonitor(make('agent_robot'), deployment, 'robot')
     remote = LinkMonitor(make('agent_laptop'), deployment, 'laptop')   # the probe server
@@ -518,7 +483,7 @@ def test_a_slow_request_does_not_hold_the_probe_server():
 
 
 def test_link_monitor_refuses_unknown_scale(ros, deployment):
-    make, _ = ros
+    make = ros.node
     with pytest.raises(ValueError, match='no scale'):
         LinkMonitor(make('x'), deployment, 'mars')
     with pytest.raises(ValueError, match='no scale'):
