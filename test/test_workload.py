@@ -7,11 +7,8 @@ import sys
 import time
 
 import pytest
-import rclpy
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.serialization import serialize_message
 from std_msgs.msg import UInt8MultiArray
@@ -29,6 +26,7 @@ from anyscale_manager.nodes.workload_messages import (KINDS, Endpoint, EndpointE
                                                       build_message, message_class,
                                                       parse_endpoint, stamper)
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from spinning import RosContext
 
 
 # --- pure parts ---------------------------------------------------------------------------------
@@ -289,11 +287,8 @@ class Counter:
     by a node in its own context; ``types``: topic -> message class (UInt8MultiArray)."""
 
     def __init__(self, topics, latched=False, types=None):
-        self.ctx = Context()
-        rclpy.init(context=self.ctx)
-        self.node = rclpy.create_node('workload_test_counter', context=self.ctx)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
-        self.executor.add_node(self.node)
+        self.ros = RosContext()
+        self.node = self.ros.node('workload_test_counter')
         self.arrivals = {t: [] for t in topics}
         self.sizes = {t: set() for t in topics}
         self.messages = {t: [] for t in topics}
@@ -310,13 +305,13 @@ class Counter:
             self.messages[topic] = self.messages[topic][-4:] + [msg]
         return cb
 
-    def spin_until(self, condition, timeout_s):
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if condition():
-                return True
-            self.executor.spin_once(timeout_sec=0.05)
-        return condition()
+    def spin_until(self, condition, timeout_s, what, state=None):
+        """Spin until ``condition()``; a failure shows ``state()``, or the arrivals so far."""
+        return self.ros.spin_until(condition, timeout_s, what, state=state or (
+            lambda: {topic: len(times) for topic, times in self.arrivals.items()}))
+
+    def spin_for(self, seconds):
+        self.ros.spin_for(seconds)
 
     def rate(self, topic, window_s):
         """Messages per second over the last window_s seconds."""
@@ -324,9 +319,7 @@ class Counter:
         return sum(1 for t in self.arrivals[topic] if t >= now - window_s) / window_s
 
     def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
+        self.ros.close()
 
 
 IMAGE = 'sensor_msgs/msg/Image'
@@ -347,9 +340,9 @@ def test_sensor_and_processing_chain_rates_follow_input_cap_and_cpu(python, ros_
                              message_class(MARKERS), '/wl_heavy': message_class(MARKERS)})
     try:
         counts = counter.arrivals.values()
-        assert counter.spin_until(lambda: all(len(a) > 5 for a in counts), 30.0), \
-            f'no traffic: { {k: len(v) for k, v in counter.arrivals.items()} }'
-        counter.spin_until(lambda: False, 4.0)
+        counter.spin_until(lambda: all(len(a) > 5 for a in counts), 30.0,
+                           'traffic on every topic')
+        counter.spin_for(4.0)
         image_hz = counter.rate('/wl_image', 4.0)
         light_hz = counter.rate('/wl_light', 4.0)
         heavy_hz = counter.rate('/wl_heavy', 4.0)
@@ -406,8 +399,9 @@ def test_a_typed_workload_is_measured_by_a_probe_and_read_by_a_deserialising_sub
                 and len(counter.arrivals[topic]) >= 2 * rate_hz)
 
     try:
-        assert counter.spin_until(steady, 30.0), \
-            f'probe readings {readings[-3:]}, {len(counter.arrivals[topic])} deserialised'
+        counter.spin_until(steady, 30.0, 'a steady probe reading and deserialised messages',
+                           state=lambda: f'probe readings {readings[-3:]}, '
+                           f'{len(counter.arrivals[topic])} deserialised')
         reading = readings[-1]
         assert reading.bytes_per_s / reading.rate_hz == pytest.approx(size, rel=1e-3)
         assert counter.rate(topic, 2.0) == pytest.approx(rate_hz, rel=0.25)
@@ -430,11 +424,11 @@ def test_processing_stops_when_its_input_stops(python, ros_env):
                   '--rate-hz', '5', '--bytes', '128', '--work-ms', '10')
     counter = Counter(['/wl_pose'])
     try:
-        assert counter.spin_until(lambda: len(counter.arrivals['/wl_pose']) >= 5, 30.0)
+        counter.spin_until(lambda: len(counter.arrivals['/wl_pose']) >= 5, 30.0, 'five poses')
         assert _stop(laser) == 0
-        counter.spin_until(lambda: False, 1.0)
+        counter.spin_for(1.0)
         seen = len(counter.arrivals['/wl_pose'])
-        counter.spin_until(lambda: False, 1.5)
+        counter.spin_for(1.5)
         assert len(counter.arrivals['/wl_pose']) <= seen + 1
     finally:
         counter.close()
@@ -459,8 +453,8 @@ def test_once_publisher_is_latched_for_late_subscribers(python, ros_env):
         time.sleep(0)   # the subscriber below may well start after the only message was sent
         counter = Counter(['/wl_map'], latched=True)
         try:
-            assert counter.spin_until(lambda: counter.arrivals['/wl_map'], 30.0)
-            counter.spin_until(lambda: False, 1.0)
+            counter.spin_until(lambda: counter.arrivals['/wl_map'], 30.0, 'the latched map')
+            counter.spin_for(1.0)
             assert len(counter.arrivals['/wl_map']) == 1
             assert counter.sizes['/wl_map'] == {40000}
         finally:
@@ -477,36 +471,27 @@ def test_bad_arguments_exit_2_and_start_nothing(python, ros_env):
     assert '--rate-hz' in out.stderr
 
 
-def test_an_input_the_cap_held_back_is_served_when_the_cap_opens():
+def test_an_input_the_cap_held_back_is_served_when_the_cap_opens(ros):
     """The one retry timer: armed when the cap holds an input back, fired when it opens,
     re-armed (never created again) for the next one."""
-    ctx = Context()
-    rclpy.init(context=ctx)
     spec = parse_spec(['--name', 'held', '--sub', '/wl_held_in', '--pub', '/wl_held_out',
                        '--rate-hz', '4'])
-    node = WorkloadNode(spec, context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    try:
-        timer = node._retry
-        feed = node._make_callback('/wl_held_in')
-        for n in (1, 2, 3):
-            t0 = time.monotonic()
+    node = ros.add(WorkloadNode(spec, context=ros.context))
+    timer = node._retry
+    feed = node._make_callback('/wl_held_in')
+    for n in (1, 2, 3):
+        t0 = time.monotonic()
+        feed(b'')
+        if n == 1:
+            assert node.outputs == 1          # the first input is served at once
             feed(b'')
-            if n == 1:
-                assert node.outputs == 1          # the first input is served at once
-                feed(b'')
-            assert node.outputs == n and not timer.is_canceled()     # held back, timer armed
-            while node.outputs == n and time.monotonic() - t0 < 5.0:
-                ex.spin_once(timeout_sec=0.05)
-            waited = time.monotonic() - t0
-            assert node.outputs == n + 1, 'the held-back input was never served'
-            assert 0.05 <= waited <= 1.0, waited   # when the 4 Hz cap opened (0.15 s early)
-            assert timer.is_canceled() and node._retry is timer
-    finally:
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        assert node.outputs == n and not timer.is_canceled()     # held back, timer armed
+        ros.spin_until(lambda: node.outputs != n, 5.0 - (time.monotonic() - t0),
+                       'the held-back input served')
+        waited = time.monotonic() - t0
+        assert node.outputs == n + 1
+        assert 0.05 <= waited <= 1.0, waited   # when the 4 Hz cap opened (0.15 s early)
+        assert timer.is_canceled() and node._retry is timer
 
 
 # --- the lifecycle node -------------------------------------------------------------------------
@@ -558,10 +543,11 @@ class LifecycleProbe(Counter):
 
     def _call(self, client, request, deadline):
         """The response, or None when this attempt went unanswered."""
-        assert self.spin_until(client.service_is_ready, deadline - time.monotonic()), \
-            f'no {client.srv_name}'
+        self.spin_until(client.service_is_ready, deadline - time.monotonic(),
+                        f'{client.srv_name} ready')
         future = client.call_async(request)
-        if self.spin_until(future.done, min(self.ATTEMPT_S, deadline - time.monotonic())):
+        if self.ros.spin_until(future.done, min(self.ATTEMPT_S, deadline - time.monotonic()),
+                               f'an answer from {client.srv_name}', required=False):
             return future.result()
         client.remove_pending_request(future)
         assert time.monotonic() < deadline, f'{client.srv_name} did not answer'
@@ -600,24 +586,27 @@ def test_lifecycle_workload_works_only_while_active(python, ros_env):
 
         assert probe.change(robot, CONFIGURE)
         assert probe.state(robot) == 'inactive'
-        assert probe.spin_until(lambda: graph.count_publishers('/wl_lc_out') == 1, 10.0)
-        probe.spin_until(lambda: False, 1.0)        # fed at 20 Hz all along
+        probe.spin_until(lambda: graph.count_publishers('/wl_lc_out') == 1, 10.0,
+                         'the output writer of the configured copy')
+        probe.spin_for(1.0)        # fed at 20 Hz all along
         assert graph.count_subscribers('/wl_lc_in') == 0
         assert not out, 'an inactive copy published'
 
         assert probe.change(robot, ACTIVATE)
         assert probe.state(robot) == 'active'
-        assert probe.spin_until(
-            lambda: len(out) >= 5 and graph.count_subscribers('/wl_lc_in') == 1, 15.0), \
-            f'{len(out)} outputs, {graph.count_subscribers("/wl_lc_in")} input subscriptions'
+        probe.spin_until(
+            lambda: len(out) >= 5 and graph.count_subscribers('/wl_lc_in') == 1, 15.0,
+            'five outputs of the active copy and its input subscription',
+            state=lambda: f'{len(out)} outputs, {graph.count_subscribers("/wl_lc_in")} input '
+            'subscriptions')
 
         assert probe.change(robot, DEACTIVATE)
         assert probe.state(robot) == 'inactive'
-        assert probe.spin_until(lambda: graph.count_subscribers('/wl_lc_in') == 0, 10.0), \
-            'the deactivated copy kept its input subscription'
-        probe.spin_until(lambda: False, 0.3)        # what was already on its way
+        probe.spin_until(lambda: graph.count_subscribers('/wl_lc_in') == 0, 10.0,
+                         'the deactivated copy dropping its input subscription')
+        probe.spin_for(0.3)        # what was already on its way
         seen = len(out)
-        probe.spin_until(lambda: False, 1.0)
+        probe.spin_for(1.0)
         assert len(out) == seen, 'a deactivated copy kept publishing'
         assert graph.count_publishers('/wl_lc_out') == 1     # configured: ready to serve
 
@@ -656,9 +645,10 @@ def test_two_copies_of_one_node_answer_only_on_their_own_scale(python, ros_env):
         assert probe.change(laptop, ACTIVATE)
         assert probe.state(laptop) == 'active'
         assert probe.state(robot) == 'inactive'
-        assert probe.spin_until(
-            lambda: len(out) >= 5 and probe.node.count_subscribers('/wl_two_in') == 1, 15.0)
-        probe.spin_until(lambda: False, 0.5)
+        probe.spin_until(
+            lambda: len(out) >= 5 and probe.node.count_subscribers('/wl_two_in') == 1, 15.0,
+            "five outputs of the laptop's copy and its input subscription")
+        probe.spin_for(0.5)
         assert probe.sizes['/wl_two_out'] == {200}, 'the robot copy published'
         assert probe.node.count_subscribers('/wl_two_in') == 1
         assert probe.state(robot) == 'inactive'
@@ -666,14 +656,6 @@ def test_two_copies_of_one_node_answer_only_on_their_own_scale(python, ros_env):
         probe.close()
         codes = {scale: _stop(p) for scale, p in procs.items()}
     assert codes == {'robot': 0, 'laptop': 0}, {s: p.stdout.read() for s, p in procs.items()}
-
-
-@pytest.fixture
-def context():
-    ctx = Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 def _entities(node):
@@ -693,10 +675,9 @@ def _state(node):
       '/wl_e_pose:geometry_msgs/msg/PoseWithCovarianceStamped'], 2, 1),    # AMCL, typed
     (['--pub', '/wl_e_map:nav_msgs/msg/OccupancyGrid:200x200:0.05', '--once'], 0, 1),
 ])
-def test_lifecycle_workload_has_inputs_and_timers_only_while_active(context, argv, subs,
-                                                                    timers):
+def test_lifecycle_workload_has_inputs_and_timers_only_while_active(ros, argv, subs, timers):
     node = LifecycleWorkloadNode(parse_spec(['--name', 'wl_e', '--lifecycle', *argv]),
-                                 context=context)
+                                 context=ros.context)
     try:
         pubs, base_subs, base_timers = _entities(node)
         assert _state(node) == 'unconfigured'
@@ -726,9 +707,9 @@ class RecordingLogger:
         return lambda text: self.lines.append((level, text))
 
 
-def test_a_failing_transition_is_logged_with_its_reason_and_leaves_nothing_behind(context):
+def test_a_failing_transition_is_logged_with_its_reason_and_leaves_nothing_behind(ros):
     node = LifecycleWorkloadNode(parse_spec(['--name', 'wl_fail', '--sub', '/wl_f_in', '--pub',
-                                             '/wl_f_out', '--lifecycle']), context=context)
+                                             '/wl_f_out', '--lifecycle']), context=ros.context)
     log = RecordingLogger()
     node.get_logger = lambda: log
     try:
@@ -751,47 +732,34 @@ def test_a_failing_transition_is_logged_with_its_reason_and_leaves_nothing_behin
         node.destroy_node()
 
 
-def test_an_inactive_once_publisher_leaves_nothing_latched_for_late_readers(context):
+def test_an_inactive_once_publisher_leaves_nothing_latched_for_late_readers(ros):
     """map_server as a lifecycle node: its OccupancyGrid is latched only while active."""
-    node = LifecycleWorkloadNode(parse_spec(['--name', 'wl_lc_map', '--pub',
-                                             '/wl_lc_map:nav_msgs/msg/OccupancyGrid:200x200',
-                                             '--once', '--lifecycle']), context=context)
-    reader = rclpy.create_node('wl_lc_map_reader', context=context)
-    ex = SingleThreadedExecutor(context=context)
-    ex.add_node(node)
-    ex.add_node(reader)
+    node = ros.add(LifecycleWorkloadNode(parse_spec(
+        ['--name', 'wl_lc_map', '--pub', '/wl_lc_map:nav_msgs/msg/OccupancyGrid:200x200',
+         '--once', '--lifecycle']), context=ros.context))
+    reader = ros.node('wl_lc_map_reader')
     got = []
-
-    def spin_until(condition, timeout_s):
-        deadline = time.monotonic() + timeout_s
-        while not condition() and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.05)
-        return condition()
 
     def late_reader():
         got.clear()
         sub = reader.create_subscription(message_class('nav_msgs/msg/OccupancyGrid'),
                                          '/wl_lc_map', got.append, LATCHED)
-        assert spin_until(lambda: node._pubs[0].get_subscription_count() == 1, 10.0)
+        ros.spin_until(lambda: node._pubs[0].get_subscription_count() == 1, 10.0,
+                       'the late reader matched')
         return sub
 
-    try:
-        node.trigger_configure()
-        node.trigger_activate()
-        sub = late_reader()
-        assert spin_until(lambda: got, 10.0), 'the active copy latched nothing'
-        assert CONTENT['nav_msgs/msg/OccupancyGrid'](got[0])
-        reader.destroy_subscription(sub)
-        node.trigger_deactivate()
-        late_reader()
-        spin_until(lambda: False, 0.5)
-        assert not got, 'an inactive copy handed out its old message'
-        node.trigger_activate()
-        assert spin_until(lambda: got, 10.0)
-    finally:
-        ex.shutdown()
-        reader.destroy_node()
-        node.destroy_node()
+    node.trigger_configure()
+    node.trigger_activate()
+    sub = late_reader()
+    ros.spin_until(lambda: got, 10.0, 'the message latched by the active copy')
+    assert CONTENT['nav_msgs/msg/OccupancyGrid'](got[0])
+    reader.destroy_subscription(sub)
+    node.trigger_deactivate()
+    late_reader()
+    ros.spin_for(0.5)
+    assert not got, 'an inactive copy handed out its old message'
+    node.trigger_activate()
+    ros.spin_until(lambda: got, 10.0, 'the message latched by the copy active again')
 
 
 if __name__ == '__main__':
