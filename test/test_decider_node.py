@@ -12,12 +12,10 @@ import sys
 import time
 
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -25,6 +23,7 @@ from std_msgs.msg import String
 from anyscale_manager import protocol as p
 from anyscale_manager.agent.procs import stop_popen
 from anyscale_manager.model.loader import load_deployment
+from spinning import spin_until
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -122,42 +121,27 @@ class FakeWorld(Node):
 
 
 @pytest.fixture
-def world(request, testbed_path):
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
+def world(request, testbed_path, ros):
     path = getattr(request, 'param', testbed_path)
-    node = FakeWorld(ctx, load_deployment(path))
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    yield node, ex
-    ex.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
+    yield ros.add(FakeWorld(ros.context, load_deployment(path))), ros.executor
 
 
-def spin_until(ex, node, cond, timeout, report_every=0.2, proc=None):
-    deadline = time.monotonic() + timeout
-    next_report = 0.0
-    while time.monotonic() < deadline:
-        if proc is not None and proc.poll() is not None:
-            raise AssertionError(f'decider exited with {proc.returncode}')
-        if time.monotonic() >= next_report:
-            node.report()
-            next_report = time.monotonic() + report_every
-        ex.spin_once(timeout_sec=0.05)
-        if cond():
-            return True
-    return False
+def world_until(ex, world, cond, timeout, what, decider=None):
+    """Spin until ``cond()`` while ``world`` reports every 0.2 s; the end of the ``decider``
+    process ends the wait at once. A failure shows the decider's last events."""
+    return spin_until(ex, cond, timeout, what, {} if decider is None else {'decider': decider},
+                      watch=True, tick=world.report, tick_every_s=0.2,
+                      state=lambda: [f'{e.kind}: {e.reason}' for e in world.events[-8:]])
 
 
 def set_param(ex, node, name, value, type_, field, timeout=10.0):
     client = node.create_client(SetParameters, '/anyscale_decider/set_parameters')
-    assert spin_until(ex, node, client.service_is_ready, timeout)
+    world_until(ex, node, client.service_is_ready, timeout, "the decider's parameter service")
     val = ParameterValue(type=type_)
     setattr(val, field, value)
     future = client.call_async(SetParameters.Request(
         parameters=[ParameterMsg(name=name, value=val)]))
-    assert spin_until(ex, node, future.done, timeout)
+    world_until(ex, node, future.done, timeout, f'the answer setting {name}')
     node.destroy_client(client)
     return future.result().results[0]
 
@@ -174,7 +158,7 @@ def test_layout_latched_adopted_republished_and_robust(world, testbed_path, ros_
     node.link_kbps = 1000.0
     proc = start_decider(testbed_path, ros_env)
     try:
-        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc), 'no layout'
+        world_until(ex, node, lambda: node.layouts, 30.0, 'a layout', proc)
         first = node.layouts[0]
         assert first.generation > 7
         assert first.assignments['amcl'] == 'laptop'           # adopted, not restarted
@@ -184,20 +168,20 @@ def test_layout_latched_adopted_republished_and_robust(world, testbed_path, ros_
 
         # With the link at its full rate, AR moves out next: a new generation.
         node.link_kbps = None
-        assert spin_until(ex, node, lambda: node.layouts[-1].assignments.get('ar') == 'laptop',
-                          20.0, proc=proc), [e.reason for e in node.events]
+        world_until(ex, node, lambda: node.layouts[-1].assignments.get('ar') == 'laptop',
+                    20.0, 'AR placed on the laptop', proc)
         moved = node.layouts[-1]
         assert moved.generation > first.generation
-        assert spin_until(ex, node, lambda: any(e.kind == 'migrate' and e.node == 'ar'
-                                                and 'wifi' in e.reason for e in node.events),
-                          5.0, proc=proc)
+        world_until(ex, node, lambda: any(e.kind == 'migrate' and e.node == 'ar'
+                                          and 'wifi' in e.reason for e in node.events),
+                    5.0, 'the event of AR migrating, naming wifi', proc)
 
         # A late joiner gets the latest layout (latched).
         late = []
         sub = node.create_subscription(String, p.TOPIC_LAYOUT,
                                        lambda m: late.append(p.Layout.from_json(m.data)),
                                        LATCHED)
-        assert spin_until(ex, node, lambda: late, 10.0, proc=proc)
+        world_until(ex, node, lambda: late, 10.0, 'the latched layout at a late joiner', proc)
         assert late[-1].generation == node.layouts[-1].generation
         node.destroy_subscription(sub)
 
@@ -216,7 +200,8 @@ def test_layout_latched_adopted_republished_and_robust(world, testbed_path, ros_
             for pub in node.pubs.values():
                 pub.publish(String(data=text))
         count = len(node.objectives)
-        assert spin_until(ex, node, lambda: len(node.objectives) > count + 5, 10.0, proc=proc)
+        world_until(ex, node, lambda: len(node.objectives) > count + 5, 10.0,
+                    'six more objective messages', proc)
         ignored = [kv.value for a in node.diags[-3:] for s in a.status for kv in s.values
                    if kv.key == 'messages ignored']
         assert ignored and int(ignored[-1]) > 0
@@ -242,14 +227,14 @@ def test_layout_latched_adopted_republished_and_robust(world, testbed_path, ros_
         # The link goes down: both come back, in a new generation, each with its reason.
         before = node.layouts[-1].generation
         node.link_up = False
-        assert spin_until(ex, node, lambda: node.layouts[-1].assignments.get('amcl') == 'robot'
-                          and node.layouts[-1].assignments.get('ar') == 'robot', 10.0,
-                          proc=proc)
+        world_until(ex, node, lambda: node.layouts[-1].assignments.get('amcl') == 'robot'
+                    and node.layouts[-1].assignments.get('ar') == 'robot', 10.0,
+                    'AMCL and AR back on the robot', proc)
         assert node.layouts[-1].generation > before
         backs = [e for e in node.events if e.kind == 'migrate_back']
-        assert spin_until(ex, node, lambda: {e.node for e in node.events
-                                             if e.kind == 'migrate_back'} == {'amcl', 'ar'},
-                          5.0, proc=proc)
+        world_until(ex, node, lambda: {e.node for e in node.events
+                                       if e.kind == 'migrate_back'} == {'amcl', 'ar'},
+                    5.0, 'the migrate_back events of AMCL and AR', proc)
         backs = [e for e in node.events if e.kind == 'migrate_back']
         assert all('wifi' in e.reason for e in backs)
         assert node.objectives[-1]['integral'] > 0
@@ -267,7 +252,7 @@ def test_an_agent_following_another_decider_is_said_once_and_not_out_counted(
     node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
     proc = start_decider(testbed_path, ros_env, '-p', 'decider.migration:=false')
     try:
-        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
+        world_until(ex, node, lambda: node.layouts, 30.0, 'a layout', proc)
         g = node.layouts[-1].generation
         me = node.layouts[-1].decider
         assert me is not None and node.layouts[-1].seq is not None
@@ -276,7 +261,8 @@ def test_an_agent_following_another_decider_is_said_once_and_not_out_counted(
         node.follows['laptop'] = 'f00dfeedf00dfeed'
         heard = len(node.layouts)
         # Re-publications keep coming (the agents' lease), all of generation g.
-        assert spin_until(ex, node, lambda: len(node.layouts) >= heard + 3, 15.0, proc=proc)
+        world_until(ex, node, lambda: len(node.layouts) >= heard + 3, 15.0,
+                    'three re-publications', proc)
         assert {lay.generation for lay in node.layouts} == {g}
         assert {lay.decider.id for lay in node.layouts} == {me.id}
         seqs = [lay.seq for lay in node.layouts]
@@ -294,13 +280,14 @@ def test_silent_agent_loses_its_scale(world, testbed_path, ros_env):
     node.running['ar'] = 'laptop'
     proc = start_decider(testbed_path, ros_env)
     try:
-        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
+        world_until(ex, node, lambda: node.layouts, 30.0, 'a layout', proc)
         assert node.layouts[0].assignments['ar'] == 'laptop'
         node.silent.add('laptop')          # the laptop's agent goes silent
-        assert spin_until(ex, node, lambda: node.layouts[-1].assignments['ar'] == 'robot',
-                          15.0, proc=proc)
-        assert spin_until(ex, node, lambda: any(e.kind == 'relocate' and e.node == 'ar'
-                                                for e in node.events), 5.0, proc=proc)
+        world_until(ex, node, lambda: node.layouts[-1].assignments['ar'] == 'robot',
+                    15.0, 'AR placed on the robot', proc)
+        world_until(ex, node, lambda: any(e.kind == 'relocate' and e.node == 'ar'
+                                          for e in node.events), 5.0, 'the relocate event of AR',
+                    proc)
         # The link is reported up all along: the agent is gone, not the link, and it is said.
         assert any(e.kind == 'agent_silent' and e.from_scale == 'laptop'
                    and 'while link wifi is up: the agent, not the link' in e.reason
@@ -322,18 +309,21 @@ def test_a_silent_master_agent_is_said_and_the_layout_kept(world, testbed_path, 
     def said(kind, scale):
         return [e for e in node.events if e.kind == kind and e.from_scale == scale]
     try:
-        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
+        world_until(ex, node, lambda: node.layouts, 30.0, 'a layout', proc)
         kept = dict(node.layouts[-1].assignments)
         assert kept['amcl'] == 'laptop' and kept['ar'] == 'laptop'
         node.silent.add('robot')
-        assert spin_until(ex, node, lambda: said('scale_lost', 'robot'), 15.0, proc=proc)
+        world_until(ex, node, lambda: said('scale_lost', 'robot'), 15.0,
+                    'the scale_lost event of the robot', proc)
         (silent,) = said('agent_silent', 'robot')
         assert 'the agent of robot (the master scale) has been silent' in silent.reason
-        assert spin_until(ex, node, lambda: any(
+        world_until(ex, node, lambda: any(
             'agent of robot lost' in st.message and st.level == bytes([p.WARN])
-            for a in node.diags[-3:] for st in a.status), 5.0, proc=proc)
+            for a in node.diags[-3:] for st in a.status), 5.0,
+            'a diagnostics warning that the agent of robot is lost', proc)
         node.silent.discard('robot')
-        assert spin_until(ex, node, lambda: said('agent_back', 'robot'), 10.0, proc=proc)
+        world_until(ex, node, lambda: said('agent_back', 'robot'), 10.0,
+                    'the agent_back event of the robot', proc)
         assert all(lay.assignments == kept for lay in node.layouts), node.layouts
         assert not [e for e in node.events if e.kind in ('migrate', 'migrate_back', 'relocate')]
     finally:
@@ -352,7 +342,7 @@ def test_first_layout_from_the_problem_1_planner(world, ros_env):
     plan = solve(node.d, problem=1)
     proc = start_decider(IROS_1, ros_env, '-p', 'decider.initial_layout:=problem1')
     try:
-        assert spin_until(ex, node, lambda: node.layouts, 60.0, proc=proc)
+        world_until(ex, node, lambda: node.layouts, 60.0, 'a layout', proc)
         first = node.layouts[0]
         assert first.assignments == {n: pl.scale for n, pl in plan.layout.items()
                                      if node.d.node(n).managed}
@@ -360,8 +350,8 @@ def test_first_layout_from_the_problem_1_planner(world, ros_env):
         # Plan against reality (Eq. 10): the tracker planned at 25 Hz is measured at 20 Hz.
         assert plan.layout['tracker_1'].parameter_value == 25.0
         node.extra_readings['tracker_1__environment_1'] = 20.0
-        assert spin_until(ex, node, lambda: node.plans and 'tracker_1' in node.plans[-1]['nodes'],
-                          10.0, proc=proc)
+        world_until(ex, node, lambda: node.plans and 'tracker_1' in node.plans[-1]['nodes'],
+                    10.0, 'a plan check naming tracker_1', proc)
         tracker = node.plans[-1]['nodes']['tracker_1']
         assert tracker['measured_hz'] == 20.0 and tracker['expected_hz'] == 25.0
         assert tracker['deviation'] == pytest.approx(-0.2)
@@ -391,12 +381,13 @@ def test_status_once_shows_the_live_table(world, testbed_path, ros_env):
     proc = start_decider(testbed_path, ros_env)
     status = None
     try:
-        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc)
+        world_until(ex, node, lambda: node.layouts, 30.0, 'a layout', proc)
         status = subprocess.Popen(
             [sys.executable, '-m', 'anyscale_manager.cli', 'status', '--params-file',
              testbed_path, '--once', '--wait', '8'], env=ros_env, stdout=subprocess.PIPE,
             stderr=subprocess.PIPE, text=True, start_new_session=True)
-        assert spin_until(ex, node, lambda: status.poll() is not None, 30.0, proc=proc)
+        world_until(ex, node, lambda: status.poll() is not None, 30.0,
+                    'the end of status --once', proc)
         out, err = status.communicate()
     finally:
         if status is not None and status.poll() is None:
@@ -427,17 +418,18 @@ def test_a_link_going_down_is_decided_at_once_not_at_the_next_period(world, test
     node.running.update(amcl='laptop', ar='laptop')
     proc = start_decider(testbed_path, ros_env)
     try:
-        assert spin_until(ex, node, lambda: node.layouts, 30.0, proc=proc), 'no layout'
+        world_until(ex, node, lambda: node.layouts, 30.0, 'a layout', proc)
         assert node.layouts[-1].assignments['amcl'] == 'laptop'
         # A period far longer than the test: only the link-down itself can trigger a turn.
         slow = set_param(ex, node, 'decider.period_s', 300.0, ParameterType.PARAMETER_DOUBLE,
                          'double_value')
         assert slow.successful, slow.reason
         node.link_up = False
-        assert spin_until(ex, node, lambda: node.layouts[-1].assignments.get('amcl') == 'robot',
-                          20.0, proc=proc), [e.reason for e in node.events]
-        assert spin_until(ex, node, lambda: any(e.kind == 'migrate_back' and e.node == 'amcl'
-                                                for e in node.events), 5.0, proc=proc)
+        world_until(ex, node, lambda: node.layouts[-1].assignments.get('amcl') == 'robot',
+                    20.0, 'AMCL placed on the robot', proc)
+        world_until(ex, node, lambda: any(e.kind == 'migrate_back' and e.node == 'amcl'
+                                          for e in node.events), 5.0,
+                    'the migrate_back event of AMCL', proc)
     finally:
         code, out = stop(proc)
     assert code == 0, out
