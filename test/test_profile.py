@@ -567,11 +567,9 @@ def test_profile_of_a_real_graph(workloads, profiled):
     assert cli.main(['validate', '--quiet', str(out)]) == 0
 
 
-def test_agent_and_decider_run_on_the_profiled_file(workloads, profiled, tmp_path):
+def test_agent_and_decider_run_on_the_profiled_file(workloads, profiled, tmp_path, ros):
     """As it is, the file runs an agent (which probes every profiled connection against the
     suggested thresholds) and the decider (which publishes its layout)."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from std_msgs.msg import String
     from anyscale_manager import protocol as p
@@ -587,9 +585,7 @@ def test_agent_and_decider_run_on_the_profiled_file(workloads, profiled, tmp_pat
         sys.executable, '-m', 'anyscale_manager.nodes.decider', '--ros-args', '--params-file',
         str(path), '-p', 'decider.discovery_s:=1.0', '-p', 'decider.period_s:=0.2'],
         child_env())
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node('profile_test_listener', context=ctx)
+    node = ros.node('profile_test_listener')
     layouts, events, readings = [], [], {}
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -602,30 +598,21 @@ def test_agent_and_decider_run_on_the_profiled_file(workloads, profiled, tmp_pat
         for name, reading in p.ConnectionStatus.from_json(msg.data).connections.items():
             readings.setdefault(name, []).append(reading)
     node.create_subscription(String, p.TOPIC_CONNECTION_STATUS, on_status, 10)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
 
     def healthy(name):
         c = d.connection(name)
         return any(x.rate_hz >= c.freq_min_hz and x.level == p.OK
                    for x in readings.get(name, ()))
     try:
-        deadline = time.monotonic() + 45.0
-        while time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.1)
-            assert agent.proc.poll() is None, agent.text()
-            assert decider.proc.poll() is None, decider.text()
-            if layouts and all(healthy(n) for n in EXPECTED):
-                break
-        assert layouts, decider.text()
+        ros.spin_until(lambda: layouts and all(healthy(n) for n in EXPECTED), 45.0,
+                       'a layout and every profiled connection healthy',
+                       {'agent': agent, 'decider': decider}, watch=True,
+                       state=lambda: {n: readings.get(n, [])[-1:] for n in EXPECTED},
+                       spin_s=0.1)
         assert layouts[-1].deployment == d.name and layouts[-1].assignments == {}
-        assert all(healthy(n) for n in EXPECTED), (readings, agent.text())
         assert not [e for e in events if e['kind'] == 'violation'
                     and any(n in e['reason'] for n in EXPECTED)], events
     finally:
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
         codes = [decider.stop(), agent.stop()]
     assert codes == [0, 0], decider.text() + agent.text()
 
