@@ -42,7 +42,7 @@ from rclpy.utilities import remove_ros_args
 
 from .workload_messages import (DEFAULT_TYPE, MAX_BYTES, Endpoint, EndpointError,
                                 build_message, message_class, parse_endpoint, stamper)
-from ..interrupt import restore_ctrl_c
+from ..interrupt import ignore_interrupts, interrupt_once, restore_ctrl_c
 
 REFERENCE_CORE = 0.3      # one reference (robot) core as a fraction of one core of this machine
 
@@ -213,6 +213,7 @@ def main(args: Optional[List[str]] = None) -> int:
         from .workload_lifecycle import LifecycleWorkloadNode as node_class
     else:
         node_class = WorkloadNode
+    interrupt_once()
     rclpy.init(args=argv)
     node = None
     try:
@@ -227,7 +228,7 @@ def main(args: Optional[List[str]] = None) -> int:
             raise
     finally:
         # A supervisor may repeat its SIGINT while we clean up: finish the cleanup anyway.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        ignore_interrupts()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
