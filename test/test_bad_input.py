@@ -14,10 +14,7 @@ import time
 
 import psutil
 import pytest
-import rclpy
 import yaml
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
@@ -411,7 +408,7 @@ def hostile_burst(name):
     ]
 
 
-def test_decider_and_agents_survive_hostile_messages_on_every_topic(tmp_path, ros_env):
+def test_decider_and_agents_survive_hostile_messages_on_every_topic(tmp_path, ros_env, ros):
     path = write_deployment(tmp_path)
     with open(path) as f:
         data = yaml.safe_load(f)
@@ -430,9 +427,7 @@ def test_decider_and_agents_survive_hostile_messages_on_every_topic(tmp_path, ro
     blocker.write_text('a regular file where the log folder should be')
     env = ros_child_env(ros_env)
 
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = Node('bad_input_listener', context=ctx)
+    node = ros.node('bad_input_listener')
     seen = {'layouts': [], 'states': {}}
 
     def on_layout(m):
@@ -452,20 +447,12 @@ def test_decider_and_agents_survive_hostile_messages_on_every_topic(tmp_path, ro
             seen['states'][s.scale] = s
     node.create_subscription(String, p.TOPIC_LAYOUT, on_layout, qos.LATCHED_READER)
     node.create_subscription(String, p.TOPIC_AGENT_STATE, on_state, qos.LATCHED_READER)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
+    ex = ros.executor
     procs = {}
 
     def wait(cond, timeout, what):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            ex.spin_once(timeout_sec=0.05)
-            if cond():
-                return
-            dead = [n for n, pr in procs.items() if pr.proc.poll() is not None]
-            assert not dead, f'{dead} exited:\n' + procs[dead[0]].text()[-3000:]
-        raise AssertionError(f'timed out after {timeout} s waiting for {what}\n' + '\n'.join(
-            f'--- {n}\n{pr.text()[-3000:]}' for n, pr in procs.items()))
+        """Until ``cond()``; any process's end ends the wait."""
+        ros.spin_until(cond, timeout, what, procs, watch=True)
 
     def serving():
         return {(s, n): (r.pid, r.restarts) for s, st in seen['states'].items()
@@ -541,7 +528,4 @@ def test_decider_and_agents_survive_hostile_messages_on_every_topic(tmp_path, ro
         assert 'ignored a message on /anyscale/scale_status' in procs['decider'].text()
     finally:
         codes = {n: pr.stop() for n, pr in reversed(list(procs.items()))}
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
     assert set(codes.values()) <= {0}, codes
