@@ -9,11 +9,7 @@ import time
 
 import psutil
 import pytest
-import rclpy
 import yaml
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from lifecycle_msgs.srv import GetState
 from std_msgs.msg import String
@@ -90,12 +86,9 @@ class Agent(LoggedProcess):
 class Harness:
     """The test's own rclpy node: publishes layouts, records agent states and chatter."""
 
-    def __init__(self, deployment_name, chatter):
-        self.ctx = Context()
-        rclpy.init(context=self.ctx)
-        self.node = Node('agent_test_harness', context=self.ctx)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
-        self.executor.add_node(self.node)
+    def __init__(self, ros, deployment_name, chatter):
+        self.ros = ros
+        self.node = ros.node('agent_test_harness')
         self.name = deployment_name
         self.layout_pub = self.node.create_publisher(String, protocol.TOPIC_LAYOUT, LATCHED)
         self.states = {}          # scale -> latest AgentState
@@ -124,13 +117,9 @@ class Harness:
         self.layout_pub.publish(String(data=text))
 
     def wait(self, cond, timeout=30.0, what='condition'):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            self.executor.spin_once(timeout_sec=0.05)
-            if cond():
-                return
-        raise AssertionError(f'timed out after {timeout} s waiting for {what}; last states: '
-                             f'{ {s: st.to_dict() for s, st in self.states.items()} }')
+        """Spin until ``cond()``; a failure shows the agents' last states."""
+        self.ros.spin_until(cond, timeout, what, state=lambda: {
+            s: st.to_dict() for s, st in self.states.items()})
 
     def report(self, scale, node):
         state = self.states.get(scale)
@@ -149,11 +138,6 @@ class Harness:
         r = self.report(scale, node)
         return r is not None and r.state == 'standby' and r.lifecycle == 'inactive'
 
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.ctx)
-
 
 def run_processes(run_id):
     """Live processes started for one test run (found by the run's environment marker)."""
@@ -169,10 +153,10 @@ def run_processes(run_id):
 
 
 @pytest.fixture
-def setup(tmp_path, ros_env):
+def setup(tmp_path, ros_env, ros):
     run_id = f'{os.getpid()}_{time.monotonic_ns() % 10 ** 9}'
     deployment, chatter = write_deployment(tmp_path, run_id)
-    harness = Harness('agent_test', chatter)
+    harness = Harness(ros, 'agent_test', chatter)
     agents = []
 
     def agent(scale, *extra):
@@ -184,7 +168,6 @@ def setup(tmp_path, ros_env):
     for a in agents:
         if a.proc.poll() is None:
             a.stop(signal.SIGTERM)
-    harness.close()
     # A failed test may have killed an agent on purpose: leave no node of this run behind.
     leftovers = run_processes(run_id)
     for p in leftovers:
