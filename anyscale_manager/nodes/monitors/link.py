@@ -25,7 +25,8 @@ from ...model.types import Deployment
 from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import BandwidthEstimate, crossing_connections, used_kbps
 from ...runtime.rates import HeartbeatTracker
-from .common import LATCHED_QOS, STATUS_QOS, Publishers, period_of, scale_of, status
+from .common import (LATCHED_QOS, STATUS_QOS, Cadence, Publishers, period_of, scale_of,
+                     status)
 from .echoes import EchoSocket
 from .throughput import ProbeServer, probe_throughput
 from ..throttled_log import ThrottledLog
@@ -146,10 +147,15 @@ class LinkMonitor:
         self._subs.append(self._node.create_subscription(
             String, p.TOPIC_AGENT_STATE, self._on_agent_state, LATCHED_QOS,
             callback_group=self._group))
-        # One timer: each tick judges up and down, and every CHECKS_PER_BEAT-th also beats.
-        self._ticks = 0
-        self._timers.append(self._node.create_timer(self._period / CHECKS_PER_BEAT,
-                                                    self._on_tick, callback_group=self._group))
+        # One timer: each tick judges up and down, and beats when a beat is due. Due times, not
+        # a count of ticks: rcl skips the ticks a busy executor missed, and counting them would
+        # send every beat after a stall late, and fewer beats than the period says.
+        check_s = self._period / CHECKS_PER_BEAT
+        self._cadence = Cadence(check_s, time.monotonic())
+        self._cadence.every(check_s, self._check)
+        self._cadence.every(self._period, self._beat)
+        self._timers.append(self._node.create_timer(check_s, self._on_tick,
+                                                    callback_group=self._group))
         self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
         self._probe_duration = settings.bandwidth_probe_duration_s
         self._congestion_s = settings.congestion_delay_ms / 1000.0
@@ -239,11 +245,7 @@ class LinkMonitor:
         return fresh
 
     def _on_tick(self) -> None:
-        self._ticks += 1
-        if self._ticks % CHECKS_PER_BEAT == 0:
-            self._beat()        # judges first, then beats
-        else:
-            self._check()
+        self._cadence.run(time.monotonic())
 
     def _beat(self) -> None:
         with self._beats_lock:
