@@ -2,7 +2,7 @@
 
 home is the master (a robot), away a remote server, joined by one wired link; the nodes are the
 package's workload node, real ROS nodes the agents see in the graph. Here: the deployment file,
-starting the programs, a listener of what they publish, and waiting on it with a deadline.
+starting the programs and a listener of what they publish (waited on with spinning.py).
 """
 
 import os
@@ -11,16 +11,14 @@ import time
 from contextlib import contextmanager
 
 import psutil
-import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
 from anyscale_manager.nodes import qos
 from processes import LoggedProcess
+from spinning import RosContext
 
 BIN = os.path.dirname(sys.executable)
 CONNECTION = {'msg_type': 'std_msgs/msg/UInt8MultiArray', 'bandwidth_kbps': 1.0}
@@ -121,9 +119,8 @@ def listening(name):
     publish. seen: 'layouts' and 'events' in order, 'states' the last per scale, 'scales' and
     'links' as (receipt time, status), 'objectives' a count, 'diagnostics' the decider's last
     key -> value (and 'message')."""
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = Node(name, context=ctx)
+    ros = RosContext()
+    node = ros.node(name)
     seen = {'layouts': [], 'states': {}, 'events': [], 'scales': [], 'links': [],
             'objectives': 0, 'diagnostics': {}}
 
@@ -157,28 +154,8 @@ def listening(name):
                              qos.MONITOR_READER)
     node.create_subscription(String, p.TOPIC_OBJECTIVE, objective, 10)
     node.create_subscription(DiagnosticArray, p.TOPIC_DIAGNOSTICS, diagnostics, 50)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    try:
-        yield ex, seen
-    finally:
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-
-
-def wait(ex, cond, timeout, what, procs=(), watch=()):
-    """Spin ``ex`` until ``cond()`` or ``timeout``; the end of a process named in ``watch`` ends
-    the wait at once. On failure, the last output of every process in ``procs``."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.05)
-        if cond():
-            return
-        if any(pr.proc.poll() is not None for name, pr in procs if name in watch):
-            break
-    logs = '\n'.join(f'--- {name}\n{pr.text()[-3000:]}' for name, pr in procs)
-    raise AssertionError(f'timed out after {timeout} s waiting for {what}\n{logs}')
+    with ros:
+        yield ros.executor, seen
 
 
 def released(seen, scale, node):

@@ -14,6 +14,7 @@ from std_msgs.msg import String
 from anyscale_manager import protocol as p
 import home_away as ha
 from home_away import runs
+from spinning import spin_until
 
 
 def write_deployment(tmp_path):
@@ -29,7 +30,7 @@ def listener():
 
 def wait(ex, cond, timeout, what, procs=()):
     """Until ``cond()``; the decider's end ends the wait (agents are stopped on purpose)."""
-    ha.wait(ex, cond, timeout, what, procs, watch=('decider',))
+    spin_until(ex, cond, timeout, what, procs, watch=('decider',))
 
 
 def test_layout_applied_reported_back_and_republished(tmp_path, ros_env, listener):

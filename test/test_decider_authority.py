@@ -15,24 +15,20 @@ import signal
 import time
 
 import pytest
-import rclpy
 import yaml
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
 from anyscale_manager import protocol_auth as auth
 from anyscale_manager.nodes import qos
-from home_away import runs, start, start_agents, wait
+from home_away import runs, start, start_agents
+from spinning import spin_until
 from test_decider_agent import write_deployment
 
 
 @pytest.fixture
-def world():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = Node('decider_authority_test', context=ctx)
+def world(ros):
+    node = ros.node('decider_authority_test')
     seen = {'layouts': [], 'raw': [], 'states': {}, 'links': []}
 
     def layout(m):
@@ -47,15 +43,10 @@ def world():
     node.create_subscription(String, p.TOPIC_AGENT_STATE, state, qos.LATCHED_READER)
     node.create_subscription(String, p.TOPIC_LINK_STATUS,
                              lambda m: seen['links'].append(m.data), qos.MONITOR_READER)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
     procs = []
-    yield node, ex, seen, procs
+    yield node, ros.executor, seen, procs
     for _, pr in reversed(procs):
         pr.stop()
-    ex.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
 
 
 def deployment(tmp_path, key=False):
@@ -72,15 +63,10 @@ def deployment(tmp_path, key=False):
 
 
 def until_logged(ex, send, agents, why, timeout=30.0):
-    """Send until every agent has logged ``why``: drops are logged once per 10 s (throttled)."""
-    end = time.monotonic() + timeout
-    while not all(why in agent.text() for agent in agents.values()):
-        assert time.monotonic() < end, f'no agent logged {why!r}:\n' + '\n'.join(
-            agent.text()[-2000:] for agent in agents.values())
-        send()
-        again = time.monotonic() + 1.0
-        while time.monotonic() < again:
-            ex.spin_once(timeout_sec=0.1)
+    """Send each second until every agent has logged ``why``: drops are logged once per 10 s
+    (throttled)."""
+    spin_until(ex, lambda: all(why in agent.text() for agent in agents.values()), timeout,
+               f'every agent logging {why!r}', agents, tick=send, tick_every_s=1.0, spin_s=0.1)
 
 
 def serving(seen, scales):
@@ -98,12 +84,12 @@ def test_a_plain_scripts_layout_is_refused_while_the_decider_lives(tmp_path, ros
     path = deployment(tmp_path)
     agents = start_agents(procs, tmp_path, ros_env, path)
     first = start(procs, tmp_path, ros_env, path, 'decider_1')
-    wait(ex, lambda: seen['layouts'] and seen['layouts'][-1].decider is not None, 40.0,
-         "the first decider's layout", procs)
+    spin_until(ex, lambda: seen['layouts'] and seen['layouts'][-1].decider is not None, 40.0,
+               "the first decider's layout", procs)
     one = seen['layouts'][-1].decider
     assert one.pid == first.proc.pid
-    wait(ex, lambda: follow(seen, one.id), 30.0, 'both agents following the first decider',
-         procs)
+    spin_until(ex, lambda: follow(seen, one.id), 30.0, 'both agents following the first decider',
+               procs)
 
     # Without a key, a plain script's layout (no decider identity) is refused while the
     # followed decider lives, and nothing moves.
@@ -114,9 +100,9 @@ def test_a_plain_scripts_layout_is_refused_while_the_decider_lives(tmp_path, ros
         'assignments': {'worker': 'home', 'pinned': 'home'}, 'reason': 'forged',
         'stamp': time.time()})))
     for scale, agent in agents.items():
-        wait(ex, lambda: 'layout of decider without identity (anonymous) (term 0) ignored: '
-             f'following {one.id}' in agent.text(), 15.0, f'the {scale} agent refusing it',
-             procs)
+        spin_until(ex, lambda: 'layout of decider without identity (anonymous) (term 0) ignored: '
+                   f'following {one.id}' in agent.text(), 15.0, f'the {scale} agent refusing it',
+                   procs)
     # (The decider may move the worker meanwhile: its own layouts still count.)
     real = {lay.generation for lay in seen['layouts'] if lay.decider is not None}
     assert all(st.generation in real for st in seen['states'].values()), seen['states']
@@ -124,8 +110,9 @@ def test_a_plain_scripts_layout_is_refused_while_the_decider_lives(tmp_path, ros
     assert follow(seen, one.id)
     assert 'security.key_file is not set' in agents['home'].text()
     # The decider logs the foreign layout and does not answer it with a layout of its own.
-    wait(ex, lambda: 'ignored a layout of this deployment without a decider identity '
-         '(generation 1000000000000000' in first.text(), 15.0, 'the decider logging it', procs)
+    spin_until(ex, lambda: 'ignored a layout of this deployment without a decider identity '
+               '(generation 1000000000000000' in first.text(), 15.0, 'the decider logging it',
+               procs)
     assert 're-published above' not in first.text()
     assert max(lay.generation for lay in seen['layouts'] if lay.decider) < 10 ** 15
     codes = {name: pr.stop() for name, pr in reversed(procs)}
@@ -138,18 +125,18 @@ def test_with_a_key_layouts_move_nodes_and_forged_or_replayed_ones_do_not(tmp_pa
     path = deployment(tmp_path, key=True)
     agents = start_agents(procs, tmp_path, ros_env, path)
     decider = start(procs, tmp_path, ros_env, path, 'decider')
-    wait(ex, lambda: seen['layouts'], 40.0, 'the first layout', procs)
+    spin_until(ex, lambda: seen['layouts'], 40.0, 'the first layout', procs)
     assert seen['layouts'][0].assignments['worker'] == 'home'
     first_raw = seen['raw'][0]
     assert auth.check_signature(auth.load_key(str(tmp_path / 'deployment.key')),
                                 first_raw) == ''
     # The decider moves the worker out as it does without a key.
-    wait(ex, lambda: runs(seen, 'away', 'worker') and not runs(seen, 'home', 'worker'),
-         60.0, 'worker running on away', procs)
+    spin_until(ex, lambda: runs(seen, 'away', 'worker') and not runs(seen, 'home', 'worker'),
+               60.0, 'worker running on away', procs)
     me = seen['layouts'][-1].decider.id
-    wait(ex, lambda: follow(seen, me), 10.0, 'both agents following the decider', procs)
-    wait(ex, lambda: seen['states']['home'].nodes['worker'].state == 'stopped', 30.0,
-         'the home copy of the worker stopped', procs)
+    spin_until(ex, lambda: follow(seen, me), 10.0, 'both agents following the decider', procs)
+    spin_until(ex, lambda: seen['states']['home'].nodes['worker'].state == 'stopped', 30.0,
+               'the home copy of the worker stopped', procs)
     pids = serving(seen, agents)
     generations = {s: seen['states'][s].generation for s in agents}
 
@@ -202,7 +189,7 @@ def test_with_a_key_layouts_move_nodes_and_forged_or_replayed_ones_do_not(tmp_pa
                             f'{p.TOPIC_SCALE_STATUS}: dropped: not signed')):
         until_logged(ex, lambda: pub.publish(String(data=text)), {'decider': decider}, why)
     # Nothing moved, nothing restarted, no generation taken; the decider goes on.
-    wait(ex, lambda: len(seen['layouts']) >= 3, 10.0, 'layouts', procs)
+    spin_until(ex, lambda: len(seen['layouts']) >= 3, 10.0, 'layouts', procs)
     assert serving(seen, agents) == pids
     assert {s: seen['states'][s].generation for s in agents} == generations
     assert runs(seen, 'away', 'worker') and follow(seen, me)

@@ -7,12 +7,10 @@ import threading
 import time
 
 import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from std_msgs.msg import UInt8MultiArray
 
 import home_away as ha
+from spinning import RosContext, spin_until
 from anyscale_manager.nodes import qos
 from anyscale_manager.runtime.delta import below_spans
 
@@ -36,13 +34,10 @@ class Consumer:
     number, on a context and thread of its own."""
 
     def __init__(self, topic):
-        self.ctx = rclpy.Context()
-        rclpy.init(context=self.ctx)
-        self.node = Node('failover_consumer', context=self.ctx)
+        self.ros = RosContext()
+        self.node = self.ros.node('failover_consumer')
         self.arrivals, self.seqs = [], []
         self.node.create_subscription(UInt8MultiArray, topic, self._heard, qos.PROBE, raw=True)
-        self.ex = SingleThreadedExecutor(context=self.ctx)
-        self.ex.add_node(self.node)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
@@ -53,14 +48,12 @@ class Consumer:
 
     def _spin(self):
         while not self._stop.is_set():
-            self.ex.spin_once(timeout_sec=0.05)
+            self.ros.executor.spin_once(timeout_sec=0.05)
 
     def close(self):
         self._stop.set()
         self._thread.join(5.0)
-        self.ex.shutdown()
-        self.node.destroy_node()
-        rclpy.try_shutdown(context=self.ctx)
+        self.ros.close()
 
 
 @pytest.fixture
@@ -95,33 +88,33 @@ def test_a_crashed_serving_copy_fails_over_to_its_standby_within_delta(
         ha.start_agents(procs, tmp_path, ros_env, path)
         ha.start(procs, tmp_path, ros_env, path, 'decider')
         # The decider moves the worker out to the stronger scale; both keep a copy.
-        ha.wait(ex, lambda: serving_with_standby(seen) == 'away' and len(consumer.arrivals)
-                > 2 * RATE_HZ, 90.0, 'the worker serving on away with a standby home', procs)
+        spin_until(ex, lambda: serving_with_standby(seen) == 'away' and len(consumer.arrivals)
+                   > 2 * RATE_HZ, 90.0, 'the worker serving on away with a standby home', procs)
         victim = copy(seen, 'away')
         generation = seen['layouts'][-1].generation
         # A settled stream from the serving copy before the crash (judged from a second before).
         settled = len(consumer.arrivals)
-        ha.wait(ex, lambda: len(consumer.arrivals) >= settled + RATE_HZ, 10.0,
-                'a second of the worker output', procs)
+        spin_until(ex, lambda: len(consumer.arrivals) >= settled + RATE_HZ, 10.0,
+                   'a second of the worker output', procs)
         killed_at = time.monotonic()
         os.kill(victim.pid, signal.SIGKILL)
 
         def failed_over():
             return [e for e in seen['events'] if e.kind == 'failover' and e.node == 'worker']
-        ha.wait(ex, failed_over, 10.0, 'the failover event', procs)
+        spin_until(ex, failed_over, 10.0, 'the failover event', procs)
         event = failed_over()[0]
         assert (event.from_scale, event.to_scale) == ('away', 'home'), event
         assert 'crashed on away' in event.reason and 'SIGKILL' in event.reason
         assert seen['layouts'][-1].assignments['worker'] == 'home'
         assert seen['layouts'][-1].generation > generation
         # The standby copy serves; the crashed one is back as a standby, restarted once.
-        ha.wait(ex, lambda: serving_with_standby(seen) == 'home', 30.0,
-                'the worker serving home with a standby on away again', procs)
+        spin_until(ex, lambda: serving_with_standby(seen) == 'home', 30.0,
+                   'the worker serving home with a standby on away again', procs)
         assert copy(seen, 'away').restarts == victim.restarts + 1
         assert copy(seen, 'home').pid != victim.pid
         after = len(consumer.arrivals)
-        ha.wait(ex, lambda: len(consumer.arrivals) >= after + RATE_HZ, 10.0,
-                'a second of output from the copy that took over', procs)
+        spin_until(ex, lambda: len(consumer.arrivals) >= after + RATE_HZ, 10.0,
+                   'a second of output from the copy that took over', procs)
         end = time.monotonic()
         arrivals = list(consumer.arrivals)
         spans = below_spans(arrivals, FREQ_MIN_HZ, killed_at - 1.0, end)

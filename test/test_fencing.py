@@ -12,6 +12,7 @@ from std_msgs.msg import UInt8MultiArray
 
 import home_away as ha
 from home_away import runs
+from spinning import spin_until
 from anyscale_manager.nodes import qos
 
 RATE_HZ = 10.0
@@ -50,12 +51,12 @@ def worker_away(tmp_path, ros_env, listener, topic):
     try:
         agents = ha.start_agents(procs, tmp_path, ros_env, path)
         ha.start(procs, tmp_path, ros_env, path, 'decider')
-        ha.wait(ex, lambda: away_worker(seen) and ha.released(seen, 'home', 'worker'), 90.0,
-                'the worker running on away only', procs)
+        spin_until(ex, lambda: away_worker(seen) and ha.released(seen, 'home', 'worker'), 90.0,
+                   'the worker running on away only', procs)
         # ... and heard here from away (this subscriber discovers the new copy on its own).
         released = time.monotonic()
-        ha.wait(ex, lambda: len([t for t in heard if t > released]) >= RATE_HZ / 2, 20.0,
-                'the away copy heard here', procs)
+        spin_until(ex, lambda: len([t for t in heard if t > released]) >= RATE_HZ / 2, 20.0,
+                   'the away copy heard here', procs)
         yield agents, heard, procs
     finally:
         ex.get_nodes()[0].destroy_subscription(sub)
@@ -74,13 +75,13 @@ def test_a_killed_remote_agents_nodes_are_fenced_before_they_run_elsewhere(
         links_down_before = sum(1 for _, s in seen['links'] if not s.up)
         agents['away'].proc.kill()                 # SIGKILL: no chance to stop its nodes
         killed = time.monotonic()
-        ha.wait(ex, lambda: not old.is_running() or old.status() == psutil.STATUS_ZOMBIE,
-                10.0, "the warden to stop the dead agent's worker", procs)
+        spin_until(ex, lambda: not old.is_running() or old.status() == psutil.STATUS_ZOMBIE,
+                   10.0, "the warden to stop the dead agent's worker", procs)
         fenced_at = time.monotonic()
-        ha.wait(ex, lambda: runs(seen, 'home', 'worker'), 30.0, 'the worker running home',
-                procs)
-        ha.wait(ex, lambda: any(t > fenced_at for t in heard), 20.0, 'the home copy heard',
-                procs)
+        spin_until(ex, lambda: runs(seen, 'home', 'worker'), 30.0, 'the worker running home',
+                   procs)
+        spin_until(ex, lambda: any(t > fenced_at for t in heard), 20.0, 'the home copy heard',
+                   procs)
         # The old copy was stopped before the new one was placed: the layout that brought
         # the worker home came after the warden said 'fenced', and the link never went down.
         assert any(s.peer_agent == 'fenced' for _, s in seen['links'])
@@ -105,10 +106,10 @@ def test_a_remote_agent_restarted_in_place_is_not_a_cut(tmp_path, ros_env, liste
         instance = seen['states']['away'].instance
         agents['away'].proc.send_signal(signal.SIGHUP)
         hup = time.monotonic()
-        ha.wait(ex, lambda: seen['states']['away'].instance != instance
-                and away_worker(seen) == pid, 30.0, 'the new agent adopting the worker', procs)
-        ha.wait(ex, lambda: len([t for t in heard if t > time.monotonic() - 1.0]) >= RATE_HZ / 2,
-                10.0, 'the output steady after the restart', procs)
+        spin_until(ex, lambda: seen['states']['away'].instance != instance
+                   and away_worker(seen) == pid, 30.0, 'the new agent adopting the worker', procs)
+        spin_until(ex, lambda: len([t for t in heard if t > time.monotonic() - 1.0])
+                   >= RATE_HZ / 2, 10.0, 'the output steady after the restart', procs)
         assert all(s.up for t, s in seen['links'] if t >= hup)
         assert seen['layouts'][-1].generation == generation
         assert not [e for e in seen['events'][events:] if e.node == 'worker']

@@ -33,6 +33,7 @@ from anyscale_manager.view.status import StatusBook, render
 from conftest import REPO, TESTBED
 import home_away as ha
 from home_away import runs
+from spinning import spin_until
 
 LOOPBACK_KBPS = 23456370.0        # what an active probe measured over loopback in the issue
 
@@ -295,7 +296,7 @@ def listener():
 
 def wait(ex, cond, timeout, what, procs=()):
     """Until ``cond()``; any process's end ends the wait."""
-    ha.wait(ex, cond, timeout, what, procs, watch=[name for name, _ in procs])
+    spin_until(ex, cond, timeout, what, procs, watch=True)
 
 
 @pytest.mark.timeout(240)

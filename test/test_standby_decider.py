@@ -13,23 +13,19 @@ import signal
 import time
 
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.node import Node
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
 from anyscale_manager.nodes import qos
-from home_away import runs, start, start_agents, wait
+from home_away import runs, start, start_agents
+from spinning import spin_for, spin_until
 from test_decider_agent import write_deployment
 
 
 @pytest.fixture
-def world():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = Node('standby_decider_test', context=ctx)
+def world(ros):
+    node = ros.node('standby_decider_test')
     seen = {'layouts': [], 'states': {}, 'events': [], 'diag': {}}
 
     def layout(m):
@@ -51,10 +47,8 @@ def world():
                              lambda m: seen['events'].append(p.Event.from_json(m.data)),
                              qos.EVENTS)
     node.create_subscription(DiagnosticArray, p.TOPIC_DIAGNOSTICS, diagnostics, 50)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
     procs = []
-    yield ex, seen, procs
+    yield ros.executor, seen, procs
     for _, pr in reversed(procs):
         if pr.proc.poll() is None:
             try:
@@ -62,9 +56,6 @@ def world():
             except ProcessLookupError:
                 pass
         pr.stop()
-    ex.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
 
 
 def follow(seen, decider_id, term=None):
@@ -79,10 +70,11 @@ def pids(seen):
 
 def leading(ex, seen, procs, name, proc):
     """The identity of the decider ``proc`` once it leads and both agents follow it."""
-    wait(ex, lambda: any(lay.decider is not None and lay.decider.pid == proc.proc.pid
-                         for _, lay in seen['layouts']), 40.0, f'a layout of {name}', procs)
+    spin_until(ex, lambda: any(lay.decider is not None and lay.decider.pid == proc.proc.pid
+                               for _, lay in seen['layouts']), 40.0, f'a layout of {name}', procs)
     me = [lay for _, lay in seen['layouts'] if lay.decider.pid == proc.proc.pid][-1]
-    wait(ex, lambda: follow(seen, me.decider.id), 30.0, f'both agents following {name}', procs)
+    spin_until(ex, lambda: follow(seen, me.decider.id), 30.0, f'both agents following {name}',
+               procs)
     return me.decider
 
 
@@ -92,14 +84,14 @@ def standing_by(ex, seen, procs, proc, leader):
         return [i for i, (role, msg) in seen['diag'].items()
                 if role == 'standby' and f'standing by for decider {leader.id}' in msg
                 and f'pid {proc.proc.pid})' in proc.text()]
-    wait(ex, said, 30.0, 'the second decider standing by', procs)
+    spin_until(ex, said, 30.0, 'the second decider standing by', procs)
     return said()[0]
 
 
 def settled(ex, seen, procs):
     """Both agents report the worker away and the pinned node home, and nothing is pending."""
-    wait(ex, lambda: runs(seen, 'away', 'worker') and runs(seen, 'home', 'pinned')
-         and not runs(seen, 'home', 'worker'), 60.0, 'the worker running away', procs)
+    spin_until(ex, lambda: runs(seen, 'away', 'worker') and runs(seen, 'home', 'pinned')
+               and not runs(seen, 'home', 'worker'), 60.0, 'the worker running away', procs)
 
 
 def leader_and_standby(ex, seen, procs, tmp_path, ros_env):
@@ -124,18 +116,18 @@ def test_a_standby_takes_over_a_killed_leader_without_moving_anything(tmp_path, 
     before = pids(seen)
 
     os.kill(first.proc.pid, signal.SIGKILL)
-    wait(ex, lambda: any(lay.decider.id == two_id for _, lay in seen['layouts']), 10.0,
-         'a layout of the standby', procs)
+    spin_until(ex, lambda: any(lay.decider.id == two_id for _, lay in seen['layouts']), 10.0,
+               'a layout of the standby', procs)
     new = next(lay for _, lay in seen['layouts'] if lay.decider.id == two_id)
     # The leader's layout at a higher term (the time it takes: bench/bench_failover.py
     # --decider-kills).
     assert new.term > last.term and new.generation > last.generation
     assert dict(new.assignments) == dict(last.assignments)
     assert f'decider {one.id}' in new.reason and 'takes over at term' in new.reason, new.reason
-    wait(ex, lambda: follow(seen, two_id, new.term), 15.0, 'both agents following it', procs)
+    spin_until(ex, lambda: follow(seen, two_id, new.term), 15.0, 'both agents following it', procs)
     assert pids(seen) == before                   # nothing moved, nothing restarted
-    wait(ex, lambda: any(e.kind == 'takeover' for e in seen['events']), 10.0,
-         'the takeover event', procs)
+    spin_until(ex, lambda: any(e.kind == 'takeover' for e in seen['events']), 10.0,
+               'the takeover event', procs)
     codes = {name: pr.stop() for name, pr in reversed(procs) if name != 'decider_1'}
     assert codes['decider_2'] == 0, second.text()
 
@@ -147,30 +139,28 @@ def test_a_stopped_leader_is_taken_over_and_commands_nothing_when_it_resumes(tmp
     before = pids(seen)
 
     os.kill(first.proc.pid, signal.SIGSTOP)
-    wait(ex, lambda: any(lay.decider.id == two_id for _, lay in seen['layouts']), 10.0,
-         'a layout of the standby', procs)
+    spin_until(ex, lambda: any(lay.decider.id == two_id for _, lay in seen['layouts']), 10.0,
+               'a layout of the standby', procs)
     new = next(lay for _, lay in seen['layouts'] if lay.decider.id == two_id)
-    wait(ex, lambda: follow(seen, two_id, new.term), 15.0, 'both agents following it', procs)
+    spin_until(ex, lambda: follow(seen, two_id, new.term), 15.0, 'both agents following it', procs)
     resumed = time.monotonic()
     os.kill(first.proc.pid, signal.SIGCONT)
-    wait(ex, lambda: 'standing by' in first.text().split('takes over')[-1]
-         and seen['diag'].get(one.id, ('',))[0] == 'standby', 15.0,
-         'the old leader standing by', procs)
+    spin_until(ex, lambda: 'standing by' in first.text().split('takes over')[-1]
+               and seen['diag'].get(one.id, ('',))[0] == 'standby', 15.0,
+               'the old leader standing by', procs)
     # Over two more seconds: no layout of the old leader, the agents on the new one.
-    end = time.monotonic() + 2.0
-    while time.monotonic() < end:
-        ex.spin_once(timeout_sec=0.05)
+    spin_for(ex, 2.0)
     assert not [lay for t, lay in seen['layouts'] if t > resumed and lay.decider.id == one.id]
     assert follow(seen, two_id, new.term) and pids(seen) == before
     assert first.proc.poll() is None and second.proc.poll() is None
 
     # The roles swap back when the new leader dies.
     os.kill(second.proc.pid, signal.SIGKILL)
-    wait(ex, lambda: any(t > resumed and lay.decider.id == one.id and lay.term > new.term
-                         for t, lay in seen['layouts']), 10.0, 'the first decider again',
-         procs)
+    spin_until(ex, lambda: any(t > resumed and lay.decider.id == one.id and lay.term > new.term
+                               for t, lay in seen['layouts']), 10.0, 'the first decider again',
+               procs)
     back = [lay for t, lay in seen['layouts'] if lay.decider.id == one.id][-1]
-    wait(ex, lambda: follow(seen, one.id, back.term), 15.0, 'the agents following it', procs)
+    spin_until(ex, lambda: follow(seen, one.id, back.term), 15.0, 'the agents following it', procs)
     assert pids(seen) == before
 
 
@@ -180,9 +170,9 @@ def test_two_deciders_started_together_leave_one_leader_and_one_standby(tmp_path
     path = write_deployment(tmp_path)
     start_agents(procs, tmp_path, ros_env, path)
     deciders = [start(procs, tmp_path, ros_env, path, f'decider_{i}') for i in (1, 2)]
-    wait(ex, lambda: len({i for i, (role, _) in seen['diag'].items() if role}) == 2
-         and sorted(role for role, _ in seen['diag'].values()) == ['leader', 'standby'],
-         60.0, 'one leader and one standby', procs)
+    spin_until(ex, lambda: len({i for i, (role, _) in seen['diag'].items() if role}) == 2
+               and sorted(role for role, _ in seen['diag'].values()) == ['leader', 'standby'],
+               60.0, 'one leader and one standby', procs)
     # Started together, both may lead for a moment at one term; the one started later then
     # hears the other and stands by. A loaded machine can stall a leader's beats past
     # takeover_s, and the other then takes over at a higher term: judged is that the deciders
@@ -192,9 +182,9 @@ def test_two_deciders_started_together_leave_one_leader_and_one_standby(tmp_path
         roles = sorted(role for role, _ in seen['diag'].values())
         leaders = [i for i, (role, _) in seen['diag'].items() if role == 'leader']
         return roles == ['leader', 'standby'] and follow(seen, leaders[0])
-    wait(ex, one_leader_followed, 30.0, 'one leader, followed by both agents', procs)
+    spin_until(ex, one_leader_followed, 30.0, 'one leader, followed by both agents', procs)
     n = len(seen['layouts'])
-    wait(ex, lambda: len(seen['layouts']) >= n + 3, 15.0, 'its re-publications', procs)
+    spin_until(ex, lambda: len(seen['layouts']) >= n + 3, 15.0, 'its re-publications', procs)
     by_term = {}
     for _, lay in seen['layouts']:
         by_term.setdefault(lay.term, set()).add(lay.decider.id)

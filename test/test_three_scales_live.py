@@ -12,6 +12,7 @@ import yaml
 
 import home_away as ha
 from home_away import runs
+from spinning import spin_until
 
 RATE_HZ = 10.0
 T_S = 6.0
@@ -63,24 +64,24 @@ def test_a_lost_server_hands_its_node_to_the_laptop_and_gets_it_back(tmp_path, r
         agents = {s: ha.start(procs, tmp_path, ros_env, path, f'agent_{s}', '-p', f'scale:={s}')
                   for s in ('home', 'laptop', 'server')}
         ha.start(procs, tmp_path, ros_env, path, 'decider')
-        ha.wait(ex, lambda: only_on(seen, 'server'), 90.0, 'the worker on the server only',
-                procs)
+        spin_until(ex, lambda: only_on(seen, 'server'), 90.0, 'the worker on the server only',
+                   procs)
         # Every link is watched: the master's two, and the backhaul by the laptop (the first
         # of its ends in scales.names), whose agent beats the server's warden.
-        ha.wait(ex, lambda: {(m.master, m.remote) for _, m in seen['links'] if m.up} >= {
+        spin_until(ex, lambda: {(m.master, m.remote) for _, m in seen['links'] if m.up} >= {
             ('home', 'laptop'), ('home', 'server'), ('laptop', 'server')}, 15.0,
             'each link reported up by its watcher', procs)
         agents['server'].proc.kill()                  # SIGKILL: its warden fences the worker
-        ha.wait(ex, lambda: only_on(seen, 'laptop', gone=('server',)), 30.0,
-                'the worker on the laptop only', procs)
+        spin_until(ex, lambda: only_on(seen, 'laptop', gone=('server',)), 30.0,
+                   'the worker on the laptop only', procs)
         moved = [e for e in seen['events'] if e.node == 'worker']
         assert [(e.kind, e.from_scale, e.to_scale) for e in moved] == [
             ('migrate', 'home', 'server'), ('relocate', 'server', 'laptop')], moved
         assert 'lost' in moved[-1].reason
 
         ha.start(procs, tmp_path, ros_env, path, 'agent_server_again', '-p', 'scale:=server')
-        ha.wait(ex, lambda: only_on(seen, 'server'), 60.0, 'the worker back on the server',
-                procs)
+        spin_until(ex, lambda: only_on(seen, 'server'), 60.0, 'the worker back on the server',
+                   procs)
         back = [e for e in seen['events'] if e.node == 'worker'][len(moved):]
         assert [(e.kind, e.from_scale, e.to_scale) for e in back] == [
             ('rebalance', 'laptop', 'server')], back
