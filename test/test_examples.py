@@ -32,22 +32,24 @@ def test_minimal_lifecycle_talker_is_silent_inactive_and_counts_when_active(pyth
         assert probe.state(robot) == 'unconfigured'
         assert probe.change(robot, CONFIGURE)
         assert probe.state(robot) == 'inactive'
-        assert probe.spin_until(lambda: graph.count_publishers('/ex_counter') == 1, 10.0)
-        probe.spin_until(lambda: False, 1.0)
+        probe.spin_until(lambda: graph.count_publishers('/ex_counter') == 1, 10.0,
+                         'the configured talker discovered')
+        probe.spin_for(1.0)
         assert not counts, 'the inactive talker published'
         assert graph.count_subscribers('/ex_reset') == 0
 
         assert probe.change(robot, ACTIVATE)
-        assert probe.spin_until(
-            lambda: len(counts) >= 5 and graph.count_subscribers('/ex_reset') == 1, 15.0)
+        probe.spin_until(
+            lambda: len(counts) >= 5 and graph.count_subscribers('/ex_reset') == 1, 15.0,
+            'five counts and the reset subscription of the activated talker')
         assert counts[:5] == list(range(5))
 
         assert probe.change(robot, DEACTIVATE)
-        assert probe.spin_until(lambda: graph.count_subscribers('/ex_reset') == 0, 10.0), \
-            'the deactivated talker kept its subscription'
-        probe.spin_until(lambda: False, 0.3)
+        probe.spin_until(lambda: graph.count_subscribers('/ex_reset') == 0, 10.0,
+                         'the deactivated talker dropping its subscription')
+        probe.spin_for(0.3)
         seen = len(counts)
-        probe.spin_until(lambda: False, 1.0)
+        probe.spin_for(1.0)
         assert len(counts) == seen, 'the deactivated talker kept publishing'
     finally:
         probe.close()
