@@ -89,8 +89,8 @@ def violations(tb, start, end):
 
 def moves(tb, since, until=float('inf')):
     with tb.lock:
-        return [(round(t - since, 2), e.kind, e.node, e.from_scale, e.to_scale)
-                for t, e in tb.record.moves(since=since, until=until)]
+        return [(round(t - since, 2), e.kind, e.node, e.from_scale, e.to_scale,
+                 e.reason[:240]) for t, e in tb.record.moves(since=since, until=until)]
 
 
 def server_cuts(tb, args):

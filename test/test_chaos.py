@@ -60,6 +60,11 @@ def test_a_long_soak_draws_every_kind_with_its_parameters_in_range():
             assert 4.0 <= f.hold_s <= 8.0
         elif f.kind == 'stop_decider':
             assert 1.0 <= f.hold_s <= 4.0
+        elif f.kind == 'lose_agent_laptop':
+            assert f.hold_s == chaos.LOSE_AGENT_S
+        elif f.kind == 'crash_loop':
+            assert f.node in ('amcl', 'ar', 'odometry', 'ekf', 'navigation')
+            assert f.node in f.describe()
         assert f.describe()
 
 

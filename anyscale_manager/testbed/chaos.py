@@ -13,15 +13,24 @@ from dataclasses import dataclass, field
 from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Set, Tuple
 
 KINDS = ('cut', 'throttle', 'flap', 'kill_agent_laptop', 'kill_agent_robot', 'kill_decider',
-         'stop_decider', 'kill_node', 'hostile', 'rival_decider')
+         'stop_decider', 'kill_node', 'hostile', 'rival_decider', 'lose_agent_laptop',
+         'hup_agent_laptop', 'hup_agent_robot', 'crash_loop')
 # How often each kind is drawn in a long soak (relative).
 WEIGHTS = {'cut': 3.0, 'throttle': 2.0, 'flap': 2.0, 'kill_agent_laptop': 1.5,
            'kill_agent_robot': 1.5, 'kill_decider': 1.5, 'stop_decider': 1.0, 'kill_node': 3.0,
-           'hostile': 1.5, 'rival_decider': 1.0}
+           'hostile': 1.5, 'rival_decider': 1.0, 'lose_agent_laptop': 0.5,
+           'hup_agent_laptop': 1.0, 'hup_agent_robot': 1.0, 'crash_loop': 1.0}
 # The time each kind takes beyond its hold, reaction included, to space the schedule (s).
 EXTRA_S = {'cut': 2.0, 'throttle': 3.0, 'flap': 2.0, 'kill_agent_laptop': 6.0,
            'kill_agent_robot': 6.0, 'kill_decider': 6.0, 'stop_decider': 3.0, 'kill_node': 6.0,
-           'hostile': 3.0, 'rival_decider': 10.0}
+           'hostile': 3.0, 'rival_decider': 10.0, 'lose_agent_laptop': 8.0,
+           'hup_agent_laptop': 5.0, 'hup_agent_robot': 5.0, 'crash_loop': 10.0}
+# A laptop agent lost (SIGKILLed, no successor) stays away this long: past the bound within
+# which its nodes must be gone, so that it is fencing that stops them, not a new agent.
+LOSE_AGENT_S = 30.0
+# A crash loop: the serving copy of one node is SIGKILLed this many times, each time once it
+# serves again.
+CRASH_LOOP_KILLS = 3
 # A throttle below AR's 6 Mbit/s (AR must come back, AMCL may stay) and one everything fits.
 THROTTLE_KBPS = (5000.0, 20000.0)
 
@@ -37,7 +46,7 @@ class Fault:
     hold_s: float = 0.0
     rate_kbps: Optional[float] = None                # throttle
     flaps: Tuple[Tuple[float, float], ...] = ()     # flap: (down_s, up_s) per cycle
-    node: str = ''                                   # kill_node
+    node: str = ''                                   # kill_node, crash_loop
     copy: str = ''                                   # kill_node: active | standby
     seed: int = 0                                    # hostile: its own generator's seed
 
@@ -57,6 +66,10 @@ class Fault:
                 f'{d:.1f}/{u:.1f}' for d, u in self.flaps) + ' s down/up)'
         if self.kind == 'kill_node':
             return f'SIGKILL {self.node} ({self.copy} copy)'
+        if self.kind == 'crash_loop':
+            return f'crash loop: {self.node} SIGKILLed {CRASH_LOOP_KILLS} times'
+        if self.kind == 'lose_agent_laptop':
+            return f"SIGKILL the laptop's agent, back after {self.hold_s:g} s"
         if self.kind == 'hostile':
             return f'hostile publisher {self.hold_s:.1f} s'
         if self.kind == 'rival_decider':
@@ -65,6 +78,8 @@ class Fault:
             return f'SIGSTOP the leading decider for {self.hold_s:.1f} s'
         return {'kill_agent_laptop': "SIGKILL the laptop's agent",
                 'kill_agent_robot': "SIGKILL the robot's agent",
+                'hup_agent_laptop': "SIGHUP the laptop's agent (restart in place)",
+                'hup_agent_robot': "SIGHUP the robot's agent (restart in place)",
                 'kill_decider': 'SIGKILL the leading decider'}[self.kind]
 
 
@@ -90,6 +105,10 @@ def _draw(rng: random.Random, kind: str, index: int, at_s: float,
                      seed=rng.randrange(1 << 30))
     if kind == 'stop_decider':
         return Fault(index, at_s, kind, hold_s=round(rng.uniform(1.0, 4.0), 1))
+    if kind == 'lose_agent_laptop':
+        return Fault(index, at_s, kind, hold_s=LOSE_AGENT_S)
+    if kind == 'crash_loop':
+        return Fault(index, at_s, kind, node=rng.choice(list(standby_nodes) + list(plain_nodes)))
     return Fault(index, at_s, kind)
 
 
@@ -115,8 +134,8 @@ def generate(seed: int, duration_s: float, standby_nodes: Sequence[str] = ('amcl
         raise ValueError(f'duration must be > 0 s, got {duration_s!r}')
     if not 0 <= gap_s[0] <= gap_s[1]:
         raise ValueError(f'gap_s must be (low, high) with 0 <= low <= high, got {gap_s!r}')
-    if not standby_nodes and not plain_nodes and 'kill_node' in kinds:
-        raise ValueError('kill_node needs nodes to kill')
+    if not standby_nodes and not plain_nodes and {'kill_node', 'crash_loop'} & set(kinds):
+        raise ValueError('kill_node and crash_loop need nodes to kill')
     rng = random.Random(seed)
     first = list(kinds) if ensure_each else []
     rng.shuffle(first)

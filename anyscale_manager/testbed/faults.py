@@ -28,6 +28,12 @@ Row = Dict[str, object]
 # A tool process of the soak (a hostile publisher, a third decider) gets this long after its
 # SIGINT, then SIGKILL.
 TOOL_SIGINT_GRACE_S = 5.0
+# A lost agent's nodes are gone within adopt_grace_s + fence_grace_s (docs/agent.md, fencing);
+# this much more is allowed for the warden's own period and this machine's load.
+FENCE_SLACK_S = 1.5
+# After an agent's restart in place, a move, a restart or a link report it caused shows within
+# this long (a link is judged down within its heartbeats' timeout; the decider turns at once).
+HUP_SETTLE_S = 2.0
 
 
 # --- what runs where ----------------------------------------------------------------------------
@@ -150,6 +156,101 @@ def _kill_agent(soak: 'Soak', scale: str, row: Row) -> None:
     other = sorted(set(before) - set(adopted))
     row['outcome'] = f'adopted {len(adopted)}/{len(before)}' + (
         f'; new processes for {", ".join(other)}' if other else '')
+
+
+def lose_agent_laptop(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
+    """The laptop's agent SIGKILLed with no successor for ``f.hold_s``: its nodes must stop
+    by themselves within the fencing bound (adopt_grace_s + fence_grace_s, with slack for this
+    machine), what it served must serve on the robot, and two copies never serve at once
+    (judged on what the observer heard). The agent that comes back starts fresh copies."""
+    tb, d = soak.tb, soak.d
+    name = 'agent_laptop'
+    with tb.lock:
+        copies = sorted(tb.record.copies('laptop'))
+        remote = remote_only(tb.record)
+    soak.kill(name, restart_after_s=f.hold_s)
+    t_kill = time.monotonic()
+    bound = d.agent.adopt_grace_s + d.agent.fence_grace_s + FENCE_SLACK_S
+    row['reaction'] = (f'-> {"+".join(remote)} serving on the robot; ' if remote else '-> ') + \
+        f'its copies of {", ".join(copies) or "nothing"} gone within {bound:g} s'
+    if remote:
+        t = soak.wait(lambda r: set(remote) <= serving(r, 'robot'), bound + 20.0)
+        if t is None:
+            soak.miss(row, f'{remote} not serving on the robot {bound + 20.0:g} s after the '
+                           'laptop agent was lost')
+        else:
+            with tb.lock:
+                t = tb.record.serving_since('robot', remote, t_kill) or t
+            row['reaction_s'] = t - t_kill
+    gone = soak.wait(lambda _r: not any(tb.node_pids(n, 'laptop') for n in copies),
+                     bound + 10.0)
+    if gone is None or gone - t_kill > bound:
+        soak.tally.unfenced += 1
+        left = {n: tb.node_pids(n, 'laptop') for n in copies}
+        soak.log(f'!! fault {f.index}: the nodes of the lost laptop agent still ran '
+                 f'{bound:g} s after it died: {left}')
+    fenced = 'not gone' if gone is None else f'gone after {gone - t_kill:.2f} s'
+    soak.sleep(t_kill + f.hold_s - time.monotonic())
+
+    def fresh(r: Record) -> bool:
+        new = tb.procs.get(name)
+        if new is None or new.started <= t_kill:
+            return False
+        reports = [st for t, st in r.agent_states.get('laptop', []) if t > new.started]
+        return bool(reports) and all(n in reports[-1].nodes and reports[-1].nodes[n].state
+                                     in LIVE_STATES for n in copies)
+    t_new = soak.wait(fresh, 40.0)
+    row['outcome'] = f'its copies {fenced}; ' + (
+        'a new agent with fresh copies' if t_new is not None else 'NO new agent reporting')
+    if t_new is None:
+        soak.miss(row, f'no new laptop agent reporting {copies} live 40 s after its restart')
+
+
+def _hup_agent(soak: 'Soak', scale: str, row: Row) -> None:
+    """SIGHUP: the agent restarts in place (same process, new instance) and adopts its
+    nodes; nothing may move, restart or be reported cut."""
+    tb = soak.tb
+    name = f'agent_{scale}'
+    with tb.lock:
+        last = tb.record.agent_state_at(scale)
+        instance = last.instance if last is not None else None
+        pids = {n: rep.pid for n, rep in tb.record.copies(scale).items()}
+    pid = tb.procs[name].popen.pid
+    os.kill(pid, signal.SIGHUP)
+    t_hup = time.monotonic()
+    tb.mark(f'{name} sent SIGHUP')
+    row['reaction'] = '-> the same agent back in place, nothing moved or restarted'
+
+    def back(r: Record) -> bool:
+        history = r.agent_states.get(scale, [])
+        return bool(history) and history[-1][0] > t_hup and history[-1][1].instance != instance
+    t = soak.wait(back, 30.0)
+    if t is None:
+        soak.miss(row, f'the {scale} agent not back 30 s after its SIGHUP')
+        return
+    row['reaction_s'] = t - t_hup
+    soak.sleep(HUP_SETTLE_S)         # what the restart would cause shows within this
+    with tb.lock:
+        r = tb.record
+        now = {n: rep.pid for n, rep in r.copies(scale).items()}
+        moves = [(e.kind, e.node) for _, e in r.moves(since=t_hup)]
+        downs = sum(1 for t_s, st in r.link_status if t_s >= t_hup and not st.up)
+    restarted = sorted(n for n, p in pids.items() if now.get(n) != p)
+    same = tb.procs[name].popen.pid == pid and tb.procs[name].popen.poll() is None
+    row['outcome'] = (f'{"same process" if same else "a NEW process"}; moves {len(moves)}, '
+                      f'nodes restarted {len(restarted)}, link down reports {downs}')
+    if restarted or moves or downs or not same:
+        soak.tally.restart_harm += 1
+        soak.log(f'!! {name} restarted in place: moves {moves}, restarted {restarted}, link '
+                 f'down reports {downs}, same process {same}')
+
+
+def hup_agent_laptop(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
+    _hup_agent(soak, 'laptop', row)
+
+
+def hup_agent_robot(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
+    _hup_agent(soak, 'robot', row)
 
 
 def kill_agent_laptop(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
@@ -278,6 +379,7 @@ def kill_node(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
         return
     with tb.lock:
         scale = where(tb.record)
+        standby_elsewhere = _standby_elsewhere(d, tb.record, node, scale)
     try:
         pid = tb.kill_node(node, scale, signal.SIGKILL)
     except harness.HarnessError as e:
@@ -305,15 +407,70 @@ def kill_node(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
         with tb.lock:
             where_now = [s for s in d.scale_names if node in serving(tb.record, s)]
         row['outcome'] = f'serving on {"+".join(where_now) or "-"}'
-    if f.copy != 'standby':
-        # The killed copy served: what it fed is not judged until it serves again, plus a
-        # rate window and the longest Δ.
-        margin = d.monitoring.probe_window_s + max(c.tolerance_s or 0.0
-                                                   for c in d.connections)
-        conns = [(c.name, c.publisher, c.subscriber) for c in d.connections]
-        soak.tally.excuses.append(chaos.kill_excuse(
-            conns, node, t_kill, t if t is not None else t_kill + COLD_MOVE_S,
-            margin + 1.0, f'fault {f.index}: {node} killed'))
+    if f.copy != 'standby' and not standby_elsewhere:
+        _excuse_cold_restart(soak, f, node, t_kill, t)
+
+
+def _standby_elsewhere(d: Deployment, r: Record, node: str, scale: str) -> bool:
+    """A standby copy of ``node`` on another scale: its serving copy's crash is then a
+    failover, judged like any other fault (no Δ excused)."""
+    return any(node in r.standby_on(s) for s in d.scale_names if s != scale)
+
+
+def _excuse_cold_restart(soak: 'Soak', f: chaos.Fault, node: str, t_kill: float,
+                         t_back: Optional[float]) -> None:
+    """A serving copy with no standby anywhere was killed: it can only start again cold,
+    so what it fed is not judged until it serves again, plus a rate window and the longest
+    Δ."""
+    d = soak.d
+    margin = d.monitoring.probe_window_s + max(c.tolerance_s or 0.0 for c in d.connections)
+    conns = [(c.name, c.publisher, c.subscriber) for c in d.connections]
+    soak.tally.excuses.append(chaos.kill_excuse(
+        conns, node, t_kill, t_back if t_back is not None else t_kill + COLD_MOVE_S,
+        margin + 1.0, f'fault {f.index}: {node} killed (no standby copy)'))
+
+
+def crash_loop(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
+    """The serving copy of one node SIGKILLed CRASH_LOOP_KILLS times, each time once it
+    serves again: it must serve again after every crash (a standby copy taking over where
+    one exists, else a restart in place), and never be served nowhere past the bound."""
+    tb, d = soak.tb, soak.d
+    node = f.node
+    row['reaction'] = f'-> {node} serving again after each crash'
+    times: List[float] = []
+    places: List[str] = []
+    for k in range(chaos.CRASH_LOOP_KILLS):
+        def serving_once(r: Record) -> Optional[str]:
+            found = [s for s in d.scale_names if node in serving(r, s)]
+            return found[0] if len(found) == 1 else None
+        if soak.wait(lambda r: serving_once(r) is not None, 30.0) is None:
+            soak.miss(row, f'{node} not serving on exactly one scale before crash {k + 1}')
+            return
+        with tb.lock:
+            scale = serving_once(tb.record)
+            standby_elsewhere = _standby_elsewhere(d, tb.record, node, scale)
+        try:
+            pid = tb.kill_node(node, scale, signal.SIGKILL)
+        except harness.HarnessError as e:
+            soak.miss(row, f'crash {k + 1} of {node} on the {scale}: {e}')
+            return
+        t_kill = time.monotonic()
+
+        def back(r: Record) -> bool:
+            return any(node in (reps := r.running_on(s, ready_only=True))
+                       and reps[node].pid != pid for s in d.scale_names)
+        t = soak.wait(back, 30.0)
+        if not standby_elsewhere:
+            _excuse_cold_restart(soak, f, node, t_kill, t)
+        if t is None:
+            soak.miss(row, f'{node} not serving 30 s after crash {k + 1}')
+            return
+        times.append(t - t_kill)
+        with tb.lock:
+            places.append('+'.join(s for s in d.scale_names if node in serving(tb.record, s)))
+    row['reaction_s'] = max(times)
+    row['outcome'] = 'serving again after ' + ', '.join(
+        f'{x:.2f} s on {where}' for x, where in zip(times, places))
 
 
 def hostile(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
@@ -366,6 +523,10 @@ REGISTRY: Dict[str, Callable[['Soak', chaos.Fault, Row], None]] = {
     'kill_node': kill_node,
     'hostile': hostile,
     'rival_decider': rival_decider,
+    'lose_agent_laptop': lose_agent_laptop,
+    'hup_agent_laptop': hup_agent_laptop,
+    'hup_agent_robot': hup_agent_robot,
+    'crash_loop': crash_loop,
 }
 
 

@@ -78,6 +78,7 @@ class Soak:
         self.tally = Tally()
         self.samples = Samples(self.log)
         self._killed: Dict[str, int] = {}
+        self._restart_after: Dict[str, float] = {}      # name -> its restart delay this once
         self._down: Dict[str, float] = {}
         self._next_resources = 0.0
         self._next_processes = 0.0
@@ -122,8 +123,9 @@ class Soak:
                 if not intended:
                     self.log(f'!! {name} (pid {proc.popen.pid}) exited with {code} unasked; '
                              f'log {proc.log_path}:\n{harness.tail(proc.log_path, 8)}')
-            elif now - self._down[name] >= RESTART_S:
+            elif now - self._down[name] >= self._restart_after.get(name, RESTART_S):
                 del self._down[name]
+                self._restart_after.pop(name, None)
                 if name in DECIDERS:
                     new = self.tb.start_decider(name)
                     tally.decider_pids.add(new.popen.pid)
@@ -163,11 +165,12 @@ class Soak:
         self.wait(lambda _r: False, max(0.0, seconds))
 
     # --- what the fault handlers call -----------------------------------------------------
-    def kill(self, name: str) -> int:
+    def kill(self, name: str, restart_after_s: float = RESTART_S) -> int:
         """SIGKILL one supervised process (its exit is then counted as intended) and wait for
-        it; return its pid. It is restarted after RESTART_S."""
+        it; return its pid. It is restarted after ``restart_after_s``."""
         pid = self.tb.procs[name].popen.pid
         self._killed[name] = pid
+        self._restart_after[name] = restart_after_s
         self.tb.kill(name, signal.SIGKILL)
         return pid
 

@@ -26,7 +26,8 @@ COLD_MOVE_S = 6.0
 # Faults after which nothing has a reason to come home: a move back or a relocation from their
 # start to 3 s after their reaction is counted (the laptop agent's death may relocate its nodes
 # once it is silent for agent_timeout_s, as documented, and is not among them).
-NO_MOVE_BACK = ('kill_agent_robot', 'kill_decider', 'stop_decider', 'hostile')
+NO_MOVE_BACK = ('kill_agent_robot', 'kill_decider', 'stop_decider', 'hostile',
+                'hup_agent_laptop', 'hup_agent_robot')
 # A third decider's start is listed apart (``moves_back_noted``), not counted: its protocol
 # rule is what the fault checks, and a process joining the domain on the robot made the robot's
 # link monitor miss 3 beats (a false cut of 0.04-0.13 s, AMCL brought home by an activation) in
@@ -60,6 +61,8 @@ class Tally:
     missed: int = 0                  # a reaction not seen within its fault's limit
     rival_misbehaved: int = 0        # a third decider that published or did not stand by
     stale_leader: int = 0            # a resumed leader published, or was followed again
+    restart_harm: int = 0            # an agent's restart in place moved or restarted a node
+    unfenced: int = 0                # a lost agent's nodes outlived the fencing bound
 
 
 def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
