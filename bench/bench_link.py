@@ -29,6 +29,8 @@ import sys
 import threading
 import time
 
+from anyscale_manager.agent.procs import stop_all
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEPLOYMENT = os.path.join(REPO, 'config', 'icar2015_testbed.yaml')
 
@@ -183,15 +185,7 @@ def main() -> int:
                 results['cuts'].append((None if down is None else down[0] - cut_at,
                                         None if up is None else up[0] - restored_at))
         finally:
-            for proc in procs:
-                if proc.poll() is None:
-                    proc.send_signal(signal.SIGINT)
-            for proc in procs:
-                try:
-                    proc.wait(timeout=10)
-                except Exception:
-                    proc.kill()
-                    proc.wait()
+            stop_all(procs, 10.0, session=False)
     report(results, period, misses, args)
     return 0
 

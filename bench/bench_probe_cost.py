@@ -28,6 +28,8 @@ import subprocess
 import sys
 import time
 
+from anyscale_manager.agent.procs import stop_all
+
 TOPIC = '/bench/cost'
 TYPES = {'bytes': 'std_msgs/msg/UInt8MultiArray',
          'structured': 'diagnostic_msgs/msg/DiagnosticArray',
@@ -221,15 +223,7 @@ def main() -> int:
         time.sleep(args.seconds)
         after = snapshot()
     finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        for proc in procs:
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_all(procs, 10.0, session=False)
     shape = f' {args.shape or DEFAULT_SHAPES[args.type]}' if args.type in DEFAULT_SHAPES else ''
     print(f'{args.rate:g} Hz of {TYPES[args.type]}{shape} ({size} B serialised) for '
           f'{args.seconds:g} s, {args.executor} executor '

@@ -18,11 +18,12 @@ DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST) in the given dom
 
 import argparse
 import os
-import signal
 import statistics
 import subprocess
 import sys
 import time
+
+from anyscale_manager.agent.procs import stop_all
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
@@ -117,15 +118,7 @@ def run_once(path, seconds, env, log):
                  for t, a in reader.arrivals.items()}
     finally:
         reader.close()
-        for proc in procs.values():
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGINT)
-        for proc in procs.values():
-            try:
-                proc.wait(10.0)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+        stop_all(list(procs.values()), 10.0)
     log(f'{os.path.basename(path)}: total {sum(cpu.values()):.1f} % of a core; '
         + ', '.join(f'{t} {r:.1f} Hz' for t, r in sorted(rates.items())))
     return cpu, rates

@@ -4,7 +4,7 @@ import os
 import signal
 import subprocess
 import time
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 import psutil
 
@@ -197,3 +197,28 @@ def stop_popen(proc: 'subprocess.Popen', sigint_grace_s: float,
         except subprocess.TimeoutExpired:
             continue
     return proc.poll()
+
+
+def stop_all(popens: 'Sequence[subprocess.Popen]', sigint_grace_s: float, *,
+             session: bool = True, kill_wait_s: float = 5.0) -> List[Optional[int]]:
+    """``stop_popen`` for several children at once: SIGINT to every one, one shared grace for
+    all of them to exit, then SIGKILL to what is left; their exit statuses, in order."""
+    def signal_each(sig: int) -> None:
+        for proc in popens:
+            if proc.poll() is None:
+                try:
+                    (os.killpg if session else os.kill)(proc.pid, sig)
+                except ProcessLookupError:
+                    pass
+
+    def wait_each(until: float) -> None:
+        for proc in popens:
+            try:
+                proc.wait(max(0.0, until - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+    signal_each(signal.SIGINT)
+    wait_each(time.monotonic() + sigint_grace_s)
+    signal_each(signal.SIGKILL)
+    wait_each(time.monotonic() + kill_wait_s)
+    return [proc.poll() for proc in popens]
