@@ -212,6 +212,8 @@ def main():
     parser.add_argument('--domain-id', type=int,
                         default=int(os.environ.get('ROS_DOMAIN_ID', '0') or 0))
     parser.add_argument('--out', default='')
+    parser.add_argument('--keep', default='', metavar='DIR',
+                        help="keep the test-bed's logs in DIR (the agents', the deciders')")
     args = parser.parse_args()
     ok, why = netns.available()
     if not ok:
@@ -219,7 +221,8 @@ def main():
         return 2
     options = harness.Options(args.config, args.domain_id, mode='netns',
                               decider_parameters={'decider.hysteresis_s': str(args.hysteresis)},
-                              link_up_at_start=False)
+                              link_up_at_start=False, run_dir=args.keep,
+                              keep_run_dir=bool(args.keep))
     tb = harness.Testbed(options).start()
     out = {'machine_cores': os.cpu_count(), 'hysteresis_s': args.hysteresis}
     try:

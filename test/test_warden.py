@@ -178,3 +178,26 @@ def test_a_successor_within_the_grace_keeps_the_nodes(tmp_path):
             if proc is not None and proc.poll() is None:
                 proc.kill()
                 proc.wait()
+
+
+def test_the_warden_answers_heartbeats_at_real_time_priority_or_says_why_not():
+    """Run in a child: the scheduling class is the process's own."""
+    code = '''
+import os
+from anyscale_manager.agent.warden import prioritise
+said = []
+assert prioritise(0, 'laptop', said.append) is False and said == []
+got = prioritise(10, 'laptop', said.append)
+policy = os.sched_getscheduler(0)
+if got:
+    assert policy == os.SCHED_RR and os.sched_getparam(0).sched_priority == 10, policy
+    assert said == ['heartbeats answered at real-time priority 10 (SCHED_RR)'], said
+else:
+    assert policy == os.SCHED_OTHER, policy
+    assert 'CAP_SYS_NICE' in said[0] and 'warden_priority' in said[0], said
+print('rr' if got else 'normal')
+'''
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() in ('rr', 'normal')

@@ -316,6 +316,11 @@ class AgentSettings:
                                            'place', low=0, high=3600, unit='s')
     fence_grace_s: float = setting(0.5, 'SIGINT to SIGKILL of a fenced node', low=0, high=60,
                                    unit='s')
+    # The warden also answers the link heartbeats: an echo that waits for a core behind the
+    # scale's workload reads as a cut link at the watching end.
+    warden_priority: int = setting(10, 'real-time (SCHED_RR) priority the warden answers '
+                                       'heartbeats at (needs CAP_SYS_NICE; 0: normal '
+                                       'priority)', low=0, high=99)
     state_dir: str = setting('', 'the adoption state (empty: ~/.ros/anyscale_manager)')
     log_dir: str = setting('', 'per-node logs (empty: ~/.ros/log/anyscale_manager)')
 

@@ -230,7 +230,7 @@ class AgentNode(Node):
         try:
             pid = spawn_warden(stem + '.json', self.scale, d.name, d.scale(self.scale).host,
                                port, s.adopt_grace_s, s.restart_grace_s, s.fence_grace_s, log,
-                               d.security.key_file)
+                               d.security.key_file, s.warden_priority)
         except OSError as e:
             # The nodes still run and are supervised; what is lost is said.
             self.get_logger().error(

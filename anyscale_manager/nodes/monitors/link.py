@@ -374,9 +374,15 @@ class LinkMonitor:
                     remote.quiet_since = max(remote.quiet_since, now)
                     if remote.bandwidth is not None:
                         remote.bandwidth.remeasure()
-                self._log.info(f'link to {remote.scale.name} is up' if up else
-                               f'link to {remote.scale.name} is DOWN: '
-                               f'{remote.beats.silence(now)}')
+                if up:
+                    # How late the echo that ended the silence came back tells a peer or a
+                    # queue that answered late from beats that were lost.
+                    rtt = remote.beats.last_rtt_s
+                    self._log.info(f'link to {remote.scale.name} is up' + (
+                        '' if rtt is None else f' (its first echo: round trip {rtt:.3f} s)'))
+                else:
+                    self._log.info(f'link to {remote.scale.name} is DOWN: '
+                                   f'{remote.beats.silence(now)}')
                 self._publish(remote, now, self.used_kbps(remote.scale.name, now))
 
     def _publish(self, remote: _Remote, now: float, used: float) -> None:
