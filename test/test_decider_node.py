@@ -246,8 +246,9 @@ def test_layout_latched_adopted_republished_and_robust(world, testbed_path, ros_
 
 def test_an_agent_following_another_decider_is_said_once_and_not_out_counted(
         world, testbed_path, ros_env):
-    # Re-publishing above a generation an agent reports is how two deciders fought (issue 14):
-    # the decider says it and goes on re-publishing its own layout, same generation.
+    # Re-publishing above a generation an agent reports would let two deciders out-count each
+    # other for ever: the decider says it and goes on re-publishing its own layout, same
+    # generation.
     node, ex = world
     node.running = {n.name: 'robot' for n in node.d.nodes if n.managed}
     proc = start_decider(testbed_path, ros_env, '-p', 'decider.migration:=false')

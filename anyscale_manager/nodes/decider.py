@@ -291,8 +291,8 @@ class DeciderNode(Node):
                 for node, scale in self.policy.desired.items() if scale == state.scale):
             self._crash_heard = True
         # An agent that follows another decider (one that just stopped: for one lease; or a
-        # forger's anonymous layout) is said once. No re-publication above its generation:
-        # out-counting generations is how two deciders fought.
+        # forger's anonymous layout) is said once. No re-publication above its generation: two
+        # deciders each out-counting the other's generation never settle.
         if state.scale in self.deployment.scale_names \
                 and self._followers.get(state.scale, '?') != state.decider:
             self._followers[state.scale] = state.decider
@@ -573,9 +573,9 @@ def main(args=None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
-        # SIGINT shut the context down while rclpy was taking a message (seen once: "Unable
-        # to convert call argument '0' to Python object" from take_message). Stopping was
-        # asked for, so it is a clean stop; while the context is up it is a real error.
+        # SIGINT can shut the context down while rclpy takes a message ("Unable to convert
+        # call argument '0' to Python object" from take_message). Stopping was asked for, so
+        # it is a clean stop; while the context is up it is a real error.
         if rclpy.ok():
             raise
     except (DeploymentError, LayoutError, auth.KeyFileError) as e:

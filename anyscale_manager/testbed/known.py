@@ -15,10 +15,10 @@ KNOWN_OPEN: Dict[str, str] = {
                          'message or two (gaps of 0.2-0.3 s at 40 Hz) while AMCL and AR start '
                          'or stop there',
     'odometry_ekf': 'as odometer_odometry, at 10 Hz',
-    'ekf_navigation': 'as odometer_odometry, at 5 Hz (a gap past 0.6 s): seen once, when a '
-                      "decider takeover, a participant joining the domain and AR's activation "
-                      "there saturated the robot's quota at once (the leader's beat stalled "
-                      '0.44 s, the robot read its own stall as congestion)',
+    'ekf_navigation': 'as odometer_odometry, at 5 Hz (a gap past 0.6 s): when a decider '
+                      "takeover, a participant joining the domain and AR's activation there "
+                      "saturate the robot's quota at once, or during a server cut on three "
+                      'scales',
 }
 
 __all__ = ['KNOWN_OPEN']
