@@ -254,6 +254,17 @@ def test_an_echo_read_late_is_filed_at_its_arrival_and_later_beats_still_wait():
     assert 'no echo for 0.79 s, 3 beats unanswered' in hb.silence(0.8)
 
 
+def test_an_allowance_holds_a_silence_up_that_long_and_no_longer():
+    """The watcher's own bandwidth probe fills the link: its beats wait behind the data."""
+    hb = HeartbeatTracker(0.1, 3)
+    hb.echo(0.005, hb.next_beat(0.0))
+    for k in range(1, 10):
+        hb.next_beat(0.1 * k)                          # 0.1 .. 0.9: no echo comes back
+    assert not hb.up(0.4)                              # 0.395 s of silence > 0.3 s
+    assert hb.up(0.4, allowance_s=0.6)                 # ... within 0.3 + 0.6 s
+    assert not hb.up(0.95, allowance_s=0.6)            # 0.945 s > 0.9 s: a cut after all
+
+
 def test_echoes_read_late_in_a_burst_keep_a_working_link_up():
     hb = HeartbeatTracker(0.1, 3)
     seqs = [hb.next_beat(0.1 * k) for k in range(6)]     # 0.0 .. 0.5

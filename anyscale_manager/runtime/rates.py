@@ -231,13 +231,16 @@ class HeartbeatTracker:
             del self._sent[seq]
             self._fates.append(False)
 
-    def up(self, now: float) -> bool:
+    def up(self, now: float, allowance_s: float = 0.0) -> bool:
         """Down once no echo came for ``misses_down`` periods and ``misses_down`` beats were
         sent since, spread over at least half their periods: beats sent in one burst by a
-        process that was not scheduled (its timer catching up) prove nothing yet."""
+        process that was not scheduled (its timer catching up) prove nothing yet.
+        ``allowance_s`` more silence is allowed while the watcher knows why the echoes are
+        late (its own bandwidth probe filling the link's queue)."""
         if self.last_echo is None:
             return False
-        if now - self.last_echo <= self.timeout_s or self._sent_since_echo < self.misses_down:
+        if now - self.last_echo <= self.timeout_s + max(0.0, allowance_s) \
+                or self._sent_since_echo < self.misses_down:
             return True
         times = self._pending_times
         return times[-1] - times[0] < 0.5 * (self.misses_down - 1) * self.period_s

@@ -65,6 +65,7 @@ class _Remote:
     bandwidth: Optional[BandwidthEstimate]
     was_up: bool = False
     probing: bool = False
+    probe_done: float = -math.inf      # when this monitor's last probe ended
     congested: bool = False
     delay_s: Optional[float] = None
     quiet_since: float = -math.inf     # beats sent earlier say nothing of congestion
@@ -263,7 +264,7 @@ class LinkMonitor:
             seq = remote.beats.next_beat(now)
             self._send_beat(remote, seq, now)
             if remote.bandwidth is not None and not remote.probing \
-                    and remote.bandwidth.due(now, remote.beats.up(now), used, remote.congested):
+                    and remote.bandwidth.due(now, self._up(remote, now), used, remote.congested):
                 remote.bandwidth.started(now)
                 remote.probing = True
                 remote.quiet_since = math.inf      # the probe fills the queue on purpose
@@ -347,6 +348,7 @@ class LinkMonitor:
             return
         remote.probing = False
         done, bps, error, used = result
+        remote.probe_done = done
         # The probe's own queue drains within the link's latency; one beat period covers it.
         remote.quiet_since = done + self._period
         if bps is None:
@@ -355,6 +357,17 @@ class LinkMonitor:
                               throttle_duration_sec=60.0)
         else:
             remote.bandwidth.record(done, bps * 8.0 / 1000.0, used)
+
+    def _up(self, remote: _Remote, now: float) -> bool:
+        """The link's verdict. This monitor's own probe fills the link on purpose, and the
+        heartbeats wait behind its data in the link's queue or are dropped from it: while it
+        runs, and for a beat period after (the queue drains), silence is allowed a probe's
+        length more before it reads as a cut. A link cut during a probe is read that much
+        later, and the probe fails with it."""
+        allowance = 0.0
+        if remote.probing or now - remote.probe_done <= self._period:
+            allowance = self._probe_duration + self._period
+        return remote.beats.up(now, allowance)
 
     def _check(self) -> None:
         with self._beats_lock:
@@ -365,7 +378,7 @@ class LinkMonitor:
         self._read_echoes()
         now = time.monotonic()
         for remote in self._remotes.values():
-            up = remote.beats.up(now)
+            up = self._up(remote, now)
             if up != remote.was_up:
                 remote.was_up = up
                 if up:
@@ -389,7 +402,7 @@ class LinkMonitor:
         beats, estimate = remote.beats, remote.bandwidth
         if beats.last_echo is None and now - remote.started < p.LINK_MONITOR_START_S:
             return      # not heard yet, and the remote may not have discovered us yet
-        up = beats.up(now)
+        up = self._up(remote, now)
         rtt = beats.rtt_s()
         available = estimate.available_kbps if estimate is not None else None
         age = estimate.age_s(now) if estimate is not None else None
