@@ -166,9 +166,10 @@ def test_with_a_key_layouts_move_nodes_and_forged_or_replayed_ones_do_not(tmp_pa
         fake.seq += 1
         fake.stamp = time.time()
         states.publish(String(data=fake.to_json()))
-    until_logged(ex, forge_state, {'home': agents['home']},
-                 "dropped an agent state claiming scale 'away': not signed")
-    assert "agent state claiming scale 'away': not signed" in decider.text()
+    # The home agent and the decider each read it: the wait is for both logs.
+    until_logged(ex, forge_state, {'home': agents['home'], 'decider': decider},
+                 "agent state claiming scale 'away': not signed")
+    assert "dropped an agent state claiming scale 'away': not signed" in agents['home'].text()
     # The monitors' topics are signed too: the away link reported down (unsigned, then a real
     # signed report sent again), the away scale reported full (unsigned): dropped.
     assert seen['links'] and auth.check_signature(
