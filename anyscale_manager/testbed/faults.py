@@ -369,10 +369,9 @@ def kill_node(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
     node = f.node
 
     def where(r: Record) -> Optional[str]:
-        if f.copy == 'standby':
-            found = [s for s in d.scale_names if node in r.standby_on(s)]
-        else:
-            found = [s for s in d.scale_names if node in serving(r, s)]
+        if f.copy != 'standby':
+            return _serving_on_one(d, r, node)
+        found = [s for s in d.scale_names if node in r.standby_on(s)]
         return found[0] if len(found) == 1 else None
     if soak.wait(lambda r: where(r) is not None, 10.0) is None:
         row['outcome'] = f'skipped: no single {f.copy} copy of {node} within 10 s'
@@ -395,10 +394,7 @@ def kill_node(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
             return rep is not None and rep.pid != pid and rep.state == 'standby'
     else:
         row['reaction'] = '-> serving again'
-
-        def back(r: Record) -> bool:
-            return any(node in (reps := r.running_on(s, ready_only=True))
-                       and reps[node].pid != pid for s in d.scale_names)
+        back = _served_again(d, node, pid)
     t = soak.wait(back, 30.0)
     if t is None:
         soak.miss(row, f'{node} not back 30 s after the kill')
@@ -409,6 +405,20 @@ def kill_node(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
         row['outcome'] = f'serving on {"+".join(where_now) or "-"}'
     if f.copy != 'standby' and not standby_elsewhere:
         _excuse_cold_restart(soak, f, node, t_kill, t)
+
+
+def _serving_on_one(d: Deployment, r: Record, node: str) -> Optional[str]:
+    """The one scale that serves ``node``, or None when none or several do."""
+    found = [s for s in d.scale_names if node in serving(r, s)]
+    return found[0] if len(found) == 1 else None
+
+
+def _served_again(d: Deployment, node: str, pid: int) -> Callable[[Record], bool]:
+    """``node`` served somewhere by another process than ``pid`` (the one killed)."""
+    def back(r: Record) -> bool:
+        return any(node in (reps := r.running_on(s, ready_only=True))
+                   and reps[node].pid != pid for s in d.scale_names)
+    return back
 
 
 def _standby_elsewhere(d: Deployment, r: Record, node: str, scale: str) -> bool:
@@ -440,14 +450,11 @@ def crash_loop(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
     times: List[float] = []
     places: List[str] = []
     for k in range(chaos.CRASH_LOOP_KILLS):
-        def serving_once(r: Record) -> Optional[str]:
-            found = [s for s in d.scale_names if node in serving(r, s)]
-            return found[0] if len(found) == 1 else None
-        if soak.wait(lambda r: serving_once(r) is not None, 30.0) is None:
+        if soak.wait(lambda r: _serving_on_one(d, r, node) is not None, 30.0) is None:
             soak.miss(row, f'{node} not serving on exactly one scale before crash {k + 1}')
             return
         with tb.lock:
-            scale = serving_once(tb.record)
+            scale = _serving_on_one(d, tb.record, node)
             standby_elsewhere = _standby_elsewhere(d, tb.record, node, scale)
         try:
             pid = tb.kill_node(node, scale, signal.SIGKILL)
@@ -455,11 +462,7 @@ def crash_loop(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
             soak.miss(row, f'crash {k + 1} of {node} on the {scale}: {e}')
             return
         t_kill = time.monotonic()
-
-        def back(r: Record) -> bool:
-            return any(node in (reps := r.running_on(s, ready_only=True))
-                       and reps[node].pid != pid for s in d.scale_names)
-        t = soak.wait(back, 30.0)
+        t = soak.wait(_served_again(d, node, pid), 30.0)
         if not standby_elsewhere:
             _excuse_cold_restart(soak, f, node, t_kill, t)
         if t is None:
