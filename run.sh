@@ -27,7 +27,12 @@ setup_env() {
     # pip's own chatter (and setuptools' deprecation notes) go to a log, shown only on failure.
     local log="$venv/setup.log"
     echo "installing requirements into $venv" >&2
-    if ! { "$venv/bin/python" -m pip install --require-hashes -r requirements.lock &&
+    # The lock's own pip goes in first: the pip a new venv comes with (23.x) treats a
+    # dependency's extra (pytest-cov's coverage[toml]) as unpinned in hash mode once a newer
+    # release exists, and refuses the whole lock.
+    awk '/^pip==/ {p = 1} p {print; if ($0 !~ /\\$/) exit}' requirements.lock > "$venv/pip.lock"
+    if ! { "$venv/bin/python" -m pip install --require-hashes -r "$venv/pip.lock" &&
+           "$venv/bin/python" -m pip install --require-hashes -r requirements.lock &&
            "$venv/bin/python" -m pip install --no-deps --no-build-isolation -e .; } \
          >"$log" 2>&1; then
       tail -n 40 "$log" >&2
