@@ -5,6 +5,7 @@ lifecycle node to its standby copy, a plain node restarted in place, agents rest
     python bench/bench_failover.py [--kills 20] [--in-place-kills 10] [--hups 10]
                                    [--agent-kills 10] [--decider-kills 20]
                                    [--decider-stops 10] [--rate-hz 20] [--domain-id N]
+                                   [--keep DIR]
 
 Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
 beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
@@ -34,6 +35,7 @@ Prints one line per fault, then p50/p95/max of each figure.
 """
 
 import argparse
+import contextlib
 import os
 import re
 import signal
@@ -121,6 +123,8 @@ def main() -> int:
     ap.add_argument('--decider-stops', type=int, default=10,
                     help='SIGSTOPs (2 s) of the leading decider with a standby running')
     ap.add_argument('--rate-hz', type=float, default=20.0)
+    ap.add_argument('--keep', metavar='DIR',
+                    help='write the deployment and every log into DIR and keep them')
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '44')))
     args = ap.parse_args()
     os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
@@ -225,7 +229,10 @@ def main() -> int:
         return gap
 
     procs = []
-    with tempfile.TemporaryDirectory() as folder:
+    if args.keep:
+        os.makedirs(args.keep, exist_ok=True)
+    with (contextlib.nullcontext(args.keep) if args.keep
+          else tempfile.TemporaryDirectory()) as folder:
         path = deployment(folder, topic, args.rate_hz)
         env = dict(os.environ, PYTHONUNBUFFERED='1')
 
@@ -257,11 +264,20 @@ def main() -> int:
                 now_at, _ = wait(lambda: (serving() if (serving() or ('', None))[0]
                                           not in ('', where) else None), 30.0,
                                  'the standby copy serving')
+                t_serving = time.monotonic()
                 steady('/w', 1.0)
                 gap = judge('/w', t0, time.monotonic())
                 kinds = [e.kind for _, e in events if e.node == 'worker']
                 failover.append(gap)
-                print(f'failover {k + 1:2}: {where} -> {now_at}, longest gap {gap:.3f} s, '
+                # Where the time went: the decider's failover event, the agent's report of the
+                # copy serving (both as heard here) and the first output after the kill.
+                decided = next((t for t, e in events if t > t0 and e.node == 'worker'
+                                and e.kind == 'failover'), float('nan'))
+                with lock:
+                    first = next((t for t in heard['/w'] if t > t0 + 0.001), float('nan'))
+                print(f'failover {k + 1:2}: {where} -> {now_at}, longest gap {gap:.3f} s '
+                      f'(decided +{decided - t0:.3f} s, reported serving +{t_serving - t0:.3f} s '
+                      f'(polled), first output +{first - t0:.3f} s), '
                       f'failover events so far {kinds.count("failover")}', flush=True)
             for k in range(args.in_place_kills):
                 victim = wait(lambda: (copy('home', 'pinned') if copy('home', 'pinned') and
@@ -273,10 +289,15 @@ def main() -> int:
                 os.kill(victim.pid, signal.SIGKILL)
                 wait(lambda: copy('home', 'pinned') and copy('home', 'pinned').pid not in
                      (0, victim.pid), 30.0, 'pinned restarted')
+                t_spawned = time.monotonic()
                 steady('/p', 1.0)
                 gap = judge('/p', t0, time.monotonic())
                 in_place.append(gap)
-                print(f'in place {k + 1:2}: longest gap {gap:.3f} s', flush=True)
+                with lock:
+                    first = next((t for t in heard['/p'] if t > t0 + 0.001), float('nan'))
+                print(f'in place {k + 1:2}: longest gap {gap:.3f} s (new pid reported '
+                      f'+{t_spawned - t0:.3f} s (polled), first output +{first - t0:.3f} s)',
+                      flush=True)
             agents = {'home': procs[0], 'away': procs[1]}
             for k in range(args.hups):
                 for scale in ('home', 'away'):
