@@ -21,9 +21,9 @@ import signal
 import subprocess
 import uuid
 from dataclasses import dataclass, field
-from typing import Callable, Dict, Iterable, List, Mapping, Optional, Tuple
+from typing import Callable, Dict, FrozenSet, Iterable, List, Mapping, Optional, Tuple
 
-from . import procs, shm
+from . import ports, procs, shm
 from .catalogue import ENV_INSTANCE, Entry
 from ..model.types import AgentSettings
 from ..protocol import LIVE_STATES, ProcState
@@ -33,6 +33,8 @@ STATE_VERSION = 1
 MAX_STATE_BYTES = 1 << 20
 LOG_ROTATE_BYTES = 10 * 1024 * 1024
 ACTIVE = (ProcState.STARTING, ProcState.RUNNING, ProcState.STOPPING)
+# A node's DDS ports are looked for this often after its start, for this long (_note_ports).
+PORTS_EVERY_S, PORTS_LOOK_S = 0.25, 30.0
 # A crashed or unstartable node, waiting for its restart.
 DOWN = (ProcState.BACKOFF, ProcState.FAILED)
 
@@ -73,6 +75,9 @@ class _Proc:
     adopted: bool = False
     failed_spawns: int = 0
     history: List[str] = field(default_factory=list)
+    ports: FrozenSet[int] = frozenset()  # its participants' unicast ports (agent/ports.py)
+    ports_next: float = 0.0               # when to look for them (while none are found)...
+    ports_until: float = 0.0              # ...until then: a process without DDS has none
 
 
 class Supervisor:
@@ -90,6 +95,8 @@ class Supervisor:
         self._dirty = False
         self._save_failures = 0                   # writes of the state file failed in a row
         self.shm_dir = shm.SHM_DIR                # where Fast DDS keeps its port files
+        # A killed node's DDS ports, held a few seconds so its replacement is heard at once.
+        self.port_hold = ports.PortHold()
         # Called with each pid started or adopted: the agent watches it (agent/exits.py) so that
         # an exit wakes the next step at once instead of waiting for the tick.
         self.watch_exit: Callable[[int], object] = lambda pid: None
@@ -123,6 +130,10 @@ class Supervisor:
     def pids(self) -> Dict[str, int]:
         """Live nodes' pids."""
         return {n: p.pid for n, p in self._procs.items() if p.state in ACTIVE and p.pid}
+
+    def dds_ports(self, name: str) -> FrozenSet[int]:
+        """The unicast ports found of the node's live participants (empty until found)."""
+        return self._procs[name].ports
 
     def wanted(self) -> Tuple[str, ...]:
         return tuple(n for n, p in self._procs.items() if p.wanted)
@@ -189,6 +200,7 @@ class Supervisor:
     def step(self, now: float, visible: Callable[[Entry], bool] = lambda entry: False) -> bool:
         """Advance every node's state machine; True when a report changed."""
         before = self.reports()
+        self.port_hold.release(now)
         for p in self._procs.values():
             self._step_one(p, now, visible)
         for name, p in list(self._ghosts.items()):
@@ -207,7 +219,18 @@ class Supervisor:
             code, gone = self._leader_exit(p)
             if gone:
                 self._crashed(p, now, code)
+                if p.wanted and p.state in DOWN and now >= p.restart_at:
+                    # No backoff: started again in this step, not the next; until it is up its
+                    # report keeps the crash's reason (the decider hears of the crash by it
+                    # and by the restart count).
+                    crash = p.exit_reason
+                    p.restarts += 1
+                    self._spawn(p, now)
+                    if p.state == ProcState.STARTING:
+                        p.exit_reason = crash
                 return
+            if not p.ports and p.ports_next <= now <= p.ports_until:
+                self._note_ports(p, now)
             seen = bool(visible(p.entry))
             if p.state == ProcState.STARTING:
                 if seen:
@@ -245,6 +268,9 @@ class Supervisor:
             reason = 'stopped' if code is None else f'stopped ({procs.describe_exit(code)})'
             if p.stop_phase >= 1:
                 reason += f' after {("SIGTERM", "SIGKILL")[min(p.stop_phase, 2) - 1]}'
+            if p.stop_phase >= 2:
+                self._hold_ports(p, now)        # killed: it could not say goodbye
+            p.ports = frozenset()
             self._set(p, ProcState.STOPPED, now, ready=False, reason=reason)
             p.pid = 0
             p.popen = None
@@ -346,6 +372,7 @@ class Supervisor:
         p.started = procs.create_time(p.pid) or 0.0
         p.adopted = False
         p.strays = ()
+        p.ports, p.ports_next, p.ports_until = frozenset(), now, now + PORTS_LOOK_S
         p.failed_spawns = 0
         p.ready_deadline = now + self.settings.readiness_timeout_s
         self._set(p, ProcState.STARTING, now, ready=False, reason='')
@@ -403,11 +430,30 @@ class Supervisor:
 
     def _gone(self, p: _Proc, now: float, reason: str, restart_at: float) -> None:
         """The process is gone (killed or exited): back off until ``restart_at``."""
+        self._hold_ports(p, now)
         p.popen = None
         p.pid = 0
         self._set(p, ProcState.BACKOFF, now, ready=False, reason=reason)
         p.restart_at = restart_at
         self._dirty = True
+
+    def _note_ports(self, p: _Proc, now: float) -> None:
+        """Read the unicast ports of the node's participants (agent/ports.py). Looked for
+        every PORTS_EVERY_S from its start until found, for at most PORTS_LOOK_S (not once it
+        is visible: the graph still shows a killed copy for seconds)."""
+        pids = set(procs.session_members(p.pid)) | set(p.strays) | {p.pid}
+        p.ports = ports.unicast_ports(pids, ports.domain_of(p.entry.env))
+        p.ports_next = now + PORTS_EVERY_S
+
+    def _hold_ports(self, p: _Proc, now: float) -> None:
+        if p.ports:
+            held = self.port_hold.hold(p.ports, now)
+            if held:
+                self._event('info', f'{p.entry.name}: holding its DDS ports '
+                                    f'{", ".join(map(str, held))} for '
+                                    f'{self.port_hold.hold_s:g} s, so that its next start '
+                                    'takes fresh ones')
+        p.ports = frozenset()
 
     def _begin_stop(self, p: _Proc, now: float) -> None:
         if p.state in DOWN:
@@ -548,6 +594,7 @@ class Supervisor:
         p.instance = instance
         p.popen = None
         p.adopted = True
+        p.ports, p.ports_next, p.ports_until = frozenset(), now, now + PORTS_LOOK_S
         self.watch_exit(pid)
         if rec.get('standby'):
             # Recorded frozen (SIGSTOP) by an agent of an earlier version: it must run to stop.
