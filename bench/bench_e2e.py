@@ -63,9 +63,12 @@ def on(node, scale):
 
 
 def reaction(args):
+    if args.keep:
+        os.makedirs(args.keep, exist_ok=True)
     options = harness.Options(args.config, args.domain_id, mode='netns',
                               decider_parameters={'decider.hysteresis_s': str(args.hysteresis)},
-                              link_up_at_start=False)
+                              link_up_at_start=False, run_dir=args.keep or '',
+                              keep_run_dir=bool(args.keep))
     tb = harness.Testbed(options).start()
     d = tb.deployment
     migratable = set(d.migratable_nodes)
@@ -234,6 +237,8 @@ def throttle_reaction(args, tb):
             if back_expected or not right or violations:
                 print(f'  link {timeline["link"]}\n  layouts {timeline["layouts"]}\n'
                       f'  robot reports {timeline["reports"]}', flush=True)
+            for t, e in amcl_moves:
+                print(f'  amcl {e.kind} at +{t - t0:.2f} s: {e.reason[:300]}', flush=True)
             rows.append(row)
     tb.throttle(netns.DEFAULT_RATE_KBPS)
     return rows, throttled
@@ -308,6 +313,8 @@ def main():
     parser.add_argument('--skip-reaction', action='store_true')
     parser.add_argument('--skip-headline', action='store_true')
     parser.add_argument('--out', default='')
+    parser.add_argument('--keep', metavar='DIR', default='',
+                        help="keep the reaction part's run folder (every process's log) in DIR")
     args = parser.parse_args()
     ok, why = netns.available()
     if not ok:

@@ -435,6 +435,29 @@ def test_start_before_stop_keeps_the_old_copy_until_the_new_one_is_ready():
     assert 'sbs' in r.desired(13.0, ('sbs', 'sbs2', 'pinned'))
 
 
+def test_a_remote_copy_moved_home_to_a_standby_copy_is_let_go_at_once():
+    d = load_mapping(deployment_dict({
+        'lc': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'lifecycle': True,
+               'standby': True},
+        'plain': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0},
+    }))
+    remote = Reconciler(d, 'b', ('lc', 'plain'), readiness_timeout_s=10.0, agent_timeout_s=3.0)
+    remote.apply_layout(layout(1, {'lc': 'b', 'plain': 'b'}), 0.0)
+    assert remote.desired(0.0, ('lc', 'plain')) == {'lc', 'plain'}
+    remote.apply_layout(layout(2, {'lc': 'a', 'plain': 'a'}), 10.0)
+    # The master's standby copy serves within milliseconds: nothing heard from it is awaited.
+    # A plain node starts cold there: kept here until it runs and is ready.
+    assert remote.desired(10.0, ('lc', 'plain')) == {'plain'}
+    assert 'running and ready on a' in remote.waiting['plain']
+    # Moving the other way (a remote copy taking over from the master's), the master keeps its
+    # copy until the remote one serves.
+    master = Reconciler(d, 'a', ('lc', 'plain'), readiness_timeout_s=10.0, agent_timeout_s=3.0)
+    master.apply_layout(layout(1, {'lc': 'a'}), 0.0)
+    master.apply_layout(layout(2, {'lc': 'b'}), 10.0)
+    assert master.desired(10.0, ('lc',)) == {'lc'}
+    assert 'running and ready on b' in master.waiting['lc']
+
+
 def test_start_before_stop_keeps_the_old_copy_until_this_scale_hears_the_new_one():
     r = reconciler('a')
     r.apply_layout(layout(1, {'sbs': 'a'}), 0.0)

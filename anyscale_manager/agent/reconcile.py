@@ -8,7 +8,10 @@ on its old one:
   until the gaining scale's agent reports it running and ready (under the generation that moved
   it, or a newer one) and, where the losing scale subscribes to the node's output, it has heard
   a newly started writer of it since the move (at most ``HEAR_PATIENCE_S`` after the ready
-  report); or until ``readiness_timeout_s`` has passed since the move.
+  report); or until ``readiness_timeout_s`` has passed since the move. Except a lifecycle node
+  moved to the master scale where it has a standby copy: the losing (remote) scale lets go at
+  once, since the master's copy serves within milliseconds of the layout and the word that it
+  does would have to cross the link the move may be escaping.
 - stop_before_start: the losing scale stops its copy at once; the gaining scale starts the node
   only when every other live agent has applied the layout's generation and reports no live copy.
   An agent silent for longer than ``agent_timeout_s`` no longer counts.
@@ -249,6 +252,15 @@ class Reconciler:
                     self.waiting[node] = holder
                 else:
                     want.add(node)
+            elif here and order == t.START_BEFORE_STOP and node not in self._released \
+                    and target == self.master and target in self.deployment.standby_scales(node):
+                # Moved home to the master's standby copy: let go at once. That copy serves
+                # within milliseconds of the layout (the master hears it first), and the word
+                # that it does would come back over the very link the move may be escaping: a
+                # copy kept here until then keeps pulling its input across a congested link
+                # (a laptop kept AR, and its 6 Mbit/s of images, 1 s past a move back for
+                # bandwidth, starving AMCL's laser input behind them).
+                self._released.add(node)
             elif here and order == t.START_BEFORE_STOP and node not in self._released:
                 waited = now - self._moved_at.get(node, now)
                 ready = self._ready_on(target, node, now)
