@@ -70,6 +70,27 @@ def kind(port: int, domain: int) -> str:
     return 'other'
 
 
+def measure(tb, seconds: float, scale: str = 'robot'):
+    """Capture what ``scale``'s end of the test-bed's (first) link sends for ``seconds``:
+    (bytes by kind, bytes by destination port, source ports that sent discovery)."""
+    net = tb.network
+    wire = next(iter(net.wires.values()))
+    namespace, interface = net.namespaces[scale], net.interfaces[(wire.name, scale)]
+    lines = subprocess.run(['ip', 'netns', 'exec', namespace, sys.executable,
+                            os.path.abspath(__file__), '--capture', interface, str(seconds)],
+                           check=True, capture_output=True, text=True).stdout.splitlines()
+    by_kind, by_port = collections.Counter(), collections.Counter()
+    senders = set()
+    for line in lines:
+        _, src, dst, size = line.split()
+        what = kind(int(dst), tb.options.domain_id)
+        by_kind[what] += int(size)
+        by_port[int(dst)] += int(size)
+        if what == 'discovery':
+            senders.add(int(src))
+    return by_kind, by_port, senders
+
+
 def main() -> int:
     if len(sys.argv) == 4 and sys.argv[1] == '--capture':
         return capture(sys.argv[2], float(sys.argv[3]))
@@ -91,24 +112,9 @@ def main() -> int:
         tb.wait_for(on('ar'), 120.0, 'ar on the laptop')
         tb.wait_for(lambda r: r.settled(tb.now(), ('amcl_ekf', 'ar_navigation'), 'robot', 5.0),
                     60.0, 'a settled layout')
-        net = tb.network
-        wire = next(iter(net.wires.values()))
-        namespace, interface = net.namespaces['robot'], net.interfaces[(wire.name, 'robot')]
-        lines = subprocess.run(['ip', 'netns', 'exec', namespace, sys.executable,
-                                os.path.abspath(__file__), '--capture', interface,
-                                str(args.seconds)],
-                               check=True, capture_output=True, text=True).stdout.splitlines()
+        by_kind, by_port, senders = measure(tb, args.seconds)
     finally:
         tb.stop()
-    by_kind, by_port = collections.Counter(), collections.Counter()
-    senders = set()
-    for line in lines:
-        _, src, dst, size = line.split()
-        dst, size = int(dst), int(size)
-        by_kind[kind(dst, args.domain_id)] += size
-        by_port[dst] += size
-        if kind(dst, args.domain_id) == 'discovery':
-            senders.add(int(src))
     kbps = (lambda n: n * 8 / args.seconds / 1000)
     print(f'robot -> laptop over {args.seconds:g} s with AMCL and AR on the laptop '
           f'(profile: {args.profile or "packaged"}): {kbps(sum(by_kind.values())):.0f} kbit/s')
