@@ -138,7 +138,7 @@ def main() -> int:
     from anyscale_manager import protocol as p
     from anyscale_manager.nodes import qos
     from anyscale_manager.agent.procs import stop_popen
-    from anyscale_manager.nodes.monitors.probes import clock_offset_s
+    from anyscale_manager.nodes.monitors.probes import clock_offset_s, received_at
 
     topic = f'/bench_failover_{os.getpid()}'
     rclpy.init()
@@ -155,9 +155,7 @@ def main() -> int:
             # this process runs its callbacks late when the machine is busy (a failover starts
             # a process and a participant joins), and a burst stamped at callback time would
             # show a gap no subscriber lived through.
-            now = time.monotonic()
-            received_ns = info.get('received_timestamp', 0) if isinstance(info, dict) else 0
-            at = min(received_ns / 1e9 - offset[0], now) if received_ns else now
+            at = received_at(info, offset[0], time.monotonic())
             with lock:
                 heard[suffix].append(at)
         return take

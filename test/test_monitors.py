@@ -599,3 +599,12 @@ def test_link_monitor_sees_a_full_queue_and_never_probes_it(testbed_path, python
             sorted({s.bandwidth_available_kbps for s in during})
         print(f'congestion seen {t_seen - t_flood:.2f} s into the flow, never probed, cleared '
               f'{t_clear - t_end:.2f} s after it')
+
+
+def test_a_message_is_placed_at_its_dds_reception_time_never_in_the_future():
+    from anyscale_manager.nodes.monitors.probes import received_at
+    info = {'received_timestamp': int(1000.25 * 1e9)}
+    assert received_at(info, offset_s=990.0, now=20.0) == 10.25
+    assert received_at(info, offset_s=990.0, now=10.0) == 10.0     # a clock step: not later
+    assert received_at({}, offset_s=990.0, now=12.0) == 12.0        # none given: now
+    assert received_at(None, offset_s=990.0, now=12.0) == 12.0

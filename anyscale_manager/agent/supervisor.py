@@ -224,8 +224,7 @@ class Supervisor:
                     # report keeps the crash's reason (the decider hears of the crash by it
                     # and by the restart count).
                     crash = p.exit_reason
-                    p.restarts += 1
-                    self._spawn(p, now)
+                    self._restart_now(p, now)
                     if p.state == ProcState.STARTING:
                         p.exit_reason = crash
                 return
@@ -255,8 +254,7 @@ class Supervisor:
             self._step_stopping(p, now)
         elif p.state in DOWN:
             if p.wanted and now >= p.restart_at:
-                p.restarts += 1
-                self._spawn(p, now)
+                self._restart_now(p, now)
 
     def _step_stopping(self, p: _Proc, now: float) -> None:
         code, gone = self._leader_exit(p)
@@ -379,6 +377,10 @@ class Supervisor:
         self._event('info', f'{entry.name}: started pid {p.pid} (log {p.log_path})')
         # Recorded at once: an agent killed right now must still find it when it comes back.
         self.save()
+
+    def _restart_now(self, p: _Proc, now: float) -> None:
+        p.restarts += 1
+        self._spawn(p, now)
 
     def _spawn_failed(self, p: _Proc, now: float, reason: str) -> None:
         p.failed_spawns += 1

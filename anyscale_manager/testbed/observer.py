@@ -30,7 +30,7 @@ from std_msgs.msg import String
 
 from .. import protocol as p
 from ..nodes import qos
-from ..nodes.monitors.probes import clock_offset_s
+from ..nodes.monitors.probes import clock_offset_s, received_at
 from ..nodes.workload_messages import DEFAULT_TYPE, message_class
 from ..interrupt import restore_ctrl_c
 
@@ -80,10 +80,7 @@ class Observer(Node):
             # Each message at its DDS reception time, as the probes place it: this process
             # runs its callbacks late and in bursts when the machine is busy, and a burst
             # stamped at callback time would show gaps no subscriber lived through.
-            now = time.monotonic()
-            received_ns = info.get('received_timestamp', 0) if isinstance(info, dict) else 0
-            at = received_ns / 1e9 - self._offset_s if received_ns else now
-            self._arrivals[topic].append(min(at, now))
+            self._arrivals[topic].append(received_at(info, self._offset_s, time.monotonic()))
             seq = info.get('publication_sequence_number') if isinstance(info, dict) else None
             self._seqs[topic].append(seq if isinstance(seq, int) else -1)
         return callback

@@ -197,8 +197,7 @@ class ProbeManager:
                 continue
             try:
                 for raw, info in _taken(subscription, DRAIN_LIMIT):
-                    received_ns = info.get('received_timestamp', 0)
-                    at = min(received_ns / 1e9 - offset_s if received_ns else now, now)
+                    at = received_at(info, offset_s, now)
                     window.add(at, len(raw))
                     for judge in probe.judges.values():
                         judge.add(at)
@@ -300,6 +299,13 @@ def _taken(subscription, limit: int) -> Iterator[Tuple[bytes, dict]]:
                 return
             info = taken[1] if len(taken) > 1 else None
             yield taken[0], info if isinstance(info, dict) else {}
+
+
+def received_at(info, offset_s: float, now: float) -> float:
+    """A message's DDS reception time on the monotonic clock (``offset_s``: clock_offset_s),
+    never later than ``now``; ``now`` when the middleware gave none."""
+    received_ns = info.get('received_timestamp', 0) if isinstance(info, dict) else 0
+    return min(received_ns / 1e9 - offset_s, now) if received_ns else now
 
 
 def clock_offset_s(attempts: int = 5) -> float:
