@@ -2,7 +2,7 @@
 """End-to-end figures on the ICAR test-bed (needs root for namespaces, tc and cgroups).
 
     sudo python bench/bench_e2e.py [--cuts 20] [--stay 30] [--throttles 5]
-                                   [--levels 20000,10000,5000,2000,500] [--duration 60]
+                                   [--levels 20000,10000,5000:20,2000,500] [--duration 60]
                                    [--out FILE]
 
 1. Reaction: the link is cut after AMCL and AR have served from the laptop for ``--stay``
@@ -11,8 +11,8 @@
    judged on what the harness's observer heard at the robot (a reader no agent started) for
    every connection into the robot, and, apart, the robot's own probes reporting a connection
    past its tolerance.
-   Then ``--throttles`` times at each of ``--levels`` (kbit/s): with both on the laptop, the
-   link is throttled; below what AR's connections put on the link (12.3 Mbit/s: 6.1 Mbit/s of
+   Then ``--throttles`` times at each of ``--levels`` (kbit/s; ``LEVEL:COUNT`` sets a level's
+   own count): with both on the laptop, the link is throttled; below what AR's connections put on the link (12.3 Mbit/s: 6.1 Mbit/s of
    images to AR and to the laptop agent's probe) the time until the link monitor reports it
    congested and until AR runs on the robot again, at or above it that nothing moves; AMCL
    (0.24 Mbit/s twice) must stay where its inputs fit what the link has left after the DDS
@@ -206,10 +206,9 @@ def throttle_reaction(args, tb):
     print(f'DDS discovery robot -> laptop: {discovery:.0f} kbit/s; AMCL must come back where '
           f'{margin:g} x (level - {discovery:.0f}) < {amcl_need:.0f} kbit/s (its inputs, twice)',
           flush=True)
-    levels = [float(v) for v in args.levels.split(',') if v.strip()]
     tolerance = max(c.tolerance_s or 0.0 for c in tb.deployment.connections)
-    for level in levels:
-        for i in range(args.throttles):
+    for level, count in throttle_plan(args.levels, args.throttles):
+        for i in range(count):
             tb.throttle(netns.DEFAULT_RATE_KBPS)
             tb.restore()
             # The figure a throttle left stands until the next probe (every 30 s) measures the
@@ -266,6 +265,22 @@ def throttle_reaction(args, tb):
             rows.append(row)
     tb.throttle(netns.DEFAULT_RATE_KBPS)
     return rows, throttled
+
+
+def throttle_plan(levels, per_level):
+    """[(kbit/s, throttles)] from ``--levels``: ``LEVEL`` or ``LEVEL:COUNT``, comma-separated
+    (a level without a count is throttled ``per_level`` times)."""
+    plan = []
+    for item in levels.split(','):
+        if not item.strip():
+            continue
+        level, _, count = item.partition(':')
+        try:
+            plan.append((float(level), int(count) if count.strip() else per_level))
+        except ValueError:
+            raise SystemExit(f'--levels: {item.strip()!r} is not LEVEL or LEVEL:COUNT '
+                             '(kbit/s, throttles)')
+    return plan
 
 
 # The paper's robot drove at 0.4 m/s only while AMCL ran on the laptop, 0.2 m/s otherwise.
@@ -330,7 +345,8 @@ def main():
     parser.add_argument('--duration', type=float, default=60.0)
     parser.add_argument('--throttles', type=int, default=5, help='throttles per level')
     parser.add_argument('--levels', default='20000,10000,5000,2000,500',
-                        help='throttle levels in kbit/s, comma-separated')
+                        help='throttle levels in kbit/s, comma-separated; LEVEL:COUNT throttles '
+                             'that level COUNT times instead of --throttles')
     parser.add_argument('--hysteresis', type=float, default=8.0)
     parser.add_argument('--domain-id', type=int,
                         default=int(os.environ.get('ROS_DOMAIN_ID', '0') or 0))

@@ -5,7 +5,7 @@ lifecycle node to its standby copy, a plain node restarted in place, agents rest
     python bench/bench_failover.py [--kills 20] [--in-place-kills 10] [--hups 10]
                                    [--agent-kills 10] [--decider-kills 20]
                                    [--decider-stops 10] [--rate-hz 20] [--domain-id N]
-                                   [--keep DIR]
+                                   [--keep DIR] [--no-profile]
 
 Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
 beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
@@ -31,7 +31,10 @@ copy on both scales) -> pinned (home, a plain workload), every output at --rate-
 - SIGSTOP of the leading decider for 2 s, then SIGCONT, --decider-stops times: the time until the
   standby's first layout, whether any layout of the stopped one arrived after it resumed, and
   whether an agent ever reported following it again (both must be no).
-Prints one line per fault, then p50/p95/max of each figure.
+Prints one line per fault, then p50/p95/max of each figure. Every process uses the packaged
+discovery profile (config/fastdds_discovery.xml) unless the environment names a profile or
+--no-profile is given: without it a restarted node waits up to Fast DDS's 3 s announcement
+period to be found.
 """
 
 import argparse
@@ -126,9 +129,18 @@ def main() -> int:
     ap.add_argument('--keep', metavar='DIR',
                     help='write the deployment and every log into DIR and keep them')
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '44')))
+    ap.add_argument('--no-profile', action='store_true',
+                    help="without the packaged config/fastdds_discovery.xml (Fast DDS's "
+                         'defaults, or the profile the environment names)')
     args = ap.parse_args()
     os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    from anyscale_manager import config_files
+    if not args.no_profile:
+        os.environ.update(config_files.with_discovery_profile(os.environ))
+    print('Fast DDS profile: ' + next((os.environ[v] for v in config_files.PROFILE_VARS
+                                       if os.environ.get(v)), "none (Fast DDS's defaults)"),
+          flush=True)
 
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -144,7 +156,8 @@ def main() -> int:
     rclpy.init()
     node = rclpy.create_node('bench_failover_consumer')
     lock = threading.Lock()
-    heard = {'/w': [], '/p': []}      # arrival times
+    heard = {'/s': [], '/w': [], '/p': []}      # arrival times
+    sent = {'/s': [], '/w': [], '/p': []}       # the same messages' source times
     states, events, links, layouts, beats, ready = {}, [], [], [], {}, set()
 
     offset = [clock_offset_s()]
@@ -156,8 +169,11 @@ def main() -> int:
             # a process and a participant joins), and a burst stamped at callback time would
             # show a gap no subscriber lived through.
             at = received_at(info, offset[0], time.monotonic())
+            source_ns = info.get('source_timestamp', 0) if isinstance(info, dict) else 0
             with lock:
                 heard[suffix].append(at)
+                if source_ns:
+                    sent[suffix].append(source_ns / 1e9 - offset[0])
         return take
     for suffix in heard:
         node.create_subscription(UInt8MultiArray, topic + suffix, keep(suffix), qos.PROBE,
@@ -231,11 +247,11 @@ def main() -> int:
         wait(lambda: len(heard[suffix]) >= n + seconds * args.rate_hz, 20.0,
              f'{seconds} s of {suffix}')
 
-    def judge(suffix, t0, t1, where=False):
+    def judge(suffix, t0, t1, where=False, stamps=heard):
         """The longest gap on ``suffix`` that ends after t0 (and, with ``where``, when it
-        began, from t0)."""
+        began, from t0); by reception time, or by source time with ``stamps=sent``."""
         with lock:
-            times = sorted(t for t in heard[suffix] if t0 - 1.0 <= t <= t1)
+            times = sorted(t for t in stamps[suffix] if t0 - 1.0 <= t <= t1)
         gap, began = max(((b - a, a - t0) for a, b in zip(times, times[1:]) if b > t0),
                          default=(float('nan'), float('nan')))
         return (gap, began) if where else gap
@@ -278,7 +294,13 @@ def main() -> int:
                                  'the standby copy serving')
                 t_serving = time.monotonic()
                 steady('/w', 1.0)
-                gap, began = judge('/w', t0, time.monotonic(), where=True)
+                t1 = time.monotonic()
+                gap, began = judge('/w', t0, t1, where=True)
+                # Where a gap was made: the worker's input as heard here, and the worker's
+                # output by the time it was sent.
+                input_gap, input_began = judge('/s', t0, t1, where=True)
+                sent_gap, sent_began = judge('/w', t0, t1, where=True, stamps=sent)
+                input_sent_gap = judge('/s', t0, t1, stamps=sent)
                 kinds = [e.kind for _, e in events if e.node == 'worker']
                 failover.append(gap)
                 # Where the time went: the decider's failover event, the agent's report of the
@@ -289,7 +311,10 @@ def main() -> int:
                     first = min((t for t in heard['/w'] if t > t0 + 0.001), default=float('nan'))
                 print(f'failover {k + 1:2}: {where} -> {now_at}, longest gap {gap:.3f} s '
                       f'from +{began:.3f} s (decided +{decided - t0:.3f} s, reported serving '
-                      f'+{t_serving - t0:.3f} s (polled), first output +{first - t0:.3f} s), '
+                      f'+{t_serving - t0:.3f} s (polled), first output +{first - t0:.3f} s); '
+                      f'by send time {sent_gap:.3f} s from +{sent_began:.3f} s; its input '
+                      f'{input_gap:.3f} s from +{input_began:.3f} s '
+                      f'({input_sent_gap:.3f} s by send time); '
                       f'failover events so far {kinds.count("failover")}', flush=True)
             for k in range(args.in_place_kills):
                 victim = wait(lambda: (copy('home', 'pinned') if copy('home', 'pinned') and
