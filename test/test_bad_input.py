@@ -361,9 +361,7 @@ def test_missing_and_failing_commands_leave_the_others_running(make_sup, tmp_pat
 # --- the real processes -------------------------------------------------------------------------
 
 def ros_child_env(ros_env, **extra):
-    env = dict(ros_env)
-    env.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
-                   os.path.join(os.path.dirname(TESTBED), 'fastdds_discovery.xml'))
+    env = dict(ros_env)     # with the packaged discovery profile (conftest)
     env.update(extra)
     return env
 

@@ -7,8 +7,8 @@ import pytest
 
 from anyscale_manager.runtime import cpu
 from anyscale_manager.runtime.bandwidth import (CONGESTION, PROBE, BandwidthEstimate,
-                                                crossing_connections, steady_throughput_bps,
-                                                used_kbps)
+                                                crossing_connections, delivered_kbps,
+                                                steady_throughput_bps, used_kbps)
 from anyscale_manager.runtime.rates import HeartbeatTracker, RateWindow, WriterStreams
 
 
@@ -459,10 +459,11 @@ def test_a_congested_link_is_never_probed_and_a_shortfall_lowers_its_figure_at_o
     assert est.source == CONGESTION and est.age_s(10.1) == 0.0
     # Not lowered again while what was sent back takes effect (the queue drains) ...
     assert est.congested(11.0, 10.0, 300.0) is None
-    # ... but after settle_s, still short: lowered from the need then.
-    assert est.congested(12.2, 10.0, 300.0) == pytest.approx(270.0)
-    # Never raised by a congestion: the lower of the last figure and the need's share.
-    assert est.congested(14.3, 10.0, 6100.0) == pytest.approx(270.0)
+    # ... but after settle_s, still short: what was sent back was not enough, and the link
+    # carries at most what arrives now.
+    assert est.congested(12.2, 200.0, 300.0) == pytest.approx(180.0)
+    # Never raised by a congestion: the lower of the last figure and the new evidence.
+    assert est.congested(14.3, 250.0, 6100.0) == pytest.approx(180.0)
     # Probed again once no longer congested, min_gap_s after the figure (not at the routine
     # interval), and then back to the routine schedule.
     assert not est.due(14.5, True, 200.0, congested=True)
@@ -480,6 +481,22 @@ def test_a_congested_link_is_never_probed_and_a_shortfall_lowers_its_figure_at_o
     assert not est.due(61.0, True, 0.0)
     est.remeasure()
     assert est.due(61.0, True, 0.0)
+
+
+def test_a_congestion_that_outlasts_what_was_sent_back_takes_the_link_to_what_arrives():
+    # A throttle below what DDS discovery alone puts on the link: the first figure sends the
+    # largest flow back; a second later the rest still delivers nothing, so it all goes back.
+    est = BandwidthEstimate(interval_s=30.0, nominal_kbps=54000.0, shortfall=0.9, settle_s=1.0)
+    assert est.congested(0.4, 5000.0, 6400.0) == pytest.approx(5760.0)
+    assert est.congested(1.0, 0.0, 240.0) is None              # settling
+    assert est.congested(1.5, 0.0, 240.0) == pytest.approx(0.0)
+
+
+def test_a_reading_that_has_not_come_through_lately_delivers_nothing():
+    recent = {'laser_amcl': (28000.0, 0.3), 'camera_ar': (760000.0, 1.6)}   # (B/s, age s)
+    assert delivered_kbps(recent, 1.0) == pytest.approx(224.0)
+    assert delivered_kbps(recent, 2.0) == pytest.approx(224.0 + 6080.0)
+    assert delivered_kbps({}, 1.0) == 0.0
 
 
 def test_recent_bytes_count_only_the_last_span():

@@ -308,9 +308,7 @@ def test_a_load_outside_both_scales_moves_nothing_back(tmp_path, ros_env, listen
     reason of the move out."""
     ex, seen = listener
     deployment = write_deployment(tmp_path)
-    env = dict(ros_env)
-    env.setdefault('FASTRTPS_DEFAULT_PROFILES_FILE',
-                   os.path.join(REPO, 'config', 'fastdds_discovery.xml'))
+    env = dict(ros_env)     # with the packaged discovery profile (conftest)
     procs, hog = [], None
     try:
         ha.start_agents(procs, tmp_path, env, deployment)

@@ -34,10 +34,14 @@ class BandwidthEstimate:
       x the need (or the last figure, if lower) at once, without a probe, so that the decider's
       bandwidth rule sends back the flows that no longer fit within a heartbeat or two instead
       of after a probe. A congestion that outlasts ``settle_s`` with the evidence still there
-      (what was sent back was not enough) lowers the figure again from the need then. Such a
-      figure is probed as soon as the link is no longer congested (``min_gap_s`` after the
-      figure and after the last probe), to learn the capacity later moves out are weighed
-      against.
+      (what was sent back was not enough) lowers the figure to ``shortfall`` x what is
+      delivered then (``shortfall`` x the need, if lower): the largest flows have gone, so
+      fragment loss no longer hides what the link carries, and what still does not arrive
+      does not fit. (A link throttled below what DDS discovery alone puts on it delivers
+      nearly nothing: the figure falls near 0 and everything that crosses it is sent back
+      within ``settle_s`` and a beat.) Such a figure is probed as soon as the link is no
+      longer congested (``min_gap_s`` after the figure and after the last probe), to learn the
+      capacity later moves out are weighed against.
     """
 
     def __init__(self, interval_s: float, nominal_kbps: float, busy_fraction: float = 0.75,
@@ -99,6 +103,8 @@ class BandwidthEstimate:
         if congestion_age_s is not None and congestion_age_s < self.settle_s:
             return None
         figure = self.shortfall * needed_kbps
+        if congestion_age_s is not None:        # still short after settle_s
+            figure = min(figure, self.shortfall * max(0.0, delivered_kbps))
         if self.available_kbps is not None:
             figure = min(figure, self.available_kbps)
         self._set(now, figure, CONGESTION)
@@ -161,6 +167,15 @@ def crossing_connections(connections: Iterable[Tuple[str, str, str]],
         if where == ends and a != b:
             out.append(name)
     return tuple(out)
+
+
+def delivered_kbps(recent: Mapping[str, Tuple[float, float]], stale_s: float) -> float:
+    """kbit/s the connections deliver, from (recent B/s, the reading's age in s) each; a
+    reading older than ``stale_s`` counts as delivering nothing (on a congested link the far
+    end's reports wait in the same full queue: the last one through describes the link
+    before it filled)."""
+    return used_kbps({n: (bps if age <= stale_s else 0.0) for n, (bps, age) in recent.items()},
+                     recent)
 
 
 def used_kbps(bytes_per_s: Mapping[str, float], names: Iterable[str]) -> float:

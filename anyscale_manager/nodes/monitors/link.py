@@ -23,7 +23,8 @@ from ... import protocol as p
 from ...agent import warden
 from ...model.types import Deployment
 from ...protocol_auth import Gate, Sealer, StatusGate
-from ...runtime.bandwidth import BandwidthEstimate, crossing_connections, used_kbps
+from ...runtime.bandwidth import (DELIVERY_SPAN_S, BandwidthEstimate, crossing_connections,
+                                  delivered_kbps, used_kbps)
 from ...runtime.rates import HeartbeatTracker
 from .common import (LATCHED_QOS, STATUS_QOS, Cadence, Publishers, period_of, scale_of,
                      status)
@@ -158,6 +159,8 @@ class LinkMonitor:
         self._timers.append(self._node.create_timer(check_s, self._on_tick,
                                                     callback_group=self._group))
         self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
+        self._delivery_stale_s = min(self._readings_max_age,
+                                     DELIVERY_SPAN_S + 2.0 / settings.probe_publish_rate_hz)
         self._probe_duration = settings.bandwidth_probe_duration_s
         self._congestion_s = settings.congestion_delay_ms / 1000.0
 
@@ -217,18 +220,21 @@ class LinkMonitor:
     def used_kbps(self, remote: str, now: float) -> float:
         """kbit/s of the connections measured crossing the link to ``remote`` now."""
         fresh = self._crossing(remote, now)
-        return used_kbps({n: bps for n, (bps, _) in fresh.items()}, fresh)
+        return used_kbps({n: bps for n, (bps, _, _) in fresh.items()}, fresh)
 
     def delivery_kbps(self, remote: str, now: float) -> Tuple[float, float]:
         """(delivered, needed) kbit/s of the connections crossing the link to ``remote`` that
-        are measured: over the last DELIVERY_SPAN_S, against their declared bandwidth."""
+        are measured: over the last DELIVERY_SPAN_S, against their declared bandwidth; a
+        reading older than that span and two report periods delivers nothing
+        (``delivered_kbps``)."""
         fresh = self._crossing(remote, now)
         needed = sum(self._deployment.connection(n).bandwidth_kbps for n in fresh)
-        return used_kbps({n: recent for n, (_, recent) in fresh.items()}, fresh), needed
+        return delivered_kbps({n: (recent, age) for n, (_, recent, age) in fresh.items()},
+                              self._delivery_stale_s), needed
 
-    def _crossing(self, remote: str, now: float) -> Dict[str, Tuple[float, float]]:
-        """Connection -> (B/s, recent B/s) for those crossing the link to ``remote`` with a
-        fresh reading."""
+    def _crossing(self, remote: str, now: float) -> Dict[str, Tuple[float, float, float]]:
+        """Connection -> (B/s, recent B/s, the reading's age in s) for those crossing the
+        link to ``remote`` with a fresh reading."""
         running: Dict[str, str] = {}
         for nodes in self._running.values():
             running.update(nodes)
@@ -242,7 +248,7 @@ class LinkMonitor:
             where = running.get(self._deployment.connection(name).subscriber)
             bps, recent, at = self._readings.get((where, name), (0.0, 0.0, -math.inf))
             if now - at <= self._readings_max_age:
-                fresh[name] = (bps, recent)
+                fresh[name] = (bps, recent, now - at)
         return fresh
 
     def _on_tick(self) -> None:
