@@ -9,13 +9,13 @@ soak).
 """
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Sequence, Set, Tuple
+from typing import Callable, Dict, List, Sequence, Set, Tuple
 
 from ..agent.reconcile import HEAR_PATIENCE_S
 from ..model.types import Deployment
 from . import chaos
 from .known import KNOWN_OPEN
-from .record import Record
+from .record import Record, Violation
 
 # Two copies of a node may publish at once during a start_before_stop handover: the losing copy
 # goes HEAR_PATIENCE_S after the new one is ready at the latest, then takes its deactivation.
@@ -65,6 +65,30 @@ class Tally:
     unfenced: int = 0                # a lost agent's nodes outlived the fencing bound
 
 
+def sort_violations(violations: Sequence[Violation], excuses: Sequence[chaos.Excuse],
+                    rel: Callable[[float], float]
+                    ) -> Tuple[List[Dict[str, object]], List[Dict[str, object]],
+                               List[Dict[str, object]]]:
+    """(counted, excused, known open) Δ violations. A kill that excuses a span explains it,
+    so it is never put down to a known open defect (testbed/known.py); a known open defect
+    is not counted; everything else is."""
+    counted: List[Dict[str, object]] = []
+    forgiven: List[Dict[str, object]] = []
+    known: List[Dict[str, object]] = []
+    for v in violations:
+        excuse = chaos.excused(v.connection, v.start + v.tolerance_s, excuses)
+        item: Dict[str, object] = {'connection': v.connection, 'start_s': rel(v.start),
+                                   'below_s': round(v.end - v.start, 2),
+                                   'tolerance_s': v.tolerance_s}
+        if excuse is not None:
+            forgiven.append(dict(item, excused_by=excuse.why))
+        elif v.connection in KNOWN_OPEN:
+            known.append(dict(item, known_open=KNOWN_OPEN[v.connection]))
+        else:
+            counted.append(item)
+    return counted, forgiven, known
+
+
 def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
           process_samples: Sequence[Tuple[float, Dict[str, int]]], t0: float, t_end: float
           ) -> Dict[str, object]:
@@ -110,17 +134,7 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
                   'kind': e.kind, 'node': e.node, 'reason': e.reason[:160]}
                  for t, e in r.events if a <= t <= b and e.kind in MOVES_BACK]
         (unneeded if row['no_move_back'] else noted).extend(found)
-    counted, forgiven, known = [], [], []
-    for v in violations:
-        excuse = chaos.excused(v.connection, v.start + v.tolerance_s, tally.excuses)
-        item = {'connection': v.connection, 'start_s': rel(v.start),
-                'below_s': round(v.end - v.start, 2), 'tolerance_s': v.tolerance_s}
-        if v.connection in KNOWN_OPEN:
-            known.append(dict(item, known_open=KNOWN_OPEN[v.connection]))
-        elif excuse is None:
-            counted.append(item)
-        else:
-            forgiven.append(dict(item, excused_by=excuse.why))
+    counted, forgiven, known = sort_violations(violations, tally.excuses, rel)
     return {
         'duplicates': [{'node': x.node, 'topic': x.topic, 'start_s': rel(x.start),
                         'length_s': round(x.length_s, 2)} for x in dups],
