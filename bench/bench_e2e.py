@@ -12,9 +12,10 @@
    every connection into the robot, and, apart, the robot's own probes reporting a connection
    past its tolerance.
    Then ``--throttles`` times at each of ``--levels`` (kbit/s; ``LEVEL:COUNT`` sets a level's
-   own count): with both on the laptop, the link is throttled; below what AR's connections put on the link (12.3 Mbit/s: 6.1 Mbit/s of
-   images to AR and to the laptop agent's probe) the time until the link monitor reports it
-   congested and until AR runs on the robot again, at or above it that nothing moves; AMCL
+   own count): with both on the laptop, the link is throttled; below what AR's connections
+   put on the link (12.3 Mbit/s: 6.1 Mbit/s of images to AR and to the laptop agent's probe)
+   the time until the link monitor reports it congested and until AR runs on the robot
+   again, at or above it that nothing moves; AMCL
    (0.24 Mbit/s twice) must stay where its inputs fit what the link has left after the DDS
    discovery traffic (measured first, bench_link_traffic.py) with the decider's bandwidth
    margin, and come back where they do not. Each throttle's Δ violations: on the
