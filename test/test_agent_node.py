@@ -78,6 +78,7 @@ class Agent(LoggedProcess):
         super().__init__(tmp_path / f'agent_{scale}_{time.monotonic_ns()}.out',
                          [os.path.join(os.path.dirname(sys.executable), 'agent'), '--ros-args',
                           '--params-file', deployment, '-p', f'scale:={scale}', *extra], env)
+        self.scale = scale
 
     def stop(self, sig=signal.SIGINT, timeout=20.0):
         return super().stop(sig, timeout, must_exit=True)
@@ -94,6 +95,7 @@ class Harness:
         self.states = {}          # scale -> latest AgentState
         self.history = []         # (monotonic, AgentState)
         self.heard = []           # (monotonic, 'scale pid seq', topic)
+        self.agents = []          # the test's agent processes, their output shown on a failure
         self.node.create_subscription(String, protocol.TOPIC_AGENT_STATE, self._on_state,
                                       QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                                                  durability=DurabilityPolicy.TRANSIENT_LOCAL))
@@ -117,9 +119,9 @@ class Harness:
         self.layout_pub.publish(String(data=text))
 
     def wait(self, cond, timeout=30.0, what='condition'):
-        """Spin until ``cond()``; a failure shows the agents' last states."""
-        self.ros.spin_until(cond, timeout, what, state=lambda: {
-            s: st.to_dict() for s, st in self.states.items()})
+        """Spin until ``cond()``; a failure shows the agents' last states and output."""
+        self.ros.spin_until(cond, timeout, what, [(f'agent {a.scale}', a) for a in self.agents],
+                            state=lambda: {s: st.to_dict() for s, st in self.states.items()})
 
     def report(self, scale, node):
         state = self.states.get(scale)
@@ -157,7 +159,7 @@ def setup(tmp_path, ros_env, ros):
     run_id = f'{os.getpid()}_{time.monotonic_ns() % 10 ** 9}'
     deployment, chatter = write_deployment(tmp_path, run_id)
     harness = Harness(ros, 'agent_test', chatter)
-    agents = []
+    agents = harness.agents
 
     def agent(scale, *extra):
         a = Agent(tmp_path, deployment, scale, ros_env, *extra)

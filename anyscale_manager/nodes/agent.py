@@ -677,6 +677,7 @@ def main(args: Optional[List[str]] = None) -> int:
         print(f'agent: cannot start on scale {scale!r}: {e}', file=sys.stderr)
         return 2
     node = None
+    executor = None
     # The handlers only note the signal; the loop acts on it between two callbacks. A handler
     # runs between any two bytecodes of the main thread, maybe inside a callback that holds a
     # monitor's lock: stopping the nodes from there deadlocked once (a SIGINT logged "shutting
@@ -737,8 +738,16 @@ def main(args: Optional[List[str]] = None) -> int:
                 s = node.settings
                 node.finish_offline(s.sigint_grace_s + s.sigterm_grace_s + 5.0)
             node.destroy_node()
+        if executor is not None:
+            executor.shutdown()
         rclpy.try_shutdown()
     if node is not None and node.restarting:
+        # The DDS participant is deleted now, not left to exit (exec runs no destructor): the
+        # others drop it at once, and its shared-memory ports are closed as they should be. A
+        # participant left undeleted made the new process deaf, one restart in about twenty:
+        # its peers went on writing to the old process's shared-memory port, and the new agent
+        # saw neither its layout nor its nodes.
+        rclpy.get_default_context().destroy()
         restart_in_place()
     return 0
 
