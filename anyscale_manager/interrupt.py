@@ -15,20 +15,38 @@ def restore_ctrl_c() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+_rclpy_stops = False
+
+
 def interrupt_once() -> None:
-    """The first SIGINT raises KeyboardInterrupt; every later one is ignored.
+    """The first SIGINT stops the program; every later one is ignored.
 
     A supervisor repeats its SIGINT while a node cleans up (destroying the node, shutting
     rclpy down). With Python's own handler, a second one landing then raises in the cleanup
     and ends the process with a traceback. Installed before ``rclpy.init``, whose handler
-    hands the signal on to it.
+    hands the signal on to it. Until ``rclpy_stops_on_sigint()`` the first one raises
+    KeyboardInterrupt; after, rclpy's own handler stops the spin and this one only ignores
+    the later ones.
     """
+    global _rclpy_stops
+    _rclpy_stops = False
     signal.signal(signal.SIGINT, _interrupt_then_ignore)
+
+
+def rclpy_stops_on_sigint() -> None:
+    """Say that ``rclpy.init`` has installed rclpy's signal handler: a SIGINT now shuts the
+    context down, so the spin returns or raises ExternalShutdownException where it waits. It
+    is not raised as KeyboardInterrupt as well: that lands at whatever bytecode runs then,
+    inside rclpy's executor too, where a Task left half-built fails in its ``__del__`` at
+    exit ("'Task' object has no attribute '_exception'", a traceback in the node's log)."""
+    global _rclpy_stops
+    _rclpy_stops = True
 
 
 def _interrupt_then_ignore(signum, frame) -> None:
     ignore_interrupts()
-    raise KeyboardInterrupt
+    if not _rclpy_stops:
+        raise KeyboardInterrupt
 
 
 def ignore_interrupts() -> None:

@@ -3,7 +3,7 @@ lifecycle node to its standby copy, a plain node restarted in place, agents rest
 (SIGHUP), a remote agent SIGKILLed (fencing), the leading decider SIGKILLed beside a standby.
 
     python bench/bench_failover.py [--kills 20] [--in-place-kills 10] [--hups 10]
-                                   [--agent-kills 10] [--decider-kills 20]
+                                   [--both-hups 20] [--agent-kills 10] [--decider-kills 20]
                                    [--decider-stops 10] [--rate-hz 20] [--domain-id N]
                                    [--keep DIR] [--no-profile]
 
@@ -21,6 +21,11 @@ copy on both scales) -> pinned (home, a plain workload), every output at --rate-
 - SIGHUP of each agent (restart in place), --hups times each: moves back, relocations and
   failovers, node restarts and link down reports while it restarts, and the longest gap on the
   worker's output.
+- SIGHUP of both agents at once, --both-hups times: the time until each is back as a new
+  process that follows the current layout again and sees its nodes (the worker serving on one
+  scale and standing by on the other, both reported ready); an agent not back 25 s after its
+  signal is counted as deaf (it reports, but hears neither its layout nor its nodes: the new
+  process's DDS participant found no peer), and the run goes on once it is back.
 - SIGKILL of the away agent while the worker serves there, --agent-kills times (a new agent is
   started after each): the time until its worker process is gone (its warden's fencing), how
   long the old and the new copy were both heard, and the longest gap.
@@ -119,6 +124,8 @@ def main() -> int:
     ap.add_argument('--kills', type=int, default=20)
     ap.add_argument('--in-place-kills', type=int, default=10)
     ap.add_argument('--hups', type=int, default=10, help='SIGHUPs of each agent')
+    ap.add_argument('--both-hups', type=int, default=20,
+                    help='SIGHUPs of both agents at once')
     ap.add_argument('--agent-kills', type=int, default=10,
                     help='SIGKILLs of the remote agent while the worker serves there')
     ap.add_argument('--decider-kills', type=int, default=20,
@@ -273,6 +280,7 @@ def main() -> int:
             return procs[-1]
         failover, in_place = [], []
         hups = {'home': [], 'away': []}      # (moves, restarts, links down, longest gap)
+        both_back, deaf = [], 0
         fenced, overlap, agent_gap = [], [], []
         takeover, takeover_moves, takeover_gap = [], 0, []
         stop_takeover, stale_layouts, stale_followed = [], 0, 0
@@ -365,6 +373,41 @@ def main() -> int:
                           f'link down reports {down}, longest gap {gap:.3f} s'
                           + ''.join(f'; {e.kind} {e.node}: {e.reason[:160]}' for e in backs),
                           flush=True)
+            for k in range(args.both_hups):
+                wait(serving, 60.0, 'a serving copy and a standby')
+                steady('/w', 1.0)
+                with lock:
+                    before = {scale: states[scale].instance for scale in agents}
+                    generation = max((lay.generation for _, lay in layouts), default=-1)
+
+                def back(scale):
+                    # A new process, the current layout applied, its copy of the worker seen
+                    # (ready) in the state it had.
+                    with lock:
+                        s = states[scale]
+                    w = s.nodes.get('worker')
+                    return (s.instance != before[scale] and s.generation >= generation
+                            and w is not None and w.ready)
+                t0 = time.monotonic()
+                for scale in agents:
+                    os.kill(agents[scale].pid, signal.SIGHUP)
+                times = {}
+                end = t0 + 25.0
+                while len(times) < len(agents) and time.monotonic() < end:
+                    for scale in agents:
+                        if scale not in times and back(scale):
+                            times[scale] = time.monotonic() - t0
+                    time.sleep(0.02)
+                missing = [scale for scale in agents if scale not in times]
+                deaf += len(missing)
+                both_back.extend(times.values())
+                print(f'SIGHUP of both {k + 1:2}: back after '
+                      + ', '.join(f'{scale} {t:.2f} s' for scale, t in sorted(times.items()))
+                      + (f'; not back within 25 s: {", ".join(missing)}' if missing else ''),
+                      flush=True)
+                if missing:
+                    wait(lambda: all(back(scale) for scale in agents), 120.0,
+                         'both agents back after a deaf restart')
             for k in range(args.agent_kills):
                 time.sleep(HYSTERESIS_S)
                 wait(lambda: (serving() or ('',))[0] == 'away', 120.0,
@@ -477,6 +520,10 @@ def main() -> int:
                   f'{sum(r[0] for r in rows)}, '
                   f'node restarts {sum(r[1] for r in rows)}, link down reports '
                   f'{sum(r[2] for r in rows)}; longest gap {stats([r[3] for r in rows])}')
+    if both_back or deaf:
+        print(f'SIGHUP of both agents at once ({args.both_hups}): each back (new process, '
+              f'current layout, its nodes seen) after {stats(both_back)}; not back within '
+              f'25 s: {deaf}')
     if fenced:
         print(f'remote agent SIGKILLed: its worker stopped after {stats(fenced)}; two senders '
               f'heard at once {stats(overlap)}; longest gap {stats(agent_gap)}')

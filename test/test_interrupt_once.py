@@ -49,3 +49,39 @@ def test_without_it_a_repeated_sigint_breaks_the_cleanup():
     done = run('', False)
     assert done.returncode != 0
     assert 'Traceback' in done.stderr and 'cleaned up' not in done.stdout
+
+
+HANDED_OVER = '''
+import os, signal, sys, time
+import rclpy
+from anyscale_manager.interrupt import interrupt_once, rclpy_stops_on_sigint
+interrupt_once()
+rclpy.init()
+rclpy_stops_on_sigint()
+try:
+    os.kill(os.getpid(), signal.SIGINT)
+    end = time.monotonic() + 10.0
+    while rclpy.ok() and time.monotonic() < end:
+        for _ in range(1000):
+            pass
+except KeyboardInterrupt:
+    print('raised')
+    sys.exit(3)
+print('context shut down' if not rclpy.ok() else 'still running')
+os.kill(os.getpid(), signal.SIGINT)          # the supervisor repeats itself during cleanup
+for _ in range(10 ** 6):
+    pass
+rclpy.try_shutdown()
+print('cleaned up')
+'''
+
+
+def test_once_rclpy_stops_on_sigint_it_is_not_raised_as_well():
+    """After ``rclpy_stops_on_sigint``: rclpy's handler shuts the context down (the spin ends
+    there) and no KeyboardInterrupt lands in the middle of whatever runs; a repeated SIGINT is
+    ignored."""
+    done = subprocess.run([sys.executable, '-c', HANDED_OVER], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.split() == ['context', 'shut', 'down', 'cleaned', 'up']
+    assert 'Traceback' not in done.stderr

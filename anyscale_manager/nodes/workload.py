@@ -42,7 +42,8 @@ from rclpy.utilities import remove_ros_args
 
 from .workload_messages import (DEFAULT_TYPE, MAX_BYTES, Endpoint, EndpointError,
                                 build_message, message_class, parse_endpoint, stamper)
-from ..interrupt import ignore_interrupts, interrupt_once, restore_ctrl_c
+from ..interrupt import ignore_interrupts, interrupt_once, restore_ctrl_c, \
+    rclpy_stops_on_sigint
 
 REFERENCE_CORE = 0.3      # one reference (robot) core as a fraction of one core of this machine
 
@@ -215,6 +216,7 @@ def main(args: Optional[List[str]] = None) -> int:
         node_class = WorkloadNode
     interrupt_once()
     rclpy.init(args=argv)
+    rclpy_stops_on_sigint()
     node = None
     try:
         node = node_class(spec)
@@ -222,8 +224,9 @@ def main(args: Optional[List[str]] = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
-        # A SIGINT can shut the context down while a callback publishes (rcl then refuses
-        # the publish): that is the shutdown asked for, not a failure.
+        # A SIGINT shuts the context down (rclpy's handler) maybe while the node is built or
+        # a callback publishes (rcl then refuses): that is the shutdown asked for, not a
+        # failure.
         if rclpy.ok():
             raise
     finally:
