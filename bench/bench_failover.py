@@ -378,16 +378,19 @@ def main() -> int:
                 steady('/w', 1.0)
                 with lock:
                     before = {scale: states[scale].instance for scale in agents}
+                    was = {scale: (states[scale].nodes['worker'].state,
+                                   states[scale].nodes['worker'].lifecycle) for scale in agents}
                     generation = max((lay.generation for _, lay in layouts), default=-1)
 
                 def back(scale):
                     # A new process, the current layout applied, its copy of the worker seen
-                    # (ready) in the state it had.
+                    # in the state it had (serving and ready, or standing by inactive).
                     with lock:
                         s = states[scale]
                     w = s.nodes.get('worker')
                     return (s.instance != before[scale] and s.generation >= generation
-                            and w is not None and w.ready)
+                            and w is not None and (w.state, w.lifecycle) == was[scale]
+                            and (w.ready or w.state == 'standby'))
                 t0 = time.monotonic()
                 for scale in agents:
                     os.kill(agents[scale].pid, signal.SIGHUP)
