@@ -384,11 +384,28 @@ def test_bandwidth_probe_schedule():
 
 def test_used_bandwidth_counts_only_crossing_connections():
     conns = [('a_b', 'a', 'b'), ('a_c', 'a', 'c'), ('b_a', 'b', 'a'), ('x_y', 'x', 'y')]
-    running = {'a': 'robot', 'b': 'laptop', 'c': 'robot'}
-    names = crossing_connections(conns, running, 'robot', 'laptop')
-    assert names == ('a_b', 'b_a')
-    assert used_kbps({'a_b': 1000.0, 'b_a': 250.0, 'a_c': 1e6}, names) == pytest.approx(10.0)
-    assert crossing_connections(conns, running, 'robot', 'robot') == ()
+    placed = {'a': {'robot'}, 'b': {'laptop'}, 'c': {'robot'}}
+    crossing = crossing_connections(conns, placed, 'robot', 'laptop')
+    assert crossing == {'a_b': 'laptop', 'b_a': 'robot'}     # where each is received
+    assert used_kbps({'a_b': 1000.0, 'b_a': 250.0, 'a_c': 1e6}, crossing) == pytest.approx(10.0)
+    assert crossing_connections(conns, placed, 'robot', 'robot') == {}
+
+
+def test_a_node_handed_over_still_receives_across_the_link_until_its_far_copy_stops():
+    """AR sent home: its robot copy serves, its laptop copy is not yet deactivated. The camera
+    still feeds the laptop's copy across the link, whichever scale reported first."""
+    conns = [('camera_ar', 'camera', 'ar'), ('ar_nav', 'ar', 'nav'),
+             ('camera_viewer', 'camera', 'viewer')]
+    overlap = {'camera': {'robot'}, 'ar': {'robot', 'laptop'}, 'nav': {'robot'},
+               'viewer': {'robot'}}
+    assert crossing_connections(conns, overlap, 'robot', 'laptop') == \
+        {'camera_ar': 'laptop', 'ar_nav': 'robot'}
+    home = dict(overlap, ar={'robot'})
+    assert crossing_connections(conns, home, 'robot', 'laptop') == {}
+    # Both ends of a connection with a copy on both scales: it crosses both ways; read at the
+    # first end's subscriber.
+    both = {'camera': {'robot', 'laptop'}, 'ar': {'robot', 'laptop'}}
+    assert crossing_connections(conns[:1], both, 'robot', 'laptop') == {'camera_ar': 'robot'}
 
 
 # --- cpu normalisation ---------------------------------------------------------------------

@@ -4,7 +4,7 @@ Pure: every method takes ``now`` on the caller's monotonic clock (see runtime/ra
 """
 
 import math
-from typing import Iterable, Mapping, Optional, Sequence, Tuple
+from typing import Collection, Dict, Iterable, Mapping, Optional, Sequence, Tuple
 
 from .rates import _positive
 
@@ -158,15 +158,23 @@ def steady_throughput_bps(samples: Sequence[Tuple[float, int]],
 
 
 def crossing_connections(connections: Iterable[Tuple[str, str, str]],
-                         running: Mapping[str, str], a: str, b: str) -> Tuple[str, ...]:
-    """Names of the connections (name, publisher, subscriber) whose ends run on a and b."""
-    ends = {a, b}
-    out = []
+                         placed: Mapping[str, Collection[str]], a: str,
+                         b: str) -> Dict[str, str]:
+    """The connections (name, publisher, subscriber) that cross the link between a and b, each
+    with the scale of the subscriber's copy that receives across it. ``placed``: node -> the
+    scales where a copy of it runs. During a handover a node runs on both ends for a moment,
+    and its flows cross as long as a copy on one end feeds a copy on the other (a copy moved
+    home still receives across the link until it is stopped or deactivated)."""
+    out: Dict[str, str] = {}
+    if a == b:
+        return out
     for name, pub, sub in connections:
-        where = {running.get(pub), running.get(sub)}
-        if where == ends and a != b:
-            out.append(name)
-    return tuple(out)
+        pubs = set(placed.get(pub, ())) & {a, b}
+        subs = set(placed.get(sub, ())) & {a, b}
+        across = [s for s in (a, b) if s in subs and pubs - {s}]
+        if across:
+            out[name] = across[0]
+    return out
 
 
 def delivered_kbps(recent: Mapping[str, Tuple[float, float]], stale_s: float) -> float:

@@ -14,7 +14,7 @@ import socket
 import threading
 import time
 from dataclasses import dataclass
-from typing import Dict, Optional, Tuple
+from typing import Dict, Optional, Set, Tuple
 
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from std_msgs.msg import String
@@ -235,17 +235,20 @@ class LinkMonitor:
     def _crossing(self, remote: str, now: float) -> Dict[str, Tuple[float, float, float]]:
         """Connection -> (B/s, recent B/s, the reading's age in s) for those crossing the
         link to ``remote`` with a fresh reading."""
-        running: Dict[str, str] = {}
-        for nodes in self._running.values():
-            running.update(nodes)
-        names = crossing_connections(
+        # Every live copy counts: while a node is handed over, the copy still running on the
+        # far end receives across the link (merging the reports into one place per node hid
+        # that flow, depending on which scale had reported first).
+        placed: Dict[str, Set[str]] = {}
+        for scale, nodes in self._running.items():
+            for node in nodes:
+                placed.setdefault(node, set()).add(scale)
+        crossing = crossing_connections(
             ((c.name, c.publisher, c.subscriber) for c in self._deployment.connections),
-            running, self._scale.name, remote)
-        # Each connection as measured where its subscriber runs: a copy starting or stopping
-        # on the other end measures traffic that does not cross the link.
+            placed, self._scale.name, remote)
+        # Each connection as measured by the copy of its subscriber that receives across the
+        # link: a copy on the other end measures traffic that does not cross it.
         fresh = {}
-        for name in names:
-            where = running.get(self._deployment.connection(name).subscriber)
+        for name, where in crossing.items():
             bps, recent, at = self._readings.get((where, name), (0.0, 0.0, -math.inf))
             if now - at <= self._readings_max_age:
                 fresh[name] = (bps, recent, now - at)
