@@ -22,8 +22,8 @@ copy on both scales) -> pinned (home, a plain workload), every output at --rate-
   failovers, node restarts and link down reports while it restarts, and the longest gap on the
   worker's output.
 - SIGHUP of both agents at once, --both-hups times: the time until each is back as a new
-  process that follows the current layout again and sees its nodes (the worker serving on one
-  scale and standing by on the other, both reported ready); an agent not back 25 s after its
+  process that follows the current layout again and reports its copy of the worker as it was
+  (serving and ready, or standing by inactive); an agent not back DEAF_S (25 s) after its
   signal is counted as deaf (it reports, but hears neither its layout nor its nodes: the new
   process's DDS participant found no peer), and the run goes on once it is back.
 - SIGKILL of the away agent while the worker serves there, --agent-kills times (a new agent is
@@ -60,6 +60,7 @@ import yaml
 HERE = os.path.dirname(os.path.abspath(__file__))
 BIN = os.path.dirname(sys.executable)
 HYSTERESIS_S = 4.0
+DEAF_S = 25.0            # an agent not back this long after its SIGHUP heard nothing
 HEALTHY_RUN_S = 3.0      # restart_backoff_max_s: a node up this long crashes as a first crash
 
 
@@ -395,7 +396,7 @@ def main() -> int:
                 for scale in agents:
                     os.kill(agents[scale].pid, signal.SIGHUP)
                 times = {}
-                end = t0 + 25.0
+                end = t0 + DEAF_S
                 while len(times) < len(agents) and time.monotonic() < end:
                     for scale in agents:
                         if scale not in times and back(scale):
@@ -406,7 +407,8 @@ def main() -> int:
                 both_back.extend(times.values())
                 print(f'SIGHUP of both {k + 1:2}: back after '
                       + ', '.join(f'{scale} {t:.2f} s' for scale, t in sorted(times.items()))
-                      + (f'; not back within 25 s: {", ".join(missing)}' if missing else ''),
+                      + (f'; not back within {DEAF_S:g} s: {", ".join(missing)}'
+                         if missing else ''),
                       flush=True)
                 if missing:
                     wait(lambda: all(back(scale) for scale in agents), 120.0,
@@ -526,7 +528,7 @@ def main() -> int:
     if both_back or deaf:
         print(f'SIGHUP of both agents at once ({args.both_hups}): each back (new process, '
               f'current layout, its nodes seen) after {stats(both_back)}; not back within '
-              f'25 s: {deaf}')
+              f'{DEAF_S:g} s: {deaf}')
     if fenced:
         print(f'remote agent SIGKILLed: its worker stopped after {stats(fenced)}; two senders '
               f'heard at once {stats(overlap)}; longest gap {stats(agent_gap)}')
