@@ -6,6 +6,7 @@ lifecycle node to its standby copy, a plain node restarted in place, agents rest
                                    [--both-hups 20] [--agent-kills 10] [--decider-kills 20]
                                    [--decider-stops 10] [--rate-hz 20] [--domain-id N]
                                    [--keep DIR] [--no-profile]
+                                   [--own-namespace] [--node-transports T]
 
 Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
 beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
@@ -64,7 +65,7 @@ DEAF_S = 25.0            # an agent not back this long after its SIGHUP heard no
 HEALTHY_RUN_S = 3.0      # restart_backoff_max_s: a node up this long crashes as a first crash
 
 
-def deployment(folder, topic, rate_hz):
+def deployment(folder, topic, rate_hz, node_transports=None):
     def workload(name, *args):
         return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args,
                             '--rate-hz', str(rate_hz)]}
@@ -105,6 +106,8 @@ def deployment(folder, topic, rate_hz):
                   'state_dir': os.path.join(folder, 'state'),
                   'log_dir': os.path.join(folder, 'log')},
     }
+    if node_transports is not None:
+        params['agent']['node_dds_transports'] = node_transports
     path = os.path.join(folder, 'deployment.yaml')
     with open(path, 'w') as f:
         yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
@@ -118,6 +121,22 @@ def stats(values):
     p95 = values[min(len(values) - 1, int(round(0.95 * (len(values) - 1))))]
     return (f'p50 {statistics.median(values):.3f} s, p95 {p95:.3f} s, max {values[-1]:.3f} s '
             f'(n = {len(values)})')
+
+
+IN_NAMESPACE = 'BENCH_FAILOVER_NAMESPACE'
+
+
+def in_own_namespace() -> int:
+    """Runs this command again inside a new network namespace with only loopback up."""
+    name = f'anyscale_bf_{os.getpid()}'
+    subprocess.run(['ip', 'netns', 'add', name], check=True)
+    try:
+        subprocess.run(['ip', 'netns', 'exec', name, 'ip', 'link', 'set', 'lo', 'up'],
+                       check=True)
+        return subprocess.run(['ip', 'netns', 'exec', name, sys.executable, *sys.argv],
+                              env=dict(os.environ, **{IN_NAMESPACE: name})).returncode
+    finally:
+        subprocess.run(['ip', 'netns', 'del', name], check=False)
 
 
 def main() -> int:
@@ -140,9 +159,27 @@ def main() -> int:
     ap.add_argument('--no-profile', action='store_true',
                     help="without the packaged config/fastdds_discovery.xml (Fast DDS's "
                          'defaults, or the profile the environment names)')
+    ap.add_argument('--own-namespace', action='store_true',
+                    help='run in a network namespace of its own (loopback only, needs root) '
+                         'with ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET, where the transports of '
+                         '--node-transports apply (under LOCALHOST, rmw_fastrtps adds '
+                         'shared memory whatever they say)')
+    ap.add_argument('--node-transports', default=None,
+                    help="the deployment's agent.node_dds_transports (default: the setting's "
+                         "default; '' for Fast DDS's default, shared memory included)")
     args = ap.parse_args()
+    if args.own_namespace and os.environ.get(IN_NAMESPACE) is None:
+        return in_own_namespace()
     os.environ['ROS_DOMAIN_ID'] = str(args.domain_id)
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    if args.own_namespace:
+        # The namespace's only interface is loopback: SUBNET reaches nothing else.
+        os.environ.update(ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET', ROS_STATIC_PEERS='127.0.0.1')
+        print(f'in network namespace {os.environ[IN_NAMESPACE]}, discovery range SUBNET',
+              flush=True)
+    else:
+        os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+        print('discovery range LOCALHOST: every participant has the shared-memory transport',
+              flush=True)
     from anyscale_manager import config_files
     if not args.no_profile:
         os.environ.update(config_files.with_discovery_profile(os.environ))
@@ -269,7 +306,7 @@ def main() -> int:
         os.makedirs(args.keep, exist_ok=True)
     with (contextlib.nullcontext(args.keep) if args.keep
           else tempfile.TemporaryDirectory()) as folder:
-        path = deployment(folder, topic, args.rate_hz)
+        path = deployment(folder, topic, args.rate_hz, args.node_transports)
         env = dict(os.environ, PYTHONUNBUFFERED='1')
 
         def start(exe, *extra):

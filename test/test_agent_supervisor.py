@@ -75,6 +75,23 @@ def test_catalogue_builds_argv_env_and_filters_by_scale():
         build_catalogue(d, 'zz', environ)
 
 
+def test_nodes_leave_shared_memory_out_unless_the_environment_or_the_node_says():
+    def transports(environ, node_env=None, setting=None):
+        raw = deployment_dict({'n': {'launch': {'command': ['sleep', '5'],
+                                                'env': node_env or {}}, 'cpu': 1.0}})
+        if setting is not None:
+            raw['/**']['ros__parameters']['agent'] = {'node_dds_transports': setting}
+        env = build_catalogue(load_mapping(raw), 'a', dict(environ, PATH='/usr/bin'))['n'].env
+        return env.get('FASTDDS_BUILTIN_TRANSPORTS')
+    assert transports({}) == 'UDPv4'
+    assert transports({'FASTDDS_BUILTIN_TRANSPORTS': 'SHM'}) == 'SHM'
+    assert transports({}, node_env={'FASTDDS_BUILTIN_TRANSPORTS': 'LARGE_DATA'}) == 'LARGE_DATA'
+    assert transports({}, setting='') is None
+    assert transports({}, setting='DEFAULT') == 'DEFAULT'
+    with pytest.raises(ValueError, match='node_dds_transports.*UDPv4'):
+        transports({}, setting='udp')
+
+
 def test_catalogue_prefers_the_ament_index(tmp_path):
     exe = tmp_path / 'lib' / 'demo' / 'run'
     exe.parent.mkdir(parents=True)

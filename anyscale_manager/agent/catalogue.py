@@ -19,6 +19,7 @@ from ..model import types as t
 BASE_ENV_NAMES = ('PATH', 'HOME', 'LANG', 'LC_ALL', 'PYTHONPATH', 'AMENT_PREFIX_PATH',
                   'LD_LIBRARY_PATH', 'USER', 'LOGNAME', 'TZ', '_ROS_WHEELS_BOOTSTRAP_COMPLETE')
 BASE_ENV_PREFIXES = ('ROS_', 'RMW_', 'RCUTILS_', 'FASTRTPS_', 'FASTDDS_', 'CYCLONEDDS_')
+DDS_TRANSPORTS = 'FASTDDS_BUILTIN_TRANSPORTS'
 ENV_NODE = 'ANYSCALE_AGENT_NODE'          # marks a child: which catalogue entry it is
 ENV_SCALE = 'ANYSCALE_AGENT_SCALE'        # and which scale's agent started it
 ENV_INSTANCE = 'ANYSCALE_AGENT_INSTANCE'  # a per-start token, checked when adopting
@@ -187,6 +188,8 @@ def build_catalogue(deployment: t.Deployment, scale: str,
         if scale not in deployment.allowed_scales(node.name):
             continue
         env = dict(base)
+        if deployment.agent.node_dds_transports:
+            env.setdefault(DDS_TRANSPORTS, deployment.agent.node_dds_transports)
         env.update({str(k): str(v) for k, v in node.launch.env.items()})
         env[ENV_NODE] = node.name
         env[ENV_SCALE] = scale

@@ -307,6 +307,15 @@ class AgentSettings:
                                        low_open=True, unit='Hz')
     node_nice: int = setting(0, 'niceness added to every node the agent starts (not to '
                                 'critical ones)', low=0, high=19)
+    # Fast DDS's shared-memory transport stalls the writers of a computer for about 0.35 s,
+    # 1-2 s after a participant they write to was SIGKILLed (docs/agent.md, crashes and
+    # shared memory): the nodes an agent starts are the ones that crash and fail over.
+    node_dds_transports: str = setting(
+        'UDPv4', 'FASTDDS_BUILTIN_TRANSPORTS for every node the agent starts, unless the '
+                 "agent's environment or the node's launch env names one ('': Fast DDS's "
+                 'default, shared memory and UDPv4)',
+        choices=('', 'DEFAULT', 'UDPv4', 'UDPv6', 'DEFAULTv6', 'SHM', 'LARGE_DATA',
+                 'LARGE_DATAv6'))
     # The warden (agent/warden.py) stops this agent's nodes when the agent is gone this long
     # with no successor (restart_grace_s after it said it restarts in place), SIGKILL after
     # fence_grace_s: the bound within which a dead agent's nodes are gone.
