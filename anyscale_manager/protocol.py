@@ -465,13 +465,23 @@ class ConnectionReading(Message):
     # Bytes per second over the last runtime/bandwidth.DELIVERY_SPAN_S only: what a link
     # delivers now (bytes_per_s spans the whole probe window).
     recent_bytes_per_s: Optional[float] = None
+    # Where the topic's writers are told apart (the publisher is migratable): how many were
+    # heard lately, and how long two or more have been heard at once (0: not now).
+    senders: Optional[int] = None
+    senders_for_s: Optional[float] = None
     SCHEMA = {'rate_hz': float, 'bytes_per_s': float, 'below_for_s': float, 'level': int,
-              'ended_below_s': ('optional', float), 'recent_bytes_per_s': ('optional', float)}
+              'ended_below_s': ('optional', float), 'recent_bytes_per_s': ('optional', float),
+              'senders': ('optional', int), 'senders_for_s': ('optional', float)}
 
     def validate(self, where: str) -> None:
         if self.level not in (OK, WARN, ERROR, STALE):
             raise ProtocolError(f'{where}.level: expected 0-3 (OK, WARN, ERROR, STALE), '
                                 f'got {str(self.level)[:20]}')
+        if self.senders is not None and not 0 <= self.senders <= 1000:
+            raise ProtocolError(f'{where}.senders: expected 0-1000, got {self.senders}')
+        if self.senders_for_s is not None and not self.senders_for_s >= 0:
+            raise ProtocolError(f'{where}.senders_for_s: expected >= 0, '
+                                f'got {self.senders_for_s}')
 
 
 @dataclass

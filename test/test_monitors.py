@@ -205,6 +205,46 @@ def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deplo
         probes.destroy()
 
 
+def test_two_writers_heard_at_once_past_the_bound_are_an_error_diagnostic(ros, deployment):
+    """Two real writers of /amcl_pose (AMCL is migratable) heard at once for longer than
+    duplicate_sender_s: the reading counts them and for how long, the connection's diagnostic
+    is an error naming the senders; once one stops, one sender and no error again."""
+    make, executor = ros.node, ros.executor
+    deployment = dataclasses.replace(deployment, monitoring=dataclasses.replace(
+        deployment.monitoring, duplicate_sender_s=1.0))
+    agent = make('agent_two')
+    watch = ros.node('agent_two_handover', spin=False, start_parameter_services=False)
+    listener = Listener(make('two_listener'), p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus)
+    probes = ProbeManager(agent, deployment, 'robot', watch_node=watch)
+    probes.set_connections(['amcl_ekf'])
+    diagnostic = 'anyscale/connection/amcl_ekf'
+
+    def polled(cond):
+        def check():
+            probes.poll_writers(time.monotonic())
+            r = reading(listener, 'amcl_ekf')
+            return r is not None and cond(r, listener.last_status(diagnostic))
+        return check
+    try:
+        first = Publisher(make('amcl_first'), '/amcl_pose', rate_hz=10.0)
+        spin_until(executor, polled(lambda r, _s: r.senders == 1), 15.0, 'one sender heard')
+        assert reading(listener, 'amcl_ekf').senders_for_s == 0.0
+        second = Publisher(make('amcl_second'), '/amcl_pose', rate_hz=10.0)
+        spin_until(executor, polled(lambda r, s: r.senders == 2 and s is not None
+                                    and s.level == bytes([p.ERROR])), 15.0,
+                   'two senders, an error diagnostic')
+        r, s = reading(listener, 'amcl_ekf'), listener.last_status(diagnostic)
+        assert r.senders_for_s > 1.0 and r.level == p.OK       # the rate itself is fine
+        assert s.message.startswith('2 senders for ') and 'copies of amcl' in s.message
+        first.stop()
+        spin_until(executor, polled(lambda r, s: r.senders == 1 and r.senders_for_s == 0.0
+                                    and s.level != bytes([p.ERROR])), 15.0,
+                   'one sender again')
+        second.stop()
+    finally:
+        probes.destroy()
+
+
 def test_probe_learns_the_type_from_the_graph_and_moves(ros, deployment):
     make, executor = ros.node, ros.executor
     conns = tuple(dataclasses.replace(c, msg_type='') if c.name == 'camera_ar' else c

@@ -9,7 +9,8 @@ from anyscale_manager.runtime import cpu
 from anyscale_manager.runtime.bandwidth import (CONGESTION, PROBE, BandwidthEstimate,
                                                 crossing_connections, delivered_kbps,
                                                 steady_throughput_bps, used_kbps)
-from anyscale_manager.runtime.rates import HeartbeatTracker, RateWindow, WriterStreams
+from anyscale_manager.runtime.rates import (HeartbeatTracker, RateWindow, SenderOverlap,
+                                            WriterStreams, live_window_s)
 
 
 def feed(window, rate_hz, start, stop, nbytes=100, jitter_s=0.0, seed=1):
@@ -641,3 +642,34 @@ def test_beats_sent_in_one_burst_after_a_stall_are_no_cut():
     for k in range(1, 3):                       # beats go on, still unanswered: a cut
         hb.next_beat(stalled_until + k * period)
     assert not hb.up(stalled_until + 2 * period + 0.01)
+
+
+def test_writer_streams_count_the_writers_heard_lately():
+    w = WriterStreams(forget_s=3.0)
+    for k in range(20):
+        w.add(0.1 * k, 500 + k)                 # a copy serving for a while
+    assert w.live(1.9, 0.5) == 1
+    for k in range(10):                          # a second copy, both heard
+        w.add(2.0 + 0.1 * k, 520 + k)
+        w.add(2.05 + 0.1 * k, 1 + k)
+    assert w.live(2.95, 0.5) == 2
+    # The first one stops: it counts no more once it has not been heard for the window,
+    # though it is remembered for forget_s.
+    for k in range(10):
+        w.add(3.0 + 0.1 * k, 11 + k)
+    assert w.live(3.9, 0.5) == 1 and w.streams == 2
+
+
+def test_live_window_is_two_periods_at_the_minimum_rate_within_bounds():
+    assert live_window_s(2.0) == 1.0
+    assert live_window_s(100.0) == 0.5
+    assert live_window_s(0.1) == 3.0 and live_window_s(None) == 3.0
+
+
+def test_sender_overlap_counts_from_the_first_reading_with_two():
+    o = SenderOverlap()
+    assert o.update(1.0, 1) == 0.0
+    assert o.update(1.5, 2) == 0.0
+    assert o.update(2.0, 2) == 0.5 and o.update(4.5, 3) == 3.0
+    assert o.update(5.0, 1) == 0.0
+    assert o.update(5.5, 2) == 0.0                # a new overlap starts afresh

@@ -390,6 +390,27 @@ def test_status_render_without_ros(d):
     assert row.split()[1:] == ['laptop', 'robot', '(moving)', 'running', 'laptop'], row
 
 
+def test_status_shows_two_senders_past_the_bound_not_ok(d):
+    from anyscale_manager.nodes.status import StatusBook, render
+    book = StatusBook(d)
+    book.take(p.TOPIC_AGENT_STATE, agent('robot', 4, laser='running', amcl='running').to_json(),
+              10.0)
+    bound = d.monitoring.duplicate_sender_s
+
+    def row(senders, for_s):
+        conn = d.connection('amcl_ekf')
+        reading = p.ConnectionReading(rate_hz=conn.freq_opt_hz * 2, bytes_per_s=0.0,
+                                      below_for_s=0.0, level=p.OK, senders=senders,
+                                      senders_for_s=for_s)
+        book.take(p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus(
+            scale='robot', stamp=0.0, connections={'amcl_ekf': reading}).to_json(), 10.0)
+        return next(line for line in render(book, 10.5).splitlines()
+                    if line.startswith('amcl_ekf '))
+    assert row(2, bound - 1.0).endswith(' ok')       # within a move's overlap
+    assert f'2 SENDERS for {bound + 2:.0f} s (heard on robot); ok' in row(2, bound + 2.0)
+    assert row(1, 0.0).endswith(' ok')
+
+
 def test_the_decider_does_not_count_standby_copies(d):
     book = ObservationBook(d, d.decider, started=0.0)
     book.agent_state(agent('robot', 3, amcl='running'), 1.0)

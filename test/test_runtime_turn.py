@@ -195,3 +195,38 @@ def test_a_decider_that_leads_without_following_anyone_waits_for_its_first_turn(
     turn = DeciderTurn(d, d.decider, started=0.0)
     assert turn.lead(3.0, 'no leader heard for 3 s', took_over=False) is None
     assert turn.layout is None and turn.generation == 0
+
+
+def test_two_senders_past_a_moves_overlap_are_an_error_event_once_then_cleared(d):
+    """A probe that has heard two writers of /amcl_pose at once for longer than
+    duplicate_sender_s: one 'duplicate' event naming the topic, the publisher and the scale
+    (not one per turn), an error line, then 'cleared' once it hears one again."""
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    where = master_layout(d)
+    bound = d.monitoring.duplicate_sender_s
+
+    def amcl_pose(now, senders, for_s):
+        conn = d.connection('amcl_ekf')
+        reading = p.ConnectionReading(rate_hz=conn.freq_opt_hz, bytes_per_s=1000.0,
+                                      below_for_s=0.0, level=p.OK, senders=senders,
+                                      senders_for_s=for_s)
+        turn.book.connection_status(p.ConnectionStatus(
+            scale='robot', stamp=now, connections={'amcl_ekf': reading}), now)
+
+    def duplicates(out):
+        return [e for e in out.events if e[0] == 'duplicate']
+    said = []
+    for k, (senders, for_s) in enumerate([(2, bound - 0.5), (2, bound + 0.5), (2, bound + 1.5),
+                                          (1, 0.0)]):
+        t = 1.0 + k
+        feed(turn, d, t, dict(turn.layout or where), turn.generation)
+        amcl_pose(t, senders, for_s)
+        said.append(turn.turn(t))
+    assert not duplicates(said[0])
+    (event,) = duplicates(said[1])
+    assert event[1] == 'amcl' and event[2] == 'robot'
+    assert '/amcl_pose' in event[4] and '2 senders' in event[4]
+    assert any(level == 'error' and '/amcl_pose' in text for level, text in said[1].logs)
+    assert not duplicates(said[2])
+    assert any(e[0] == 'cleared' and e[4] == 'amcl_ekf: one sender again'
+               for e in said[3].events)

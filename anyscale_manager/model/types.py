@@ -265,6 +265,11 @@ class MonitorSettings:
                                        low=0, high=1000, low_open=True, unit='Hz')
     heartbeat_misses_down: int = setting(3, 'a link is down after this many missed heartbeats '
                                             '(BFD rule, docs/monitoring.md)', low=1, high=1000)
+    duplicate_sender_s: float = setting(
+        6.0, "two writers of a migratable node's output heard at once for longer than this: an "
+             "error (a 'duplicate' event, an error diagnostic, a line in status); a move's "
+             'overlap is shorter (docs/monitoring.md, two senders)', low=0, high=3600,
+        low_open=True, unit='s')
     probe_window_s: float = setting(2.0, "a probe's rate window", low=0, high=3600,
                                     low_open=True, unit='s')
     probe_publish_rate_hz: float = setting(2.0, 'connection status rate', low=0, high=1000,

@@ -193,7 +193,8 @@ class ObservationBook:
             self.readings[(msg.scale, name)] = ConnectionObs(
                 rate_hz=r.rate_hz, stamp=now, below_for_s=r.below_for_s,
                 bytes_per_s=max(0.0, r.bytes_per_s),
-                below=r.level in (WARN, ERROR) or r.below_for_s > 0.0)
+                below=r.level in (WARN, ERROR) or r.below_for_s > 0.0,
+                senders=r.senders or 0, senders_for_s=r.senders_for_s or 0.0)
 
     # --- views --------------------------------------------------------------------------------
     def agent_fresh(self, scale: str, now: float) -> bool:

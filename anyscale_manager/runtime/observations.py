@@ -42,6 +42,8 @@ class ConnectionObs:
     below_for_s: float = 0.0                 # the probe's open stretch below freq_min
     bytes_per_s: float = 0.0
     below: bool = False                      # the probe's verdict (runtime/delta.py)
+    senders: int = 0                         # writers heard lately (0: not told apart there)
+    senders_for_s: float = 0.0               # how long two or more have been heard at once
 
 
 @dataclass(frozen=True)

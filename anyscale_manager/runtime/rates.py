@@ -332,7 +332,35 @@ class WriterStreams:
     def streams(self) -> int:
         return len(self._streams)
 
+    def live(self, now: float, within_s: float) -> int:
+        """How many writers were heard in the last ``within_s``."""
+        return sum(1 for s in self._streams if now - s[1] <= within_s)
+
     def joined_since(self, since: float) -> bool:
         """Whether a writer that started later than the others was first heard at or after
         ``since``."""
         return any(t >= since for t in self._joined)
+
+
+def live_window_s(freq_min_hz: Optional[float], forget_s: float = 3.0) -> float:
+    """How recently a writer must have been heard to count as sending: two of its periods at
+    the connection's minimum rate, at least 0.5 s, at most ``forget_s``."""
+    if freq_min_hz is None or not freq_min_hz > 0:
+        return forget_s
+    return min(forget_s, max(0.5, 2.0 / freq_min_hz))
+
+
+class SenderOverlap:
+    """How long two or more writers of one topic have been heard at once, from the count of
+    live writers read at each reading (``WriterStreams.live``)."""
+
+    def __init__(self) -> None:
+        self._since: Optional[float] = None
+
+    def update(self, now: float, live: int) -> float:
+        if live < 2:
+            self._since = None
+            return 0.0
+        if self._since is None:
+            self._since = now
+        return now - self._since

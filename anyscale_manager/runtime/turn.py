@@ -106,6 +106,7 @@ class DeciderTurn:
         self.decisions = 0
         self._active: Set[Tuple[str, str]] = set()    # (kind, subject) violations announced
         self._said: Set[str] = set()                  # warnings and notes announced
+        self._duplicated: Set[str] = set()            # connections announced with two senders
 
     def update_settings(self, settings: DeciderSettings) -> None:
         self.settings = settings
@@ -143,6 +144,7 @@ class DeciderTurn:
                                          f'{d.reason}'))
         self._announce(report, out)
         self._single_machine(out)
+        self._two_senders(now, out)
         for n in self.liveness.update(obs, self.policy.unplaceable, report, layout):
             self._event(out, n.kind, n.node, n.scale, '', n.text)
             out.logs.append((n.level if n.level in ('error', 'warn') else 'info', n.text))
@@ -302,6 +304,29 @@ class DeciderTurn:
         self._active = active
         for note in self.policy.notes:
             self._say_once(note, out, kind='note')
+
+    def _two_senders(self, now: float, out: TurnOutput) -> None:
+        """An error event when a probe has heard two or more writers of a connection's topic
+        at once for longer than a move's overlap (monitoring.duplicate_sender_s), and an event
+        when that ends."""
+        bound = self.deployment.monitoring.duplicate_sender_s
+        max_age = self.settings.observation_max_age_s
+        seen: Dict[str, Tuple[str, int, float]] = {}
+        for (scale, name), r in self.book.readings.items():
+            if now - r.stamp <= max_age and r.senders_for_s > bound:
+                seen.setdefault(name, (scale, r.senders, r.senders_for_s))
+        for name, (scale, senders, for_s) in sorted(seen.items()):
+            if name in self._duplicated:
+                continue
+            conn = self.deployment.connection(name)
+            text = (f'{conn.topic} ({name}): {senders} senders heard at once on {scale} for '
+                    f'{for_s:.1f} s (> duplicate_sender_s {bound:g} s): copies of '
+                    f'{conn.publisher} serve on more than one scale')
+            self._event(out, 'duplicate', conn.publisher, scale, '', text)
+            out.logs.append(('error', text))
+        for name in sorted(self._duplicated - set(seen)):
+            self._event(out, 'cleared', '', '', '', f'{name}: one sender again')
+        self._duplicated = set(seen)
 
     def _single_machine(self, out: TurnOutput) -> None:
         """One line, one event, when scales start or stop sharing one machine."""

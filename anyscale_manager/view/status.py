@@ -346,6 +346,13 @@ def _connection_rows(book: StatusBook, now: float, running) -> List[str]:
             status = 'VIOLATED (past Δ)'
         else:
             status = 'below, within Δ'
+        doubled = [(v.senders, v.senders_for_s or 0.0, s)
+                   for (s, n), (v, got) in book.readings.items()
+                   if n == c.name and now - got <= d.decider.observation_max_age_s
+                   and (v.senders_for_s or 0.0) > d.monitoring.duplicate_sender_s]
+        if doubled:
+            senders, for_s, scale = max(doubled, key=lambda x: x[1])
+            status = f'{senders} SENDERS for {for_s:.0f} s (heard on {scale}); {status}'
         rows.append([c.name, f'{r.rate_hz:.1f}', f'{c.freq_min_hz:g}',
                      f'{r.below_for_s:.1f} / {c.tolerance_s:g}', status])
     return _table(rows)

@@ -21,7 +21,7 @@ from ...model.types import Connection, Deployment
 from ...protocol_auth import Sealer
 from ...runtime.bandwidth import DELIVERY_SPAN_S
 from ...runtime.delta import DeltaJudge
-from ...runtime.rates import RateWindow, WriterStreams
+from ...runtime.rates import RateWindow, SenderOverlap, WriterStreams, live_window_s
 from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, scale_of,
                      status)
 
@@ -43,6 +43,7 @@ class _TopicProbe:
     msg_class: object = None
     watch: object = None       # a second subscription, polled: who wrote (handovers)
     writers: WriterStreams = field(default_factory=WriterStreams)
+    overlap: SenderOverlap = field(default_factory=SenderOverlap)
     problem: str = ''          # why there is no subscription yet
     fatal: bool = False        # the type cannot be used here: no reading at all
     judges: Dict[str, DeltaJudge] = field(default_factory=dict)   # connection -> its Δ judge
@@ -238,13 +239,19 @@ class ProbeManager:
                 verdict = probe.judges[name].verdict(now)
                 # A topic silent past 1/freq_min reads 0 Hz at once (the window would decay).
                 rate = 0.0 if verdict.silent else probe.window.rate_hz(now)
+                senders = senders_for_s = None
+                if probe.watch is not None:
+                    senders = probe.writers.live(now, live_window_s(conn.freq_min_hz,
+                                                                    probe.writers.forget_s))
+                    senders_for_s = probe.overlap.update(now, senders)
                 reading = p.ConnectionReading(rate_hz=rate,
                                               bytes_per_s=probe.window.bytes_per_s(now),
                                               below_for_s=verdict.below_for_s,
                                               level=verdict.level,
                                               ended_below_s=verdict.ended_below_s,
                                               recent_bytes_per_s=probe.window.recent_bytes_per_s(
-                                                  now, DELIVERY_SPAN_S))
+                                                  now, DELIVERY_SPAN_S),
+                                              senders=senders, senders_for_s=senders_for_s)
                 out[name] = (reading, probe.problem)
         return out
 
@@ -271,8 +278,15 @@ class ProbeManager:
             reading, note = readings[name]
             values.update({'rate_hz': reading.rate_hz, 'bytes_per_s': reading.bytes_per_s,
                            'below_for_s': reading.below_for_s})
-            statuses.append(status(f'anyscale/connection/{name}', reading.level,
-                                   _describe(conn, reading, note), self._scale.host, values))
+            level, text = reading.level, _describe(conn, reading, note)
+            if reading.senders is not None:
+                values['senders'] = reading.senders
+                if (reading.senders_for_s or 0.0) > self._deployment.monitoring.duplicate_sender_s:
+                    level = p.ERROR
+                    text = (f'{reading.senders} senders for {reading.senders_for_s:.1f} s '
+                            f'(copies of {conn.publisher} on more than one scale?); {text}')
+            statuses.append(status(f'anyscale/connection/{name}', level, text,
+                                   self._scale.host, values))
         self._out.send_diagnostics(statuses)
 
     def destroy(self) -> None:
