@@ -74,9 +74,10 @@ def out_to_server(tb):
 
 
 def unsent_or_lost(view, topic, start, end):
-    """Around the longest silence of ``topic`` heard between start - 2 s and end: how many
-    messages its writer numbered in between ('lost': sent, never heard here) and the length of
-    that silence; 0 lost means the writer sent nothing (a stalled sender). None: no numbers."""
+    """Around the longest silence of ``topic`` heard between start - 2 s and end: its length,
+    when it began (the monotonic clock) and how many messages its writer numbered in between
+    ('lost': sent, never heard here); 0 lost means the writer sent nothing (a stalled sender).
+    None: no numbers."""
     pairs = [(t, s) for t, s in zip(view.arrivals.get(topic, []), view.arrival_seqs.get(topic, []))
              if start - 2.0 <= t <= end + 0.5]
     if len(pairs) < 2:
@@ -84,7 +85,7 @@ def unsent_or_lost(view, topic, start, end):
     (t0, s0), (t1, s1) = max(zip(pairs, pairs[1:]), key=lambda ab: ab[1][0] - ab[0][0])
     if s0 < 0 or s1 < 0:
         return None
-    return f'silent {t1 - t0:.2f} s, lost {s1 - s0 - 1}'
+    return f'silent {t1 - t0:.2f} s from {t0:.3f}, lost {s1 - s0 - 1}'
 
 
 def violations(tb, start, end):

@@ -656,6 +656,13 @@ def test_a_copy_cut_off_from_the_master_stands_down_when_a_peer_serves_it_under_
     laptop(4, 1.4)
     assert r.desired(1.5, ('sbs',)) == set()
     assert 'stood down: b serves it under layout generation 4' in r.waiting['sbs']
+    # Stood down (no longer serving here), it stays down while b serves it: not started or
+    # activated again at the next step, and said in the same words (the agent logs it once).
+    said = r.waiting['sbs'].split(' (')[0]
+    for k in range(1, 20):
+        laptop(4, 1.5 + 0.1 * k)
+        assert r.desired(1.5 + 0.1 * k, ()) == set()
+        assert r.waiting['sbs'].split(' (')[0] == said
     # A peer under the same generation, or following another decider, is not a reason.
     r2 = Reconciler(d, 'c', ('sbs',), readiness_timeout_s=10.0, agent_timeout_s=4.0)
     r2.heard_master(0.0)

@@ -229,13 +229,16 @@ class Reconciler:
                     want.add(node)   # no layout places it: leave it as it is (fail-static)
                 continue
             order = self.deployment.node(node).move_order
-            peer = self.superseded_by(node, now) if target == self.scale and here \
+            # Whether it serves here now or not: once stood down, a copy is neither served
+            # again nor started while the peer serves it (else it would be reactivated at the
+            # next step and stood down again, round and round).
+            peer = self.superseded_by(node, now) if target == self.scale \
                 and node in self._migratable else None
             if peer is not None:
                 self.waiting[node] = (f'stood down: {peer.scale} serves it under layout '
                                       f'generation {peer.generation}, newer than the '
-                                      f'{self.generation} held here, and nothing was heard '
-                                      f'from {self.master} for {now - self.contact:.1f} s')
+                                      f'{self.generation} held here (nothing heard from '
+                                      f'{self.master} for {now - self.contact:.1f} s)')
                 continue
             if target == self.scale and self._cut_generation is not None \
                     and node in self._migratable:
