@@ -115,6 +115,21 @@ def test_a_cut_server_link_sends_its_nodes_to_the_laptop_not_home(d):
     assert not [m for m in moves(w.run(w.t + 10.0))]
 
 
+def test_a_node_sent_on_from_a_cut_server_is_not_sent_again_while_its_old_copy_runs_there(d):
+    """The turn after the one that sent AMCL and AR on to the laptop comes a moment later (a
+    report wakes it), before the laptop reports them serving: the cut-off server's copies are
+    still the last ones reported. Nothing moves again (it once sent both home from the laptop,
+    and they came back out only after the hysteresis: 9 s without them on the laptop)."""
+    w = settled_on_server(d)
+    w.link_up['server'] = False
+    first = w.policy.step(w.observe())
+    assert sorted((dec.kind, dec.node, dec.to_scale) for dec in first) == [
+        (MOVE_AWAY, 'amcl', 'laptop'), (MOVE_AWAY, 'ar', 'laptop')]
+    for _ in range(5):
+        w.t = round(w.t + 0.05, 6)
+        assert w.policy.step(w.observe()) == []
+
+
 def test_a_lost_server_agent_relocates_to_the_laptop(d):
     w = settled_on_server(d)
     w.agent_alive['server'] = False

@@ -429,12 +429,14 @@ class MigrationPolicy:
                                                             obs, node)
 
         # A link down (or silent) brings back at once everything placed beyond it, running
-        # or still starting there: waiting for the connections' Δ would be too late.
+        # or still starting there: waiting for the connections' Δ would be too late. A node
+        # already sent elsewhere is not: its old copy beyond the link is reported running until
+        # the new one serves (a turn a moment later would otherwise send it on again).
         for link_name, load in report.links.items():
             if load.up or self.master not in load.ends:
                 continue        # a link between two remote scales: the do-while below
             far = [e for e in load.ends if e != self.master]
-            beyond = [n for n in migrated if self.desired.get(n) in far or running.get(n) in far]
+            beyond = [n for n in migrated if (self.desired.get(n) or running.get(n)) in far]
             if beyond:
                 actionable = True
                 reason = load.reason or f'link {link_name} down'
@@ -448,6 +450,9 @@ class MigrationPolicy:
             if v.kind == LINK_DOWN and self.master not in report.links[v.subject].ends:
                 continue        # only the connections crossing it move: the do-while below
             culprits = [n for n in v.nodes if n in migrated]
+            if v.kind == LINK_DOWN:     # as above: not one already sent to this side of it
+                far = [e for e in report.links[v.subject].ends if e != self.master]
+                culprits = [n for n in culprits if (self.desired.get(n) or running.get(n)) in far]
             actionable = actionable or bool(culprits)
             for n in culprits:
                 back(n, v.reason)
