@@ -17,8 +17,7 @@ KNOWN_OPEN: Dict[str, str] = {
     'odometry_ekf': 'as odometer_odometry, at 10 Hz',
     'ekf_navigation': 'as odometer_odometry, at 5 Hz (a gap past 0.6 s): when a decider '
                       "takeover, a participant joining the domain and AR's activation there "
-                      "saturate the robot's quota at once, or during a server cut on three "
-                      'scales',
+                      "saturate the robot's quota at once",
 }
 
 __all__ = ['KNOWN_OPEN']
