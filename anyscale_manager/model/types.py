@@ -313,8 +313,8 @@ class AgentSettings:
     node_nice: int = setting(0, 'niceness added to every node the agent starts (not to '
                                 'critical ones)', low=0, high=19)
     # Fast DDS's shared-memory transport stalls the writers of a computer for about 0.35 s,
-    # 1-2 s after a participant they write to was SIGKILLed (docs/agent.md, crashes and
-    # shared memory): the nodes an agent starts are the ones that crash and fail over.
+    # 1-2 s after a participant they write to was SIGKILLed (docs/agent.md, supervision):
+    # the nodes an agent starts are the ones that crash and fail over.
     node_dds_transports: str = setting(
         'UDPv4', 'FASTDDS_BUILTIN_TRANSPORTS for every node the agent starts, unless the '
                  "agent's environment or the node's launch env names one ('': Fast DDS's "

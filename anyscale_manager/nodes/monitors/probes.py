@@ -230,6 +230,7 @@ class ProbeManager:
     def readings(self, now: float) -> Dict[str, Tuple[p.ConnectionReading, str]]:
         """Connection -> (reading, note) for every probe that can measure; advances Δ."""
         out = {}
+        counted: Dict[str, Tuple[int, float]] = {}     # topic -> (senders, for how long)
         with self._lock:
             self._drain_locked()
             for name, conn in sorted(self._probes.items()):
@@ -241,9 +242,7 @@ class ProbeManager:
                 rate = 0.0 if verdict.silent else probe.window.rate_hz(now)
                 senders = senders_for_s = None
                 if probe.watch is not None:
-                    senders = probe.writers.live(now, live_window_s(conn.freq_min_hz,
-                                                                    probe.writers.forget_s))
-                    senders_for_s = probe.overlap.update(now, senders)
+                    senders, senders_for_s = self._senders_locked(probe, now, counted)
                 reading = p.ConnectionReading(rate_hz=rate,
                                               bytes_per_s=probe.window.bytes_per_s(now),
                                               below_for_s=verdict.below_for_s,
@@ -254,6 +253,18 @@ class ProbeManager:
                                               senders=senders, senders_for_s=senders_for_s)
                 out[name] = (reading, probe.problem)
         return out
+
+    def _senders_locked(self, probe: _TopicProbe, now: float,
+                        counted: Dict[str, Tuple[int, float]]) -> Tuple[int, float]:
+        """The writers of ``probe``'s topic heard lately, and how long two or more have been:
+        once per topic and reading, with the window of its slowest connection."""
+        if probe.topic not in counted:
+            slowest = min((c.freq_min_hz for c in self._probes.values()
+                           if c.freq_min_hz and self._resolve(c.topic) == probe.topic),
+                          default=None)
+            live = probe.writers.live(now, live_window_s(slowest, probe.writers.forget_s))
+            counted[probe.topic] = (live, probe.overlap.update(now, live))
+        return counted[probe.topic]
 
     def _publish(self) -> None:
         now = time.monotonic()
