@@ -318,7 +318,8 @@ class AgentSettings:
     node_dds_transports: str = setting(
         'UDPv4', 'FASTDDS_BUILTIN_TRANSPORTS for every node the agent starts, unless the '
                  "agent's environment or the node's launch env names one ('': Fast DDS's "
-                 'default, shared memory and UDPv4)',
+                 'default, shared memory and UDPv4); under ROS_AUTOMATIC_DISCOVERY_RANGE='
+                 'LOCALHOST rmw_fastrtps keeps shared memory whatever this says',
         choices=('', 'DEFAULT', 'UDPv4', 'UDPv6', 'DEFAULTv6', 'SHM', 'LARGE_DATA',
                  'LARGE_DATAv6'))
     # The warden (agent/warden.py) stops this agent's nodes when the agent is gone this long
