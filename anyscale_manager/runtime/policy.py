@@ -409,6 +409,12 @@ class MigrationPolicy:
             placed[d.node] = d.to_scale
         sent: Dict[str, float] = {}                     # scale -> CPU sent there this step
 
+        def beyond(node: str, far: Sequence[str]) -> bool:
+            # Placed beyond a link: where it is sent, else where it runs. A node already sent
+            # to this side of the link is not, though its old copy beyond it is reported
+            # running until the new one serves (a turn a moment later would send it again).
+            return (self.desired.get(node) or running.get(node)) in far
+
         def back(node: str, reason: str) -> None:
             if node in taken or node not in migrated:
                 return
@@ -429,30 +435,28 @@ class MigrationPolicy:
                                                             obs, node)
 
         # A link down (or silent) brings back at once everything placed beyond it, running
-        # or still starting there: waiting for the connections' Δ would be too late. A node
-        # already sent elsewhere is not: its old copy beyond the link is reported running until
-        # the new one serves (a turn a moment later would otherwise send it on again).
+        # or still starting there: waiting for the connections' Δ would be too late.
         for link_name, load in report.links.items():
             if load.up or self.master not in load.ends:
                 continue        # a link between two remote scales: the do-while below
             far = [e for e in load.ends if e != self.master]
-            beyond = [n for n in migrated if (self.desired.get(n) or running.get(n)) in far]
-            if beyond:
+            placed_beyond = [n for n in migrated if beyond(n, far)]
+            if placed_beyond:
                 actionable = True
                 reason = load.reason or f'link {link_name} down'
                 quiet = [e for e in far if e in obs.silent_agents]
                 if quiet:
                     reason += (f' and the agent of {", ".join(quiet)} is silent too: a cut link '
                                f'and a dead agent look alike from {self.master}')
-                for n in beyond:
+                for n in placed_beyond:
                     back(n, reason)
         for v in report.of_kind(LINK_DOWN, FREQUENCY):
             if v.kind == LINK_DOWN and self.master not in report.links[v.subject].ends:
                 continue        # only the connections crossing it move: the do-while below
             culprits = [n for n in v.nodes if n in migrated]
-            if v.kind == LINK_DOWN:     # as above: not one already sent to this side of it
+            if v.kind == LINK_DOWN:
                 far = [e for e in report.links[v.subject].ends if e != self.master]
-                culprits = [n for n in culprits if (self.desired.get(n) or running.get(n)) in far]
+                culprits = [n for n in culprits if beyond(n, far)]
             actionable = actionable or bool(culprits)
             for n in culprits:
                 back(n, v.reason)

@@ -350,6 +350,13 @@ def live_window_s(freq_min_hz: Optional[float], forget_s: float = 3.0) -> float:
     return min(forget_s, max(0.5, 2.0 / freq_min_hz))
 
 
+def two_senders_past(senders_for_s: Optional[float], bound_s: float) -> bool:
+    """Whether two or more writers have been heard at once for longer than ``bound_s``
+    (monitoring.duplicate_sender_s): the one rule the probes, the decider and the status view
+    judge a reading's ``senders_for_s`` by."""
+    return (senders_for_s or 0.0) > bound_s
+
+
 class SenderOverlap:
     """How long two or more writers of one topic have been heard at once, from the count of
     live writers read at each reading (``WriterStreams.live``)."""

@@ -25,6 +25,7 @@ from .liveness import LivenessWatch
 from .observations import Decision, Observations
 from .plan_check import PlanCheckReport, check_plan, expectations
 from .policy import MigrationPolicy
+from .rates import two_senders_past
 
 # (kind, node, from scale, to scale, reason, generation): one message of /anyscale/events.
 EventTuple = Tuple[str, str, str, str, str, int]
@@ -313,7 +314,7 @@ class DeciderTurn:
         max_age = self.settings.observation_max_age_s
         seen: Dict[str, Tuple[str, int, float]] = {}
         for (scale, name), r in self.book.readings.items():
-            if now - r.stamp <= max_age and r.senders_for_s > bound:
+            if now - r.stamp <= max_age and two_senders_past(r.senders_for_s, bound):
                 seen.setdefault(name, (scale, r.senders, r.senders_for_s))
         for name, (scale, senders, for_s) in sorted(seen.items()):
             if name in self._duplicated:

@@ -22,6 +22,7 @@ from .. import protocol as p
 from .. import protocol_auth as auth
 from ..model.types import Deployment
 from ..runtime.hosts import describe, shared_groups
+from ..runtime.rates import two_senders_past
 
 # A measured bandwidth older than this many probe intervals: probes fail or cannot run.
 BANDWIDTH_STALE_INTERVALS = 2.0
@@ -349,7 +350,7 @@ def _connection_rows(book: StatusBook, now: float, running) -> List[str]:
         doubled = [(v.senders, v.senders_for_s or 0.0, s)
                    for (s, n), (v, got) in book.readings.items()
                    if n == c.name and now - got <= d.decider.observation_max_age_s
-                   and (v.senders_for_s or 0.0) > d.monitoring.duplicate_sender_s]
+                   and two_senders_past(v.senders_for_s, d.monitoring.duplicate_sender_s)]
         if doubled:
             senders, for_s, scale = max(doubled, key=lambda x: x[1])
             status = f'{senders} SENDERS for {for_s:.0f} s (heard on {scale}); {status}'

@@ -21,7 +21,8 @@ from ...model.types import Connection, Deployment
 from ...protocol_auth import Sealer
 from ...runtime.bandwidth import DELIVERY_SPAN_S
 from ...runtime.delta import DeltaJudge
-from ...runtime.rates import RateWindow, SenderOverlap, WriterStreams, live_window_s
+from ...runtime.rates import (RateWindow, SenderOverlap, WriterStreams, live_window_s,
+                              two_senders_past)
 from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, scale_of,
                      status)
 
@@ -292,7 +293,8 @@ class ProbeManager:
             level, text = reading.level, _describe(conn, reading, note)
             if reading.senders is not None:
                 values['senders'] = reading.senders
-                if (reading.senders_for_s or 0.0) > self._deployment.monitoring.duplicate_sender_s:
+                if two_senders_past(reading.senders_for_s,
+                                    self._deployment.monitoring.duplicate_sender_s):
                     level = p.ERROR
                     text = (f'{reading.senders} senders for {reading.senders_for_s:.1f} s '
                             f'(copies of {conn.publisher} on more than one scale?); {text}')
