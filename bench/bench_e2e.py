@@ -109,6 +109,7 @@ def reaction(args):
                 t_back = tb.record.serving_since('robot', ('amcl', 'ar'), t_cut) or tb.now()
             tb.sleep(max(c.tolerance_s or 0 for c in conns) + window + 1.0)
             end = tb.now()
+            tb.wait_heard(end)
             with tb.lock:
                 r = tb.record
                 observed = r.delta_violations(t_cut, end, 'robot')
@@ -230,6 +231,7 @@ def throttle_reaction(args, tb):
             # Long enough for every Δ to run out and a probe to follow the congestion.
             tb.sleep(tolerance + 4.0)
             end = tb.now()
+            tb.wait_heard(end)
             with tb.lock:
                 r = tb.record
                 onsets = r.congestion_onsets(t0, end)
@@ -263,6 +265,13 @@ def throttle_reaction(args, tb):
                       f'  robot reports {timeline["reports"]}', flush=True)
             for t, e in amcl_moves:
                 print(f'  amcl {e.kind} at +{t - t0:.2f} s: {e.reason[:300]}', flush=True)
+            topics = {c.name: c.topic for c in tb.deployment.connections}
+            with tb.lock:
+                for v in observed:
+                    print(f'  observed {v.connection} below {v.end - v.start:.2f} s from '
+                          f'{v.start:.3f}: '
+                          f'{tb.record.silence(topics[v.connection], v.start, v.end)}',
+                          flush=True)
             rows.append(row)
     tb.throttle(netns.DEFAULT_RATE_KBPS)
     return rows, throttled

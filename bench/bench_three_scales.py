@@ -73,34 +73,17 @@ def out_to_server(tb):
     tb.wait_for(lambda r: not r.moves(since=tb.now() - 3.0), 30.0, 'no move for 3 s')
 
 
-def unsent_or_lost(view, topic, start, end):
-    """Around the longest silence of ``topic`` heard between start - 2 s and end: its length,
-    when it began (the monotonic clock) and how many messages its writer numbered in between
-    ('lost': sent, never heard here); 0 lost means the writer sent nothing (a stalled sender).
-    None: no numbers."""
-    pairs = [(t, s) for t, s in zip(view.arrivals.get(topic, []), view.arrival_seqs.get(topic, []))
-             if start - 2.0 <= t <= end + 0.5]
-    if len(pairs) < 2:
-        return None
-    (t0, s0), (t1, s1) = max(zip(pairs, pairs[1:]), key=lambda ab: ab[1][0] - ab[0][0])
-    if s0 < 0 or s1 < 0:
-        return None
-    return f'silent {t1 - t0:.2f} s from {t0:.3f}, lost {s1 - s0 - 1}'
-
-
 def violations(tb, start, end):
     """(scale, connection, seconds below, what the sequence numbers say) past Δ at every
     observer, and the known open ones."""
-    for scale in tb.deployment.scale_names:
-        tb.wait_for(lambda _r, s=scale: tb.views[s].heard_until >= end + 0.5, 10.0,
-                    f"the {scale} observer's lines")
+    tb.wait_heard(end)
     found = []
     topics = {c.name: c.topic for c in tb.deployment.connections}
     with tb.lock:
         for scale in tb.deployment.scale_names:
             view = tb.views[scale]
             found += [(scale, v.connection, round(v.end - v.start, 2),
-                       unsent_or_lost(view, topics[v.connection], v.start, v.end))
+                       view.silence(topics[v.connection], v.start, v.end))
                       for v in view.delta_violations(start, end, scale)]
     return ([f for f in found if f[1] not in KNOWN_OPEN],
             [f for f in found if f[1] in KNOWN_OPEN])

@@ -143,8 +143,7 @@ def delta_check(tb, start, end, what=''):
     """The Δ judgement, on the observer's arrivals: every monitored connection into the robot
     that stayed below its freq_min for longer than Δ in [start, end] (none, but the known open
     defects, is the pass), and the longest time each was read below (for the log)."""
-    tb.wait_for(lambda r: r.heard_until >= end + 0.5, 10.0,
-                "the observer's lines past the judged span")
+    tb.wait_heard(end)
     with tb.lock:
         found = tb.record.delta_violations(start, end, ROBOT)
         longest = tb.record.longest_below(start, end, ROBOT)

@@ -86,9 +86,7 @@ def moves_since(tb, t0):
 def assert_within_delta(tb, start, end, what):
     """No monitored connection past its Δ in [start, end] at any scale's observer (but the
     known open defects, printed)."""
-    for scale in SCALES:
-        tb.wait_for(lambda _r, s=scale: tb.views[s].heard_until >= end + 0.5, 10.0,
-                    f"the {scale} observer's lines past the judged span")
+    tb.wait_heard(end)
     found = []
     with tb.lock:
         for scale in SCALES:

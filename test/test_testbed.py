@@ -17,7 +17,7 @@ from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.runtime.delta import STALL_ALLOWANCE_S
 from anyscale_manager.testbed import harness, links, netns
 from anyscale_manager.testbed import schedule as sched
-from anyscale_manager.testbed.record import Record
+from anyscale_manager.testbed.record import HEARD_LAG_S, Record
 from anyscale_manager.testbed.report import (category, draw_timeline, event_log, spans,
                                              status_table, write_event_log)
 
@@ -108,6 +108,7 @@ def test_observed_violations_use_the_delta_rule(record):
     times = [i * 0.2 for i in range(50)]                  # 5 Hz until t = 9.8
     times += [14.0 + i * 0.2 for i in range(50)]          # silent 9.8 .. 14.0, then 5 Hz
     record.arrivals['/amcl_pose'] = times
+    record.heard_until = 25.0
     found = record.observed_violations(conn, 0.0, 24.0)
     assert len(found) == 1
     v = found[0]
@@ -660,6 +661,22 @@ def test_a_standby_copy_is_live_but_never_where_its_node_runs(record):
     assert 500 in record.start_counts('robot')['amcl']
 
 
+def test_the_observers_lag_is_not_judged_as_silence(record):
+    """The observer writes its arrivals every 0.2 s: judged up to "now", the messages it has
+    not written yet would read as a silence of the 40 Hz odometer (Δ 0) at the span's end. The
+    record judges only up to HEARD_LAG_S before the observer's latest line."""
+    conn = record.deployment.connection('odometer_odometry')     # freq_min 10 Hz, Δ 0
+    record.arrivals['/wheel_ticks'] = [i / 40 for i in range(400)]   # 40 Hz, 0 .. 9.975 s
+    record.heard_until = 10.2          # its latest line; what came after is not written yet
+    assert record.judged_until() == pytest.approx(10.2 - HEARD_LAG_S)
+    assert record.observed_violations(conn, 0.0, 10.4) == []
+    # Once the observer has written past the span with nothing more heard, the silence counts.
+    record.heard_until = 11.0
+    found = record.observed_violations(conn, 0.0, 10.4)
+    assert [(round(v.start, 2), round(v.end, 2)) for v in found] == [
+        (round(9.975 + 0.1 + STALL_ALLOWANCE_S, 2), 10.4)]
+
+
 def test_delta_violations_judge_the_connections_into_the_scale(record):
     """The observer's Δ judgement: amcl_ekf (EKF is pinned to the robot) always counts;
     camera_ar only while the layout has AR on the robot; Δ = 0 tolerates no reading below."""
@@ -677,6 +694,7 @@ def test_delta_violations_judge_the_connections_into_the_scale(record):
     record.arrivals['/odom'] = periodic(10.0, [(0.0, 50.0), (50.9, 60.0)])        # 0.9 s gap
     # The other topics never arrive here: every connection into the robot on them is past Δ.
     heard = ('amcl_ekf', 'camera_ar', 'odometry_ekf')
+    record.heard_until = 60.0
     found = record.delta_violations(2.0, 58.0, 'robot')
     # Each stretch starts 1/freq_min + the stall allowance after the last message heard.
     assert [(v.connection, round(v.start, 2)) for v in found if v.connection in heard] == [

@@ -171,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
                 time.sleep(0.05)
         t1 = time.monotonic()
         testbed.mark('schedule ended')
+        testbed.wait_heard(t1)          # the observers' last lines: the whole run is judged
     except HarnessError as e:
         print(f'anyscale-manager demo: {e}', file=sys.stderr)
         code = 1

@@ -540,6 +540,15 @@ class Testbed:
     def now(self) -> float:
         return time.monotonic()
 
+    def wait_heard(self, end: float, timeout_s: float = 10.0) -> None:
+        """Wait until every observer's arrivals are complete up to ``end`` (its lines have
+        come HEARD_LAG_S past it), so that a Δ judgement up to ``end`` judges the whole span."""
+        for scale, view in self.views.items():
+            if not view.topics:
+                continue        # no observer there, or one of project topics only: no Δ
+            self.wait_for(lambda _r, v=view: v.judged_until() >= end, timeout_s,
+                          f"the {scale} observer's lines past {end:.2f}")
+
     def wait_for(self, predicate: Callable[[Record], bool], timeout_s: float,
                  what: str) -> float:
         """Poll predicate(record) until true; return the monotonic time it became true."""

@@ -19,6 +19,10 @@ from ..runtime.delta import below_spans
 from ..runtime.rates import RateWindow
 
 MIGRATION_KINDS = ('migrate', 'migrate_back', 'move_away', 'rebalance')
+# How far behind its latest line the observer's arrivals may still be incomplete: it writes
+# them every 0.2 s (observer.FLUSH_S), and a message received just before a flush may have its
+# callback run after it. Judged any later, the observer's own lag would read as silence.
+HEARD_LAG_S = 0.5
 # A process the agent holds: serving, standing by, on its way up or on its way out.
 LIVE_STATES = (p.ProcState.STARTING, p.ProcState.RUNNING, p.ProcState.STANDBY,
                p.ProcState.STOPPING)
@@ -66,7 +70,8 @@ class Record:
     # The connection topics the observer subscribed to (None: every one); a connection whose
     # topic it does not hear is not judged from this record.
     topics: Optional[frozenset] = None
-    heard_until: float = -math.inf     # the observer's clock at its latest line: judge no later
+    # The observer's clock at its latest line: arrivals are judged up to HEARD_LAG_S before it.
+    heard_until: float = -math.inf
     # The deployment's key, when it has one: layouts, agent states and objectives that fail
     # its check, or repeat a sender's sequence number (a replay), are kept apart in
     # ``refused`` (time, topic, why) instead of being taken for what the system did.
@@ -301,10 +306,21 @@ class Record:
                     ) -> List[Tuple[float, float]]:
         """Stretches in [start, end] where the observer's subscriber lived below the
         connection's freq_min, by the package's one Δ rule (runtime/delta.py) on its own
-        arrival times (a stretch still open at ``end`` closes there)."""
+        arrival times (a stretch still open at ``end`` closes there). Only what the observer
+        has surely written is judged: ``end`` is cut to ``judged_until()``, so a caller that
+        judges up to "now" does not take the observer's lag for a silence (wait with the
+        harness's ``wait_heard`` first to judge the whole span)."""
         if not conn.monitored or (self.topics is not None and conn.topic not in self.topics):
             return []
+        end = min(end, self.judged_until())
+        if end <= start:
+            return []
         return below_spans(self.arrivals.get(conn.topic, []), conn.freq_min_hz, start, end)
+
+    def judged_until(self) -> float:
+        """Up to when the observer's arrivals are complete: HEARD_LAG_S before its latest
+        line."""
+        return self.heard_until - HEARD_LAG_S
 
     def observed_violations(self, conn: Connection, start: float, end: float
                             ) -> List[Violation]:
@@ -336,6 +352,21 @@ class Record:
                 if self.into(conn, scale, min(v.end, v.start + v.tolerance_s)):
                     out.append(v)
         return sorted(out, key=lambda v: v.start)
+
+    def silence(self, topic: str, start: float, end: float) -> Optional[str]:
+        """The longest silence of ``topic`` heard between start - 2 s and end + 0.5 s: its
+        length, when it began (the monotonic clock) and how many messages its writer numbered
+        in between ('lost': sent, never heard here). Lost 0 means the writer sent nothing (a
+        stalled sender), not a lossy path. None: fewer than two arrivals or no numbers."""
+        pairs = [(t, s) for t, s in zip(self.arrivals.get(topic, []),
+                                        self.arrival_seqs.get(topic, []))
+                 if start - 2.0 <= t <= end + 0.5]
+        if len(pairs) < 2:
+            return None
+        (t0, s0), (t1, s1) = max(zip(pairs, pairs[1:]), key=lambda ab: ab[1][0] - ab[0][0])
+        if s0 < 0 or s1 < 0:
+            return None
+        return f'silent {t1 - t0:.2f} s from {t0:.3f}, lost {s1 - s0 - 1}'
 
     def longest_below(self, start: float, end: float, scale: str = 'robot'
                       ) -> Dict[str, float]:

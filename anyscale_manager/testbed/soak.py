@@ -242,7 +242,7 @@ class Soak:
                          f'{row["reaction"]}{took} {row["outcome"]}')
             self.sleep(self.t0 + self.o.duration_s - time.monotonic())
             self.t_end = time.monotonic()
-            self.wait(lambda r: r.heard_until >= self.t_end + 0.5, 10.0)
+            self.wait(lambda r: r.judged_until() >= self.t_end, 10.0)
             found = self.judge()
         finally:
             teardown = self.teardown()
