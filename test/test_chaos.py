@@ -348,11 +348,19 @@ def test_the_verdict_tells_forged_rival_and_real_leaders_apart_and_counts_moves_
     assert found['rival_followed'] == [(2.5, 'robot', 'rival')]
     assert [(x['fault'], x['at_s']) for x in found['unneeded_moves_back']] == [(0, 11.0)]
     assert found['moves_back_noted'] == [] and found['duplicates'] == []
+    assert found['duplicates_reported'] == []
+    # The decider's own report of two senders counts, within the soak only.
+    robot.events += [(t, p.Event(t, 'duplicate', 'amcl', 'laptop', '', '2 senders', 2))
+                     for t in (20.0, 45.0)]
+    found = verdict.judge(d, robot, laptop, tally, [], 0.0, 40.0)
+    assert [(x['at_s'], x['node'], x['scale']) for x in found['duplicates_reported']] == [
+        (20.0, 'amcl', 'laptop')]
 
 
 def _report(**changes):
     tally = verdict.Tally(**changes)
-    found = {'duplicates': [], 'delta_violations': [], 'nowhere': [], 'unneeded_moves_back': [],
+    found = {'duplicates': [], 'duplicates_reported': [], 'delta_violations': [], 'nowhere': [],
+             'unneeded_moves_back': [],
              'forged_applied': [], 'forged_applied_count': 0, 'rival_followed': [],
              'rival_followed_count': 0, 'delta_excused': [], 'delta_known_open': []}
     teardown = {'leftovers': [], 'tracebacks': [], 'resources_end': {'decider': None}}

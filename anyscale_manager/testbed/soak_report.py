@@ -23,6 +23,7 @@ def counts(tally: Tally, samples: Samples, verdict: Dict[str, object],
     """What must never happen, counted: every one must be 0."""
     return {
         'duplicate_publishers': len(verdict['duplicates']),
+        'duplicate_publishers_reported': len(verdict['duplicates_reported']),
         'duplicate_processes': len(samples.duplicates),
         'delta_violations': len(verdict['delta_violations']),
         'nowhere': len(verdict['nowhere']),
@@ -97,7 +98,8 @@ def format_report(report: Dict[str, object]) -> str:
         growth = '-' if not g else f'{g["growth_mib"]:+.2f} MiB over {g["over_s"]:.0f} s'
         lines.append(f'{name:14} {s.get("cpu_percent", "-"):>11} {e.get("cpu_percent", "-"):>10} '
                      f'{s.get("rss_mib", "-"):>14} {e.get("rss_mib", "-"):>12} {growth:>26}')
-    for key in ('duplicates', 'delta_violations', 'nowhere', 'unneeded_moves_back',
+    for key in ('duplicates', 'duplicates_reported', 'delta_violations', 'nowhere',
+                'unneeded_moves_back',
                 'forged_applied', 'rival_followed', 'leftovers', 'tracebacks',
                 'duplicate_processes', 'moves_back_noted'):
         if report.get(key):

@@ -135,10 +135,16 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
                  for t, e in r.events if a <= t <= b and e.kind in MOVES_BACK]
         (unneeded if row['no_move_back'] else noted).extend(found)
     counted, forgiven, known = sort_violations(violations, tally.excuses, rel)
+    # The system's own account of two senders (the decider's 'duplicate' event, published past
+    # monitoring.duplicate_sender_s), beside the observer's count above: each must stay 0, and
+    # one without the other says which of the two judges is wrong.
+    reported = [{'at_s': rel(t), 'node': e.node, 'scale': e.from_scale, 'reason': e.reason[:160]}
+                for t, e in r.events if t0 <= t <= t_end and e.kind == 'duplicate']
     return {
         'duplicates': [{'node': x.node, 'topic': x.topic, 'start_s': rel(x.start),
                         'length_s': round(x.length_s, 2)} for x in dups],
         'longest_overlap_s': overlap,
+        'duplicates_reported': reported,
         'delta_violations': counted, 'delta_excused': forgiven, 'delta_known_open': known,
         'nowhere': [{'node': x.node, 'start_s': rel(x.start),
                      'length_s': round(x.length_s, 2)} for x in missing],
