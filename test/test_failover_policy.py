@@ -87,3 +87,18 @@ def test_a_node_serving_elsewhere_already_is_left_alone(d):
                        'robot': CopyObs('running', ready=True)}}
     assert not [x for x in policy.step(obs(d, 10.0, running, copies))
                 if x.kind == FAILOVER]
+
+
+def test_the_master_takes_a_crashed_node_back_whatever_its_cpu_reads(d):
+    """The robot, run near its quota by the decider and its agent, reads as full: its standby
+    copy still takes over at once, as a move back would, rather than leaving the node to a cold
+    restart in place (silent meanwhile, and sent home anyway once past Δ)."""
+    policy, running = policy_with_amcl_on(d, 'laptop')
+    running.pop('amcl')
+    copies = {'amcl': {'laptop': CopyObs('starting', crashed_at=10.0, exit_reason='x'),
+                       'robot': CopyObs('standby')}}
+    seen = obs(d, 10.0, running, copies)
+    usable = d.scale('robot').capacity_cpu * d.decider.cpu_headroom
+    seen.scales['robot'] = ScaleObs(cpu_total=usable - 1.0, stamp=10.0)
+    decisions = [x for x in policy.step(seen) if x.node == 'amcl']
+    assert [(x.kind, x.to_scale) for x in decisions] == [(FAILOVER, 'robot')]
