@@ -661,9 +661,11 @@ def test_writer_streams_count_the_writers_heard_lately():
 
 
 def test_live_window_is_two_periods_at_the_minimum_rate_within_bounds():
-    assert live_window_s(2.0) == 1.0
-    assert live_window_s(100.0) == 0.5
-    assert live_window_s(0.1) == 3.0 and live_window_s(None) == 3.0
+    forget = WriterStreams().forget_s
+    assert live_window_s(2.0, forget) == 1.0
+    assert live_window_s(100.0, forget) == 0.5
+    assert live_window_s(0.1, forget) == forget and live_window_s(None, forget) == forget
+    assert live_window_s(0.1, 2.5) == 2.5
 
 
 def test_sender_overlap_counts_from_the_first_reading_with_two():

@@ -342,9 +342,10 @@ class WriterStreams:
         return any(t >= since for t in self._joined)
 
 
-def live_window_s(freq_min_hz: Optional[float], forget_s: float = 3.0) -> float:
+def live_window_s(freq_min_hz: Optional[float], forget_s: float) -> float:
     """How recently a writer must have been heard to count as sending: two of its periods at
-    the connection's minimum rate, at least 0.5 s, at most ``forget_s``."""
+    the connection's minimum rate, at least 0.5 s, at most ``forget_s`` (the streams' own
+    memory, ``WriterStreams.forget_s``)."""
     if freq_min_hz is None or not freq_min_hz > 0:
         return forget_s
     return min(forget_s, max(0.5, 2.0 / freq_min_hz))

@@ -11,9 +11,9 @@ number); real layouts and agent states heard on the domain, sent again (replays)
 claiming that a scale runs nothing; objectives in the decider's name; and malformed payloads on
 every project topic (not JSON, NaN, unknown fields, wrong types, deep nesting, a layout of
 another deployment, out-of-bound numbers, one payload over the size limit). Well-formed
-monitor reports (a link reported down, say) are not sent: those topics are not signed, a
-documented limit (docs/decider.md). It prints what it sent, by label, as one JSON line, and
-exits 0. The test-bed's soak runs it (docs/testbed.md).
+forged monitor reports (a link reported down, a scale reported full) are tested on their own,
+with real processes, in test/test_decider_authority.py. It prints what it sent, by label, as
+one JSON line, and exits 0. The test-bed's soak runs it (docs/testbed.md).
 """
 
 import argparse
