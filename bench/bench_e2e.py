@@ -265,13 +265,10 @@ def throttle_reaction(args, tb):
                       f'  robot reports {timeline["reports"]}', flush=True)
             for t, e in amcl_moves:
                 print(f'  amcl {e.kind} at +{t - t0:.2f} s: {e.reason[:300]}', flush=True)
-            topics = {c.name: c.topic for c in tb.deployment.connections}
             with tb.lock:
                 for v in observed:
                     print(f'  observed {v.connection} below {v.end - v.start:.2f} s from '
-                          f'{v.start:.3f}: '
-                          f'{tb.record.silence(topics[v.connection], v.start, v.end)}',
-                          flush=True)
+                          f'{v.start:.3f}: {tb.record.silence(v)}', flush=True)
             rows.append(row)
     tb.throttle(netns.DEFAULT_RATE_KBPS)
     return rows, throttled

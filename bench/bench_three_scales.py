@@ -78,12 +78,11 @@ def violations(tb, start, end):
     observer, and the known open ones."""
     tb.wait_heard(end)
     found = []
-    topics = {c.name: c.topic for c in tb.deployment.connections}
     with tb.lock:
         for scale in tb.deployment.scale_names:
             view = tb.views[scale]
             found += [(scale, v.connection, round(v.end - v.start, 2),
-                       view.silence(topics[v.connection], v.start, v.end))
+                       view.silence(v))
                       for v in view.delta_violations(start, end, scale)]
     return ([f for f in found if f[1] not in KNOWN_OPEN],
             [f for f in found if f[1] in KNOWN_OPEN])

@@ -353,14 +353,16 @@ class Record:
                     out.append(v)
         return sorted(out, key=lambda v: v.start)
 
-    def silence(self, topic: str, start: float, end: float) -> Optional[str]:
-        """The longest silence of ``topic`` heard between start - 2 s and end + 0.5 s: its
-        length, when it began (the monotonic clock) and how many messages its writer numbered
-        in between ('lost': sent, never heard here). Lost 0 means the writer sent nothing (a
-        stalled sender), not a lossy path. None: fewer than two arrivals or no numbers."""
+    def silence(self, v: Violation) -> Optional[str]:
+        """Around a violation: the longest silence of its connection's topic heard between
+        its start - 2 s and its end + 0.5 s: its length, when it began (the monotonic clock)
+        and how many messages its writer numbered in between ('lost': sent, never heard here).
+        Lost 0 means the writer sent nothing (a stalled sender), not a lossy path. None: fewer
+        than two arrivals or no numbers."""
+        topic = self.deployment.connection(v.connection).topic
         pairs = [(t, s) for t, s in zip(self.arrivals.get(topic, []),
                                         self.arrival_seqs.get(topic, []))
-                 if start - 2.0 <= t <= end + 0.5]
+                 if v.start - 2.0 <= t <= v.end + 0.5]
         if len(pairs) < 2:
             return None
         (t0, s0), (t1, s1) = max(zip(pairs, pairs[1:]), key=lambda ab: ab[1][0] - ab[0][0])
