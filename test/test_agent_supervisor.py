@@ -324,7 +324,7 @@ def test_adoption_after_a_restart(make_sup):
     pid = first.pids()['n']
     # The first supervisor disappears without stopping anything (the agent was killed).
     second = make_sup([e])
-    notes = second.adopt(time.monotonic(), time.time())
+    notes = second.adopt(time.monotonic())
     assert notes == [f'n: adopted pid {pid}']
     assert second.pids() == {'n': pid} and second.wanted() == ('n',)
     assert second.reports()['n'].state == 'starting'
@@ -339,26 +339,65 @@ def test_adoption_after_a_restart(make_sup):
     assert not psutil.pid_exists(pid)                   # no zombie left
 
 
+def test_adoption_holds_across_a_clock_step_and_reads_an_earlier_versions_file(
+        make_sup, monkeypatch):
+    """The wall clock stepped (a robot's first NTP fix) while the agent was down: its nodes
+    are still adopted, not left running unsupervised. Stepping this machine's clock would
+    disturb every other process, so the step is stood in for: the boot time psutil adds to
+    every process's start moves by 2 s, as it does after a real step."""
+    e = py_entry('n', SLEEPER)
+    first = make_sup([e])
+    first.start('n', time.monotonic())
+    pid = first.pids()['n']
+    with open(first.state_path) as f:
+        saved = json.load(f)
+    assert saved['boot_id'] == procs.boot_id()
+    assert saved['nodes']['n']['start_ticks'] == procs.start_ticks(pid)
+    booted = psutil.boot_time()
+    monkeypatch.setattr(psutil._pslinux, 'boot_time', lambda: booted + 2.0)
+    second = make_sup([e])
+    assert second.adopt(time.monotonic()) == [f'n: adopted pid {pid}']
+    # A file of an earlier version (wall-clock starts only) is read as that version did: it
+    # was written after the step here, so it matches.
+    monkeypatch.undo()
+    del saved['nodes']['n']['start_ticks']
+    saved['nodes']['n']['started'] = procs.create_time(pid)
+    with open(first.state_path, 'w') as f:
+        json.dump(saved, f)
+    third = make_sup([e])
+    assert third.adopt(time.monotonic()) == [f'n: adopted pid {pid}']
+    saved['nodes']['n']['started'] -= 1.0
+    with open(first.state_path, 'w') as f:
+        json.dump(saved, f)
+    assert make_sup([e]).adopt(time.monotonic()) == [f'n: recorded pid {pid} is gone']
+    saved['boot_id'] = 'an-earlier-boot'
+    with open(first.state_path, 'w') as f:
+        json.dump(saved, f)
+    assert 'before this machine last booted' in make_sup([e]).adopt(time.monotonic())[0]
+    third.stop('n', time.monotonic())
+    assert drive(third, third.all_stopped, timeout=5.0)
+
+
 def test_adoption_refuses_a_reused_pid(make_sup, tmp_path):
     e = py_entry('n', SLEEPER)
     sup = make_sup([e])
     # A record naming a live process that is not ours: this test's own pid.
     me = psutil.Process()
     records = {
-        'n': {'pid': me.pid, 'started': me.create_time(), 'instance': 'x' * 32,
+        'n': {'pid': me.pid, 'start_ticks': procs.start_ticks(me.pid), 'instance': 'x' * 32,
               'argv': list(e.argv), 'restarts': 0},
     }
     with open(sup.state_path, 'w') as f:
         json.dump({'version': 1, 'deployment': 'd', 'scale': 's', 'nodes': records}, f)
-    notes = sup.adopt(time.monotonic(), time.time())
+    notes = sup.adopt(time.monotonic())
     assert 'token differs' in notes[0] and sup.pids() == {}
-    records['n']['started'] = me.create_time() - 100.0   # right pid, wrong start time
+    records['n']['start_ticks'] -= 1                       # right pid, another start
     with open(sup.state_path, 'w') as f:
         json.dump({'version': 1, 'deployment': 'd', 'scale': 's', 'nodes': records}, f)
-    assert 'gone' in sup.adopt(time.monotonic(), time.time())[0] and sup.pids() == {}
+    assert 'gone' in sup.adopt(time.monotonic())[0] and sup.pids() == {}
     with open(sup.state_path, 'w') as f:
         f.write('{not json')
-    assert 'unreadable' in sup.adopt(time.monotonic(), time.time())[0]
+    assert 'unreadable' in sup.adopt(time.monotonic())[0]
 
 
 def test_adopted_process_no_longer_in_the_catalogue_is_stopped(make_sup):
@@ -367,7 +406,7 @@ def test_adopted_process_no_longer_in_the_catalogue_is_stopped(make_sup):
     first.start('old', time.monotonic())
     pid = first.pids()['old']
     second = make_sup([py_entry('new', SLEEPER)])
-    notes = second.adopt(time.monotonic(), time.time())
+    notes = second.adopt(time.monotonic())
     assert 'not in the catalogue' in notes[0]
     assert drive(second, second.all_stopped, timeout=5.0)
     assert gone(pid)

@@ -18,6 +18,7 @@ import yaml
 from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
+from anyscale_manager.agent import procs
 from anyscale_manager.agent.catalogue import base_environment, build_catalogue, Entry
 from anyscale_manager.agent.supervisor import MAX_STATE_BYTES, Supervisor
 from anyscale_manager.model.loader import load_deployment, load_mapping
@@ -185,7 +186,7 @@ def test_throttled_log_keeps_a_bounded_number_of_kinds():
 # --- the agent's state file ---------------------------------------------------------------------
 
 def live_record(pid):
-    return {'pid': pid, 'started': psutil.Process(pid).create_time(), 'instance': 'x',
+    return {'pid': pid, 'start_ticks': procs.start_ticks(pid), 'instance': 'x',
             'argv': ['x'], 'restarts': 0}
 
 
@@ -212,7 +213,7 @@ def test_a_bad_state_file_adopts_nothing_and_is_kept_aside(make_sup, label, cont
     os.makedirs(os.path.dirname(sup.state_path), exist_ok=True)
     with open(sup.state_path, 'w', encoding='utf-8', errors='surrogateescape') as f:
         f.write(content())
-    notes = sup.adopt(time.monotonic(), time.time())
+    notes = sup.adopt(time.monotonic())
     assert len(notes) == 1 and words in notes[0] and sup.state_path in notes[0], notes
     assert sup.pids() == {} and sup.wanted() == ()
     # Kept for a person to read; the next save writes a fresh one.
@@ -226,8 +227,11 @@ def test_a_bad_state_file_adopts_nothing_and_is_kept_aside(make_sup, label, cont
     {'pid': float('inf'), 'started': 1.0, 'instance': 'x', 'argv': ['x']},
     {'pid': 'me', 'started': 1.0, 'instance': 'x', 'argv': ['x']},
     {'pid': 10 ** 30, 'started': float('nan'), 'instance': 'x', 'argv': 5},
+    {'pid': 5, 'start_ticks': 'soon', 'instance': 'x', 'argv': ['x']},
+    {'pid': 5, 'start_ticks': -1.5, 'instance': 'x', 'argv': ['x']},
     'a string', [1, 2], None,
-], ids=['pid Infinity', 'pid a word', 'huge pid', 'a string', 'a list', 'null'])
+], ids=['pid Infinity', 'pid a word', 'huge pid', 'ticks a word', 'ticks negative', 'a string',
+        'a list', 'null'])
 def test_a_bad_state_record_is_ignored_alone(make_sup, record):
     sleeper = subprocess.Popen([sys.executable, '-c', SLEEPER])
     try:
@@ -236,7 +240,7 @@ def test_a_bad_state_record_is_ignored_alone(make_sup, record):
         with open(sup.state_path, 'w') as f:
             # json writes Infinity and NaN as Python's reader accepts them.
             f.write(state_text({'bad': record, 'n': live_record(sleeper.pid)}))
-        notes = sup.adopt(time.monotonic(), time.time())
+        notes = sup.adopt(time.monotonic())
         assert 'bad: malformed state record; ignored' in notes, notes
         assert sleeper.poll() is None       # never signalled: its token does not match
     finally:
@@ -324,7 +328,7 @@ def test_a_full_disk_keeps_the_node_running_and_recovers(make_sup, full_disk):
     # And a restarted agent adopts it from there.
     again = Supervisor({'n': entry}, FAST, str(mount / 'log'), state_path=sup.state_path,
                        identity={'deployment': 'd', 'scale': 's'})
-    assert again.adopt(time.monotonic(), time.time()) == [f'n: adopted pid {pid}']
+    assert again.adopt(time.monotonic()) == [f'n: adopted pid {pid}']
 
 
 # --- catalogue commands -------------------------------------------------------------------------

@@ -7,6 +7,7 @@ backhaul). Cutting one link of three needs network namespaces: the test-bed's.""
 
 import os
 
+import psutil
 import pytest
 import yaml
 
@@ -71,9 +72,12 @@ def test_a_lost_server_hands_its_node_to_the_laptop_and_gets_it_back(tmp_path, r
         spin_until(ex, lambda: {(m.master, m.remote) for _, m in seen['links'] if m.up} >= {
             ('home', 'laptop'), ('home', 'server'), ('laptop', 'server')}, 15.0,
             'each link reported up by its watcher', procs)
+        fenced = seen['states']['server'].nodes['worker'].pid
         agents['server'].proc.kill()                  # SIGKILL: its warden fences the worker
         spin_until(ex, lambda: only_on(seen, 'laptop', gone=('server',)), 30.0,
                    'the worker on the laptop only', procs)
+        # Fenced: the process itself, not only the reports (two copies would serve).
+        assert not psutil.pid_exists(fenced) or psutil.Process(fenced).status() == 'zombie'
         moved = [e for e in seen['events'] if e.node == 'worker']
         assert [(e.kind, e.from_scale, e.to_scale) for e in moved] == [
             ('migrate', 'home', 'server'), ('relocate', 'server', 'laptop')], moved

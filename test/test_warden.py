@@ -106,21 +106,33 @@ def wait_for(cond, timeout_s, what):
     raise AssertionError(f'timed out after {timeout_s} s waiting for {what}')
 
 
+def recorded(pid, fence=None, prefix='', wall_clock=False):
+    """How a state file records a process: its start in clock ticks since boot, or (an agent
+    of an earlier version) on the wall clock only."""
+    rec = {f'{prefix}pid': pid}
+    if wall_clock:
+        rec[f'{prefix}started'] = procs.create_time(pid)
+    else:
+        rec[f'{prefix}start_ticks'] = procs.start_ticks(pid)
+    if fence is not None:
+        rec['fence'] = fence
+    return rec
+
+
 @pytest.mark.timeout(60)
-def test_the_nodes_of_a_killed_agent_are_stopped_and_the_echo_says_so(tmp_path):
+@pytest.mark.parametrize('wall_clock', [False, True], ids=['ticks', 'an earlier version'])
+def test_the_nodes_of_a_killed_agent_are_stopped_and_the_echo_says_so(tmp_path, wall_clock):
     agent = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
     node = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
     pinned = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
     port = free_udp_port()
     guard = None
     try:
-        wait_for(lambda: procs.create_time(node.pid) and procs.create_time(agent.pid)
-                 and procs.create_time(pinned.pid), 5.0, 'the processes')
-        state = {'agent_pid': agent.pid, 'agent_started': procs.create_time(agent.pid),
-                 'nodes': {'n': {'pid': node.pid, 'started': procs.create_time(node.pid),
-                                 'fence': True},
-                           'pinned': {'pid': pinned.pid, 'fence': False,
-                                      'started': procs.create_time(pinned.pid)}}}
+        wait_for(lambda: procs.start_ticks(node.pid) and procs.start_ticks(agent.pid)
+                 and procs.start_ticks(pinned.pid), 5.0, 'the processes')
+        state = dict(recorded(agent.pid, prefix='agent_', wall_clock=wall_clock),
+                     nodes={'n': recorded(node.pid, True, wall_clock=wall_clock),
+                            'pinned': recorded(pinned.pid, False, wall_clock=wall_clock)})
         (tmp_path / 'agent.json').write_text(json.dumps(state))
         guard = start_warden(tmp_path, port)
         assert ask(port, 1)[2] == warden.ALIVE
@@ -150,14 +162,12 @@ def test_a_successor_within_the_grace_keeps_the_nodes(tmp_path):
     port = free_udp_port()
     guard = second = None
     try:
-        wait_for(lambda: procs.create_time(node.pid) and procs.create_time(first.pid), 5.0,
+        wait_for(lambda: procs.start_ticks(node.pid) and procs.start_ticks(first.pid), 5.0,
                  'the processes')
 
         def write(agent_pid, restarting=False):
-            state = {'agent_pid': agent_pid, 'agent_started': procs.create_time(agent_pid),
-                     'restarting': restarting,
-                     'nodes': {'n': {'pid': node.pid, 'started': procs.create_time(node.pid),
-                                     'fence': True}}}
+            state = dict(recorded(agent_pid, prefix='agent_'), restarting=restarting,
+                         nodes={'n': recorded(node.pid, True)})
             tmp = tmp_path / 'agent.json.tmp'
             tmp.write_text(json.dumps(state))
             os.replace(tmp, tmp_path / 'agent.json')
@@ -169,7 +179,7 @@ def test_a_successor_within_the_grace_keeps_the_nodes(tmp_path):
         time.sleep(1.0)                             # longer than the adopt grace (0.3 s)
         assert node.poll() is None and ask(port, 2)[2] == warden.RESTARTING
         second = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
-        wait_for(lambda: procs.create_time(second.pid), 5.0, 'the successor')
+        wait_for(lambda: procs.start_ticks(second.pid), 5.0, 'the successor')
         write(second.pid)
         wait_for(lambda: ask(port, 3)[2] == warden.ALIVE, 5.0, 'the successor seen alive')
         assert node.poll() is None
@@ -201,3 +211,41 @@ print('rr' if got else 'normal')
                           timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() in ('rr', 'normal')
+
+
+def test_a_clock_step_hides_no_node_from_the_warden(tmp_path, monkeypatch):
+    """A node recorded before the wall clock was stepped (a robot's first NTP fix) is still
+    found and fenced. Stepping this machine's clock would disturb every other process, so the
+    step is stood in for: the boot time psutil adds to every process's start moves by 2 s, as
+    it does after a real step."""
+    import psutil
+    node = subprocess.Popen([sys.executable, '-c', SLEEPER], start_new_session=True)
+    try:
+        wait_for(lambda: procs.start_ticks(node.pid), 5.0, 'the node')
+        path = tmp_path / 'agent.json'
+        path.write_text(json.dumps({'boot_id': procs.boot_id(), 'agent_pid': 0, 'nodes': {
+            'n': dict(recorded(node.pid, True), started=procs.create_time(node.pid))}}))
+        booted = psutil.boot_time()
+        monkeypatch.setattr(psutil._pslinux, 'boot_time', lambda: booted + 2.0)
+        assert abs(procs.create_time(node.pid) - json.loads(path.read_text())['nodes']['n'][
+            'started'] - 2.0) < 0.01                               # the step is seen
+        view = warden.read_state(str(path))
+        assert view.nodes == ((node.pid, procs.start_ticks(node.pid)),)
+        assert warden.fence(view.nodes, 2.0, lambda text: None) == 1
+        wait_for(lambda: node.poll() is not None, 5.0, 'the node stopped')
+    finally:
+        if node.poll() is None:
+            node.kill()
+        node.wait()
+
+
+def test_a_state_file_of_another_boot_names_nothing_alive(tmp_path):
+    path = tmp_path / 'agent.json'
+    me = os.getpid()
+    path.write_text(json.dumps(dict(recorded(me, prefix='agent_'), boot_id='an-earlier-boot',
+                                    nodes={'n': recorded(me, True)})))
+    assert warden.read_state(str(path)) == warden.AgentView()
+    path.write_text(json.dumps(dict(recorded(me, prefix='agent_'), boot_id=procs.boot_id(),
+                                    nodes={'n': recorded(me, True)})))
+    view = warden.read_state(str(path))
+    assert view.pid == me and view.nodes == ((me, procs.start_ticks(me)),)

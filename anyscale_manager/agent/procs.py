@@ -123,10 +123,70 @@ def descendants(pid: int) -> Tuple[int, ...]:
 
 
 def create_time(pid: int) -> Optional[float]:
+    """When ``pid`` started, on the wall clock (seconds since the epoch): for people and for
+    state files read by earlier versions, never to tell a process apart (see ``start_ticks``)."""
     try:
         return psutil.Process(pid).create_time()
     except (psutil.NoSuchProcess, psutil.AccessDenied):
         return None
+
+
+def start_ticks(pid: int) -> Optional[int]:
+    """When ``pid`` started, in clock ticks since boot (/proc/PID/stat, field 22), or None when
+    it is gone. With the pid it names one process for as long as the machine runs. A start
+    time on the wall clock does not: it is the boot time plus these ticks, and the boot time
+    moves whenever the clock is stepped (a robot's first NTP fix after a boot without a
+    real-time clock, a paused or migrated virtual machine), after which every recorded process
+    would read as gone."""
+    rest = _stat_fields(pid)
+    try:
+        return int(rest[19])
+    except (TypeError, IndexError, ValueError):
+        return None
+
+
+def age_s(ticks: int) -> float:
+    """Seconds since a process that started at ``ticks`` (``start_ticks``) started."""
+    return max(0.0, time.clock_gettime(time.CLOCK_BOOTTIME) - ticks / _TICKS)
+
+
+def wall_start(ticks: int) -> float:
+    """A start in ticks (``start_ticks``) on the wall clock, as ``create_time`` gives it: what
+    state-file readers of earlier versions compare."""
+    return psutil.boot_time() + ticks / _TICKS
+
+
+def boot_id() -> str:
+    """This boot's identity (the kernel's random boot id): a state file written under another
+    boot names processes that are all gone, whatever their pids and ticks."""
+    try:
+        with open('/proc/sys/kernel/random/boot_id', encoding='ascii') as f:
+            return f.read().strip()
+    except OSError:
+        return ''
+
+
+def alive(pid: int, ticks: int) -> bool:
+    """The process with this pid and start (``start_ticks``) is alive (not a zombie)."""
+    rest = _stat_fields(pid)
+    try:
+        return rest[0] not in (b'Z', b'X') and int(rest[19]) == ticks
+    except (TypeError, IndexError, ValueError):
+        return False
+
+
+def recorded_start(pid: int, ticks: object, wall: object) -> Optional[int]:
+    """The start of process ``pid`` as a state file recorded it, in ticks (``start_ticks``).
+    A file of an earlier version has only its start on the wall clock, ``wall``: then the
+    live process's ticks if its wall-clock start is within 0.05 s of it (that version's
+    rule), else None (gone, or another process)."""
+    if isinstance(ticks, int) and not isinstance(ticks, bool):
+        return ticks
+    if isinstance(wall, (int, float)) and not isinstance(wall, bool):
+        now = create_time(pid)
+        if now is not None and abs(now - wall) <= 0.05:
+            return start_ticks(pid)
+    return None
 
 
 def reap(pid: int) -> Optional[Tuple[bool, Optional[int]]]:
@@ -141,17 +201,6 @@ def reap(pid: int) -> Optional[Tuple[bool, Optional[int]]]:
     if got == 0:
         return False, None
     return True, os.waitstatus_to_exitcode(status)
-
-
-def alive(pid: int, started: float) -> bool:
-    """The process with this pid and start time is alive (not a zombie)."""
-    try:
-        proc = psutil.Process(pid)
-        if abs(proc.create_time() - started) > 0.05:
-            return False
-        return proc.status() != psutil.STATUS_ZOMBIE
-    except (psutil.NoSuchProcess, psutil.AccessDenied):
-        return False
 
 
 def environ_value(pid: int, name: str, exec_wait_s: float = 0.0) -> Optional[str]:

@@ -8,8 +8,8 @@ environment, its output appended to a log file of its own. Stopping sends SIGINT
 group, then SIGTERM after ``sigint_grace_s``, then SIGKILL after ``sigterm_grace_s``; a node that
 dies unasked is reported with its exit reason, whatever is left of its group is killed, and it
 is restarted after a backoff that doubles up to ``restart_backoff_max_s``. A state file records
-what runs, so that a restarted agent adopts its nodes (pid, process start time and a per-start
-token must all match) instead of starting them twice.
+what runs, so that a restarted agent adopts its nodes (pid, process start in clock ticks since
+boot, the boot and a per-start token must all match) instead of starting them twice.
 
 Processes only: a lifecycle node's states (a standby copy is a live, inactive process) are the
 caller's (agent/lifecycle.py); its ``visible`` predicate says when such a process answers.
@@ -58,7 +58,7 @@ class _Proc:
     wanted: bool = False
     popen: Optional[subprocess.Popen] = None
     pid: int = 0
-    started: float = 0.0          # process start time (seconds since the epoch, from /proc)
+    started: int = 0              # process start, clock ticks since boot (procs.start_ticks)
     instance: str = ''
     since: float = 0.0
     restarts: int = 0
@@ -102,7 +102,8 @@ class Supervisor:
         self.watch_exit: Callable[[int], object] = lambda pid: None
         # What the scale's warden reads of this agent (agent/warden.py): who it is, and whether
         # it restarts in place now or has stopped every node and left.
-        self.agent_started = procs.create_time(os.getpid())
+        self.agent_started = procs.start_ticks(os.getpid()) or 0
+        self.boot_id = procs.boot_id()
         self.restarting = False
         self.stopped = False
         # The nodes the warden stops when this agent dies: those a decider could start
@@ -261,7 +262,7 @@ class Supervisor:
         if not gone:
             p.strays = tuple(set(p.strays) | set(procs.descendants(p.pid)))
         members = procs.session_members(p.pid) if p.pid else []
-        strays = [s for s in p.strays if procs.create_time(s) is not None]
+        strays = [s for s in p.strays if procs.start_ticks(s) is not None]
         if gone and not members and not strays:
             reason = 'stopped' if code is None else f'stopped ({procs.describe_exit(code)})'
             if p.stop_phase >= 1:
@@ -367,7 +368,7 @@ class Supervisor:
                 log.close()
         p.pid = p.popen.pid
         self.watch_exit(p.pid)
-        p.started = procs.create_time(p.pid) or 0.0
+        p.started = procs.start_ticks(p.pid) or 0
         p.adopted = False
         p.strays = ()
         p.ports, p.ports_next, p.ports_until = frozenset(), now, now + PORTS_LOOK_S
@@ -478,13 +479,16 @@ class Supervisor:
         nodes = {}
         for name, p in list(self._procs.items()) + list(self._ghosts.items()):
             if p.state in ACTIVE and p.pid:
-                nodes[name] = {'pid': p.pid, 'started': p.started, 'instance': p.instance,
+                # 'started' (the wall clock) is for a warden of an earlier version only.
+                nodes[name] = {'pid': p.pid, 'start_ticks': p.started,
+                               'started': procs.wall_start(p.started), 'instance': p.instance,
                                'argv': list(p.entry.argv), 'restarts': p.restarts,
                                'stopping': p.state == ProcState.STOPPING,
                                'fence': name in self.fenceable}
-        data = dict(self.identity, version=STATE_VERSION, agent_pid=os.getpid(), nodes=nodes,
-                    agent_started=self.agent_started, restarting=self.restarting,
-                    stopped=self.stopped)
+        data = dict(self.identity, version=STATE_VERSION, boot_id=self.boot_id,
+                    agent_pid=os.getpid(), agent_start_ticks=self.agent_started,
+                    agent_started=procs.wall_start(self.agent_started),
+                    restarting=self.restarting, stopped=self.stopped, nodes=nodes)
         tmp = f'{self.state_path}.{os.getpid()}.tmp'
         try:
             os.makedirs(os.path.dirname(self.state_path) or '.', exist_ok=True)
@@ -510,11 +514,13 @@ class Supervisor:
                                 f'{self._save_failures} failed writes)')
             self._save_failures = 0
 
-    def adopt(self, now: float, wall_now: float) -> List[str]:
+    def adopt(self, now: float) -> List[str]:
         """Take over the nodes a previous agent recorded; return what was done, in words.
 
-        A recorded process is ours only if its pid, its start time and the per-start token in its
-        environment all match: a reused pid is never signalled. An adopted node whose argv no
+        A recorded process is ours only if the boot, its pid, its start (ticks since boot) and
+        the per-start token in its environment all match: a reused pid is never signalled. A
+        file of an earlier version has no ticks: its wall-clock start is checked as that version
+        did (``procs.recorded_start``). An adopted node whose argv no
         longer matches the catalogue, or that is no longer in it, is stopped.
         """
         notes: List[str] = []
@@ -553,15 +559,25 @@ class Supervisor:
                 notes.append(f'state file {self.state_path} is for {k} {data.get(k)!r}, not '
                              f'{self.identity[k]!r}; adopting nothing')
                 return notes
+        if data.get('boot_id', self.boot_id) != self.boot_id:
+            notes.append(f'state file {self.state_path} was written before this machine last '
+                         'booted: what it records is gone; adopting nothing')
+            return notes
         for name, rec in nodes.items():
             try:
-                pid, started, instance = int(rec['pid']), float(rec['started']), \
-                    str(rec['instance'])
+                pid, instance = int(rec['pid']), str(rec['instance'])
                 argv = tuple(str(a) for a in rec['argv'])
+                ticks = rec.get('start_ticks')
+                if ticks is None:
+                    float(rec['started'])               # written by an earlier version
+                elif not isinstance(ticks, int) or isinstance(ticks, bool) or ticks < 0:
+                    raise ValueError(ticks)
             except (KeyError, TypeError, ValueError, OverflowError):
                 notes.append(f'{name[:60]}: malformed state record; ignored')
                 continue
-            if pid <= 1 or not procs.alive(pid, started):
+            started = procs.recorded_start(pid, rec.get('start_ticks'), rec.get('started')) \
+                if pid > 1 else None
+            if started is None or not procs.alive(pid, started):
                 notes.append(f'{name}: recorded pid {pid} is gone')
                 continue
             if procs.environ_value(pid, ENV_INSTANCE, exec_wait_s=0.5) != instance:
@@ -572,12 +588,12 @@ class Supervisor:
             if p is None:
                 # Ours, but no longer in the catalogue: stop it, never restart it.
                 ghost = _Proc(entry=Entry(name=name, argv=argv))
-                self._take(ghost, pid, started, instance, now, wall_now, rec)
+                self._take(ghost, pid, started, instance, now, rec)
                 self._begin_stop(ghost, now)
                 self._ghosts[name] = ghost
                 notes.append(f'{name}: pid {pid} is not in the catalogue; stopping it')
                 continue
-            self._take(p, pid, started, instance, now, wall_now, rec)
+            self._take(p, pid, started, instance, now, rec)
             if argv != p.entry.argv or rec.get('stopping') or rec.get('standby'):
                 p.wanted = False
                 self._begin_stop(p, now)
@@ -589,8 +605,8 @@ class Supervisor:
         self._dirty = True
         return notes
 
-    def _take(self, p: _Proc, pid: int, started: float, instance: str, now: float,
-              wall_now: float, rec: Mapping) -> None:
+    def _take(self, p: _Proc, pid: int, started: int, instance: str, now: float,
+              rec: Mapping) -> None:
         p.pid = pid
         p.started = started
         p.instance = instance
@@ -606,5 +622,5 @@ class Supervisor:
         p.backoff_s = 0.0
         p.ready_deadline = now + self.settings.readiness_timeout_s
         self._set(p, ProcState.STARTING, now, ready=False, reason='')
-        # Report the process's own start time on the caller's clock.
-        p.since = now - max(0.0, wall_now - started)
+        # Report the process's own start on the caller's clock.
+        p.since = now - procs.age_s(started)

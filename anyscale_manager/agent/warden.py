@@ -62,10 +62,10 @@ class AgentView:
     """What the state file says of the agent."""
 
     pid: int = 0
-    started: Optional[float] = None
+    started: Optional[int] = None               # its start, clock ticks since boot
     restarting: bool = False
     stopped: bool = False
-    nodes: Tuple[Tuple[int, float], ...] = ()    # (pid, start time) of each node to fence
+    nodes: Tuple[Tuple[int, int], ...] = ()     # (pid, start in ticks) of each node to fence
 
 
 class Verdict:
@@ -106,13 +106,13 @@ class Verdict:
 class AgentWatch:
     """Whether the agent process named in the state file lives: a pidfd that the warden's
     wait includes (its death wakes the loop at once), checked against the process's start time
-    when it is first followed (a reused pid is not the agent)."""
+    when it is first followed (a reused pid is not the agent; ``procs.start_ticks``)."""
 
     def __init__(self) -> None:
         self._fd: Optional[int] = None
         self._dead = True
 
-    def follow(self, pid: int, started: Optional[float]) -> None:
+    def follow(self, pid: int, started: Optional[int]) -> None:
         from . import procs
         self.close()
         self._dead = True
@@ -143,7 +143,11 @@ class AgentWatch:
 
 
 def read_state(path: str) -> Optional[AgentView]:
-    """The agent's state file, or None if it cannot be read now (being replaced, absent)."""
+    """The agent's state file, or None if it cannot be read now (being replaced, absent). A
+    file written under another boot names nothing alive. Starts are read as clock ticks since
+    boot; a file of an earlier version has only wall-clock starts, matched against the live
+    processes as that version did (``procs.recorded_start``)."""
+    from . import procs
     try:
         with open(path, encoding='utf-8') as f:
             data = json.load(f)
@@ -151,15 +155,22 @@ def read_state(path: str) -> Optional[AgentView]:
         return None
     if not isinstance(data, dict):
         return None
+    if data.get('boot_id', procs.boot_id()) != procs.boot_id():
+        return AgentView()
     nodes = []
     for rec in (data.get('nodes') or {}).values():
-        if isinstance(rec, dict) and isinstance(rec.get('pid'), int) and rec.get('fence') \
-                and isinstance(rec.get('started'), (int, float)):
-            nodes.append((rec['pid'], float(rec['started'])))
+        if isinstance(rec, dict) and isinstance(rec.get('pid'), int) and rec.get('fence'):
+            ticks = procs.recorded_start(rec['pid'], rec.get('start_ticks'), rec.get('started'))
+            if ticks is not None:
+                nodes.append((rec['pid'], ticks))
     pid = data.get('agent_pid')
-    started = data.get('agent_started')
-    return AgentView(pid=pid if isinstance(pid, int) else 0,
-                     started=float(started) if isinstance(started, (int, float)) else None,
+    pid = pid if isinstance(pid, int) and not isinstance(pid, bool) else 0
+    started = None
+    if pid > 0 and ('agent_start_ticks' in data or 'agent_started' in data):
+        started = procs.recorded_start(pid, data.get('agent_start_ticks'),
+                                       data.get('agent_started'))
+        pid = pid if started is not None else 0       # gone, or another process now
+    return AgentView(pid=pid, started=started,
                      restarting=data.get('restarting') is True,
                      stopped=data.get('stopped') is True, nodes=tuple(nodes))
 
@@ -223,9 +234,9 @@ def beat(deployment: str, scale: str, seq: int, key: Optional[bytes] = None,
     return _encode({'d': deployment, 'to': scale, 'm': monitor, 'seq': seq}, key)
 
 
-def fence(nodes: Tuple[Tuple[int, float], ...], grace_s: float,
+def fence(nodes: Tuple[Tuple[int, int], ...], grace_s: float,
           say: Callable[[str], None]) -> int:
-    """Stop every node still alive (same pid and start time): SIGINT to its session, SIGKILL
+    """Stop every node still alive (same pid and start): SIGINT to its session, SIGKILL
     after ``grace_s``. Returns how many were stopped."""
     from . import procs
     live = [(pid, started) for pid, started in nodes if procs.alive(pid, started)]

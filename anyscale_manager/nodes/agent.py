@@ -178,7 +178,7 @@ class AgentNode(Node):
         self._exit_wake = self.create_timer(EXIT_WAKE_S, self._on_exit)
         self._exit_wake.cancel()
         self.supervisor.watch_exit = ExitWatcher(self._exit_wake.reset).watch
-        for note in self.supervisor.adopt(time.monotonic(), time.time()):
+        for note in self.supervisor.adopt(time.monotonic()):
             if note.startswith('state file'):       # unreadable, or not this agent's
                 self.get_logger().warn(f'adoption: {note}')
             else:
