@@ -12,7 +12,7 @@ from typing import Dict
 KNOWN_OPEN: Dict[str, str] = {
     'odometer_odometry': 'the 40 Hz odometer (Δ 0) on the CPU-capped robot can miss by '
                          '0.03 s in the soak (seen in a CI run at 9877e8d); its misses in '
-                         'throttles were the judges lag, fixed in f10ab4a',
+                         "throttles were the judge's lag, fixed in f10ab4a",
     'amcl_ekf': 'AMCL made active on the CPU-capped robot (after a cut, a move back) can run at '
                 'about its 2 Hz minimum for seconds while AR starts beside it; on three scales '
                 'once 2.56 s below with AMCL on the laptop, cause not found',
