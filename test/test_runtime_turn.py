@@ -180,6 +180,33 @@ def test_leading_on_from_what_runs_when_the_leaders_layout_was_not_heard(d):
     assert turn.layout['amcl'] == 'laptop'
 
 
+def test_a_takeover_of_an_unheard_layout_waits_for_every_agents_report(d):
+    """A standby just started heard the leader's beat but neither its layout nor the laptop's
+    agent before the leader died: adopting then would bring home what serves on the laptop
+    (seen in CI: the worker sent home by the takeover). It waits for that report, at most
+    agent_timeout_s after its start."""
+    runs = dict(master_layout(d), amcl='laptop')
+    standby = [n for n in d.node_names if d.standby_scales(n)]
+    turn = DeciderTurn(d, d.decider, started=10.0)
+    turn.book.agent_state(agent(d, 'robot', runs, 5, standby), 10.2)
+    out = turn.lead(10.9, TAKEOVER, took_over=True)
+    assert out is not None and not out.layouts and turn.layout is None
+    assert [e[0] for e in out.events] == ['takeover']
+    assert any('not yet: laptop' in text for _, text in out.logs), out.logs
+    assert not turn.turn(11.0).layouts                      # still not heard: nothing said
+    turn.book.agent_state(agent(d, 'laptop', runs, 5, standby), 11.1)
+    out = turn.turn(11.2)
+    ((generation, layout, why),) = out.layouts
+    assert layout == runs and generation == 6 and why.startswith(TAKEOVER), why
+    assert 'its layout was not heard: what runs is adopted' in why
+    # A laptop that never reports: adopted from the robot alone, agent_timeout_s after start.
+    late = DeciderTurn(d, d.decider, started=10.0)
+    late.book.agent_state(agent(d, 'robot', runs, 5, standby), 10.2)
+    late.lead(10.9, TAKEOVER, took_over=True)
+    assert not late.turn(10.0 + d.decider.agent_timeout_s - 0.1).layouts
+    assert late.turn(10.0 + d.decider.agent_timeout_s).layouts
+
+
 def test_a_leader_that_stood_down_leads_on_from_its_own_layout(d):
     turn = DeciderTurn(d, d.decider, started=0.0)
     feed(turn, d, 1.0, master_layout(d))

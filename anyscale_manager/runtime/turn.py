@@ -108,6 +108,9 @@ class DeciderTurn:
         self._active: Set[Tuple[str, str]] = set()    # (kind, subject) violations announced
         self._said: Set[str] = set()                  # warnings and notes announced
         self._duplicated: Set[str] = set()            # connections announced with two senders
+        # Why this decider took over a leader whose layout it never heard, until every agent
+        # has said what runs (the layout it then adopts).
+        self._takeover_waits: Optional[str] = None
 
     def update_settings(self, settings: DeciderSettings) -> None:
         self.settings = settings
@@ -122,12 +125,13 @@ class DeciderTurn:
         held back for the agents."""
         out = TurnOutput()
         if self.layout is None:
-            waited = now - self.started
-            if observed is None and not (self.book.all_agents_heard()
-                                         or waited >= self.settings.agent_timeout_s):
+            if observed is None and not self._agents_known(now):
                 out.message = 'waiting for the agents to report what runs'
                 return out
-            self._start(now, out, observed)
+            if self._takeover_waits is not None:
+                out = self.take_over(now, None, 0, self._takeover_waits)
+            else:
+                self._start(now, out, observed)
         layout = self._layout()
         obs = observed if observed is not None else self.book.snapshot(now, layout)
         decisions = self.policy.step(obs)
@@ -229,6 +233,11 @@ class DeciderTurn:
                         + ', '.join(lost) + ' at start')
         out.logs.append(('info', f'generation {self.generation}: {reason}'))
 
+    def _agents_known(self, now: float) -> bool:
+        """Whether what runs is known well enough to adopt it: every agent has reported, or
+        agent_timeout_s has passed since this decider started (the silent ones count as lost)."""
+        return self.book.all_agents_heard() or now - self.started >= self.settings.agent_timeout_s
+
     # --- a standby's turn ----------------------------------------------------------------------
     def heard_decision(self, kind: str, node: str, from_scale: str, now: float) -> None:
         """The leader's decision (its event), remembered for hysteresis after a takeover."""
@@ -241,15 +250,25 @@ class DeciderTurn:
         ``heard``: the last layout (generation, assignments) of the leader it takes over from,
         when it heard one: that layout. Else its own last layout (a leader that stepped down
         leads again). Else, ``took_over`` a leader whose layout it did not hear (it died just
-        after this decider found it): what runs, as the agents report it. A decider that leads
-        without having followed anyone returns None: its first turn makes the first layout.
-        A takeover is also said as an event of its own."""
+        after this decider found it): what runs, as the agents report it, once every agent has
+        reported (a standby just started may not have heard them all yet: adopting then would
+        move what runs on the scales not heard; until then the layout stands and its first turn
+        takes over). A decider that leads without having followed anyone returns None: its
+        first turn makes the first layout. A takeover is also said as an event of its own."""
         if heard is not None:
             out = self.take_over(now, dict(heard[1]), heard[0], reason)
         elif self.layout is not None:
             out = self.take_over(now, dict(self.layout), self.generation, reason)
-        elif took_over:
+        elif took_over and self._agents_known(now):
             out = self.take_over(now, None, 0, reason)
+        elif took_over:
+            self._takeover_waits = reason
+            out = TurnOutput()
+            missing = sorted(set(self.deployment.scale_names) - set(self.book.agents))
+            out.logs.append(('info', f'{reason}; {NOT_HEARD} once every agent has reported '
+                                     f'(not yet: {", ".join(missing)}; at most '
+                                     f'{self.settings.agent_timeout_s:g} s after this decider '
+                                     'started)'))
         else:
             return None
         if took_over:
@@ -263,6 +282,7 @@ class DeciderTurn:
         ``assignments`` None: its layout was not heard: what runs, as the agents report it,
         is adopted."""
         out = TurnOutput()
+        self._takeover_waits = None
         running = self._running(now)
         if assignments is None:
             assignments, notes = adopt(self.deployment, self.planned, running)
