@@ -1,7 +1,6 @@
 """The monitors' rclpy glue with real nodes, real publishers and real DDS (loopback only)."""
 
 import dataclasses
-import os
 import socket
 import subprocess
 import sys
@@ -15,7 +14,6 @@ from std_msgs.msg import String, UInt8MultiArray
 from anyscale_manager import protocol as p
 from anyscale_manager.agent import warden
 from anyscale_manager.model.loader import load_deployment
-from anyscale_manager.testbed import harness, netns
 from anyscale_manager.nodes.monitors import (LATCHED_QOS, STATUS_QOS, LinkMonitor,
                                              ProbeManager, ProbeServer, ScaleMonitor,
                                              import_message_class, probe_throughput)
@@ -530,117 +528,6 @@ def test_link_monitor_refuses_unknown_scale(ros, deployment):
         ProbeManager(make('y'), deployment, 'mars')
 
 
-if __name__ == '__main__':
-    sys.exit(pytest.main([__file__, '-v']))
-
-
-# --- congestion on a real shaped link ----------------------------------------------------------
-
-NETNS_OK, NETNS_WHY = netns.available()
-HOST = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'fixtures',
-                    'link_monitor_host.py')
-SINK = '''
-import socket, sys, threading
-s = socket.socket(); s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-s.bind(("0.0.0.0", int(sys.argv[1]))); s.listen(4)
-def drain(c):
-    try:
-        while c.recv(65536):
-            pass
-    except OSError:
-        pass
-while True:
-    c, _ = s.accept(); threading.Thread(target=drain, args=(c,), daemon=True).start()
-'''
-FLOOD = '''
-import socket, struct, sys, time
-s = socket.create_connection((sys.argv[1], int(sys.argv[2])), timeout=5.0)
-b = b"x" * 8192; t = time.monotonic()
-while time.monotonic() - t < float(sys.argv[3]):
-    s.send(b)
-s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
-s.close()
-'''
-
-
-@pytest.mark.timeout(120)
-@pytest.mark.skipif(not NETNS_OK, reason=f'no namespaces here: {NETNS_WHY}')
-def test_link_monitor_sees_a_full_queue_and_never_probes_it(testbed_path, python, tmp_path):
-    """Two namespaces joined by a 3 Mbit/s token bucket; the master's LinkMonitor in one, the
-    remote's in the other, each in its own process. A bulk TCP flow fills the link's queue: it
-    is judged congested within a second, and not probed while so (a probe would add to the
-    queue; nothing of ours crosses it, so nothing delivers below its need either)."""
-    net = netns.Network(rate_kbps=3000.0)
-    with net:
-        robot_ip, laptop_ip = net.addresses['robot'], net.addresses['laptop']
-        domain = int(os.environ['ROS_DOMAIN_ID'])
-        logs = str(tmp_path / 'ros_log')
-        probe_port, sink_port = str(free_port()), str(free_port())
-
-        def host(scale):
-            return [python, HOST, testbed_path, scale, robot_ip, laptop_ip, probe_port]
-        net.popen('laptop', host('laptop'), harness.child_env(domain, logs, robot_ip),
-                  cpu_quota=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        net.popen('laptop', [python, '-c', SINK, sink_port], {'PATH': os.environ['PATH']},
-                  cpu_quota=False)
-        master_log = tmp_path / 'master.err'
-        with open(master_log, 'wb') as err:
-            master = net.popen('robot', host('robot'), harness.child_env(domain, logs, laptop_ip),
-                               cpu_quota=False, stdout=subprocess.PIPE, stderr=err)
-        seen = []                                   # (time, LinkStatus)
-        lock = threading.Lock()
-
-        def read():
-            for raw in iter(master.stdout.readline, b''):
-                with lock:
-                    seen.append((time.monotonic(), p.LinkStatus.from_json(raw.decode())))
-        threading.Thread(target=read, daemon=True).start()
-
-        def wait(condition, timeout_s, what):
-            deadline = time.monotonic() + timeout_s
-            while time.monotonic() < deadline:
-                with lock:
-                    found = [(t, s) for t, s in seen if condition(t, s)]
-                if found:
-                    return found[0]
-                assert master.poll() is None, \
-                    f'the master monitor exited:\n{master_log.read_text()[-3000:]}'
-                time.sleep(0.05)
-            with lock:
-                last = seen[-3:]
-            raise AssertionError(f'timed out after {timeout_s} s waiting for {what}; last {last}')
-
-        # Up, probed once at its return (the probe fills the queue itself, and is not counted),
-        # and calm: the delay is judged and small.
-        t_calm, _ = wait(lambda t, s: s.up and s.bandwidth_available_kbps is not None
-                         and s.queueing_delay_ms is not None, 40.0, 'a probed, judged link')
-        calm_until = t_calm + 2.0
-        wait(lambda t, s: t >= calm_until, 10.0, 'two calm seconds')
-        with lock:
-            calm = [s for t, s in seen if t_calm <= t <= calm_until]
-        assert not any(s.congested for s in calm), calm
-        assert max(s.queueing_delay_ms for s in calm) < 20.0
-        probed = calm[-1].bandwidth_available_kbps
-        print(f'first probe {probed:.0f} kbit/s')
-        assert 1000.0 <= probed <= 3600.0, probed     # the probe measured the 3 Mbit/s bucket
-
-        t_flood = time.monotonic()
-        flood = net.popen('robot', [python, '-c', FLOOD, laptop_ip, sink_port, '5'],
-                          {'PATH': os.environ['PATH']}, cpu_quota=False)
-        t_seen, status = wait(lambda t, s: t >= t_flood and s.congested, 5.0, 'congestion')
-        assert status.up and status.queueing_delay_ms > 50.0
-        flood.wait(timeout=15)
-        t_end = time.monotonic()
-        t_clear, _ = wait(lambda t, s: t >= t_end and not s.congested, 5.0,
-                          'congestion to clear after the flow')
-        with lock:
-            during = [s for t, s in seen if t_seen <= t <= t_clear]
-        assert all(s.bandwidth_available_kbps == probed for s in during), \
-            sorted({s.bandwidth_available_kbps for s in during})
-        print(f'congestion seen {t_seen - t_flood:.2f} s into the flow, never probed, cleared '
-              f'{t_clear - t_end:.2f} s after it')
-
-
 def test_a_message_is_placed_at_its_dds_reception_time_never_in_the_future():
     from anyscale_manager.nodes.monitors.probes import received_at
     info = {'received_timestamp': int(1000.25 * 1e9)}
@@ -648,3 +535,7 @@ def test_a_message_is_placed_at_its_dds_reception_time_never_in_the_future():
     assert received_at(info, offset_s=990.0, now=10.0) == 10.0     # a clock step: not later
     assert received_at({}, offset_s=990.0, now=12.0) == 12.0        # none given: now
     assert received_at(None, offset_s=990.0, now=12.0) == 12.0
+
+
+if __name__ == '__main__':
+    sys.exit(pytest.main([__file__, '-v']))

@@ -67,6 +67,7 @@ class _Remote:
     was_up: bool = False
     probing: bool = False
     probe_done: float = -math.inf      # when this monitor's last probe ended
+    probe_acked: float = -math.inf     # when the link last acknowledged the running probe's data
     congested: bool = False
     delay_s: Optional[float] = None
     quiet_since: float = -math.inf     # beats sent earlier say nothing of congestion
@@ -276,6 +277,7 @@ class LinkMonitor:
                     and remote.bandwidth.due(now, self._up(remote, now), used, remote.congested):
                 remote.bandwidth.started(now)
                 remote.probing = True
+                remote.probe_acked = -math.inf
                 remote.quiet_since = math.inf      # the probe fills the queue on purpose
                 threading.Thread(target=self._run_probe, args=(remote, used), daemon=True,
                                  name=f'anyscale-bw-{name}').start()
@@ -344,7 +346,8 @@ class LinkMonitor:
                                           warden.warden_port(self._deployment, remote.scale.name),
                                           self._probe_duration,
                                           deployment=self._deployment.name,
-                                          scale=remote.scale.name), ''
+                                          scale=remote.scale.name,
+                                          acked=lambda t: setattr(remote, 'probe_acked', t)), ''
         except (OSError, ValueError) as e:
             bps, error = None, str(e) or type(e).__name__
         with self._lock:
@@ -369,13 +372,17 @@ class LinkMonitor:
 
     def _up(self, remote: _Remote, now: float) -> bool:
         """The link's verdict. This monitor's own probe fills the link on purpose, and the
-        heartbeats wait behind its data in the link's queue or are dropped from it: while it
-        runs, and for a beat period after (the queue drains), silence is allowed a probe's
-        length more before it reads as a cut. A link cut during a probe is read that much
-        later, and the probe fails with it."""
-        allowance = 0.0
-        if remote.probing or now - remote.probe_done <= self._period:
-            allowance = self._probe_duration + self._period
+        heartbeats wait behind its data in the link's queue or are dropped from it. While it
+        runs, the link counts as heard when it last acknowledged the probe's data (TCP's ACKs
+        come back on the reverse path, beside the echoes): a cut stops both, and is read as
+        soon as at any other time. For a beat period after the probe (its queue drains) one
+        period more is allowed."""
+        if not (remote.probing or now - remote.probe_done <= self._period):
+            return remote.beats.up(now)
+        last_echo = remote.beats.last_echo
+        allowance = 0.0 if remote.probing else self._period
+        if last_echo is not None and remote.probe_acked > last_echo:
+            allowance += remote.probe_acked - last_echo
         return remote.beats.up(now, allowance)
 
     def _check(self) -> None:

@@ -7,7 +7,7 @@ import socket
 import struct
 import threading
 import time
-from typing import List, Tuple
+from typing import Callable, List, Optional, Tuple
 
 from ...runtime.bandwidth import steady_throughput_bps
 
@@ -20,16 +20,33 @@ REQUEST_S = 2.0                      # the whole request must arrive within this
 PROBE_MAX_DURATION_S = 2.0           # the server never receives longer than this
 PROBE_CHUNK = 64 * 1024
 PROBE_RECV_BYTES = 1 << 20
+ACK_READ_S = 0.02                    # how often the sender reads when the link last acked
+# struct tcp_info (linux/tcp.h): 8 one-byte fields, then 32-bit fields; tcpi_last_ack_recv (ms
+# since the last ACK arrived) is the 13th of those.
+_TCP_INFO_LAST_ACK_RECV = 8 + 12 * 4
+
+
+def last_ack_age_s(sock: socket.socket) -> Optional[float]:
+    """Seconds since the kernel last received an ACK on a TCP socket (Linux TCP_INFO), or
+    None where that cannot be read."""
+    try:
+        info = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, 104)
+        return struct.unpack_from('I', info, _TCP_INFO_LAST_ACK_RECV)[0] / 1000.0
+    except (OSError, AttributeError, struct.error):
+        return None
 
 
 def probe_throughput(host: str, port: int, duration_s: float, timeout_s: float = 3.0,
-                     deployment: str = '', scale: str = '') -> float:
+                     deployment: str = '', scale: str = '',
+                     acked: Optional[Callable[[float], None]] = None) -> float:
     """Send a bulk TCP burst to a probe server for ``duration_s``; its measured bytes/s.
 
     The receiver times the transfer and answers with one JSON line; the sender keeps the pipe
     full until that answer arrives, so the measurement is bounded by the receiver's clock and
     not by how much the local socket buffers swallowed. Raises OSError, or ValueError also
-    when the server there is not ``scale`` of ``deployment``.
+    when the server there is not ``scale`` of ``deployment``. ``acked`` is called, every
+    ACK_READ_S while the burst runs, with when (time.monotonic) the link last acknowledged its
+    data: the burst's own proof that the link carries, while the heartbeats wait behind it.
     """
     duration_ms = int(min(max(duration_s, 0.05), PROBE_MAX_DURATION_S) * 1000)
     deadline = time.monotonic() + duration_ms / 1000.0 + timeout_s
@@ -42,8 +59,15 @@ def probe_throughput(host: str, port: int, duration_s: float, timeout_s: float =
         sock.sendall(PROBE_MAGIC + struct.pack('!IH', duration_ms, len(identity)) + identity)
         sock.setblocking(False)
         reply = b''
+        read_ack = -float('inf')
         while time.monotonic() < deadline:
-            readable, writable, _ = select.select([sock], [sock], [], 0.2)
+            now = time.monotonic()
+            if acked is not None and now - read_ack >= ACK_READ_S:
+                read_ack = now
+                age = last_ack_age_s(sock)
+                if age is not None:
+                    acked(now - age)
+            readable, writable, _ = select.select([sock], [sock], [], ACK_READ_S)
             if readable:
                 data = sock.recv(4096)
                 if not data:
