@@ -173,6 +173,24 @@ def test_nowhere_counts_a_node_served_nowhere_past_the_bound():
                          process_nodes=['ekf']) == []
 
 
+def test_a_crash_backoff_does_not_count_towards_the_nowhere_bound():
+    """AR crash-looped: the agent waits out its backoff (2 s, then 4 s) before the cold
+    restart. That wait is the configured restart policy; the rest is judged as before."""
+    def ar(t):
+        if t < 10.0 or t >= 17.5:
+            return ('running', None)
+        return ('backoff', None) if t < 14.0 else ('starting', None)
+    robot = [_state('robot', t * 0.25, ar=ar(t * 0.25)) for t in range(120)]
+    assert chaos.nowhere(['ar'], [robot], {}, {}, [], 0.0, 29.75, 4.0, 7.0) == []
+    (x,) = chaos.nowhere(['ar'], [robot], {}, {}, [], 0.0, 29.75, 4.0, 3.0)
+    assert (x.start, x.end, x.backoff_s) == (10.0, 17.5, 4.0)
+    # Reported starting the whole time (no backoff): the same span counts.
+    cold = [_state('robot', t * 0.25, ar=('starting', None) if 10.0 <= t * 0.25 < 17.5 else
+                   ('running', None)) for t in range(120)]
+    (y,) = chaos.nowhere(['ar'], [cold], {}, {}, [], 0.0, 29.75, 4.0, 7.0)
+    assert (y.start, y.end, y.backoff_s) == (10.0, 17.5, 0.0)
+
+
 # --- Δ excuses ----------------------------------------------------------------------------------
 
 def test_a_killed_serving_copy_excuses_what_it_feeds_until_it_serves_again():

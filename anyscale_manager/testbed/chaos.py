@@ -291,6 +291,7 @@ class Nowhere(_Span):
     node: str
     start: float
     end: float
+    backoff_s: float = 0.0      # of which an agent reported the node waiting out its backoff
 
 
 def _serving(report) -> bool:
@@ -325,19 +326,26 @@ def nowhere(nodes: Sequence[str], histories: Sequence[Sequence[Tuple[float, obje
     one observer heard it, at most ``max_age_s`` old) says it serves, or its output topic
     (``outputs``: node -> topic) was heard within ``heard_s``, or, for ``process_nodes``
     (nodes without standby copies: a live process serves), the harness's process sample
-    nearest before t counted one (``processes``: (time, node -> live processes))."""
+    nearest before t counted one (``processes``: (time, node -> live processes)).
+
+    The time an agent reports the node in its crash backoff (``restart_backoff_s``, doubling
+    for a node that crashes again soon after a restart: the configured restart policy, not a
+    failure to place it) does not count towards ``bound_s``; it is given as ``backoff_s``."""
     sweeps = [_Sweep(h) for h in histories]
     psweep = _Sweep(processes)
     pnodes = set(process_nodes)
     since: Dict[str, Optional[float]] = {n: None for n in nodes}
+    waited: Dict[str, float] = {n: 0.0 for n in nodes}
     out: List[Nowhere] = []
     t = start
     while t <= end + 1e-9:
         serving: Set[str] = set()
+        backing_off: Set[str] = set()
         for s in sweeps:
             last = s.at(t)
             if last is not None and t - last[0] <= max_age_s:
                 serving |= {n for n, r in last[1].nodes.items() if _serving(r)}
+                backing_off |= {n for n, r in last[1].nodes.items() if r.state == 'backoff'}
         sample = psweep.at(t)
         for n in nodes:
             runs = n in serving
@@ -348,15 +356,18 @@ def nowhere(nodes: Sequence[str], histories: Sequence[Sequence[Tuple[float, obje
             if not runs and n in pnodes and sample is not None and t - sample[0] <= 5.0:
                 runs = sample[1].get(n, 0) > 0
             if runs:
-                if since[n] is not None and t - since[n] > bound_s:
-                    out.append(Nowhere(n, since[n], t))
+                if since[n] is not None and t - since[n] - waited[n] > bound_s:
+                    out.append(Nowhere(n, since[n], t, waited[n]))
                 since[n] = None
-            elif since[n] is None:
-                since[n] = t
+            else:
+                if since[n] is None:
+                    since[n], waited[n] = t, 0.0
+                if n in backing_off:
+                    waited[n] += step_s
         t += step_s
     for n, s in since.items():
-        if s is not None and end - s > bound_s:
-            out.append(Nowhere(n, s, end))
+        if s is not None and end - s - waited[n] > bound_s:
+            out.append(Nowhere(n, s, end, waited[n]))
     return sorted(out, key=lambda x: x.start)
 
 
