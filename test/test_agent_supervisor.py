@@ -339,12 +339,11 @@ def test_adoption_after_a_restart(make_sup):
     assert not psutil.pid_exists(pid)                   # no zombie left
 
 
-def test_adoption_holds_across_a_clock_step_and_reads_an_earlier_versions_file(
-        make_sup, monkeypatch):
+def test_adoption_holds_across_a_clock_step_and_reads_an_earlier_versions_file(make_sup):
     """The wall clock stepped (a robot's first NTP fix) while the agent was down: its nodes
     are still adopted, not left running unsupervised. Stepping this machine's clock would
-    disturb every other process, so the step is stood in for: the boot time psutil adds to
-    every process's start moves by 2 s, as it does after a real step."""
+    disturb every other process, so the step is stood in for by what it does to a record:
+    its wall-clock start is 2 s off the process's start as read after the step."""
     e = py_entry('n', SLEEPER)
     first = make_sup([e])
     first.start('n', time.monotonic())
@@ -353,20 +352,21 @@ def test_adoption_holds_across_a_clock_step_and_reads_an_earlier_versions_file(
         saved = json.load(f)
     assert saved['boot_id'] == procs.boot_id()
     assert saved['nodes']['n']['start_ticks'] == procs.start_ticks(pid)
-    booted = psutil.boot_time()
-    monkeypatch.setattr(psutil._pslinux, 'boot_time', lambda: booted + 2.0)
+    assert abs(saved['nodes']['n']['started'] - procs.create_time(pid)) < 0.05
+    saved['nodes']['n']['started'] -= 2.0
+    with open(first.state_path, 'w') as f:
+        json.dump(saved, f)
     second = make_sup([e])
     assert second.adopt(time.monotonic()) == [f'n: adopted pid {pid}']
-    # A file of an earlier version (wall-clock starts only) is read as that version did: it
-    # was written after the step here, so it matches.
-    monkeypatch.undo()
+    # A file of an earlier version (wall-clock starts only) is read as that version did:
+    # adopted when its start matches, gone after the step.
     del saved['nodes']['n']['start_ticks']
     saved['nodes']['n']['started'] = procs.create_time(pid)
     with open(first.state_path, 'w') as f:
         json.dump(saved, f)
     third = make_sup([e])
     assert third.adopt(time.monotonic()) == [f'n: adopted pid {pid}']
-    saved['nodes']['n']['started'] -= 1.0
+    saved['nodes']['n']['started'] -= 2.0
     with open(first.state_path, 'w') as f:
         json.dump(saved, f)
     assert make_sup([e]).adopt(time.monotonic()) == [f'n: recorded pid {pid} is gone']

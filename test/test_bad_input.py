@@ -228,7 +228,7 @@ def test_a_bad_state_file_adopts_nothing_and_is_kept_aside(make_sup, label, cont
     {'pid': 'me', 'started': 1.0, 'instance': 'x', 'argv': ['x']},
     {'pid': 10 ** 30, 'started': float('nan'), 'instance': 'x', 'argv': 5},
     {'pid': 5, 'start_ticks': 'soon', 'instance': 'x', 'argv': ['x']},
-    {'pid': 5, 'start_ticks': -1.5, 'instance': 'x', 'argv': ['x']},
+    {'pid': 5, 'start_ticks': -1, 'instance': 'x', 'argv': ['x']},
     'a string', [1, 2], None,
 ], ids=['pid Infinity', 'pid a word', 'huge pid', 'ticks a word', 'ticks negative', 'a string',
         'a list', 'null'])

@@ -189,6 +189,18 @@ def test_a_crash_backoff_does_not_count_towards_the_nowhere_bound():
                    ('running', None)) for t in range(120)]
     (y,) = chaos.nowhere(['ar'], [cold], {}, {}, [], 0.0, 29.75, 4.0, 7.0)
     assert (y.start, y.end, y.backoff_s) == (10.0, 17.5, 0.0)
+    # The bound already allows for one backoff: only the wait beyond it is set aside.
+    assert chaos.nowhere(['ar'], [robot], {}, {}, [], 0.0, 29.75, 4.0, 3.5) == []
+    assert chaos.nowhere(['ar'], [robot], {}, {}, [], 0.0, 29.75, 4.0, 3.5,
+                         backoff_in_bound_s=1.0)
+    # A copy backing off on a scale the layout does not place the node on excuses nothing.
+    laptop = [_state('laptop', t * 0.25, ar=('backoff', None)) for t in range(120)]
+    on_robot = [(0.0, {'ar': 'robot'})]
+    (z,) = chaos.nowhere(['ar'], [cold, laptop], {}, {}, [], 0.0, 29.75, 4.0, 7.0,
+                         layouts=on_robot)
+    assert (z.start, z.end, z.backoff_s) == (10.0, 17.5, 0.0)
+    assert chaos.nowhere(['ar'], [cold, laptop], {}, {}, [], 0.0, 29.75, 4.0, 7.0,
+                         layouts=[(0.0, {'ar': 'laptop'})]) == []
 
 
 # --- Δ excuses ----------------------------------------------------------------------------------

@@ -455,6 +455,31 @@ def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment, python, tmp
     master.destroy()
 
 
+def test_the_probe_reads_when_the_link_last_acknowledged_its_data():
+    """The ACK age the link monitor counts as the link heard during its own probe
+    (TCP_INFO's tcpi_last_ack_recv): small just after data is acknowledged, growing while the
+    connection is idle."""
+    from anyscale_manager.nodes.monitors.throughput import last_ack_age_s
+    with socket.create_server(('127.0.0.1', 0)) as server:
+        sender = socket.create_connection(server.getsockname())
+        receiver, _ = server.accept()
+        with sender, receiver:
+            sender.sendall(b'x' * 1000)
+            assert receiver.recv(1000)
+            deadline = time.monotonic() + 5.0
+            while (last_ack_age_s(sender) or 0.0) < 0.3:       # idle: the age grows
+                assert time.monotonic() < deadline, last_ack_age_s(sender)
+                time.sleep(0.02)
+            sent = time.monotonic()
+            sender.sendall(b'y' * 1000)
+            assert receiver.recv(1000)
+            deadline = time.monotonic() + 5.0
+            while last_ack_age_s(sender) > time.monotonic() - sent + 0.02:
+                assert time.monotonic() < deadline, last_ack_age_s(sender)  # never acked
+                time.sleep(0.005)
+    assert last_ack_age_s(socket.socket(socket.AF_INET, socket.SOCK_DGRAM)) is None
+
+
 def test_probe_server_measures_and_refuses_strangers():
     port = free_port()
     server = ProbeServer('127.0.0.1', port)

@@ -205,6 +205,13 @@ def test_a_takeover_of_an_unheard_layout_waits_for_every_agents_report(d):
     late.lead(10.9, TAKEOVER, took_over=True)
     assert not late.turn(10.0 + d.decider.agent_timeout_s - 0.1).layouts
     assert late.turn(10.0 + d.decider.agent_timeout_s).layouts
+    # Stood down while waiting, then leading with nobody to take over from: a first layout,
+    # not the stale takeover.
+    again = DeciderTurn(d, d.decider, started=10.0)
+    again.lead(10.9, TAKEOVER, took_over=True)
+    assert again.lead(20.0, 'no leader heard for 3 s', took_over=False) is None
+    ((_, _, why),) = again.turn(20.0).layouts
+    assert why.startswith('first layout'), why
 
 
 def test_a_leader_that_stood_down_leads_on_from_its_own_layout(d):

@@ -7,9 +7,10 @@ backhaul). Cutting one link of three needs network namespaces: the test-bed's.""
 
 import os
 
-import psutil
 import pytest
 import yaml
+
+from anyscale_manager.agent import procs as procs_of
 
 import home_away as ha
 from home_away import runs
@@ -73,11 +74,12 @@ def test_a_lost_server_hands_its_node_to_the_laptop_and_gets_it_back(tmp_path, r
             ('home', 'laptop'), ('home', 'server'), ('laptop', 'server')}, 15.0,
             'each link reported up by its watcher', procs)
         fenced = seen['states']['server'].nodes['worker'].pid
+        fenced_start = procs_of.start_ticks(fenced)
         agents['server'].proc.kill()                  # SIGKILL: its warden fences the worker
         spin_until(ex, lambda: only_on(seen, 'laptop', gone=('server',)), 30.0,
                    'the worker on the laptop only', procs)
         # Fenced: the process itself, not only the reports (two copies would serve).
-        assert not psutil.pid_exists(fenced) or psutil.Process(fenced).status() == 'zombie'
+        assert fenced_start is not None and not procs_of.alive(fenced, fenced_start)
         moved = [e for e in seen['events'] if e.node == 'worker']
         assert [(e.kind, e.from_scale, e.to_scale) for e in moved] == [
             ('migrate', 'home', 'server'), ('relocate', 'server', 'laptop')], moved

@@ -156,9 +156,16 @@ def wall_start(ticks: int) -> float:
     return psutil.boot_time() + ticks / _TICKS
 
 
+def another_boot(recorded: object) -> bool:
+    """Whether a state file's ``boot_id`` names a boot other than this one (its processes are
+    then all gone, whatever their pids and ticks). A file without one (an earlier version), or
+    whose writer could not read it, is taken as of this boot."""
+    mine = boot_id()
+    return bool(recorded) and bool(mine) and recorded != mine
+
+
 def boot_id() -> str:
-    """This boot's identity (the kernel's random boot id): a state file written under another
-    boot names processes that are all gone, whatever their pids and ticks."""
+    """This boot's identity (the kernel's random boot id), '' where it cannot be read."""
     try:
         with open('/proc/sys/kernel/random/boot_id', encoding='ascii') as f:
             return f.read().strip()
@@ -181,11 +188,11 @@ def recorded_start(pid: int, ticks: object, wall: object) -> Optional[int]:
     live process's ticks if its wall-clock start is within 0.05 s of it (that version's
     rule), else None (gone, or another process)."""
     if isinstance(ticks, int) and not isinstance(ticks, bool):
-        return ticks
+        return ticks if ticks >= 0 else None
     if isinstance(wall, (int, float)) and not isinstance(wall, bool):
-        now = create_time(pid)
-        if now is not None and abs(now - wall) <= 0.05:
-            return start_ticks(pid)
+        live = start_ticks(pid)          # one read of /proc: the same process throughout
+        if live is not None and abs(wall_start(live) - wall) <= 0.05:
+            return live
     return None
 
 

@@ -58,7 +58,8 @@ class _Proc:
     wanted: bool = False
     popen: Optional[subprocess.Popen] = None
     pid: int = 0
-    started: int = 0              # process start, clock ticks since boot (procs.start_ticks)
+    start_ticks: int = 0          # process start, clock ticks since boot (procs.start_ticks)
+    started_wall: float = 0.0     # ... on the wall clock when first recorded (see save)
     instance: str = ''
     since: float = 0.0
     restarts: int = 0
@@ -102,7 +103,8 @@ class Supervisor:
         self.watch_exit: Callable[[int], object] = lambda pid: None
         # What the scale's warden reads of this agent (agent/warden.py): who it is, and whether
         # it restarts in place now or has stopped every node and left.
-        self.agent_started = procs.start_ticks(os.getpid()) or 0
+        self.agent_start_ticks = procs.start_ticks(os.getpid())
+        self.agent_started_wall = procs.create_time(os.getpid())
         self.boot_id = procs.boot_id()
         self.restarting = False
         self.stopped = False
@@ -368,7 +370,8 @@ class Supervisor:
                 log.close()
         p.pid = p.popen.pid
         self.watch_exit(p.pid)
-        p.started = procs.start_ticks(p.pid) or 0
+        p.start_ticks = procs.start_ticks(p.pid) or 0
+        p.started_wall = procs.create_time(p.pid) or 0.0
         p.adopted = False
         p.strays = ()
         p.ports, p.ports_next, p.ports_until = frozenset(), now, now + PORTS_LOOK_S
@@ -414,7 +417,7 @@ class Supervisor:
         if reaped is not None:
             ended, code = reaped
             return code, ended
-        return None, not procs.alive(p.pid, p.started)
+        return None, not procs.alive(p.pid, p.start_ticks)
 
     def _crashed(self, p: _Proc, now: float, code: Optional[int]) -> None:
         reason = procs.describe_exit(code)
@@ -479,15 +482,16 @@ class Supervisor:
         nodes = {}
         for name, p in list(self._procs.items()) + list(self._ghosts.items()):
             if p.state in ACTIVE and p.pid:
-                # 'started' (the wall clock) is for a warden of an earlier version only.
-                nodes[name] = {'pid': p.pid, 'start_ticks': p.started,
-                               'started': procs.wall_start(p.started), 'instance': p.instance,
+                # 'started' (the wall clock, as first read) is for a warden of an earlier
+                # version only: it compares it with its own reading of the process's start.
+                nodes[name] = {'pid': p.pid, 'start_ticks': p.start_ticks,
+                               'started': p.started_wall, 'instance': p.instance,
                                'argv': list(p.entry.argv), 'restarts': p.restarts,
                                'stopping': p.state == ProcState.STOPPING,
                                'fence': name in self.fenceable}
         data = dict(self.identity, version=STATE_VERSION, boot_id=self.boot_id,
-                    agent_pid=os.getpid(), agent_start_ticks=self.agent_started,
-                    agent_started=procs.wall_start(self.agent_started),
+                    agent_pid=os.getpid(), agent_start_ticks=self.agent_start_ticks,
+                    agent_started=self.agent_started_wall,
                     restarting=self.restarting, stopped=self.stopped, nodes=nodes)
         tmp = f'{self.state_path}.{os.getpid()}.tmp'
         try:
@@ -559,7 +563,7 @@ class Supervisor:
                 notes.append(f'state file {self.state_path} is for {k} {data.get(k)!r}, not '
                              f'{self.identity[k]!r}; adopting nothing')
                 return notes
-        if data.get('boot_id', self.boot_id) != self.boot_id:
+        if procs.another_boot(data.get('boot_id')):
             notes.append(f'state file {self.state_path} was written before this machine last '
                          'booted: what it records is gone; adopting nothing')
             return notes
@@ -567,11 +571,10 @@ class Supervisor:
             try:
                 pid, instance = int(rec['pid']), str(rec['instance'])
                 argv = tuple(str(a) for a in rec['argv'])
-                ticks = rec.get('start_ticks')
-                if ticks is None:
+                if rec.get('start_ticks') is None:
                     float(rec['started'])               # written by an earlier version
-                elif not isinstance(ticks, int) or isinstance(ticks, bool) or ticks < 0:
-                    raise ValueError(ticks)
+                elif procs.recorded_start(pid, rec['start_ticks'], None) is None:
+                    raise ValueError(rec['start_ticks'])
             except (KeyError, TypeError, ValueError, OverflowError):
                 notes.append(f'{name[:60]}: malformed state record; ignored')
                 continue
@@ -608,7 +611,10 @@ class Supervisor:
     def _take(self, p: _Proc, pid: int, started: int, instance: str, now: float,
               rec: Mapping) -> None:
         p.pid = pid
-        p.started = started
+        p.start_ticks = started
+        wall = rec.get('started')
+        p.started_wall = float(wall) if isinstance(wall, (int, float)) \
+            and not isinstance(wall, bool) else procs.wall_start(started)
         p.instance = instance
         p.popen = None
         p.adopted = True

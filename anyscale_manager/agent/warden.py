@@ -62,7 +62,7 @@ class AgentView:
     """What the state file says of the agent."""
 
     pid: int = 0
-    started: Optional[int] = None               # its start, clock ticks since boot
+    start_ticks: Optional[int] = None           # its start, clock ticks since boot
     restarting: bool = False
     stopped: bool = False
     nodes: Tuple[Tuple[int, int], ...] = ()     # (pid, start in ticks) of each node to fence
@@ -155,22 +155,24 @@ def read_state(path: str) -> Optional[AgentView]:
         return None
     if not isinstance(data, dict):
         return None
-    if data.get('boot_id', procs.boot_id()) != procs.boot_id():
+    if procs.another_boot(data.get('boot_id')):
         return AgentView()
     nodes = []
     for rec in (data.get('nodes') or {}).values():
-        if isinstance(rec, dict) and isinstance(rec.get('pid'), int) and rec.get('fence'):
+        if isinstance(rec, dict) and isinstance(rec.get('pid'), int) and rec['pid'] > 1 \
+                and rec.get('fence'):
             ticks = procs.recorded_start(rec['pid'], rec.get('start_ticks'), rec.get('started'))
             if ticks is not None:
                 nodes.append((rec['pid'], ticks))
     pid = data.get('agent_pid')
     pid = pid if isinstance(pid, int) and not isinstance(pid, bool) else 0
     started = None
-    if pid > 0 and ('agent_start_ticks' in data or 'agent_started' in data):
+    if pid > 0 and (data.get('agent_start_ticks') is not None
+                    or data.get('agent_started') is not None):
         started = procs.recorded_start(pid, data.get('agent_start_ticks'),
                                        data.get('agent_started'))
         pid = pid if started is not None else 0       # gone, or another process now
-    return AgentView(pid=pid, started=started,
+    return AgentView(pid=pid, start_ticks=started,
                      restarting=data.get('restarting') is True,
                      stopped=data.get('stopped') is True, nodes=tuple(nodes))
 
@@ -298,8 +300,8 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             if stat.st_mtime_ns != mtime:
                 fresh = read_state(args.state)
                 if fresh is not None:
-                    if (fresh.pid, fresh.started) != (view.pid, view.started):
-                        watch.follow(fresh.pid, fresh.started)
+                    if (fresh.pid, fresh.start_ticks) != (view.pid, view.start_ticks):
+                        watch.follow(fresh.pid, fresh.start_ticks)
                     view, mtime = fresh, stat.st_mtime_ns
         except OSError:
             missing_since = now if missing_since is None else missing_since

@@ -110,7 +110,7 @@ class DeciderTurn:
         self._duplicated: Set[str] = set()            # connections announced with two senders
         # Why this decider took over a leader whose layout it never heard, until every agent
         # has said what runs (the layout it then adopts).
-        self._takeover_waits: Optional[str] = None
+        self._pending_takeover_reason: Optional[str] = None
 
     def update_settings(self, settings: DeciderSettings) -> None:
         self.settings = settings
@@ -128,8 +128,8 @@ class DeciderTurn:
             if observed is None and not self._agents_known(now):
                 out.message = 'waiting for the agents to report what runs'
                 return out
-            if self._takeover_waits is not None:
-                out = self.take_over(now, None, 0, self._takeover_waits)
+            if self._pending_takeover_reason is not None:
+                out = self.take_over(now, None, 0, self._pending_takeover_reason)
             else:
                 self._start(now, out, observed)
         layout = self._layout()
@@ -255,6 +255,7 @@ class DeciderTurn:
         move what runs on the scales not heard; until then the layout stands and its first turn
         takes over). A decider that leads without having followed anyone returns None: its
         first turn makes the first layout. A takeover is also said as an event of its own."""
+        self._pending_takeover_reason = None
         if heard is not None:
             out = self.take_over(now, dict(heard[1]), heard[0], reason)
         elif self.layout is not None:
@@ -262,7 +263,7 @@ class DeciderTurn:
         elif took_over and self._agents_known(now):
             out = self.take_over(now, None, 0, reason)
         elif took_over:
-            self._takeover_waits = reason
+            self._pending_takeover_reason = reason
             out = TurnOutput()
             missing = sorted(set(self.deployment.scale_names) - set(self.book.agents))
             out.logs.append(('info', f'{reason}; {NOT_HEARD} once every agent has reported '
@@ -282,7 +283,7 @@ class DeciderTurn:
         ``assignments`` None: its layout was not heard: what runs, as the agents report it,
         is adopted."""
         out = TurnOutput()
-        self._takeover_waits = None
+        self._pending_takeover_reason = None
         running = self._running(now)
         if assignments is None:
             assignments, notes = adopt(self.deployment, self.planned, running)

@@ -319,7 +319,9 @@ def nowhere(nodes: Sequence[str], histories: Sequence[Sequence[Tuple[float, obje
             outputs: Mapping[str, str], arrivals: Mapping[str, Sequence[float]],
             processes: Sequence[Tuple[float, Mapping[str, int]]], start: float, end: float,
             max_age_s: float, bound_s: float, heard_s: float = 1.0, step_s: float = 0.25,
-            process_nodes: Iterable[str] = ()) -> List[Nowhere]:
+            process_nodes: Iterable[str] = (),
+            layouts: Sequence[Tuple[float, Mapping[str, str]]] = (),
+            backoff_in_bound_s: float = 0.0) -> List[Nowhere]:
     """Spans longer than ``bound_s`` in [start, end] in which a node ran nowhere.
 
     A node runs at t when any agent's report (``histories``: (time, AgentState) of one agent as
@@ -328,24 +330,33 @@ def nowhere(nodes: Sequence[str], histories: Sequence[Sequence[Tuple[float, obje
     (nodes without standby copies: a live process serves), the harness's process sample
     nearest before t counted one (``processes``: (time, node -> live processes)).
 
-    The time an agent reports the node in its crash backoff (``restart_backoff_s``, doubling
-    for a node that crashes again soon after a restart: the configured restart policy, not a
-    failure to place it) does not count towards ``bound_s``; it is given as ``backoff_s``."""
+    The time the agent of the scale the layout places the node on (``layouts``: (time,
+    assignments), the deciders' own; without them any agent) reports it, fresh, in its crash
+    backoff (``restart_backoff_s``, doubling for a node that crashes again soon after a
+    restart: the configured restart policy, not a failure to place it) does not count towards
+    ``bound_s``, beyond the ``backoff_in_bound_s`` that ``bound_s`` already allows for; it is
+    given as ``backoff_s``."""
     sweeps = [_Sweep(h) for h in histories]
     psweep = _Sweep(processes)
+    lsweep = _Sweep(layouts)
     pnodes = set(process_nodes)
     since: Dict[str, Optional[float]] = {n: None for n in nodes}
     waited: Dict[str, float] = {n: 0.0 for n in nodes}
     out: List[Nowhere] = []
+
+    def excused(n: str) -> float:
+        return max(0.0, waited[n] - backoff_in_bound_s)
     t = start
     while t <= end + 1e-9:
         serving: Set[str] = set()
         backing_off: Set[str] = set()
+        placed = lsweep.at(t)
         for s in sweeps:
             last = s.at(t)
             if last is not None and t - last[0] <= max_age_s:
                 serving |= {n for n, r in last[1].nodes.items() if _serving(r)}
-                backing_off |= {n for n, r in last[1].nodes.items() if r.state == 'backoff'}
+                backing_off |= {n for n, r in last[1].nodes.items() if r.state == 'backoff'
+                                and (placed is None or placed[1].get(n) == last[1].scale)}
         sample = psweep.at(t)
         for n in nodes:
             runs = n in serving
@@ -356,17 +367,17 @@ def nowhere(nodes: Sequence[str], histories: Sequence[Sequence[Tuple[float, obje
             if not runs and n in pnodes and sample is not None and t - sample[0] <= 5.0:
                 runs = sample[1].get(n, 0) > 0
             if runs:
-                if since[n] is not None and t - since[n] - waited[n] > bound_s:
+                if since[n] is not None and t - since[n] - excused(n) > bound_s:
                     out.append(Nowhere(n, since[n], t, waited[n]))
                 since[n] = None
             else:
                 if since[n] is None:
                     since[n], waited[n] = t, 0.0
-                if n in backing_off:
-                    waited[n] += step_s
+                if n in backing_off and t < end:
+                    waited[n] += min(step_s, end - t)
         t += step_s
     for n, s in since.items():
-        if s is not None and end - s - waited[n] > bound_s:
+        if s is not None and end - s - excused(n) > bound_s:
             out.append(Nowhere(n, s, end, waited[n]))
     return sorted(out, key=lambda x: x.start)
 

@@ -106,12 +106,15 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
     nodes = [n.name for n in d.nodes if n.managed]
     histories = [r.agent_states.get(s, []) for s in d.scale_names]
     histories.append(laptop.agent_states.get('laptop', []))
+    real = {(lay.decider.id, lay.generation) for _, lay in r.layouts
+            if lay.decider and lay.decider.pid in tally.decider_pids}
     missing = chaos.nowhere(
         nodes, histories, outputs, r.arrivals, process_samples, t0, t_end,
         d.decider.agent_timeout_s, COLD_MOVE_S + d.agent.restart_backoff_s,
-        process_nodes=[n for n in nodes if not d.standby_scales(n)])
-    real = {(lay.decider.id, lay.generation) for _, lay in r.layouts
-            if lay.decider and lay.decider.pid in tally.decider_pids}
+        process_nodes=[n for n in nodes if not d.standby_scales(n)],
+        layouts=[(t, lay.assignments) for t, lay in r.layouts
+                 if lay.decider and (lay.decider.id, lay.generation) in real],
+        backoff_in_bound_s=d.agent.restart_backoff_s)
     rivals = {lay.decider.id for _, lay in r.layouts
               if lay.decider and lay.decider.pid in tally.rival_pids}
     real_ids = {i for i, _ in real}

@@ -375,12 +375,14 @@ class LinkMonitor:
         heartbeats wait behind its data in the link's queue or are dropped from it. While it
         runs, the link counts as heard when it last acknowledged the probe's data (TCP's ACKs
         come back on the reverse path, beside the echoes): a cut stops both, and is read as
-        soon as at any other time. For a beat period after the probe (its queue drains) one
-        period more is allowed."""
+        soon as at any other time. Once the probe has ended (its result is in, collected at
+        the next beat, or was) and for a beat period after, while its data drains from the
+        queue, one period more is allowed."""
         if not (remote.probing or now - remote.probe_done <= self._period):
             return remote.beats.up(now)
         last_echo = remote.beats.last_echo
-        allowance = 0.0 if remote.probing else self._period
+        ended = not remote.probing or remote.result is not None
+        allowance = self._period if ended else 0.0
         if last_echo is not None and remote.probe_acked > last_echo:
             allowance += remote.probe_acked - last_echo
         return remote.beats.up(now, allowance)
