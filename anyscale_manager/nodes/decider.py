@@ -44,7 +44,8 @@ from ..runtime.constraints import ConstraintReport
 from ..runtime.leadership import LEADER, STANDBY, Change, Leadership
 from ..runtime.layout import LayoutError
 from ..runtime.turn import DeciderTurn, TurnOutput
-from ..interrupt import restore_ctrl_c
+from ..interrupt import ignore_interrupts, interrupt_once, rclpy_stops_on_sigint, \
+    restore_ctrl_c
 
 NODE_NAME = 'anyscale_decider'
 
@@ -557,11 +558,17 @@ class DeciderNode(Node):
 
 def main(args=None) -> int:
     restore_ctrl_c()
+    # A SIGINT shuts rclpy's context down (its handler) and is not also raised as
+    # KeyboardInterrupt: raised in the middle of an rclpy call, that came out as a RuntimeError
+    # ("Unable to convert call argument '0' to Python object") while the context was still up,
+    # and the decider exited 1 with a traceback instead of stopping cleanly.
+    interrupt_once()
     try:
         rclpy.init(args=args)
     except Exception as e:  # noqa: B902 - rcl refuses the arguments or the parameters file
         print(f'anyscale_manager decider: cannot start: {e}', file=sys.stderr)
         return 2
+    rclpy_stops_on_sigint()
     node = None
     code = 0
     try:
@@ -582,6 +589,7 @@ def main(args=None) -> int:
         print(f'anyscale_manager decider: {e}', file=sys.stderr)
         code = 2
     finally:
+        ignore_interrupts()          # a repeated SIGINT must not break the cleanup
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
