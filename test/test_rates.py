@@ -565,6 +565,23 @@ def test_writer_streams_forget_a_stopped_writer():
     assert w.joined_since(6.5)
 
 
+def test_writer_streams_a_new_copy_catching_up_with_stopped_ones_is_one_sender():
+    """A handover, then a relocation: copy A stopped at 7 after B started, B was killed at 6,
+    and C starts at 1 and passes both numbers within forget_s. Each of C's messages continues
+    C, never a stopped writer (seen in CI: two senders counted for 6 s at home)."""
+    w = WriterStreams(forget_s=3.0)
+    for k in range(1, 8):
+        w.add(0.1 * k, k)                        # A: 0.1 .. 0.7 s
+    for k in range(1, 7):
+        w.add(0.45 + 0.1 * k, k)                 # B: 0.55 .. 1.05 s
+    t = 2.0
+    for k in range(1, 41):                       # C: from 2.0 s at 10 Hz
+        w.add(t, k)
+        if t >= 1.05 + 3.0 + 0.1:                # A and B no longer within the live window
+            assert w.live(t, 3.0) == 1, (t, w._streams)
+        t += 0.1
+
+
 def test_writer_streams_a_writer_heard_first_is_no_news():
     w = WriterStreams()
     w.add(1.0, 3)

@@ -319,7 +319,11 @@ class WriterStreams:
         self._streams = [s for s in self._streams if now - s[1] <= self.forget_s]
         before = [s for s in self._streams if s[0] < seq]
         if before:
-            stream = max(before, key=lambda s: s[0])
+            # The nearest number; of streams as near, the one heard last. A writer that stopped
+            # during a handover is remembered for forget_s: when the new copy's numbers reach
+            # where it stopped, the tie must not hand the new copy's messages to it (that kept
+            # the stopped writer "live" and counted two senders for seconds after a handover).
+            stream = min(before, key=lambda s: (seq - s[0], -s[1]))
             stream[0], stream[1] = seq, now
             return
         if self._streams:
