@@ -297,9 +297,10 @@ class WriterStreams:
 
     Each DDS writer numbers its messages 1, 2, 3, ...; ROS 2 hands that number to a subscriber
     (``publication_sequence_number`` in the message info) but not who sent it. A message whose
-    number follows some stream's last one continues the nearest such stream; one that follows
-    none (at or below every stream's last number) comes from a writer that started later than
-    all of them: a new stream. A copy of a node started elsewhere for a handover thus shows at
+    number follows some stream's last one continues the nearest such stream (of several as
+    near, the one heard last); one that follows none (at or below every stream's last number)
+    comes from a writer that started later than all of them: a new stream. A copy of a node
+    started elsewhere for a handover thus shows at
     its first message heard here, its numbers starting near 1 where the old copy's are far past
     that. Losses and interleaving do not matter. A stream not heard for ``forget_s`` is dropped
     (a stopped writer), so that a new copy is not taken for the continuation of an old one.
