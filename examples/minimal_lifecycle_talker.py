@@ -3,10 +3,18 @@
     python3 minimal_lifecycle_talker.py --ros-args -p rate_hz:=5.0
 
 While active it publishes a counter (std_msgs/msg/Int64) on ``counter`` at ``rate_hz`` and
-starts again from 0 when a std_msgs/msg/Empty arrives on ``reset``. The timer and the
+starts again from 0 when a std_msgs/msg/Empty arrives on ``reset``. The timer and that
 subscription exist only while it is active: an inactive copy wakes up for nothing and pulls no
-data over the network, since DDS sends a computer data only for a subscription there. Its
-lifecycle services are its own (``~/change_state`` ...), so whoever starts a copy can remap
+data over the network, since DDS sends a computer data only for a subscription there.
+
+Its state is its count, and the last message on ``counter`` holds it. A count that arrives on
+``restore`` (configured or active) is where it continues from: the copy that takes over from
+another continues the count instead of starting again from 0. Declared in a deployment as
+
+    state: {topic: /counter, restore: /restore}
+
+the agent hands each copy it activates the last count it heard, on that copy's own ``restore``.
+Its lifecycle services are its own (``~/change_state`` ...), so whoever starts a copy can remap
 them per scale. The contract it follows is in docs/lifecycle.md.
 """
 
@@ -31,6 +39,7 @@ class MinimalLifecycleTalker(LifecycleNode):
         self._publisher = None
         self._timer = None
         self._reset = None
+        self._restore = None
         self._period_s = 0.0
         self._count = 0
 
@@ -43,6 +52,9 @@ class MinimalLifecycleTalker(LifecycleNode):
         try:
             self._period_s = 1.0 / rate_hz
             self._publisher = self.create_lifecycle_publisher(Int64, 'counter', 10)
+            # The one subscription an inactive copy keeps: its state, handed to it before it is
+            # activated.
+            self._restore = self.create_subscription(Int64, 'restore', self._on_restore, 1)
         except Exception as e:
             return self._failed('configure', e)
         self.get_logger().info(f'configured: inactive, {rate_hz:g} Hz once active')
@@ -103,6 +115,14 @@ class MinimalLifecycleTalker(LifecycleNode):
     def _on_reset(self, _msg: Empty) -> None:
         self._count = 0
 
+    def _on_restore(self, msg: Int64) -> None:
+        if msg.data < 0:
+            # A state it cannot take is refused with its reason; the count goes on as it was.
+            self.get_logger().error(f'restore refused: a count is >= 0, got {msg.data}')
+            return
+        self._count = msg.data + 1     # the last count published, then the next one
+        self.get_logger().info(f'restored: continuing from {self._count}')
+
     def _drop_timer_and_subscription(self) -> None:
         if self._timer is not None:
             self.destroy_timer(self._timer)
@@ -113,6 +133,9 @@ class MinimalLifecycleTalker(LifecycleNode):
 
     def _drop_everything(self) -> None:
         self._drop_timer_and_subscription()
+        if self._restore is not None:
+            self.destroy_subscription(self._restore)
+            self._restore = None
         if self._publisher is not None:
             self.destroy_lifecycle_publisher(self._publisher)
             self._publisher = None

@@ -58,26 +58,34 @@ def test_without_a_standby_copy_ready_the_node_is_restarted_in_place(d):
     assert any('restarted in place' in n for n in policy.notes)
 
 
-def test_no_failover_back_to_a_copy_that_crashed_within_the_hysteresis(d):
+def test_a_crash_fails_over_to_a_ready_standby_even_within_the_hysteresis(d):
+    """T bars voluntary moves, not the rescue of a dead copy: in a crash loop each crash is
+    answered by the ready standby on the other scale, and the node is said to crash wherever
+    it runs."""
     policy, running = policy_with_amcl_on(d, 'laptop')
     running.pop('amcl')
     crashed = {'amcl': {'laptop': CopyObs('backoff', crashed_at=10.0, exit_reason='x'),
                         'robot': CopyObs('standby')}}
     assert policy.step(obs(d, 10.0, running, crashed))[0].to_scale == 'robot'
+    assert not any('wherever' in n for n in policy.notes)
     policy.step(obs(d, 10.5, dict(running, amcl='robot'), crashed))    # it serves there
-    # Now the robot's copy crashes too, 5 s later: the laptop's copy (restarted as a standby)
-    # crashed within T, so the robot's copy is restarted in place instead.
+    # Now the robot's copy crashes too, 5 s later, within T of the laptop's crash: the
+    # laptop's copy (restarted as a standby) takes over all the same.
+    assert 15.0 - 10.0 < d.decider.hysteresis_s
     again = {'amcl': {'robot': CopyObs('backoff', crashed_at=15.0, exit_reason='y'),
                       'laptop': CopyObs('standby', crashed_at=10.0)}}
-    assert not [x for x in policy.step(obs(d, 15.0, running, again)) if x.node == 'amcl']
-    assert policy.layout['amcl'] == 'robot'
-    assert any('within T' in n for n in policy.notes)
-    # After T, a new crash fails over again.
-    later = 15.0 + d.decider.hysteresis_s
-    again = {'amcl': {'robot': CopyObs('backoff', crashed_at=later, exit_reason='z'),
-                      'laptop': CopyObs('standby', crashed_at=10.0)}}
-    decisions = [x for x in policy.step(obs(d, later, running, again)) if x.node == 'amcl']
-    assert [(x.kind, x.to_scale) for x in decisions] == [(FAILOVER, 'laptop')]
+    decisions = [x for x in policy.step(obs(d, 15.0, running, again)) if x.node == 'amcl']
+    assert [(x.kind, x.from_scale, x.to_scale) for x in decisions] == [
+        (FAILOVER, 'robot', 'laptop')]
+    assert policy.layout['amcl'] == 'laptop'
+    said = [n for n in policy.notes if 'crashes wherever it runs' in n]
+    assert said and 'laptop 5.0 s ago' in said[0] and 'robot 0.0 s ago' in said[0], said
+    # And back again on the next crash, 5 s later.
+    policy.step(obs(d, 15.5, dict(running, amcl='laptop'), again))
+    third = {'amcl': {'laptop': CopyObs('backoff', crashed_at=20.0, exit_reason='z'),
+                      'robot': CopyObs('standby', crashed_at=15.0)}}
+    decisions = [x for x in policy.step(obs(d, 20.0, running, third)) if x.node == 'amcl']
+    assert [(x.kind, x.to_scale) for x in decisions] == [(FAILOVER, 'robot')]
 
 
 def test_a_node_serving_elsewhere_already_is_left_alone(d):

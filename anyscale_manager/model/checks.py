@@ -116,6 +116,33 @@ def node_fields(d: t.Deployment, read: Context) -> List[Problem]:
     return out
 
 
+def node_state(d: t.Deployment, read: Context) -> List[Problem]:
+    """A node's ``state`` names one of its outputs (or declares its type), and the node is one
+    the agents start: only they can hand a copy its state."""
+    out = []
+    for n in d.nodes:
+        if n.state is None:
+            continue
+        here = f'nodes.{n.name}.state'
+        if not n.managed and not read.damaged(f'nodes.{n.name}.managed'):
+            out.append(Problem(d.source, here, 'only a node the agents start (managed) is '
+                                               'handed its state: they start its copies'))
+        topic = n.state.topic
+        if not topic or read.damaged(f'{here}.topic'):
+            continue
+        outputs = [c for c in d.connections if c.publisher == n.name]
+        if n.state.msg_type or any(c.topic == topic for c in outputs) \
+                or not read.all_read('connections', 'topic', 'publisher'):
+            continue
+        known = sorted({c.topic for c in outputs})
+        out.append(Problem(d.source, f'{here}.topic',
+                           f'{topic!r} is not an output of {n.name!r}'
+                           f'{did_you_mean(topic, known)}: its connections publish '
+                           f'{", ".join(repr(x) for x in known) or "nothing"}; name one of '
+                           'them, or give state.msg_type for a topic no connection declares'))
+    return out
+
+
 def connection_ends(d: t.Deployment, read: Context) -> List[Problem]:
     out = []
     for c in d.connections:
@@ -257,5 +284,5 @@ def layout_allowed(d: t.Deployment, read: Context) -> List[Problem]:
 
 
 # In this order: a check may stay quiet about what an earlier one reported.
-CHECKS: Tuple[Check, ...] = (one_master, ports, links, node_fields, connection_ends,
+CHECKS: Tuple[Check, ...] = (one_master, ports, links, node_fields, node_state, connection_ends,
                              first_layout, beats, placement, layout_allowed)

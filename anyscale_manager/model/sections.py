@@ -256,6 +256,7 @@ def read_node(name: str, sec: Section) -> t.Node:
     critical = sec.boolean('critical', None) if sec.has('critical') else None
     standby = (sec.strings('standby', ()) or False) if isinstance(sec.data.get('standby'), list) \
         else sec.boolean('standby', False)
+    state = read_state(sec.section('state')) if sec.has('state') else None
     node = t.Node(
         name=name,
         launch=launch,
@@ -274,9 +275,26 @@ def read_node(name: str, sec: Section) -> t.Node:
         standby_on=standby if isinstance(standby, tuple) else (),
         settings=settings,
         nice=sec.integer('nice', 0, low=0, high=19),
+        state=state,
     )
     sec.done()
     return _settled(node)
+
+
+def read_state(sec: Section) -> t.StateSpec:
+    """A node's ``state``: the output that holds it and the input that restores it."""
+    state = t.StateSpec(topic=sec.string('topic', pattern=TOPIC_RE),
+                        restore=sec.string('restore', pattern=TOPIC_RE),
+                        msg_type=sec.string('msg_type', ''))
+    if state.msg_type and not MSG_TYPE_RE.match(state.msg_type):
+        sec.ctx.error(sec.sub('msg_type'), f'expected package/msg/Type, got {state.msg_type!r}'
+                                           f'{_msg_type_hint(state.msg_type)}')
+    if state.topic and state.topic == state.restore and sec.read('topic', 'restore'):
+        sec.ctx.error(sec.sub('restore'), f'the node publishes its state on {state.topic!r}: '
+                                          'it restores from another topic (AMCL: state '
+                                          '/amcl_pose, restore /initialpose)')
+    sec.done()
+    return _settled(state)
 
 
 def read_connection(name: str, sec: Section) -> t.Connection:

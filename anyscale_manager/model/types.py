@@ -115,6 +115,20 @@ class Settings:
 
 
 @dataclass(frozen=True)
+class StateSpec:
+    """How a node's state goes with it to the copy that takes over (docs/lifecycle.md, state).
+
+    ``topic``: an output whose latest message holds the node's state (Nav2 AMCL: /amcl_pose);
+    ``restore``: the input on which a copy takes a message of the same type and continues from
+    it (AMCL: /initialpose). The agent remaps ``restore`` per copy, so only the copy that takes
+    over hears what it is handed."""
+
+    topic: str
+    restore: str
+    msg_type: str = ''    # '' = the type of the node's connection on ``topic``, else the graph
+
+
+@dataclass(frozen=True)
 class Node:
     name: str
     launch: Launch
@@ -132,6 +146,7 @@ class Node:
     standby_on: Tuple[str, ...] = ()  # ...or only on these (empty: all of them)
     settings: Optional[Settings] = None
     nice: int = 0                     # niceness added to agent.node_nice for this node alone
+    state: Optional[StateSpec] = None  # how its state is handed to the copy that takes over
 
     @property
     def configurable(self) -> bool:
@@ -338,6 +353,16 @@ class AgentSettings:
                                        'priority)', low=0, high=99)
     state_dir: str = setting('', 'the adoption state (empty: ~/.ros/anyscale_manager)')
     log_dir: str = setting('', 'per-node logs (empty: ~/.ros/log/anyscale_manager)')
+    # A node's state (nodes.<n>.state) is kept by every agent that may run it and handed to the
+    # copy that takes over (docs/lifecycle.md, state).
+    state_max_bytes: int = setting(65536, 'a state message larger than this is not kept (a '
+                                          'warning once per node); the copy that takes over '
+                                          'gets the last one that fitted', low=1,
+                                   high=64 * 1024 * 1024, unit='bytes')
+    state_stale_s: float = setting(5.0, 'a state older than this when handed over comes with a '
+                                        'warning (the serving copy stopped sending it: hung or '
+                                        'cut off); it is handed over all the same', low=0,
+                                   high=86400, low_open=True, unit='s')
 
 
 @dataclass(frozen=True)
@@ -583,6 +608,16 @@ class Deployment:
                 allowed &= set(self.own_scales(member))
             out[n.name] = tuple(s for s in self.scale_names if s in allowed)
         return frozen_map(out)
+
+    def state_msg_type(self, node: str) -> str:
+        """The type of ``node``'s state topic as the file gives it ('' = learnt from the graph)."""
+        spec = self.node(node).state
+        if spec is None:
+            return ''
+        if spec.msg_type:
+            return spec.msg_type
+        return next((c.msg_type for c in self.connections
+                     if c.publisher == node and c.topic == spec.topic and c.msg_type), '')
 
     def standby_scales(self, node: str) -> Tuple[str, ...]:
         """Scales that keep an inactive copy of ``node`` while it runs elsewhere."""

@@ -231,9 +231,11 @@ class MigrationPolicy:
         (live agent, link up, CPU, bandwidth, residence; the master only needs a live agent),
         is activated there by a new layout;
         the crashed scale's agent restarts its own copy as a standby. With no such copy the
-        node is restarted in place by its agent (nothing to decide). A scale whose copy crashed
-        within the hysteresis T is not failed over to: a node does not bounce between a
-        crashing copy and a healthy one.
+        node is restarted in place by its agent (nothing to decide). The hysteresis T bars
+        voluntary moves, not the rescue of a dead copy: a ready standby takes over whatever T
+        says, one whose copy has not crashed within T first. A node whose copies crashed on
+        every scale it may serve on within T crashes wherever it runs: that is said, with its
+        crashes, beside the failover.
         """
         now = obs.now
         out: List[Decision] = []
@@ -259,12 +261,11 @@ class MigrationPolicy:
                                   since=self.started)
             cpu = node_cpu(self.deployment, self.settings, obs, node)
             target, refused = None, []
-            for s in self._scales_by_power(standby):
-                when = self.crashed.get((node, s))
-                if when is not None and now - when < self.settings.hysteresis_s:
-                    refused.append(f'{s}: its copy crashed {now - when:.1f} s ago, within '
-                                   f'T = {self.settings.hysteresis_s:g} s')
-                    continue
+            recent = {s: now - self.crashed[(node, s)] for s in copies
+                      if (node, s) in self.crashed
+                      and now - self.crashed[(node, s)] < self.settings.hysteresis_s}
+            # Copies that have not crashed within T first, then by power (a stable sort).
+            for s in sorted(self._scales_by_power(standby), key=lambda x: x in recent):
                 ok, why = self._can_host_copy(obs, running, report, node, cpu, s)
                 if not ok:
                     refused.append(f'{s}: {why}')
@@ -278,6 +279,12 @@ class MigrationPolicy:
             out.append(Decision(FAILOVER, node, scale, target,
                                 f'{node} crashed on {scale} ({here.exit_reason}); its standby '
                                 f'copy on {target} takes over'))
+            if target in recent:
+                crashes = ', '.join(f'{s} {age:.1f} s ago' for s, age in sorted(recent.items()))
+                notes.append(f'{node} crashes wherever it runs (within T = '
+                             f'{self.settings.hysteresis_s:g} s: {crashes}): failed over to '
+                             f'{target} all the same; each agent restarts its copy with the '
+                             'crash-loop backoff (agent.restart_backoff_s)')
         return out
 
     def _can_host_copy(self, obs: Observations, running: Mapping[str, str],
