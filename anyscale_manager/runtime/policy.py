@@ -40,6 +40,7 @@ from .constraints import (CPU, FREQUENCY, LINK_DOWN, ConstraintReport, DeltaTrac
                           is_fresh, link_capacity, node_cpu, required_kbps, scale_cpu,
                           usable_cpu)
 from .layout import adopt, default_scale, master_layout
+from .upstream import UpstreamWatch
 from .observations import (FAILOVER, MIGRATE, MIGRATE_BACK, MOVE_AWAY, REBALANCE, RELOCATE,
                            Decision, Observations)
 
@@ -75,12 +76,14 @@ class MigrationPolicy:
         # crash, and no failover back to that scale within the hysteresis T.
         self.crashed: Dict[Tuple[str, str], float] = {}
         self._delta = DeltaTracker(deployment)
+        self._upstream = UpstreamWatch(deployment, self.settings)
         self._seeded = False
 
     # --- configuration ----------------------------------------------------------------------
     def update_settings(self, settings: DeciderSettings) -> None:
         """New thresholds (changed at run time); state is kept."""
         self.settings = settings
+        self._upstream.settings = settings
 
     def reset(self, layout: Mapping[str, str], now: float,
               running: Optional[Mapping[str, str]] = None, *, settled: bool = False) -> None:
@@ -135,6 +138,7 @@ class MigrationPolicy:
         if self.started is None:
             self.started = now
         running = self._running(obs)
+        self._upstream.update(obs, running)
         if not self._seeded:
             layout, _ = adopt(self.deployment, master_layout(self.deployment), running)
             self.reset(layout, now, running)
@@ -464,6 +468,12 @@ class MigrationPolicy:
         for v in report.of_kind(LINK_DOWN, FREQUENCY):
             if v.kind == LINK_DOWN and self.master not in report.links[v.subject].ends:
                 continue        # only the connections crossing it move: the do-while below
+            upstream = self._upstream.explains(obs, running, v.subject) \
+                if v.kind == FREQUENCY else ''
+            if upstream:
+                notes.append(f'{v.subject} below freq_min, explained upstream: {upstream}; '
+                             'nothing moved for it')
+                continue
             culprits = [n for n in v.nodes if n in migrated]
             if v.kind == LINK_DOWN:
                 far = [e for e in report.links[v.subject].ends if e != self.master]
