@@ -2,7 +2,8 @@
 
 The model (model/) reads and checks a file by itself; this command adds what only the machine
 it runs on can tell: whether the key file is readable and whether an agent here could start
-each node's launch.
+each node's launch (agent/launch_check.py: its executable, and the script or package executable
+an interpreter command needs), each problem naming the word of the launch at fault.
 """
 
 import argparse
@@ -33,11 +34,12 @@ def machine_check(d: Deployment, scale: str = '') -> Tuple[List[str], List[str]]
     validated for that scale: its nodes' launches are errors, other nodes' are not looked at."""
     errors, notes = [], []
     for node, problem in launch_problems(d).items():
+        where = f'nodes.{node}.launch' + (f'.{problem.field}' if problem.field else '')
         if not scale:
-            notes.append(f'{d.source}: nodes.{node}.launch: {problem}: an agent on this machine '
+            notes.append(f'{d.source}: {where}: {problem}: an agent on this machine '
                          'cannot start it (validate --scale NAME makes this an error)')
         elif scale in d.allowed_scales(node):
-            errors.append(f'{d.source}: nodes.{node}.launch: {problem}: the agent of scale '
+            errors.append(f'{d.source}: {where}: {problem}: the agent of scale '
                           f'{scale}, on this machine, cannot start it')
     return errors, notes
 

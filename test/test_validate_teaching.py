@@ -301,7 +301,8 @@ def test_launch_problems_resolve_as_an_agent_would(tmp_path):
     for node, command in cases.items():
         data = with_command(data, node, command)
     d = load_mapping(data, 'c.yaml')
-    found = launch_problems(d, environ={'PATH': str(tmp_path)})
+    found = {n: str(why) for n, why in launch_problems(d, environ={'PATH': str(tmp_path)})
+             .items()}
     assert found == {
         'sensor': "command 'anyscale-no-such-command' not found on PATH",
         'planner': f"command '{tmp_path}/missing/tool' does not exist",
@@ -318,10 +319,10 @@ def test_a_package_executable_is_looked_up_in_the_ament_index_then_beside_python
     d = load_mapping(changed(lambda p: p['nodes']['planner'].update(
         launch={'package': 'nowhere_pkg', 'executable': 'no_such_exe'}), chain()), 'c.yaml')
     found = launch_problems(d, environ={'PATH': '/nonexistent'}, ament_prefix=lambda pkg: None)
-    assert list(found) == ['planner']
-    assert found['planner'].startswith("executable 'no_such_exe' of package 'nowhere_pkg' not "
-                                       "found (tried ament index (package 'nowhere_pkg' not "
-                                       'found)')
+    assert list(found) == ['planner'] and found['planner'].field == 'executable'
+    assert str(found['planner']).startswith(
+        "executable 'no_such_exe' of package 'nowhere_pkg' not found (tried ament index "
+        "(package 'nowhere_pkg' not found)")
 
 
 def test_validate_warns_of_a_missing_command_and_fails_for_the_scale_it_validates(
@@ -332,27 +333,150 @@ def test_validate_warns_of_a_missing_command_and_fails_for_the_scale_it_validate
     path = write(tmp_path, data)
     code, out, err = run_validate(capsys, '--quiet', path)
     assert code == 0, err
-    missing = [line for line in err.splitlines() if '.launch:' in line]
+    missing = [line for line in err.splitlines() if '.launch.' in line]
     assert missing == [
-        f"warning: {path}: nodes.planner.launch: command 'anyscale-no-such-command' not found "
-        'on PATH: an agent on this machine cannot start it (validate --scale NAME makes this an '
-        'error)',
-        f"warning: {path}: nodes.controller.launch: command 'anyscale-no-such-either' not found "
-        'on PATH: an agent on this machine cannot start it (validate --scale NAME makes this an '
-        'error)']
+        f"warning: {path}: nodes.planner.launch.command[0]: command 'anyscale-no-such-command' "
+        'not found on PATH: an agent on this machine cannot start it (validate --scale NAME '
+        'makes this an error)',
+        f"warning: {path}: nodes.controller.launch.command[0]: command 'anyscale-no-such-either' "
+        'not found on PATH: an agent on this machine cannot start it (validate --scale NAME '
+        'makes this an error)']
     # The laptop may run the planner, never the critical controller: one error, the planner.
     code, out, err = run_validate(capsys, '--quiet', '--scale', 'laptop', path)
     assert code == 2
     assert err.splitlines() == [
         f'{path}: 1 problem(s):',
-        f"  {path}: nodes.planner.launch: command 'anyscale-no-such-command' not found on "
-        'PATH: the agent of scale laptop, on this machine, cannot start it']
+        f"  {path}: nodes.planner.launch.command[0]: command 'anyscale-no-such-command' not "
+        'found on PATH: the agent of scale laptop, on this machine, cannot start it']
     code, out, err = run_validate(capsys, '--scale', 'robot', path)
     assert code == 2 and '2 problem(s)' in err and out == ''
     code, out, err = run_validate(capsys, '--scale', 'laptpo', path)
     assert code == 2
     assert f"{path}: --scale: unknown scale 'laptpo' (did you mean laptop?); the scales of " \
            'this file are robot, laptop' in err
+
+
+def script_cases(tmp_path):
+    """(command, arguments, field of the problem or None, words of the problem)."""
+    here = tmp_path / 'node.py'
+    here.write_text('print(1)\n')
+    shell = tmp_path / 'run.sh'
+    shell.write_text('true\n')
+    folder = tmp_path / 'pkg'
+    folder.mkdir()
+    gone = str(tmp_path / 'gone.py')
+    py = sys.executable
+    name = os.path.basename(py)
+    return [
+        ([py, gone], [], 'command[1]', f"script of {name} '{gone}' does not exist"),
+        ([py, '-u', '-W', 'ignore', '-Xdev', gone, '--rate', '5'], [], 'command[5]',
+         'does not exist'),
+        ([py], [gone], 'arguments[0]', 'does not exist'),
+        ([py, '--', gone], [], 'command[2]', 'does not exist'),
+        ([py, str(folder)], [], 'command[1]', f"'{folder}/__main__.py' does not exist"),
+        ([py, str(here)], ['--rate', '5'], None, ''),
+        ([py, '-c', 'pass', gone], [], None, ''),
+        ([py, '-m', 'no_such_module_is_looked_for'], [], None, ''),
+        (['bash', str(tmp_path / 'gone.sh')], [], 'command[1]',
+         f"script of bash '{tmp_path}/gone.sh' does not exist"),
+        (['bash', '-eu', '-o', 'pipefail', str(tmp_path / 'gone.sh')], [], 'command[4]',
+         'does not exist'),
+        (['sh', 'gone.sh'], [], 'command[1]',
+         "script of sh 'gone.sh' does not exist (a relative path is taken from the agent's "
+         'working directory; looked for in'),
+        (['bash', str(shell)], [], None, ''),
+        (['bash', '-c', 'exec true', gone], [], None, ''),
+        ([str(tmp_path)], [], 'command[0]', f"command '{tmp_path}' is not a file"),
+    ]
+
+
+def test_an_interpreter_command_needs_the_script_it_names(tmp_path):
+    for command, arguments, where, words in script_cases(tmp_path):
+        extra = {'arguments': arguments} if arguments else {}
+        d = load_mapping(with_command(chain(), 'planner', command, **extra), 'c.yaml')
+        found = launch_problems(d, environ={'PATH': os.environ['PATH']}, cwd=str(tmp_path))
+        if where is None:
+            assert found == {}, (command, arguments, found)
+            continue
+        assert list(found) == ['planner'], (command, arguments, found)
+        assert found['planner'].field == where, (command, found['planner'])
+        assert words in str(found['planner']), (command, found['planner'])
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason='root reads every file: nothing is unreadable')
+def test_a_script_this_user_cannot_read_is_named(tmp_path):
+    secret = tmp_path / 'secret.py'
+    secret.write_text('pass\n')
+    secret.chmod(0o200)
+    d = load_mapping(with_command(chain(), 'planner', [sys.executable, str(secret)]), 'c.yaml')
+    assert str(launch_problems(d)['planner']) == \
+        f"script of {os.path.basename(sys.executable)} '{secret}' is not readable by this user"
+
+
+def test_a_script_whose_interpreter_is_missing_is_named(tmp_path):
+    tool = tmp_path / 'tool'
+    tool.write_text('#!/nonexistent/python9\nprint(1)\n')
+    tool.chmod(0o755)
+    viaenv = tmp_path / 'viaenv'
+    viaenv.write_text('#!/usr/bin/env anyscale-no-such-interpreter\n')
+    viaenv.chmod(0o755)
+    data = with_command(chain(), 'planner', [str(tool)])
+    d = load_mapping(with_command(data, 'controller', [str(viaenv)]), 'c.yaml')
+    found = launch_problems(d, environ={'PATH': os.environ['PATH']})
+    assert {n: (p.field, str(p)) for n, p in found.items()} == {
+        'planner': ('command[0]', f"script '{tool}' is run by '/nonexistent/python9' (its #! "
+                                  'line), which does not exist'),
+        'controller': ('command[0]', f"script '{viaenv}' is run by "
+                                     "'anyscale-no-such-interpreter' (its #! line), not found "
+                                     'on PATH')}
+
+
+def test_ros2_run_needs_its_package_executable_in_the_ament_index(tmp_path):
+    bin_dir = tmp_path / 'bin'
+    bin_dir.mkdir()
+    ros2 = bin_dir / 'ros2'
+    ros2.write_text('#!/bin/sh\n')
+    ros2.chmod(0o755)
+    exe = tmp_path / 'prefix' / 'lib' / 'real_pkg' / 'real_exe'
+    exe.parent.mkdir(parents=True)
+    exe.write_text('#!/bin/sh\n')
+    exe.chmod(0o755)
+    prefixes = {'real_pkg': str(tmp_path / 'prefix')}
+    cases = {
+        ('ros2', 'run', 'real_pkg', 'real_exe'): None,
+        ('ros2', 'run', '--prefix', 'nice', 'real_pkg', 'real_exe'): None,
+        ('ros2', 'run', 'gone_pkg', 'real_exe'): (
+            'command[2]', "ros2 run: package 'gone_pkg' not found in the ament index"),
+        ('ros2', 'run', 'real_pkg', 'gone_exe'): (
+            'command[3]', "ros2 run: executable 'gone_exe' of package 'real_pkg' not found "
+                          f'(no executable file {tmp_path}/prefix/lib/real_pkg/gone_exe)'),
+    }
+    for command, expected in cases.items():
+        d = load_mapping(with_command(chain(), 'planner', list(command)), 'c.yaml')
+        found = launch_problems(d, environ={'PATH': str(bin_dir)},
+                                ament_prefix=prefixes.get)
+        if expected is None:
+            assert found == {}, (command, found)
+        else:
+            assert found['planner'].field == expected[0], (command, found)
+            assert str(found['planner']).startswith(expected[1]), (command, found)
+
+
+def test_validate_for_a_scale_fails_on_a_missing_script_naming_file_path_and_script(
+        tmp_path, capsys):
+    gone = tmp_path / 'nodes' / 'planner.py'
+    path = write(tmp_path, with_command(chain(), 'planner', [sys.executable, str(gone)]))
+    code, out, err = run_validate(capsys, '--quiet', '--scale', 'laptop', path)
+    assert code == 2 and out == ''
+    assert err.splitlines() == [
+        f'{path}: 1 problem(s):',
+        f'  {path}: nodes.planner.launch.command[1]: script of '
+        f"{os.path.basename(sys.executable)} '{gone}' does not exist: the agent of scale "
+        'laptop, on this machine, cannot start it']
+    gone.parent.mkdir()
+    gone.write_text('pass\n')
+    code, out, err = run_validate(capsys, '--quiet', '--scale', 'laptop', path)
+    assert code == 0, err
 
 
 def test_the_shipped_files_stay_valid(capsys):
@@ -362,4 +486,4 @@ def test_the_shipped_files_stay_valid(capsys):
     assert code == 0, err
     # The IROS files are for planning: no launches, nothing to look for on this machine.
     code, out, err = run_validate(capsys, '--quiet', '--scale', 'c1', *files[1:])
-    assert code == 0 and '.launch:' not in err, err
+    assert code == 0 and '.launch' not in err, err
