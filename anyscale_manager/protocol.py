@@ -10,9 +10,11 @@ receiver's own clock.
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+import types
+import typing
+from dataclasses import asdict, dataclass, field, fields
 from enum import StrEnum
-from typing import Any, Dict, Mapping, Optional, Type, TypeVar
+from typing import Any, ClassVar, Dict, Optional, Tuple, Type, TypeVar, Union
 
 PREFIX = '/anyscale'
 TOPIC_LAYOUT = PREFIX + '/layout'                  # decider -> agents, latched
@@ -100,8 +102,120 @@ NODE_STATES = tuple(ProcState)
 LIVE_STATES = (ProcState.STARTING, ProcState.RUNNING)
 # ScaleStatus.cpu_source (runtime/cpu.py): what a scale's cpu_total measures.
 CPU_SOURCES = ('cgroup', 'machine', 'processes')
+# DeciderBeat.role (runtime/leadership.py).
+DECIDER_ROLES = ('leader', 'standby')
 
 T = TypeVar('T', bound='Message')
+
+
+# --- checks a type cannot say, declared with the field (its metadata) --------------------------
+
+def _shown(number: Any) -> str:
+    """A number in an error message: whole when short."""
+    if abs(number) == MAX_GENERATION:
+        return ('-' if number < 0 else '') + '2**53'
+    text = str(number)
+    return text if len(text) <= 20 else f'{number:.3g}'
+
+
+class Rule:
+    """A check of one field's value beyond its type; ProtocolError names the field."""
+
+    kinds: ClassVar[Tuple[Any, ...]] = ()     # the schema kinds it applies to
+
+    def check(self, value: Any, where: str) -> None:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Within(Rule):
+    """A number in [lo, hi]; with no hi, at least lo (MAX_MAGNITUDE bounds every float)."""
+
+    lo: float
+    hi: Optional[float] = None
+    kinds: ClassVar[Tuple[Any, ...]] = (int, float)
+
+    def check(self, value: Any, where: str) -> None:
+        lo = _shown(self.lo)
+        if self.hi is None:
+            if not value >= self.lo:
+                raise ProtocolError(f'{where}: must be >= {lo}, got {_shown(value)}')
+            return
+        hi = _shown(self.hi)
+        if value < self.lo:
+            raise ProtocolError(f'{where}: must be in [{lo}, {hi}] (must be >= {lo}, '
+                                f'got {_shown(value)})')
+        if value > self.hi:
+            raise ProtocolError(f'{where}: must be in [{lo}, {hi}] ({_shown(value)} is beyond '
+                                f'the bound {hi})')
+
+
+@dataclass(frozen=True)
+class OneOf(Rule):
+    """One of a closed set of values that the wire carries as plain strings or numbers."""
+
+    choices: Tuple[Any, ...]
+    kinds: ClassVar[Tuple[Any, ...]] = (int, str)
+
+    def check(self, value: Any, where: str) -> None:
+        if value not in self.choices:
+            raise ProtocolError(f'{where}: expected one of '
+                                f'{", ".join(map(str, self.choices))}, got {value!r:.40}')
+
+
+@dataclass(frozen=True)
+class Text(Rule):
+    """A string of min_len to max_len characters, printable ones unless said otherwise."""
+
+    min_len: int
+    max_len: int
+    printable: bool = True
+    kinds: ClassVar[Tuple[Any, ...]] = (str,)
+
+    def check(self, value: Any, where: str) -> None:
+        if not self.min_len <= len(value) <= self.max_len \
+                or (self.printable and not value.isprintable()):
+            size = (f'{self.min_len} to {self.max_len}' if self.min_len
+                    else f'at most {self.max_len}')
+            kind = ' printable' if self.printable else ''
+            raise ProtocolError(f'{where}: expected {size}{kind} characters, '
+                                f'got {value!r:.60}')
+
+
+@dataclass(frozen=True)
+class Keys(Rule):
+    """Every key of a map passes ``rule``."""
+
+    rule: Text
+    kinds: ClassVar[Tuple[Any, ...]] = ('map',)
+
+    def check(self, value: Any, where: str) -> None:
+        for key in value:
+            self.rule.check(key, f'{where} key')
+
+
+_RULES = 'rules'      # the key of a field's rules in its metadata
+
+
+def _rules(*rules: Rule) -> Dict[str, Tuple[Rule, ...]]:
+    """A field's metadata: the checks of its value that its type cannot say."""
+    return {_RULES: rules}
+
+
+def _optional(*rules: Rule) -> Any:
+    """An optional field (absent or null on the wire: None), with these checks when set."""
+    return field(default=None, metadata=_rules(*rules))
+
+
+# Generations, terms and sequence numbers: counts no sender takes past 2**53.
+_COUNT = Within(0, MAX_GENERATION)
+# The fields every signed status message carries when the deployment has a key: the sending
+# process (a random id drawn at its start), its message count, and the HMAC of the rest (hex;
+# whether it is right is protocol_auth's to say).
+SIGNED_FIELDS = ('sender', 'seq', 'auth')
+_SENDER = Text(1, 128)
+_AUTH = Text(0, 128, printable=False)
+_HOST = Text(0, 256)
 
 
 def _check(value: Any, kind: Any, where: str) -> Any:
@@ -165,9 +279,15 @@ def _depth_ok(data: Any, where: str) -> None:
 
 
 class Message:
-    """Base of every payload: ``SCHEMA`` maps field name to kind; all fields are required."""
+    """Base of every payload: a dataclass under ``@_wire``, which derives its wire schema.
 
-    SCHEMA: Dict[str, Any] = {}
+    ``SCHEMA`` maps each field to its kind, from its type hint: Optional[X] may be absent or
+    null (None), Dict[str, X] is a JSON object of X, anything else is required. ``RULES`` maps a
+    field to the checks its type cannot say, from its metadata (``_rules``, ``_optional``).
+    """
+
+    SCHEMA: ClassVar[Dict[str, Any]] = {}
+    RULES: ClassVar[Dict[str, Tuple[Rule, ...]]] = {}
 
     @classmethod
     def from_dict(cls: Type[T], data: Any, where: str = '') -> T:
@@ -181,21 +301,26 @@ class Message:
         values = {}
         for name, kind in cls.SCHEMA.items():
             if name not in data:
-                optional = isinstance(kind, tuple) and kind[0] == 'optional'
-                if optional:
+                if _is_optional(kind):
                     values[name] = None
                     continue
                 raise ProtocolError(f'{where}: missing field {name!r}')
-            values[name] = _check(data[name], kind, f'{where}.{name}')
+            value = values[name] = _check(data[name], kind, f'{where}.{name}')
+            if value is not None:
+                for rule in cls.RULES.get(name, ()):
+                    rule.check(value, f'{where}.{name}')
         obj = cls(**values)
         obj.validate(where)
         return obj
 
     def validate(self, where: str) -> None:
-        """Checks beyond types; override where a message has them."""
+        """Checks of several fields together; override where a message has them."""
 
     def to_dict(self) -> Dict[str, Any]:
-        return asdict(self)
+        """The JSON object. An optional field that is None is left out: the strict decoder of
+        an earlier version, which refuses fields it does not know, still reads it."""
+        return {k: v for k, v in asdict(self).items()
+                if v is not None or not _is_optional(self.SCHEMA[k])}
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), separators=(',', ':'), sort_keys=True)
@@ -220,46 +345,44 @@ def _reject_constant(name: str) -> None:
     raise ValueError(f'{name} is not allowed')
 
 
-def _signed_fields_ok(message: Any, where: str) -> None:
-    seq, tag = message.seq, message.auth
-    if seq is not None and not 0 <= seq <= MAX_GENERATION:
-        raise ProtocolError(f'{where}.seq: must be in [0, 2**53]')
-    if tag is not None and len(tag) > 128:
-        raise ProtocolError(f'{where}.auth: too long')
+def _is_optional(kind: Any) -> bool:
+    return isinstance(kind, tuple) and kind[0] == 'optional'
 
 
-# The fields every signed status message carries when the deployment has a key: the sending
-# process (a random id drawn at its start), its message count, and the HMAC of the rest.
-SIGNED_SCHEMA = {'sender': ('optional', str), 'seq': ('optional', int), 'auth': ('optional', str)}
-SIGNED_FIELDS = tuple(SIGNED_SCHEMA)
+def _kind(hint: Any, where: str) -> Any:
+    """A field's type hint in _check's small type language."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType) and len(args) == 2 and type(None) in args:
+        return ('optional', _kind(next(a for a in args if a is not type(None)), where))
+    if origin is dict and args[0] is str:
+        return ('map', _kind(args[1], where))
+    if hint in (float, int, bool, str) \
+            or isinstance(hint, type) and issubclass(hint, (_Vocabulary, Message)):
+        return hint
+    raise TypeError(f'{where}: no wire form for {hint!r}')   # a bug in this module, not input
 
 
-def _without_unsigned(out: Dict[str, Any], message: Any) -> Dict[str, Any]:
-    """``out`` without the signed fields an unsigned message leaves empty."""
-    for key in SIGNED_FIELDS:
-        if getattr(message, key) is None:
-            out.pop(key, None)
-    return out
+def _wire(cls: Type[T]) -> Type[T]:
+    """Set a message's SCHEMA and RULES from its dataclass fields, the one declaration."""
+    hints = typing.get_type_hints(cls)
+    schema: Dict[str, Any] = {}
+    rules: Dict[str, Tuple[Rule, ...]] = {}
+    for f in fields(cls):      # type: ignore[arg-type]
+        where = f'{cls.__name__}.{f.name}'
+        kind = schema[f.name] = _kind(hints[f.name], where)
+        base = kind[1] if _is_optional(kind) else kind
+        base = base[0] if isinstance(base, tuple) else base
+        declared = tuple(f.metadata.get(_RULES, ()))
+        for rule in declared:
+            if base not in rule.kinds:      # a bug in this module: the check could not run
+                raise TypeError(f'{where}: {rule!r} does not apply to {base!r}')
+        if declared:
+            rules[f.name] = declared
+    cls.SCHEMA, cls.RULES = schema, rules
+    return cls
 
 
-def _sender_ok(message: Any, where: str) -> None:
-    _signed_fields_ok(message, where)
-    sender = message.sender
-    if sender is not None and (not sender or len(sender) > 128 or not sender.isprintable()):
-        raise ProtocolError(f'{where}.sender: empty, over 128 characters or not printable')
-
-
-def _names_ok(mapping: Mapping[str, Any], where: str, what: str) -> None:
-    for key in mapping:
-        if not key or len(key) > 256:
-            raise ProtocolError(f'{where}: bad {what} name {key!r:.60}')
-
-
-def _term_ok(term: Optional[int], where: str) -> None:
-    if term is not None and not 0 <= term <= MAX_GENERATION:
-        raise ProtocolError(f'{where}.term: must be in [0, 2**53]')
-
-
+@_wire
 @dataclass
 class DeciderIdentity(Message):
     """Who publishes a layout: one decider process (a random id drawn at its start)."""
@@ -268,7 +391,6 @@ class DeciderIdentity(Message):
     host: str
     pid: int
     started: float            # the decider's wall clock at its start
-    SCHEMA = {'id': str, 'host': str, 'pid': int, 'started': float}
 
     def validate(self, where: str) -> None:
         if not self.id or len(self.id) > 64 or len(self.host) > 256 \
@@ -279,6 +401,7 @@ class DeciderIdentity(Message):
         return f'{self.id} (host {self.host:.60}, pid {self.pid})'
 
 
+@_wire
 @dataclass
 class Layout(Message):
     """The desired layout: node -> scale for every managed node, with a generation number.
@@ -289,37 +412,18 @@ class Layout(Message):
     the HMAC of the rest when the deployment has a key (protocol_auth).
     """
 
-    generation: int
+    generation: int = field(metadata=_rules(_COUNT))
     deployment: str
-    assignments: Dict[str, str]
+    assignments: Dict[str, str] = field(metadata=_rules(Keys(Text(1, 256, printable=False))))
     reason: str
     stamp: float
     decider: Optional[DeciderIdentity] = None
-    seq: Optional[int] = None
-    auth: Optional[str] = None
-    term: Optional[int] = None
-    SCHEMA = {'generation': int, 'deployment': str, 'assignments': ('map', str),
-              'reason': str, 'stamp': float, 'decider': ('optional', DeciderIdentity),
-              'seq': ('optional', int), 'auth': ('optional', str), 'term': ('optional', int)}
-
-    def validate(self, where: str) -> None:
-        if self.generation < 0:
-            raise ProtocolError(f'{where}.generation: must be >= 0')
-        if self.generation > MAX_GENERATION:
-            raise ProtocolError(f'{where}.generation: {self.generation:.3g} is beyond the '
-                                f'bound 2**53 (no decider counts that far)')
-        _term_ok(self.term, where)
-        _signed_fields_ok(self, where)
-        _names_ok(self.assignments, where + '.assignments', 'node')
-
-    def to_dict(self) -> Dict[str, Any]:
-        out = asdict(self)
-        for key in ('decider', 'seq', 'auth', 'term'):
-            if out[key] is None:
-                del out[key]    # an older agent's strict decoder still reads it
-        return out
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
+    term: Optional[int] = _optional(_COUNT)
 
 
+@_wire
 @dataclass
 class NodeReport(Message):
     """What an agent knows of one node it supervises."""
@@ -331,55 +435,33 @@ class NodeReport(Message):
     ready: bool
     exit_reason: str
     lifecycle: Optional[LifecycleState] = None     # a lifecycle node's state
-    SCHEMA = {'state': ProcState, 'pid': int, 'since': float, 'restarts': int, 'ready': bool,
-              'exit_reason': str, 'lifecycle': ('optional', LifecycleState)}
 
 
+@_wire
 @dataclass
 class AgentState(Message):
     """An agent's report of what actually runs on its scale."""
 
     scale: str
-    generation: int           # the newest layout generation this agent has applied
+    # The newest layout generation this agent has applied.
+    generation: int = field(metadata=_rules(Within(-MAX_GENERATION, MAX_GENERATION)))
     stamp: float
     nodes: Dict[str, NodeReport]
     decider: Optional[str] = None     # the id of the decider whose layouts it follows
     instance: Optional[str] = None    # the agent process (a random id drawn at its start)
-    seq: Optional[int] = None         # counts this agent process's reports
-    auth: Optional[str] = None        # HMAC of the rest, with a deployment key
+    seq: Optional[int] = _optional(_COUNT)    # counts this agent process's reports
+    auth: Optional[str] = _optional(_AUTH)    # HMAC of the rest, with a deployment key
     # The machine it runs on: scales with one host_id share it (single-machine mode,
     # runtime/hosts.py); host is its host name, for people.
-    host_id: Optional[str] = None
-    host: Optional[str] = None
-    term: Optional[int] = None        # the leadership term of the decider it follows
-    SCHEMA = {'scale': str, 'generation': int, 'stamp': float, 'nodes': ('map', NodeReport),
-              'decider': ('optional', str), 'instance': ('optional', str),
-              'seq': ('optional', int), 'auth': ('optional', str),
-              'host_id': ('optional', str), 'host': ('optional', str),
-              'term': ('optional', int)}
-
-    def validate(self, where: str) -> None:
-        if abs(self.generation) > MAX_GENERATION:
-            raise ProtocolError(f'{where}.generation: beyond the bound 2**53')
-        _term_ok(self.term, where)
-        _signed_fields_ok(self, where)
-        for key in ('host_id', 'host'):
-            value = getattr(self, key)
-            if value is not None and (len(value) > 256 or not value.isprintable()):
-                raise ProtocolError(f'{where}.{key}: over 256 characters or not printable')
-
-    def to_dict(self) -> Dict[str, Any]:
-        out = {'scale': self.scale, 'generation': self.generation, 'stamp': self.stamp,
-               'nodes': {k: asdict(v) for k, v in self.nodes.items()}}
-        for key in ('decider', 'instance', 'seq', 'auth', 'host_id', 'host', 'term'):
-            if getattr(self, key) is not None:
-                out[key] = getattr(self, key)
-        return out
+    host_id: Optional[str] = _optional(_HOST)
+    host: Optional[str] = _optional(_HOST)
+    term: Optional[int] = _optional(_COUNT)   # the leadership term of the decider it follows
 
     def running(self) -> Dict[str, NodeReport]:
         return {k: v for k, v in self.nodes.items() if v.state in LIVE_STATES}
 
 
+@_wire
 @dataclass
 class ScaleStatus(Message):
     """CPU (reference-core percent), memory and load of one scale and its managed nodes."""
@@ -393,27 +475,13 @@ class ScaleStatus(Message):
     load_1m: float
     # What cpu_total measures: 'cgroup', 'machine' or 'processes' (the agent's process tree,
     # single-machine mode; runtime/cpu.py); absent from older agents.
-    cpu_source: Optional[str] = None
-    sender: Optional[str] = None
-    seq: Optional[int] = None
-    auth: Optional[str] = None
-    SCHEMA = {'scale': str, 'stamp': float, 'cpu_total': float, 'capacity_cpu': float,
-              'cpu_by_node': ('map', float), 'mem_percent': float, 'load_1m': float,
-              'cpu_source': ('optional', str), **SIGNED_SCHEMA}
-
-    def validate(self, where: str) -> None:
-        if self.cpu_source is not None and self.cpu_source not in CPU_SOURCES:
-            raise ProtocolError(f'{where}.cpu_source: expected one of '
-                                f'{", ".join(CPU_SOURCES)}, got {self.cpu_source!r:.40}')
-        _sender_ok(self, where)
-
-    def to_dict(self) -> Dict[str, Any]:
-        out = asdict(self)
-        if out['cpu_source'] is None:
-            del out['cpu_source']
-        return _without_unsigned(out, self)
+    cpu_source: Optional[str] = _optional(OneOf(CPU_SOURCES))
+    sender: Optional[str] = _optional(_SENDER)
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
 
 
+@_wire
 @dataclass
 class LinkStatus(Message):
     """One link as the agent that watches it sees it (Deployment.link_monitor): the master's
@@ -435,30 +503,28 @@ class LinkStatus(Message):
     # gone, fenced) and for how long; None while the link is down or before its first echo.
     peer_agent: Optional[str] = None
     peer_agent_for_s: Optional[float] = None
-    sender: Optional[str] = None
-    seq: Optional[int] = None
-    auth: Optional[str] = None
-    SCHEMA = {'master': str, 'remote': str, 'stamp': float, 'up': bool,
-              'rtt_ms': ('optional', float), 'loss': float,
-              'bandwidth_available_kbps': ('optional', float),
-              'bandwidth_available_age_s': ('optional', float),
-              'bandwidth_used_kbps': float, 'queueing_delay_ms': ('optional', float),
-              'congested': bool, 'peer_agent': ('optional', str),
-              'peer_agent_for_s': ('optional', float), **SIGNED_SCHEMA}
-
-    def validate(self, where: str) -> None:
-        _sender_ok(self, where)
+    sender: Optional[str] = _optional(_SENDER)
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
 
     def to_dict(self) -> Dict[str, Any]:
-        return _without_unsigned(asdict(self), self)
+        # A reading not known travels as null, as link monitors have always sent it; only the
+        # signed fields are left out when unset.
+        out = asdict(self)
+        for key in SIGNED_FIELDS:
+            if out[key] is None:
+                del out[key]
+        return out
 
 
+@_wire
 @dataclass
 class ConnectionReading(Message):
     rate_hz: float
     bytes_per_s: float
     below_for_s: float        # the open stretch below freq_min (runtime/delta.py; 0 if none)
-    level: int                # OK / WARN (below, within tolerance) / ERROR (past tolerance)
+    # OK / WARN (below, within tolerance) / ERROR (past tolerance), or STALE
+    level: int = field(metadata=_rules(OneOf((OK, WARN, ERROR, STALE))))
     # The longest stretch below that ended since the previous reading (None or 0: none), so
     # that a stretch past Δ that ended between two readings is still reported.
     ended_below_s: Optional[float] = None
@@ -467,23 +533,11 @@ class ConnectionReading(Message):
     recent_bytes_per_s: Optional[float] = None
     # Where the topic's writers are told apart (the publisher is migratable): how many were
     # heard lately, and how long two or more have been heard at once (0: not now).
-    senders: Optional[int] = None
-    senders_for_s: Optional[float] = None
-    SCHEMA = {'rate_hz': float, 'bytes_per_s': float, 'below_for_s': float, 'level': int,
-              'ended_below_s': ('optional', float), 'recent_bytes_per_s': ('optional', float),
-              'senders': ('optional', int), 'senders_for_s': ('optional', float)}
-
-    def validate(self, where: str) -> None:
-        if self.level not in (OK, WARN, ERROR, STALE):
-            raise ProtocolError(f'{where}.level: expected 0-3 (OK, WARN, ERROR, STALE), '
-                                f'got {str(self.level)[:20]}')
-        if self.senders is not None and not 0 <= self.senders <= 1000:
-            raise ProtocolError(f'{where}.senders: expected 0-1000, got {self.senders}')
-        if self.senders_for_s is not None and not self.senders_for_s >= 0:
-            raise ProtocolError(f'{where}.senders_for_s: expected >= 0, '
-                                f'got {self.senders_for_s}')
+    senders: Optional[int] = _optional(Within(0, 1000))
+    senders_for_s: Optional[float] = _optional(Within(0))
 
 
+@_wire
 @dataclass
 class ConnectionStatus(Message):
     """Readings of every probe on one scale (the scale where each subscriber runs)."""
@@ -491,22 +545,12 @@ class ConnectionStatus(Message):
     scale: str
     stamp: float
     connections: Dict[str, ConnectionReading]
-    sender: Optional[str] = None
-    seq: Optional[int] = None
-    auth: Optional[str] = None
-    SCHEMA = {'scale': str, 'stamp': float, 'connections': ('map', ConnectionReading),
-              **SIGNED_SCHEMA}
-
-    def validate(self, where: str) -> None:
-        _sender_ok(self, where)
-
-    def to_dict(self) -> Dict[str, Any]:
-        out = {'scale': self.scale, 'stamp': self.stamp,
-               'connections': {k: asdict(v) for k, v in self.connections.items()},
-               'sender': self.sender, 'seq': self.seq, 'auth': self.auth}
-        return _without_unsigned(out, self)
+    sender: Optional[str] = _optional(_SENDER)
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
 
 
+@_wire
 @dataclass
 class Event(Message):
     """One decision of the decider, with its reason."""
@@ -518,22 +562,12 @@ class Event(Message):
     to_scale: str
     reason: str
     generation: int
-    sender: Optional[str] = None
-    seq: Optional[int] = None
-    auth: Optional[str] = None
-    SCHEMA = {'stamp': float, 'kind': str, 'node': str, 'from_scale': str, 'to_scale': str,
-              'reason': str, 'generation': int, **SIGNED_SCHEMA}
-
-    def validate(self, where: str) -> None:
-        _sender_ok(self, where)
-
-    def to_dict(self) -> Dict[str, Any]:
-        return _without_unsigned(asdict(self), self)
+    sender: Optional[str] = _optional(_SENDER)
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
 
 
-DECIDER_ROLES = ('leader', 'standby')
-
-
+@_wire
 @dataclass
 class DeciderBeat(Message):
     """A decider's beat on /anyscale/decider, every ``decider.beat_s``: who it is, whether it
@@ -542,28 +576,15 @@ class DeciderBeat(Message):
     stamp: float
     deployment: str
     decider: DeciderIdentity
-    role: str
-    term: int
-    generation: int
-    sender: Optional[str] = None
-    seq: Optional[int] = None
-    auth: Optional[str] = None
-    SCHEMA = {'stamp': float, 'deployment': str, 'decider': DeciderIdentity, 'role': str,
-              'term': int, 'generation': int, **SIGNED_SCHEMA}
-
-    def validate(self, where: str) -> None:
-        if self.role not in DECIDER_ROLES:
-            raise ProtocolError(f'{where}.role: expected one of {", ".join(DECIDER_ROLES)}, '
-                                f'got {self.role!r:.40}')
-        _term_ok(self.term, where)
-        if not 0 <= self.generation <= MAX_GENERATION:
-            raise ProtocolError(f'{where}.generation: must be in [0, 2**53]')
-        _sender_ok(self, where)
-
-    def to_dict(self) -> Dict[str, Any]:
-        return _without_unsigned(asdict(self), self)
+    role: str = field(metadata=_rules(OneOf(DECIDER_ROLES)))
+    term: int = field(metadata=_rules(_COUNT))
+    generation: int = field(metadata=_rules(_COUNT))
+    sender: Optional[str] = _optional(_SENDER)
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
 
 
+@_wire
 @dataclass
 class Objective(Message):
     """The ICAR cost function: Perf_map now, and its integral over the run."""
@@ -573,19 +594,11 @@ class Objective(Message):
     integral: float
     elapsed_s: float
     decider: Optional[str] = None     # the id of the decider that publishes it
-    seq: Optional[int] = None
-    auth: Optional[str] = None
-    SCHEMA = {'stamp': float, 'perf_map': float, 'integral': float, 'elapsed_s': float,
-              'decider': ('optional', str), 'seq': ('optional', int), 'auth': ('optional', str)}
-
-    def validate(self, where: str) -> None:
-        _signed_fields_ok(self, where)
-
-    def to_dict(self) -> Dict[str, Any]:
-        return {k: v for k, v in asdict(self).items()
-                if v is not None or k not in ('decider', 'seq', 'auth')}
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
 
 
+@_wire
 @dataclass
 class PlanNode(Message):
     expected_hz: float
@@ -593,10 +606,9 @@ class PlanNode(Message):
     expected_performance: float
     measured_performance: float
     deviation: float
-    SCHEMA = {'expected_hz': float, 'measured_hz': float, 'expected_performance': float,
-              'measured_performance': float, 'deviation': float}
 
 
+@_wire
 @dataclass
 class PlanCheck(Message):
     """Plan against reality (IROS 2016 Eq. 10) per node and overall."""
@@ -605,21 +617,9 @@ class PlanCheck(Message):
     nodes: Dict[str, PlanNode]
     overall_deviation: float
     overloaded: Dict[str, float] = field(default_factory=dict)
-    sender: Optional[str] = None
-    seq: Optional[int] = None
-    auth: Optional[str] = None
-    SCHEMA = {'stamp': float, 'nodes': ('map', PlanNode), 'overall_deviation': float,
-              'overloaded': ('map', float), **SIGNED_SCHEMA}
-
-    def validate(self, where: str) -> None:
-        _sender_ok(self, where)
-
-    def to_dict(self) -> Dict[str, Any]:
-        out = {'stamp': self.stamp, 'overall_deviation': self.overall_deviation,
-               'nodes': {k: asdict(v) for k, v in self.nodes.items()},
-               'overloaded': dict(self.overloaded),
-               'sender': self.sender, 'seq': self.seq, 'auth': self.auth}
-        return _without_unsigned(out, self)
+    sender: Optional[str] = _optional(_SENDER)
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
 
 
 __all__ = [

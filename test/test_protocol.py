@@ -1,6 +1,8 @@
 """Project topics' payloads: round trips and hostile input."""
 
+import dataclasses
 import json
+import typing
 
 import pytest
 
@@ -61,3 +63,160 @@ def test_node_report_state_must_be_known():
     bad = p.AgentState('robot', 1, 1.0, {'n': p.NodeReport('dancing', 1, 1.0, 0, True, '')})
     with pytest.raises(p.ProtocolError, match='state'):
         p.AgentState.from_json(bad.to_json())
+
+
+# --- the schema is derived from the fields: nothing declared is dropped -------------------------
+
+def every_message_class():
+    return sorted((c for c in vars(p).values() if isinstance(c, type)
+                   and issubclass(c, p.Message) and c is not p.Message),
+                  key=lambda c: c.__name__)
+
+
+def valid_bodies():
+    """A valid JSON object of every message class, the nested ones included."""
+    out = {}
+
+    def walk(message):
+        out.setdefault(type(message), message.to_dict())
+        for f in dataclasses.fields(message):
+            value = getattr(message, f.name)
+            for item in value.values() if isinstance(value, dict) else [value]:
+                if isinstance(item, p.Message):
+                    walk(item)
+    for message in sample_messages():
+        walk(message)
+    return out
+
+
+VALID = valid_bodies()
+MESSAGES = every_message_class()
+
+
+def test_every_message_class_has_a_valid_sample():
+    assert set(VALID) == set(MESSAGES)
+
+
+@pytest.mark.parametrize('cls', MESSAGES, ids=lambda c: c.__name__)
+def test_every_field_is_in_the_derived_schema_with_its_rules(cls):
+    hints = typing.get_type_hints(cls)
+    assert list(cls.SCHEMA) == [f.name for f in dataclasses.fields(cls)]
+    for f in dataclasses.fields(cls):
+        optional = type(None) in typing.get_args(hints[f.name])
+        assert (cls.SCHEMA[f.name][0] == 'optional' if optional
+                else not isinstance(cls.SCHEMA[f.name], tuple) or
+                cls.SCHEMA[f.name][0] == 'map'), f.name
+        assert cls.RULES.get(f.name, ()) == tuple(f.metadata.get('rules', ())), f.name
+
+
+def refused_by(rule):
+    """Values of the right type that ``rule`` must refuse."""
+    if isinstance(rule, p.Within):
+        return [rule.lo - 1] + ([] if rule.hi is None else [rule.hi + 1])
+    if isinstance(rule, p.OneOf):
+        if all(isinstance(c, str) for c in rule.choices):
+            return ['not ' + rule.choices[0]]
+        return [max(rule.choices) + 1, min(rule.choices) - 1]
+    if isinstance(rule, p.Text):
+        return (['x' * (rule.max_len + 1)] + ([''] if rule.min_len else [])
+                + (['a\nb'] if rule.printable else []))
+    if isinstance(rule, p.Keys):
+        return [{key: 'x'} for key in refused_by(rule.rule)]
+    raise AssertionError(f'no bad values known for {rule!r}: add them here')
+
+
+def accepted_by(rule):
+    """Values at the edges of what ``rule`` lets through."""
+    if isinstance(rule, p.Within):
+        return [rule.lo] + ([] if rule.hi is None else [rule.hi])
+    if isinstance(rule, p.OneOf):
+        return list(rule.choices)
+    if isinstance(rule, p.Text):
+        return ['x' * rule.min_len, 'x' * rule.max_len]
+    if isinstance(rule, p.Keys):
+        return [{key: 'x'} for key in accepted_by(rule.rule)]
+    raise AssertionError(f'no good values known for {rule!r}: add them here')
+
+
+RULED = [(cls, name, rule) for cls in MESSAGES for name, rules in cls.RULES.items()
+         for rule in rules]
+
+
+def test_the_rules_the_wire_relies_on_are_declared():
+    ruled = {f'{cls.__name__}.{name}' for cls, name, _ in RULED}
+    assert {'Layout.generation', 'Layout.term', 'Layout.seq', 'Layout.auth',
+            'Layout.assignments', 'AgentState.generation', 'AgentState.host',
+            'ScaleStatus.sender', 'ScaleStatus.cpu_source', 'ConnectionReading.level',
+            'ConnectionReading.senders', 'DeciderBeat.role', 'DeciderBeat.term',
+            'Objective.seq', 'PlanCheck.sender'} <= ruled
+    signed = [cls for cls in MESSAGES if 'sender' in cls.SCHEMA]
+    assert len(signed) >= 6 and all(set(p.SIGNED_FIELDS) <= set(cls.RULES) for cls in signed)
+
+
+@pytest.mark.parametrize('cls, name, rule', RULED,
+                         ids=[f'{c.__name__}.{n}-{type(r).__name__}' for c, n, r in RULED])
+def test_every_declared_rule_is_enforced(cls, name, rule):
+    for bad in refused_by(rule):
+        with pytest.raises(p.ProtocolError) as info:
+            cls.from_json(json.dumps(dict(VALID[cls], **{name: bad})))
+        assert str(info.value).startswith(f'{cls.__name__}.{name}'), (bad, info.value)
+    for good in accepted_by(rule):
+        cls.from_json(json.dumps(dict(VALID[cls], **{name: good})))
+
+
+def mistyped(kind):
+    """A JSON value of another kind than ``kind``."""
+    if isinstance(kind, tuple):
+        return [] if kind[0] == 'map' else mistyped(kind[1])
+    if kind in (int, float):
+        return '1'
+    if kind is bool:
+        return 1
+    if kind is str or issubclass(kind, str):
+        return 5
+    return []    # a nested message
+
+
+FIELDS = [(cls, name) for cls in MESSAGES for name in cls.SCHEMA]
+
+
+@pytest.mark.parametrize('cls, name', FIELDS, ids=[f'{c.__name__}.{n}' for c, n in FIELDS])
+def test_a_mistyped_or_missing_field_is_refused(cls, name):
+    kind = cls.SCHEMA[name]
+    with pytest.raises(p.ProtocolError, match=rf'^{cls.__name__}\.{name}: expected'):
+        cls.from_json(json.dumps(dict(VALID[cls], **{name: mistyped(kind)})))
+    absent = {k: v for k, v in VALID[cls].items() if k != name}
+    if isinstance(kind, tuple) and kind[0] == 'optional':
+        assert getattr(cls.from_json(json.dumps(dict(absent, **{name: None}))), name) is None
+        assert getattr(cls.from_json(json.dumps(absent)), name) is None
+    else:
+        with pytest.raises(p.ProtocolError, match=f"missing field '{name}'"):
+            cls.from_json(json.dumps(absent))
+        with pytest.raises(p.ProtocolError, match=rf'^{cls.__name__}\.{name}: expected'):
+            cls.from_json(json.dumps(dict(absent, **{name: None})))
+
+
+def test_a_rule_that_cannot_run_on_its_field_is_refused_where_it_is_declared():
+    @dataclasses.dataclass
+    class Misdeclared(p.Message):
+        name: str = dataclasses.field(metadata={'rules': (p.Within(0, 1),)})
+
+    with pytest.raises(TypeError, match='Misdeclared.name'):
+        p._wire(Misdeclared)
+
+    @dataclasses.dataclass
+    class Untranslatable(p.Message):
+        names: typing.List[str]
+
+    with pytest.raises(TypeError, match='Untranslatable.names: no wire form'):
+        p._wire(Untranslatable)
+
+
+def test_unset_optional_fields_are_left_out_but_a_link_keeps_its_null_readings():
+    layout = json.loads(sample_messages()[0].to_json())
+    assert set(layout) == {'generation', 'deployment', 'assignments', 'reason', 'stamp'}
+    link = p.LinkStatus('robot', 'laptop', 1.0, False, None, 1.0, None, None, 0.0)
+    sent = json.loads(link.to_json())
+    assert sent['rtt_ms'] is None and sent['peer_agent'] is None and 'sender' not in sent
+    state = p.AgentState('robot', 1, 1.0, {'n': p.NodeReport('running', 1, 1.0, 0, True, '')})
+    assert json.loads(state.to_json())['nodes']['n']['lifecycle'] is None
