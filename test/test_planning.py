@@ -11,12 +11,12 @@ import pytest
 
 from anyscale_manager.cli import main as cli_main
 from anyscale_manager.model import load_deployment
+from anyscale_manager.model.capacity import usable_cpu
 from anyscale_manager.model.types import (Connection, DeciderSettings, Deployment, Launch,
                                           Link, Node, Scale, Settings)
 from anyscale_manager.planning import Instance, Regression, check_layout, fit_profile, solve
 from anyscale_manager.planning.generate import generate_deployment
 from anyscale_manager.planning.instance import own_scales_of_all
-from anyscale_manager.runtime.constraints import usable_cpu
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 IROS = os.path.join(REPO, 'config', 'iros2016')

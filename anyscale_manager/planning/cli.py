@@ -9,9 +9,9 @@ from typing import Any, Dict
 
 import yaml
 
+from ..model.capacity import usable_cpu
 from ..model.loader import DeploymentError, load_deployment, load_mapping
 from ..model.types import Deployment
-from ..runtime.constraints import usable_cpu
 from .instance import SETTINGS
 from .plan import SOLVERS, Plan, solve
 

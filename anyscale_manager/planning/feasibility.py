@@ -11,8 +11,8 @@ units around, and ``explain_infeasible`` names the constraints that cannot all b
 from dataclasses import dataclass
 from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple
 
+from ..model.capacity import usable_cpu
 from ..model.types import Deployment
-from ..runtime.constraints import usable_cpu
 from .instance import Instance, own_scales_of_all
 
 TOLERANCE = 1e-6

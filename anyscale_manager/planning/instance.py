@@ -9,8 +9,8 @@ import math
 from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
 
+from ..model.capacity import usable_cpu
 from ..model.types import SERVER, Deployment
-from ..runtime.constraints import usable_cpu
 from .regression import NodeProfile, fit_profile
 
 PROBLEMS = (1, 2)

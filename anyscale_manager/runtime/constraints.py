@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Dict, FrozenSet, Iterable, List, Mapping, Optional, Tuple
 
+from ..model.capacity import usable_cpu
 from ..model.types import Connection, DeciderSettings, Deployment, Link, frozen_map
 from .observations import ConnectionObs, Observations
 
@@ -36,15 +37,6 @@ STALE = 'stale'
 KINDS = (FREQUENCY, CPU, BANDWIDTH, LINK_DOWN, STALE)
 
 _EMPTY: Mapping[str, float] = frozen_map()
-
-
-def usable_cpu(capacity_cpu: float, settings: DeciderSettings) -> float:
-    """The CPU of a scale that its nodes may use: its capacity times ``cpu_headroom``.
-
-    The one definition, used by the CPU rule, the migration policy and the planners alike, so
-    that a first layout the planners make is one the decider accepts.
-    """
-    return capacity_cpu * settings.cpu_headroom
 
 
 @dataclass(frozen=True)

@@ -4,11 +4,13 @@ Then adoption: a decider that starts while nodes already run keeps them where th
 is allowed, instead of restarting them where the plan would put them.
 """
 
-import importlib
 from dataclasses import replace
-from typing import Any, Dict, List, Mapping, Optional, Tuple
+from typing import TYPE_CHECKING, Dict, List, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment
+
+if TYPE_CHECKING:
+    from ..planning import Placement
 
 PROBLEMS = {'problem1': 1, 'problem2': 2}
 
@@ -37,7 +39,7 @@ def master_layout(deployment: Deployment) -> Dict[str, str]:
 
 def planned_layout(deployment: Deployment, problem: int,
                    settings: Optional[DeciderSettings] = None
-                   ) -> Tuple[Dict[str, str], Dict[str, Any]]:
+                   ) -> Tuple[Dict[str, str], Dict[str, 'Placement']]:
     """Problem 1 or 2 of the IROS 2016 paper, from the planning package: layout, placements.
 
     The planner fills each scale only to the CPU the decider lets nodes use there, by the
@@ -46,23 +48,24 @@ def planned_layout(deployment: Deployment, problem: int,
     """
     if settings is not None and settings != deployment.decider:
         deployment = replace(deployment, decider=settings)
+    # Imported when a planner is asked for: the planners and numpy then load, a decider that
+    # starts from the master layout does without them.
     try:
-        planning = importlib.import_module('anyscale_manager.planning')
-        solve = getattr(planning, 'solve')
-    except (ImportError, AttributeError) as e:
+        from ..planning import solve
+    except ImportError as e:
         raise LayoutError(f'initial_layout problem{problem}: the planner is not available '
                           f'in this install ({e})') from None
     try:
         plan = solve(deployment, problem=problem)
     except (ValueError, KeyError, RuntimeError) as e:
         raise LayoutError(f'initial_layout problem{problem}: the planner failed: {e}') from None
-    if not getattr(plan, 'feasible', False):
-        why = '; '.join(str(v) for v in getattr(plan, 'violations', ()) or ()) or 'no reason'
+    if not plan.feasible:
+        why = '; '.join(plan.violations) or 'no reason'
         raise LayoutError(f'initial_layout problem{problem}: no feasible plan ({why})')
     out = master_layout(deployment)
     for node, placement in plan.layout.items():
         if node in out:
-            out[node] = getattr(placement, 'scale', placement)
+            out[node] = placement.scale
     return out, dict(plan.layout)
 
 
@@ -73,7 +76,7 @@ def initial_layout(deployment: Deployment,
 
 
 def initial_plan(deployment: Deployment, settings: Optional[DeciderSettings] = None
-                 ) -> Tuple[Dict[str, str], Optional[Dict[str, Any]]]:
+                 ) -> Tuple[Dict[str, str], Optional[Dict[str, 'Placement']]]:
     """The first layout and, when a planner made it, its placements (for the plan check)."""
     settings = settings or deployment.decider
     mode = settings.initial_layout
