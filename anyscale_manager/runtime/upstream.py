@@ -43,10 +43,12 @@ class UpstreamWatch:
         pub = c.publisher
         if not self._serving(obs, running, pub):
             copies = obs.copies.get(pub) or {}
-            where = running.get(pub)
-            state = copies[where].state if where in copies else \
-                ', '.join(f'{cp.state} on {s}' for s, cp in sorted(copies.items())) or \
-                'reported nowhere'
+            where = running.get(pub, '')
+            if where in copies:
+                state = copies[where].state
+            else:
+                state = ', '.join(f'{cp.state} on {s}' for s, cp in sorted(copies.items())) \
+                    or 'reported nowhere'
             return f'its publisher {pub} is not serving ({state})'
         down_at = self._down_at.get(pub)
         if down_at is not None and obs.now - down_at < self.settings.grace_s:
