@@ -21,10 +21,11 @@ whole-deployment checks (model/checks.py) on whatever was read, so that a typo i
 not hide a contradiction elsewhere in the same file.
 """
 
-from typing import Any, Mapping
+from typing import Any, Mapping, Optional, Sequence
 
 from . import types as t
 from .checks import CHECKS
+from .params_file import parameters_source
 from .reader import Context, DeploymentError, Problem, Section, did_you_mean
 from .sections import read_deployment
 from .yaml_io import deployment_parameters, nest_parameters, read_yaml, unwrap_ros
@@ -57,7 +58,11 @@ def load_deployment(path: str) -> t.Deployment:
     return load_mapping(read_yaml(path), str(path))
 
 
-def load_from_parameters(flat: Mapping[str, Any], source: str = '<ROS parameters>'
-                         ) -> t.Deployment:
-    """Rebuild a deployment from a node's parameters (loaded with --params-file)."""
+def load_from_parameters(flat: Mapping[str, Any], source: Optional[str] = None,
+                         argv: Optional[Sequence[str]] = None) -> t.Deployment:
+    """Rebuild a deployment from a node's parameters (loaded with --params-file). Its errors
+    name ``source``, by default the parameters files of ``argv`` (the command line the node's
+    rcl arguments came from; default this process's), '<ROS parameters>' when it has none."""
+    if source is None:
+        source = parameters_source(argv)
     return load_mapping(deployment_parameters(flat), source, wrapped=False)

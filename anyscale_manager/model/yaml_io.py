@@ -32,6 +32,11 @@ _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
                                  _construct_mapping)
 
 
+def parse_yaml(text: str) -> Any:
+    """``text`` parsed, a key given twice refused (yaml.YAMLError, with its mark)."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)
+
+
 def read_yaml(path: str) -> Any:
     """The parsed file; DeploymentError when it cannot be read or is not YAML (the line and
     column of the first mistake) or repeats a key."""
@@ -42,10 +47,39 @@ def read_yaml(path: str) -> Any:
     except OSError as e:
         raise DeploymentError([Problem(source, '', f'cannot read: {e.strerror}')]) from e
     except yaml.YAMLError as e:
-        mark = getattr(e, 'problem_mark', None)
-        where = f'line {mark.line + 1}, column {mark.column + 1}' if mark else ''
-        what = getattr(e, 'problem', None) or str(e)
-        raise DeploymentError([Problem(source, where, f'invalid YAML: {what}')]) from e
+        raise DeploymentError([yaml_problem(source, e)]) from e
+
+
+# What PyYAML's most frequent complaints usually mean in a hand-written file.
+_HINTS = (
+    ('mapping values are not allowed', "a value holding ': ' must be quoted, and a key "
+                                       'nested under another must be indented under it'),
+    ('expected <block end>', 'a line indented differently from the keys beside it'),
+    ("'\\t' that cannot start any token", 'YAML indents with spaces, not tabs'),
+    ("could not find expected ':'", "a key without its ':', or a quote left open"),
+    ('found undefined alias', "'*' starts an alias in YAML: quote a value that begins with it"),
+)
+
+
+def mark_text(mark: Any) -> str:
+    """'line 3, column 5' of a PyYAML mark (counted from 1, as editors do)."""
+    return f'line {mark.line + 1}, column {mark.column + 1}'
+
+
+def yaml_problem(source: str, e: yaml.YAMLError) -> Problem:
+    """A PyYAML error as one line: where, what the parser expected or found, what that
+    usually means, and the construct it was reading (where it starts)."""
+    mark = getattr(e, 'problem_mark', None)
+    what = getattr(e, 'problem', None) or str(e).replace('\n', ' ')
+    text = f'invalid YAML: {what}'
+    hint = next((h for key, h in _HINTS if key in what), '')
+    if hint:
+        text += f' ({hint})'
+    context, context_mark = getattr(e, 'context', None), getattr(e, 'context_mark', None)
+    if context and context_mark is not None and mark is not None \
+            and context_mark.line != mark.line:
+        text += f'; {context} that starts at {mark_text(context_mark)}'
+    return Problem(source, mark_text(mark) if mark else '', text)
 
 
 def unwrap_ros(ctx: Context, data: Any) -> Any:

@@ -38,6 +38,7 @@ from .. import protocol as p
 from .. import protocol_auth as auth
 from ..model.advice import UNSIGNED
 from ..model.loader import DeploymentError, load_from_parameters
+from ..model.params_file import refuse_bad_params_files
 from ..model.sections import settings_with
 from ..model.types import DeciderSettings, Deployment
 from ..runtime.constraints import ConstraintReport
@@ -104,7 +105,7 @@ class DeciderNode(Node):
         self._now = clock
         flat = {name: self.get_parameter(name).value
                 for name in self.list_parameters([], 0).names}
-        self.deployment: Deployment = load_from_parameters(flat, source=f'{NODE_NAME} parameters')
+        self.deployment: Deployment = load_from_parameters(flat)
         self.settings = self.deployment.decider
         self._declare_descriptors()
 
@@ -558,6 +559,10 @@ class DeciderNode(Node):
 
 def main(args=None) -> int:
     restore_ctrl_c()
+    # A parameters file rcl cannot read: said with its line and what was expected, not as
+    # rcl's parser words it.
+    if refuse_bad_params_files('anyscale_manager decider', sys.argv if args is None else args):
+        return 2
     # A SIGINT shuts rclpy's context down (its handler) and is not also raised as
     # KeyboardInterrupt: raised in the middle of an rclpy call, that came out as a RuntimeError
     # ("Unable to convert call argument '0' to Python object") while the context was still up,
