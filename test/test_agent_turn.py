@@ -204,7 +204,7 @@ def test_an_activation_held_back_keeps_the_copy_inactive_until_released(make_sup
     class Held(AgentTurn):
         hold = 'waiting for its state'
 
-        def activation_held(self, name, now):
+        def activation_held(self, name, now, inputs):
             return self.hold
 
     agent = Agent(make_sup, [lifecycle_entry()], turn_class=Held)

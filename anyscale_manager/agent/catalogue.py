@@ -45,6 +45,10 @@ class Entry:
     services: str = ''          # a lifecycle copy's service namespace: '/amcl/robot'
     nice: int = 0               # the node's own niceness, added to agent.node_nice
     critical: bool = False      # pinned by a tolerance-0 connection: not niced by node_nice
+    # A node with ``state:``: where it publishes its state, and this copy's own restore input
+    # (its ``restore`` topic remapped here, so that only this copy hears what it is handed).
+    state_topic: str = ''
+    restore_topic: str = ''
 
     @property
     def startable(self) -> bool:
@@ -150,7 +154,15 @@ def build_argv(node: t.Node, search_path: str,
     if node.lifecycle and scale:
         for name in LIFECYCLE_SERVICES + LIFECYCLE_TOPICS:
             argv += ['-r', f'~/{name}:=~/{scale}/{name}']
+    if node.state is not None and scale:
+        argv += ['-r', f'{node.state.restore}:={restore_topic(node, scale)}']
     return tuple(argv), ''
+
+
+def restore_topic(node: t.Node, scale: str) -> str:
+    """Where ``scale``'s copy of a node with ``state:`` takes its state: '/ns/amcl/robot/restore'
+    (its own, beside its lifecycle services)."""
+    return lifecycle_services(node, scale) + '/restore'
 
 
 def lifecycle_services(node: t.Node, scale: str) -> str:
@@ -198,5 +210,7 @@ def build_catalogue(deployment: t.Deployment, scale: str,
                                ros_name=ros_full_name(node), move_order=node.move_order,
                                problem=problem, lifecycle=node.lifecycle,
                                services=lifecycle_services(node, scale) if node.lifecycle
-                               else '', nice=node.nice, critical=node.name in critical)
+                               else '', nice=node.nice, critical=node.name in critical,
+                               state_topic=node.state.topic if node.state else '',
+                               restore_topic=restore_topic(node, scale) if node.state else '')
     return out

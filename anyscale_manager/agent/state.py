@@ -40,6 +40,15 @@ class Handover:
     age_s: Optional[float]
 
 
+@dataclass
+class Pending:
+    """A hand-over under way: sent once the copy's restore input is matched."""
+
+    copy: int
+    since: float
+    sent: bool = False
+
+
 class StateBook:
     """The latest state of each stateful node a scale may run, and the copies handed it."""
 
@@ -49,6 +58,7 @@ class StateBook:
         self.stale_s = stale_s
         self._held: Dict[str, Held] = {}
         self._handed: Dict[str, int] = {}          # node -> the copy handed its state
+        self._pending: Dict[str, Pending] = {}
         self._too_big: Dict[str, bool] = {}
         self._last_seq: Dict[str, int] = {}
         self._backward: Dict[str, List[float]] = {}
@@ -129,7 +139,39 @@ class StateBook:
     def handed(self, node: str, copy: int) -> None:
         """The copy has its state (or was told there is none): it may serve."""
         self._handed[node] = copy
+        self._pending.pop(node, None)
+
+    # --- hand-overs in progress ----------------------------------------------------------------
+    def begin(self, node: str, copy: int, now: float) -> 'Pending':
+        """Copy ``copy`` of ``node`` is to be handed its state before it serves: the hand-over
+        stays pending until it is ``handed``, or gives up after a time (``expired``). What is
+        handed is the latest state when it is sent (``handover``)."""
+        current = self._pending.get(node)
+        if current is None or current.copy != copy:
+            current = self._pending[node] = Pending(copy, now)
+        return current
+
+    def pending(self) -> List['Pending']:
+        return list(self._pending.values())
+
+    def pending_for(self, node: str) -> Optional['Pending']:
+        return self._pending.get(node)
+
+    def expired(self, now: float, timeout_s: float) -> List[Line]:
+        """Hand-overs that waited ``timeout_s`` for the copy's restore input: the copy serves
+        without its state rather than not at all."""
+        out: List[Line] = []
+        for node, p in list(self._pending.items()):
+            if now - p.since > timeout_s:
+                out.append(('warn', f'{node}: its copy (pid {p.copy}) did not take its '
+                                    f'state on {self.specs[node].restore} (remapped to its own '
+                                    f'topic) within {timeout_s:g} s: it serves from its own '
+                                    'state (does it subscribe to its restore topic while '
+                                    'inactive? docs/lifecycle.md, state)'))
+                self.handed(node, p.copy)
+        return out
 
     def stood_down(self, node: str) -> None:
         """The node's copy here no longer serves: its next spell is handed the state again."""
         self._handed.pop(node, None)
+        self._pending.pop(node, None)

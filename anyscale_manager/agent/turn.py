@@ -11,7 +11,8 @@ touches ROS: time and the wall clock come in as arguments.
 """
 
 from dataclasses import dataclass, field
-from typing import Callable, Collection, Dict, Iterable, List, Mapping, Optional, Set, Tuple
+from typing import (Callable, Collection, Dict, Iterable, List, Mapping, Optional, Protocol,
+                    Sequence, Set, Tuple)
 
 from .. import protocol
 from ..model.types import Deployment
@@ -21,6 +22,7 @@ from . import lifecycle as lc
 from .authority import Follower
 from .catalogue import Entry
 from .reconcile import Reconciler
+from .state import StateBook
 from .supervisor import Report, Supervisor
 
 TICK_S = 0.1
@@ -41,6 +43,19 @@ def _no_poll(name: str) -> None:
     """No lifecycle services here (a test without them): nothing to call."""
 
 
+class RestoreChannel(Protocol):
+    """The agent's writers of its copies' restore topics (nodes/state_relay.py)."""
+
+    def ready(self, name: str) -> bool:
+        """Whether node ``name``'s copy here subscribes to its restore topic."""
+
+    def send(self, name: str, data: bytes) -> None:
+        """Publish a serialised state message on that copy's restore topic."""
+
+    def delivered(self, name: str) -> bool:
+        """Whether the copy's reader acknowledged what was sent."""
+
+
 @dataclass
 class AgentInputs:
     """What the ROS side observed for one step."""
@@ -56,6 +71,9 @@ class AgentInputs:
     # ``since`` (the probes); None without probes.
     writer_joined: Optional[Callable[[str, float], Optional[bool]]] = None
     probed: Collection[str] = ()             # the connections the probes watch now
+    # State messages heard since the last step: (node, serialised message, sequence number).
+    heard: Sequence[Tuple[str, bytes, int]] = ()
+    restore: Optional[RestoreChannel] = None     # None: no state is handed to any copy
 
 
 @dataclass
@@ -126,6 +144,11 @@ class AgentTurn:
                             backoff_s=max(s.restart_backoff_s, 0.1),
                             backoff_max_s=max(s.restart_backoff_max_s, 0.1))
             for name, entry in self.catalogue.items() if entry.lifecycle and entry.startable}
+        # Each stateful node's latest state, handed to a copy before it serves here.
+        self.states = StateBook({n: d.node(n).state for n, e in self.catalogue.items()
+                                 if e.state_topic and e.startable and d.node(n).state},
+                                s.state_max_bytes, s.state_stale_s)
+        self._logs: List[LogLine] = []            # the current step's log lines
         self.shutdown_requests = 0
         self.restarting = False
         self.tick_s = TICK_S
@@ -189,12 +212,46 @@ class AgentTurn:
             decider=f.followed_id, term=f.term, instance=self.instance,
             host_id=self.host_id or None, host=self.host_name or None)
 
-    def activation_held(self, name: str, now: float) -> str:
+    def activation_held(self, name: str, now: float, inputs: AgentInputs) -> str:
         """Why the copy of lifecycle node ``name``, placed here, may not be activated yet ('':
         it may). Held, it is kept inactive, its process running, and the reason is logged
-        like a move's wait. Nothing holds a copy here; a precondition of activation (a state
-        handed to the copy first) belongs in this method."""
-        return ''
+        like a move's wait. A copy of a node with ``state:`` is handed the node's latest state
+        first (``_hand_state``)."""
+        return self._hand_state(name, now, inputs)
+
+    def _hand_state(self, name: str, now: float, inputs: AgentInputs) -> str:
+        """Hand the copy of ``name`` here its node's latest state, once per spell of serving:
+        '' once handed (or there is none to hand), else what it waits for. A lifecycle copy
+        is handed it while inactive (configured: its restore input exists), and activated only
+        once its reader has acknowledged it."""
+        states = self.states
+        pid = self.supervisor.pids().get(name, 0)
+        if not states.needs(name, pid):
+            return ''
+        driver = self.drivers.get(name)
+        if driver is not None and driver.state != lc.INACTIVE:
+            return 'its state is handed to the copy once it is configured'
+        pending = states.begin(name, pid, now)
+        channel = inputs.restore
+        if not pending.sent:
+            handover, lines = states.handover(name, pid, now)
+            if handover.data is None:
+                self._logs.extend(lines)            # nothing heard yet: it starts from its own
+                states.handed(name, pid)
+                return ''
+            if channel is None:                     # no ROS side to hand it with (a test)
+                states.handed(name, pid)
+                return ''
+            if not channel.ready(name):
+                return f'its state is handed to the copy first: waiting for its restore ' \
+                       f'input ({self.catalogue[name].restore_topic})'
+            channel.send(name, handover.data)       # the latest, as it is now
+            pending.sent = True
+            self._logs.extend(lines)
+        if channel is None or channel.delivered(name):
+            states.handed(name, pid)
+            return ''
+        return 'its state is handed to the copy first: waiting for its acknowledgement'
 
     # --- inputs -----------------------------------------------------------------------------
     def begin(self, now: float) -> AgentOutput:
@@ -291,7 +348,10 @@ class AgentTurn:
     def step(self, now: float, inputs: AgentInputs) -> AgentOutput:
         """One step at ``now``: decide what runs here, drive the processes and lifecycles."""
         out = AgentOutput()
+        self._logs = out.logs
         sup = self.supervisor
+        for node, data, seq in inputs.heard:
+            out.logs.extend(self.states.heard(node, data, now, seq))
         if self.shutdown_requests:
             want: Set[str] = set()
             goals: Dict[str, Optional[LifecycleState]] = {n: lc.FINALIZED for n in self.drivers}
@@ -305,10 +365,12 @@ class AgentTurn:
             waiting = dict(self.reconciler.waiting)
             for name, goal in goals.items():
                 if goal == lc.ACTIVE and self.drivers[name].state != lc.ACTIVE:
-                    why = self.activation_held(name, now)
+                    why = self.activation_held(name, now, inputs)
                     if why:
                         goals[name] = lc.INACTIVE
                         waiting[name] = why
+                elif goal != lc.ACTIVE:
+                    self.states.stood_down(name)     # its next spell is handed the state anew
             self._note_waiting(waiting, out)
         want |= {n for n, g in goals.items() if g == lc.FINALIZED and self._finalizing(n, now)}
         sup.set_wanted(want, now)
@@ -322,7 +384,9 @@ class AgentTurn:
         out.wanted = set(want)
         changed = sup.step(now, lambda entry: self._visible(entry, now, inputs.visible))
         self._sync_drivers()
+        self._hand_plain_states(now, inputs)
         self._drive_lifecycles(now, inputs.poll)
+        out.logs.extend(self.states.expired(now, self.deployment.agent.lifecycle_timeout_s))
         out.logs.extend(sup.events)
         sup.events.clear()
         # Answers to lifecycle requests arrive between steps: compare with what was last
@@ -336,8 +400,21 @@ class AgentTurn:
         if names != self._probe_names:
             self._probe_names = out.probe_connections = names
         stopping = any(sup.state(n) == ProcState.STOPPING for n in sup.names)
-        self.tick_s = out.tick_s = STOPPING_TICK_S if stopping else TICK_S
+        # A hand-over under way is looked at again soon: the copy's activation waits on it.
+        fast = stopping or bool(self.states.pending())
+        self.tick_s = out.tick_s = STOPPING_TICK_S if fast else TICK_S
         return out
+
+    def _hand_plain_states(self, now: float, inputs: AgentInputs) -> None:
+        """A plain copy (no lifecycle to hold it back) of a stateful node serving here is
+        handed the state as soon as its restore input appears; a stopped one stands down."""
+        for name in self.states.specs:
+            if name in self.drivers:
+                continue
+            if self.supervisor.state(name) in LIVE_STATES:
+                self._hand_state(name, now, inputs)
+            else:
+                self.states.stood_down(name)
 
     def _note_waiting(self, waiting: Mapping[str, str], out: AgentOutput) -> None:
         """Say why a node's start or stop is held back, once per reason (its figures aside)."""

@@ -30,6 +30,7 @@ from . import qos
 from .agent_monitors import AgentMonitors
 from .executor import make_executor
 from .lifecycle_client import CopyClients
+from .state_relay import StateRelay
 from .throttled_log import ThrottledLog
 from .. import protocol
 from .. import protocol_auth as auth
@@ -66,6 +67,7 @@ class AgentNode(Node):
                          automatically_declare_parameters_from_overrides=True, **kwargs)
         self._lock_file: Optional[IO[str]] = None
         self._hosted: Optional[AgentMonitors] = None
+        self._relay: Optional[StateRelay] = None
         self._probes: Any = None
         self._lifecycle: Dict[str, CopyClients] = {}
         try:
@@ -152,6 +154,10 @@ class AgentNode(Node):
                                      self.turn.serving_pids, self.turn.supervised_pids,
                                      lambda: self.turn.shared_with(time.monotonic()))
         self._probes = self._hosted.probes
+        # The state of the nodes that declare one, kept here and handed to a copy that serves.
+        self._relay = StateRelay(self, self.catalogue,
+                                 {n: d.state_msg_type(n) for n in self.turn.states.specs},
+                                 self._log)
         for level, text in start_warden(d, scale, self.supervisor, stem, self.log_dir):
             self._log(level, text)
         self.get_logger().info(
@@ -228,7 +234,9 @@ class AgentNode(Node):
             wall=time.time(), visible=name_counts(graph),
             poll=lambda name: self._lifecycle[name].poll(),
             writer_joined=None if probes is None else probes.writer_joined_since,
-            probed=() if probes is None else frozenset(probes.connections))))
+            probed=() if probes is None else frozenset(probes.connections),
+            heard=self._relay.drain(now) if self._relay is not None else (),
+            restore=self._relay)))
 
     def _act(self, out: AgentOutput) -> None:
         """Log, publish and reschedule what the turn asks for."""
@@ -294,6 +302,9 @@ class AgentNode(Node):
         for clients in self._lifecycle.values():
             clients.destroy()
         self._lifecycle = {}
+        if self._relay is not None:
+            self._relay.destroy()
+            self._relay = None
         self._release_lock()
         super().destroy_node()
 

@@ -1,0 +1,137 @@
+"""The agent's hands on its nodes' state topics: it hears each one and hands a copy its state.
+
+For each node of the catalogue that declares ``state:``, one reader of the state topic (depth
+1, best effort: it matches any writer, and only the latest message is kept) on a node no
+executor spins, taken by the agent's turn (``drain``): receiving costs DDS its copy of each
+message, and Python one take per turn at most. Messages stay serialised: nothing here knows the
+state's fields. And one writer of the copy's own restore topic (``Entry.restore_topic``, which
+only this scale's copy subscribes to), reliable and transient-local so that it matches a restore
+input of any reliability and durability (Nav2 AMCL's /initialpose is reliable, volatile).
+
+A hand-over is published once the copy's restore input is matched, and counts as delivered when
+the copy's reader has acknowledged it: the agent activates the copy only then, so the state is
+there before the copy's first output. The type of a state topic the file does not declare is
+learnt from the graph, at most once a second until it is known.
+"""
+
+from typing import Any, Callable, List, Mapping, Optional, Tuple
+
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from .workload_messages import EndpointError, message_class
+from ..agent.catalogue import Entry
+
+READER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                        reliability=ReliabilityPolicy.BEST_EFFORT,
+                        durability=DurabilityPolicy.VOLATILE)
+WRITER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                        reliability=ReliabilityPolicy.RELIABLE,
+                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
+LEARN_PERIOD_S = 1.0
+# A hand-over's acknowledgement is waited for this long in the step that sends it (on one
+# machine or a LAN it comes within milliseconds), then looked at again at each step.
+ACK_WAIT = Duration(nanoseconds=20_000_000)
+# (node, serialised message, writer's sequence number or -1)
+Heard = Tuple[str, bytes, int]
+
+
+class _Relay:
+    """One stateful node's reader and its copy's restore writer."""
+
+    def __init__(self, entry: Entry, msg_type: str):
+        self.entry = entry
+        self.msg_type = msg_type
+        self.reader: Any = None
+        self.writer: Any = None
+
+
+class StateRelay:
+    def __init__(self, node: Node, catalogue: Mapping[str, Entry],
+                 msg_types: Mapping[str, str], log: Callable[[str, str], None]):
+        self._node = node
+        self._log = log
+        self._relays = {name: _Relay(e, msg_types.get(name, ''))
+                        for name, e in catalogue.items() if e.state_topic and e.startable}
+        # The readers live on a node no executor spins: taken by ``drain``, never called back.
+        self._watch: Optional[Node] = Node(
+            f'{node.get_name()}_state', context=node.context,
+            start_parameter_services=False) if self._relays else None
+        self._learnt_at = -float('inf')
+        for relay in self._relays.values():
+            if relay.msg_type:
+                self._open(relay)
+
+    @property
+    def nodes(self) -> Tuple[str, ...]:
+        return tuple(self._relays)
+
+    def _open(self, relay: _Relay) -> None:
+        try:
+            cls = message_class(relay.msg_type)
+        except EndpointError as e:
+            self._log('error', f'{relay.entry.name}: its state cannot be kept: {e}')
+            relay.msg_type = ''
+            return
+        assert self._watch is not None
+        relay.reader = self._watch.create_subscription(
+            cls, relay.entry.state_topic, lambda _m: None, READER_QOS, raw=True)
+        relay.writer = self._node.create_publisher(cls, relay.entry.restore_topic, WRITER_QOS)
+        self._log('info', f'{relay.entry.name}: keeping its state from '
+                          f'{relay.entry.state_topic} ({relay.msg_type}); its copy here takes '
+                          f'it on {relay.entry.restore_topic}')
+
+    def _learn_types(self, now: float) -> None:
+        waiting = [r for r in self._relays.values() if r.reader is None and not r.msg_type]
+        if not waiting or now - self._learnt_at < LEARN_PERIOD_S:
+            return
+        self._learnt_at = now
+        types = dict(self._node.get_topic_names_and_types())
+        for relay in waiting:
+            found = types.get(relay.entry.state_topic) or []
+            if len(found) == 1:
+                relay.msg_type = found[0]
+                self._open(relay)
+
+    def drain(self, now: float) -> List[Heard]:
+        """The messages heard on each state topic since the last drain (the latest only)."""
+        self._learn_types(now)
+        out: List[Heard] = []
+        for name, relay in self._relays.items():
+            if relay.reader is None:
+                continue
+            with relay.reader.handle:
+                taken = relay.reader.handle.take_message(relay.reader.msg_type, True)
+            if taken is None:
+                continue
+            info = taken[1] if len(taken) > 1 and isinstance(taken[1], dict) else {}
+            out.append((name, taken[0], int(info.get('publication_sequence_number', -1))))
+        return out
+
+    def ready(self, name: str) -> bool:
+        """Whether a hand-over can go out now: the writer exists and the copy subscribes."""
+        relay = self._relays.get(name)
+        return relay is not None and relay.writer is not None \
+            and relay.writer.get_subscription_count() > 0
+
+    def send(self, name: str, data: bytes) -> None:
+        relay = self._relays[name]
+        relay.writer.publish(data)
+
+    def delivered(self, name: str) -> bool:
+        """Whether every reader of the copy's restore topic acknowledged what was sent (waits
+        ACK_WAIT at most)."""
+        relay = self._relays.get(name)
+        if relay is None or relay.writer is None:
+            return False
+        return relay.writer.wait_for_all_acked(ACK_WAIT)
+
+    def destroy(self) -> None:
+        for relay in self._relays.values():
+            if relay.writer is not None:
+                self._node.destroy_publisher(relay.writer)
+        self._relays.clear()
+        if self._watch is not None:
+            self._watch.destroy_node()          # and its readers
+            self._watch = None

@@ -1,0 +1,161 @@
+"""The agent's turn hands a copy its node's state before it serves (agent/turn.py with
+agent/state.py), without ROS: a hand-written clock, real short processes, lifecycle services
+that answer at once and a restore channel of the test's own."""
+
+import dataclasses
+
+import pytest
+
+from anyscale_manager.agent import lifecycle as lc
+from anyscale_manager.agent.turn import AgentInputs, AgentTurn, STOPPING_TICK_S
+from anyscale_manager.model.loader import load_mapping
+from test_agent_supervisor import deployment_dict
+from test_agent_turn import WALL_OFFSET, layout, lifecycle_entry
+
+STATE = {'topic': '/lc/out', 'restore': '/lc_restore', 'msg_type': 'std_msgs/msg/Int64'}
+
+
+class Channel:
+    """The restore topics of the copies: whether each copy subscribes, what was sent, and
+    whether the copy acknowledged it."""
+
+    def __init__(self):
+        self.subscribed = False
+        self.acked = False
+        self.sent = []
+
+    def ready(self, name):
+        return self.subscribed
+
+    def send(self, name, data):
+        self.sent.append((name, data))
+
+    def delivered(self, name):
+        return self.acked
+
+
+class Agent:
+    def __init__(self, make_sup, timeout_s=5.0):
+        d = load_mapping(deployment_dict({
+            'lc': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0, 'lifecycle': True,
+                   'standby': True, 'state': STATE},
+            'other': {'launch': {'command': ['sleep', '5']}, 'cpu': 1.0},
+        }, names=['lc', 'other']))
+        d = dataclasses.replace(d, agent=dataclasses.replace(d.agent,
+                                                             lifecycle_timeout_s=timeout_s))
+        entry = dataclasses.replace(lifecycle_entry(), state_topic=STATE['topic'],
+                                    restore_topic='/lc/a/restore')
+        self.now = 100.0
+        self.sup = make_sup([entry])
+        self.turn = AgentTurn(d, 'a', {'lc': entry}, self.sup, instance='me',
+                              wall_offset=WALL_OFFSET)
+        self.turn.begin(self.now)
+        self.channel = Channel()
+        self.heard = []
+        self.labels = {}
+
+    def label(self):
+        return self.labels.get(self.sup.pids().get('lc', 0), 'unconfigured')
+
+    def poll(self, name):
+        driver = self.turn.drivers[name]
+        request = driver.next_request(self.now, reachable=True)
+        if request is None:
+            return
+        if request.kind == 'get':
+            driver.answered_state(request.serial, self.label(), self.now)
+        else:
+            self.labels[self.sup.pids().get(name, 0)] = lc.TRANSITIONS[request.transition][1]
+            driver.answered_change(request.serial, True, self.now)
+
+    def step(self, dt=0.1):
+        self.now += dt
+        heard, self.heard = self.heard, []
+        return self.turn.step(self.now, AgentInputs(wall=self.now + WALL_OFFSET, poll=self.poll,
+                                                    heard=heard, restore=self.channel))
+
+    def until(self, cond, what, steps=300):
+        outs = []
+        for _ in range(steps):
+            out = self.step()
+            outs.append(out)
+            if cond(out):
+                return outs
+        raise AssertionError(f'{what}: not within {steps} steps')
+
+
+def lines(outs):
+    return [text for out in outs for _, text in out.logs]
+
+
+def test_a_copy_is_handed_the_latest_state_and_activated_only_once_it_took_it(make_sup):
+    agent = Agent(make_sup)
+    agent.heard = [('lc', b'old', 1), ('lc', b'latest', 2)]
+    agent.step()
+    agent.turn.on_layout(layout(1, lc='a'), agent.now)
+    outs = agent.until(lambda out: agent.label() == lc.INACTIVE, 'the copy configured')
+    assert agent.channel.sent == []              # its restore input is not there yet
+    outs += agent.until(lambda out: True, 'one step')
+    assert any('waiting for its restore input (/lc/a/restore)' in t for t in lines(outs))
+    agent.channel.subscribed = True
+    out = agent.step()
+    assert agent.channel.sent == [('lc', b'latest')]
+    assert out.goals == {'lc': lc.INACTIVE} and out.tick_s == STOPPING_TICK_S
+    assert any('lc: state of ' in t and 'handed to the copy (pid ' in t for t in lines([out]))
+    for _ in range(3):                           # not acknowledged: still held, sent once
+        assert agent.step().goals == {'lc': lc.INACTIVE}
+    assert len(agent.channel.sent) == 1 and agent.label() == lc.INACTIVE
+    agent.channel.acked = True
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
+    assert len(agent.channel.sent) == 1
+    # Serving: nothing more is sent, and the next spell of serving is handed the state anew.
+    agent.heard = [('lc', b'newer', 3)]
+    agent.step()
+    assert len(agent.channel.sent) == 1
+    agent.turn.on_layout(layout(2, lc='b'), agent.now)          # moved away: standby here
+    agent.until(lambda out: agent.label() == lc.INACTIVE, 'the copy deactivated')
+    agent.turn.on_layout(layout(3, lc='a'), agent.now)          # and back
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated again')
+    assert agent.channel.sent[-1] == ('lc', b'newer')
+
+
+def test_a_restarted_copy_is_handed_the_state_of_the_one_that_died(make_sup):
+    agent = Agent(make_sup)
+    agent.channel.subscribed = agent.channel.acked = True
+    agent.turn.on_layout(layout(1, lc='a'), agent.now)
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the first copy active')
+    first = agent.sup.pids()['lc']
+    agent.heard = [('lc', b'count 41', 7)]
+    agent.step()
+    agent.sup.restart('lc', agent.now, 'a test')         # as a crash would
+    agent.until(lambda out: agent.sup.pids().get('lc', 0) not in (0, first)
+                and agent.label() == lc.ACTIVE, 'the restarted copy active')
+    assert agent.channel.sent[-1] == ('lc', b'count 41')
+
+
+def test_with_no_state_heard_a_copy_starts_from_its_own_and_that_is_said(make_sup):
+    agent = Agent(make_sup)
+    agent.turn.on_layout(layout(1, lc='a'), agent.now)
+    outs = agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
+    assert agent.channel.sent == []
+    assert any('no state heard yet on /lc/out' in t for t in lines(outs))
+
+
+def test_a_copy_that_never_takes_its_state_serves_without_it_after_the_timeout(make_sup):
+    agent = Agent(make_sup, timeout_s=1.0)
+    agent.heard = [('lc', b'x', 1)]
+    agent.turn.on_layout(layout(1, lc='a'), agent.now)
+    outs = agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
+    warned = [t for out in outs for level, t in out.logs if level == 'warn']
+    assert any('did not take its state on /lc_restore' in t and 'within 1 s' in t
+               for t in warned), warned
+    assert agent.channel.sent == []
+
+
+@pytest.mark.parametrize('size, kept', [(10, True), (100000, False)])
+def test_the_state_kept_is_bounded(make_sup, size, kept):
+    agent = Agent(make_sup)
+    agent.heard = [('lc', b'x' * size, 1)]
+    out = agent.step()
+    assert (agent.turn.states.latest('lc') is not None) == kept
+    assert any('state_max_bytes' in t for _, t in out.logs) != kept

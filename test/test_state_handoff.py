@@ -1,0 +1,182 @@
+"""A node's state goes with it (agent/state.py, nodes/state_relay.py): a counting lifecycle node
+of a user's own (fixtures/state_counter.py) continues its count across a move, failovers, a
+crash loop, a cold move and a restart in place. Real decider, real agents, real processes over
+DDS; judged by a reader of the test's own on the node's output."""
+
+import os
+import signal
+import sys
+import threading
+import time
+
+import pytest
+from std_msgs.msg import Int64
+
+import home_away as ha
+from spinning import RosContext, spin_until
+
+RATE_HZ = 20.0
+COUNTER = os.path.join(os.path.dirname(__file__), 'fixtures', 'state_counter.py')
+
+
+def deployment(tmp_path, topic, standby):
+    counter = {'launch': {'command': [sys.executable, COUNTER],
+                          'parameters': {'input': topic + '/tick', 'output': topic + '/count'}},
+               'cpu': 1.0, 'lifecycle': True, 'move_order': 'start_before_stop',
+               'state': {'topic': topic + '/count', 'restore': '/restore',
+                         'msg_type': 'std_msgs/msg/Int64'}}
+    if standby:
+        counter['standby'] = True
+    nodes = {'sensor': {'launch': ha.workload('sensor', '--pub', topic + '/tick', '--rate-hz',
+                                              str(RATE_HZ)),
+                        'cpu': 1.0, 'residence': ['home']},
+             'counter': counter}
+    connections = {'sensor_counter': dict(ha.CONNECTION, topic=topic + '/tick',
+                                          publisher='sensor', subscriber='counter')}
+    return ha.write_deployment(tmp_path, f'state_{os.getpid()}', (nodes, connections))
+
+
+class Counts:
+    """Every count the node publishes, with its arrival time, on a context of its own."""
+
+    def __init__(self, topic):
+        self.ros = RosContext()
+        self.node = self.ros.node('state_counts')
+        self.heard = []
+        self.node.create_subscription(Int64, topic, self._take, 100)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _take(self, msg):
+        self.heard.append((time.monotonic(), msg.data))
+
+    def _spin(self):
+        while not self._stop.is_set():
+            self.ros.executor.spin_once(timeout_sec=0.05)
+
+    def since(self, t):
+        return [v for at, v in list(self.heard) if at >= t]
+
+    def restarts(self):
+        """Each count that fell back below the highest before it (by more than the one or
+        two messages a state handed over a moment old can lag): a copy that did not continue."""
+        out, top, falling = [], None, False
+        for at, v in list(self.heard):
+            fell = top is not None and v < top - 2
+            if fell and not falling:
+                out.append((round(at, 3), top, v))       # the first count of each fall
+            falling = fell
+            top = v if top is None else max(top, v)
+        return out
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(5.0)
+        self.ros.close()
+
+
+def node_copy(seen, scale):
+    s = seen['states'].get(scale)
+    return s.nodes.get('counter') if s else None
+
+
+def serving(seen, scale, standby_elsewhere=True):
+    here = node_copy(seen, scale)
+    other = node_copy(seen, 'away' if scale == 'home' else 'home')
+    ok = here is not None and here.state == 'running' and here.ready
+    return ok and (not standby_elsewhere or (other is not None and other.state == 'standby'))
+
+
+@pytest.fixture
+def listener():
+    with ha.listening('state_listener') as heard:
+        yield heard
+
+
+def counting_on(ex, counts, procs, what):
+    n = len(counts.heard)
+    spin_until(ex, lambda: len(counts.heard) >= n + RATE_HZ, 15.0, f'a second of counts {what}',
+               procs)
+
+
+def handed(tmp_path, scale):
+    log = (tmp_path / f'agent_{scale}.out').read_text(errors='replace')
+    return log.count('counter: state of ')
+
+
+@pytest.mark.timeout(240)
+def test_the_count_continues_across_a_move_and_every_failover_of_a_crash_loop(
+        tmp_path, ros_env, listener):
+    ex, seen = listener
+    topic = f'/state_{os.getpid()}'
+    path = deployment(tmp_path, topic, standby=True)
+    counts = Counts(topic + '/count')
+    procs = []
+    try:
+        ha.start_agents(procs, tmp_path, ros_env, path)
+        ha.start(procs, tmp_path, ros_env, path, 'decider')
+        # The decider moves the counter out to the stronger scale at once (an activation
+        # there, with no state heard yet).
+        spin_until(ex, lambda: serving(seen, 'away') and len(counts.heard) > RATE_HZ, 90.0,
+                   'the counter serving on away with a standby home', procs)
+        counting_on(ex, counts, procs, 'on away')
+        # A crash loop: the serving copy killed twice, within the hysteresis T of each other;
+        # each time the standby on the other scale takes over, with the count.
+        for victim_scale, heir in (('away', 'home'), ('home', 'away')):
+            victim = node_copy(seen, victim_scale)
+            before = len([e for e in seen['events'] if e.kind == 'failover'])
+            os.kill(victim.pid, signal.SIGKILL)
+            spin_until(ex, lambda: len([e for e in seen['events'] if e.kind == 'failover'])
+                       > before, 15.0, f'the failover from {victim_scale}', procs)
+            spin_until(ex, lambda: serving(seen, heir), 30.0,
+                       f'the counter serving on {heir} with a standby again', procs)
+            counting_on(ex, counts, procs, f'on {heir}')
+        failovers = [e for e in seen['events'] if e.kind == 'failover']
+        pairs = [(e.from_scale, e.to_scale) for e in failovers]
+        assert pairs == [('away', 'home'), ('home', 'away')], failovers
+        assert handed(tmp_path, 'home') >= 1 and handed(tmp_path, 'away') >= 1
+        assert not counts.restarts(), f'copies that started their count anew: ' \
+                                      f'{counts.restarts()}'
+    finally:
+        counts.close()
+        for name, pr in reversed(procs):
+            pr.stop()
+
+
+@pytest.mark.timeout(240)
+def test_the_count_continues_across_a_restart_in_place_and_a_cold_move(
+        tmp_path, ros_env, listener):
+    ex, seen = listener
+    topic = f'/state_cold_{os.getpid()}'
+    path = deployment(tmp_path, topic, standby=False)
+    counts = Counts(topic + '/count')
+    procs = []
+    try:
+        agents = ha.start_agents(procs, tmp_path, ros_env, path)
+        ha.start(procs, tmp_path, ros_env, path, 'decider')
+        spin_until(ex, lambda: serving(seen, 'away', standby_elsewhere=False)
+                   and len(counts.heard) > RATE_HZ, 90.0, 'the counter moved to away', procs)
+        counting_on(ex, counts, procs, 'on away')
+        # No standby anywhere: a crash is restarted in place, with the count.
+        victim = node_copy(seen, 'away')
+        os.kill(victim.pid, signal.SIGKILL)
+        spin_until(ex, lambda: node_copy(seen, 'away').pid != victim.pid
+                   and serving(seen, 'away', standby_elsewhere=False), 30.0,
+                   'the counter restarted in place on away', procs)
+        counting_on(ex, counts, procs, 'after the restart in place')
+        assert handed(tmp_path, 'away') >= 1
+        # away's agent dies: the decider relocates the counter home, a process started there
+        # and handed the count home's agent heard last.
+        agents['away'].stop(signal.SIGKILL)
+        spin_until(ex, lambda: serving(seen, 'home', standby_elsewhere=False), 30.0,
+                   'the counter relocated home', procs)
+        counting_on(ex, counts, procs, 'at home')
+        assert handed(tmp_path, 'home') >= 1
+        assert not counts.restarts(), f'copies that started their count anew: ' \
+                                      f'{counts.restarts()}'
+    finally:
+        counts.close()
+        for name, pr in reversed(procs):
+            pr.stop()
+        ha.stop_wardens(tmp_path)
