@@ -104,6 +104,8 @@ LIVE_STATES = (ProcState.STARTING, ProcState.RUNNING)
 CPU_SOURCES = ('cgroup', 'machine', 'processes')
 # DeciderBeat.role (runtime/leadership.py).
 DECIDER_ROLES = ('leader', 'standby')
+# NodeReport.log_tail: the last line of a node's log, cut to this many characters.
+LOG_TAIL_CHARS = 300
 
 T = TypeVar('T', bound='Message')
 
@@ -435,6 +437,11 @@ class NodeReport(Message):
     ready: bool
     exit_reason: str
     lifecycle: Optional[LifecycleState] = None     # a lifecycle node's state
+    # Of a copy that exited unasked, while it waits for its restart (and starts again): its
+    # exit code (-N: killed by signal N) and the last line its process wrote to its log, on one
+    # line of printable characters (agent/log_tail.py last_line); absent otherwise.
+    exit_code: Optional[int] = _optional(Within(-128, 255))
+    log_tail: Optional[str] = _optional(Text(0, LOG_TAIL_CHARS))
 
 
 @_wire
@@ -476,6 +483,9 @@ class ScaleStatus(Message):
     # What cpu_total measures: 'cgroup', 'machine' or 'processes' (the agent's process tree,
     # single-machine mode; runtime/cpu.py); absent from older agents.
     cpu_source: Optional[str] = _optional(OneOf(CPU_SOURCES))
+    # The CPUs the readings are spread over (runtime/cpu.py effective_cores: the machine's, or
+    # its quota's): one of them busy reads capacity_cpu / cores. Absent from older agents.
+    cores: Optional[float] = _optional(Within(0.001, 65536))
     sender: Optional[str] = _optional(_SENDER)
     seq: Optional[int] = _optional(_COUNT)
     auth: Optional[str] = _optional(_AUTH)
@@ -624,7 +634,8 @@ class PlanCheck(Message):
 
 __all__ = [
     'AgentState', 'ConnectionReading', 'ConnectionStatus', 'DeciderBeat', 'DeciderIdentity',
-    'ERROR', 'Event', 'LIVE_STATES', 'Layout', 'LifecycleState', 'LinkStatus', 'MAX_GENERATION',
-    'MAX_GENERATION_STEP', 'Message', 'NODE_STATES', 'NodeReport', 'OK', 'Objective',
-    'PlanCheck', 'PlanNode', 'ProcState', 'ProtocolError', 'STALE', 'ScaleStatus', 'WARN',
+    'ERROR', 'Event', 'LIVE_STATES', 'LOG_TAIL_CHARS', 'Layout', 'LifecycleState', 'LinkStatus',
+    'MAX_GENERATION', 'MAX_GENERATION_STEP', 'Message', 'NODE_STATES', 'NodeReport', 'OK',
+    'Objective', 'PlanCheck', 'PlanNode', 'ProcState', 'ProtocolError', 'STALE', 'ScaleStatus',
+    'WARN',
 ]

@@ -328,6 +328,8 @@ def test_scale_monitor_publishes_sane_values_with_children(ros, deployment, pyth
         assert s.scale == 'robot' and s.capacity_cpu == robot.capacity_cpu
         assert 0.0 < s.cpu_total <= robot.capacity_cpu
         assert 0.0 < s.mem_percent <= 100.0 and s.load_1m >= 0.0
+        # The CPUs its readings are spread over: the machine's, or fewer under a quota.
+        assert s.cores is not None and 0.0 < s.cores <= psutil_cpus()
         assert 'gone' not in s.cpu_by_node
         assert 0.0 <= s.cpu_by_node['idle'] < 5.0
         # The parent sleeps; its child spins. The node's CPU includes the child's: on a busy

@@ -387,7 +387,7 @@ def test_status_render_without_ros(d):
     book.take(p.TOPIC_AGENT_STATE, p.AgentState(scale='laptop', generation=4, stamp=0.0,
                                                 nodes={'amcl': standby}).to_json(), 11.0)
     row = next(line for line in render(book, 11.5).splitlines() if line.startswith('amcl '))
-    assert row.split()[1:] == ['laptop', 'robot', '(moving)', 'running', 'laptop'], row
+    assert row.split()[1:] == ['laptop', 'robot', '(moving)', 'running', '-', 'laptop'], row
 
 
 def test_status_shows_two_senders_past_the_bound_not_ok(d):

@@ -243,7 +243,7 @@ def test_status_shows_single_machine_mode_and_a_cpu_of_its_own_processes(bed):
         mem_percent=1.0, load_1m=0.1, cpu_source='processes').to_json(), 0.0)
     text = render(book, 0.5)
     assert 'single-machine mode: robot, laptop on host vm' in text
-    assert '12 / 700 (2%) own processes' in text
+    assert '12 / 700 (2%) = 7 core% own processes' in text
     book.take(p.TOPIC_AGENT_STATE, state('laptop', 'boot:b').to_json(), 1.0)
     assert 'single-machine mode' not in render(book, 1.5)
 

@@ -20,6 +20,7 @@ import yaml
 
 from anyscale_manager import protocol as p
 from anyscale_manager.model.loader import load_deployment
+from anyscale_manager.runtime.turn import DeciderTurn, LAYOUT_AGE
 from anyscale_manager.testbed.record import Record
 from anyscale_manager.testbed.report import status_table
 from anyscale_manager.view import screen as sc
@@ -35,8 +36,10 @@ def deployment_path(tmp_path):
     data = {'/**': {'ros__parameters': {
         'deployment': {'name': NAME},
         'scales': {'names': ['robot', 'laptop'],
-                   'robot': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 200.0},
-                   'laptop': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 700.0}},
+                   'robot': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 200.0,
+                             'cores': 2},
+                   'laptop': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 700.0,
+                              'cores': 4}},
         'links': {'names': ['wifi'],
                   'wifi': {'ends': ['robot', 'laptop'], 'bandwidth_kbps': 54000.0}},
         'nodes': {'names': ['sensor', 'worker'],
@@ -251,6 +254,96 @@ def test_reports_of_names_the_deployment_does_not_have_are_counted_not_kept(d):
     assert not book.agents and not book.scales and not book.readings
     assert render(book, 0.1).endswith(
         '3 report(s) of scales or connections not in this deployment ignored')
+
+
+# --- what a person can act on -------------------------------------------------------------------
+
+@pytest.mark.parametrize('environ, words', [
+    ({}, 'ROS_DOMAIN_ID=0 (unset: the default), ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET (unset: '
+         'the default; this machine and its subnet)'),
+    ({'ROS_DOMAIN_ID': '42', 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'},
+     'ROS_DOMAIN_ID=42, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (this machine only)'),
+    ({'ROS_LOCALHOST_ONLY': '1'},
+     'ROS_DOMAIN_ID=0 (unset: the default), ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (from '
+     'ROS_LOCALHOST_ONLY=1; this machine only)'),
+])
+def test_no_layout_heard_says_where_the_view_listened_and_what_to_check(d, environ, words):
+    book = StatusBook(d, environ=environ)
+    line = render(book, 1.0).splitlines()[1]
+    assert line.startswith(f'no layout heard, nor anything else on {words}: check that the '
+                           'decider and the agents run with the same ROS_DOMAIN_ID'), line
+    assert line.endswith('; and the same Fast DDS profile (FASTRTPS_DEFAULT_PROFILES_FILE)')
+    if 'LOCALHOST' in words:
+        assert "LOCALHOST hears this machine's processes only: run the view on the master " \
+               'scale' in line
+    else:
+        assert 'that the scales are on this subnet (else ROS_STATIC_PEERS)' in line
+    # Agents heard, no layout: the decider is what to look for.
+    take(book, 0.0, agent('robot', 0, 'sensor'))
+    line = render(book, 1.0).splitlines()[1]
+    assert line.startswith(f'no layout heard on {words}, though agents or monitors of this '
+                           'deployment were: is the decider running'), line
+
+
+def test_a_layout_heard_late_is_as_old_as_the_leading_decider_says(d):
+    book = StatusBook(d)
+    take(book, 100.0, layout(3))
+    assert 'made before this view started (over 1.0 s ago)' in render(book, 101.0)
+    # The decider's diagnostics, 0.5 s after the layout: generation 3 made 15.0 s before.
+    book.take_decider_values({'generation': '3', LAYOUT_AGE: '15.0'}, 100.5)
+    assert render(book, 101.0).splitlines()[1] == 'layout generation 3, made 15.5 s ago'
+    # Values of another generation say nothing of this one.
+    book.take_decider_values({'generation': '2', LAYOUT_AGE: '99.0'}, 100.8)
+    assert 'over 1.0 s ago' in render(book, 101.0)
+
+
+def test_the_decider_turn_gives_the_age_of_its_layout_in_its_diagnostics(d):
+    turn = DeciderTurn(d, d.decider, started=0.0)
+    assert turn.values(1.0)[LAYOUT_AGE] == ''
+    out = turn.turn(d.decider.agent_timeout_s + 1.0)        # no agent heard: first layout
+    assert out.layouts and out.values[LAYOUT_AGE] == 0.0
+    made = d.decider.agent_timeout_s + 1.0
+    assert turn.turn(made + 15.0).values[LAYOUT_AGE] == 15.0
+    assert turn.values(made + 15.0)['generation'] == out.layouts[0][0]
+
+
+def cpu_status(scale, total, by_node, cores):
+    return p.ScaleStatus(scale=scale, stamp=time.time(), cpu_total=total, capacity_cpu=0.0,
+                         cpu_by_node=by_node, mem_percent=0.0, load_1m=0.0, cores=cores)
+
+
+def test_cpu_is_in_reference_percent_and_in_core_percent_where_they_differ(d):
+    book = StatusBook(d)
+    # One machine of 2 CPUs: the worker takes 0.18 of one on either scale. The robot (200
+    # over 2 CPUs) reads it 18, the laptop (700 over the same 2) 63.
+    take(book, 0.0, layout(3, worker='laptop'), agent('robot', 3, 'sensor'),
+         agent('laptop', 3, 'worker'), cpu_status('robot', 20.0, {'sensor': 2.0}, 2.0),
+         cpu_status('laptop', 70.0, {'worker': 63.0}, 2.0))
+    text = render(book, 0.5)
+    assert row(text, 'robot').split()[2:6] == ['20', '/', '200', '(10%)']
+    assert 'core%' not in row(text, 'robot')
+    assert row(text, 'laptop').split()[2:9] == ['70', '/', '700', '(10%)', '=', '20', 'core%']
+    assert row(text, 'worker').split()[4:7] == ['63', '=', '18']
+    assert row(text, 'sensor').split()[4] == '2' and 'core%' not in row(text, 'sensor')
+    legend = next(line for line in text.splitlines() if line.startswith('CPU in reference'))
+    assert 'one busy CPU reads 350 on laptop (700 over 2 CPUs);' in legend
+    assert 'robot' not in legend
+    assert "core% is the same load in percent of one of its machine's CPUs" in legend
+    # An agent that does not report its CPUs: the declared cores, said so.
+    take(book, 1.0, scale_status('laptop', 70.0))
+    assert 'one busy CPU reads 175 on laptop (700 over 4 CPUs, as declared)' in render(book, 1.5)
+
+
+def test_a_copy_that_exits_at_once_is_said_with_its_exit_code_and_its_log_line(d):
+    book = StatusBook(d)
+    tail = "python3: can't open file '/opt/nodes/worker.py': [Errno 2] No such file or directory"
+    down = p.NodeReport(state='backoff', pid=0, since=0.0, restarts=3, ready=False,
+                        exit_reason='exited with status 2', exit_code=2, log_tail=tail)
+    take(book, 0.0, layout(3), p.AgentState(scale='robot', generation=3, stamp=time.time(),
+                                            nodes={'worker': down}))
+    lines = render(book, 0.5).splitlines()
+    assert f'  backoff (restarts: 3): worker on robot exited unasked, exit code 2; the last ' \
+           f'line of its log: {tail}' in lines
 
 
 # --- the screen --------------------------------------------------------------------------------
@@ -588,3 +681,18 @@ def test_status_appends_plain_snapshots_to_a_pipe(deployment_path, ros_env, worl
     wifi = row(snapshots[-1], 'wifi')
     assert wifi.split()[2:4] == ['DOWN', '-']
     assert '54000 / 54000 >nominal (loopback?)' in wifi
+
+
+def test_status_once_hearing_nothing_says_the_domain_and_range_it_listened_on(
+        deployment_path, ros_env):
+    # A domain of its own, where nothing of this run publishes.
+    domain = str(int(ros_env['ROS_DOMAIN_ID']) + 100)
+    env = dict(ros_env, ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    r = subprocess.run([sys.executable, '-m', 'anyscale_manager.cli', 'status', '--params-file',
+                        deployment_path, '--once', '--wait', '0.5'],
+                       env=env, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1, r.stderr
+    where = f'ROS_DOMAIN_ID={domain}, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (this machine only)'
+    assert r.stdout.splitlines()[1].startswith(f'no layout heard, nor anything else on {where}: '
+                                               'check that the decider'), r.stdout
+    assert f'nothing heard within 0.5 s on {where}' in r.stderr

@@ -25,6 +25,7 @@ from typing import Callable, Dict, FrozenSet, Iterable, List, Mapping, Optional,
 
 from . import ports, procs, shm
 from .catalogue import ENV_INSTANCE, Entry
+from .log_tail import last_line
 from ..model.types import AgentSettings
 from ..protocol import LIVE_STATES, ProcState
 
@@ -49,6 +50,10 @@ class Report:
     restarts: int
     ready: bool
     exit_reason: str
+    # Of a process that exited unasked, until its next start is up: its exit code (-N:
+    # killed by signal N; None: not known) and the last line it wrote to its log ('' none).
+    exit_code: Optional[int] = None
+    log_tail: str = ''
 
 
 @dataclass
@@ -65,6 +70,8 @@ class _Proc:
     restarts: int = 0
     ready: bool = False
     exit_reason: str = ''
+    exit_code: Optional[int] = None
+    log_tail: str = ''
     ready_deadline: float = 0.0
     running_since: float = 0.0
     backoff_s: float = 0.0
@@ -120,7 +127,7 @@ class Supervisor:
 
     def reports(self) -> Dict[str, Report]:
         return {n: Report(p.state, p.pid if p.state in ACTIVE else 0, p.since,
-                          p.restarts, p.ready, p.exit_reason)
+                          p.restarts, p.ready, p.exit_reason, p.exit_code, p.log_tail)
                 for n, p in self._procs.items()}
 
     def state(self, name: str) -> ProcState:
@@ -226,10 +233,10 @@ class Supervisor:
                     # No backoff: started again in this step, not the next; until it is up its
                     # report keeps the crash's reason (the decider hears of the crash by it
                     # and by the restart count).
-                    crash = p.exit_reason
+                    crash = p.exit_reason, p.exit_code, p.log_tail
                     self._restart_now(p, now)
                     if p.state == ProcState.STARTING:
-                        p.exit_reason = crash
+                        p.exit_reason, p.exit_code, p.log_tail = crash
                 return
             if not p.ports and p.ports_next <= now <= p.ports_until:
                 self._note_ports(p, now)
@@ -303,6 +310,8 @@ class Supervisor:
         p.state = state
         p.ready = ready
         p.exit_reason = reason
+        # An exit's code and log line go with the reason it gave (``_crashed`` sets them).
+        p.exit_code, p.log_tail = None, ''
 
     def _event(self, level: str, text: str) -> None:
         self.events.append((level, text))
@@ -429,10 +438,15 @@ class Supervisor:
             reason += f'; killed {left} leftover process{"es" if left > 1 else ""}'
         delay = self._next_backoff(p)
         self._gone(p, now, reason, restart_at=now + delay)
+        # An adopted process writes where the agent that started it opened its log: here.
+        log = p.log_path or self.log_path(p.entry.name)
+        tail = last_line(log) if log != os.devnull else ''
         self._event('error', f'{p.entry.name}: crashed: {reason}; restarting in {delay:g} s '
-                             f'(restart {p.restarts + 1})')
+                             f'(restart {p.restarts + 1})'
+                             + (f'; its last log line: {tail}' if tail else ''))
         if not p.wanted:
             self._set(p, ProcState.STOPPED, now, ready=False, reason=reason)
+        p.exit_code, p.log_tail = code, tail
 
     def _gone(self, p: _Proc, now: float, reason: str, restart_at: float) -> None:
         """The process is gone (killed or exited): back off until ``restart_at``."""

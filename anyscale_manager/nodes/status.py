@@ -5,7 +5,8 @@ its Δ timer (as the probe reports it), where each node should run and where it 
 generation and the objective (the text: ``view.status``). On a terminal one screen is redrawn in
 place every ``--interval`` until Ctrl-C (``view.screen``); piped, plain snapshots are appended.
 ``--once`` prints one snapshot and exits. This module is the rclpy glue: subscribe, hand each
-message to the book with its arrival time, render.
+message to the book with its arrival time (and the leading decider's diagnostic values, which
+say its layout's age), render.
 """
 
 import argparse
@@ -18,7 +19,7 @@ from .. import protocol as p
 from .. import protocol_auth as auth
 from ..model.loader import DeploymentError, load_deployment
 from ..view.screen import LiveScreen
-from ..view.status import StatusBook, render
+from ..view.status import StatusBook, listening_text, render
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,8 +51,10 @@ def run(args: argparse.Namespace) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
+    from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import String
 
+    from .decider import NODE_NAME as DECIDER
     from .qos import BEAT as beat, LATCHED_READER as latched, MONITOR_READER as sensor
     key = None
     if deployment.security.key_file:
@@ -59,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
             key = auth.load_key(deployment.security.key_file)
         except auth.KeyFileError as e:
             print(f'anyscale-manager status: {e}: messages shown unverified', file=sys.stderr)
-    book = StatusBook(deployment, key=key)
+    book = StatusBook(deployment, key=key, environ=dict(os.environ))
     ctx = rclpy.Context()
     # Python's own handlers: Ctrl-C is a KeyboardInterrupt in the loop below, which gives the
     # terminal back before the process ends.
@@ -75,6 +78,14 @@ def run(args: argparse.Namespace) -> int:
     for topic, qos in topics.items():
         node.create_subscription(
             String, topic, lambda m, t=topic: book.take(t, m.data, time.monotonic()), qos)
+    leader = f'{DECIDER}: {deployment.name}'      # the leading decider's diagnostics
+
+    def diagnostics(msg) -> None:
+        for st in msg.status:
+            if st.name == leader:
+                book.take_decider_values({kv.key: kv.value for kv in st.values},
+                                         time.monotonic())
+    node.create_subscription(DiagnosticArray, p.TOPIC_DIAGNOSTICS, diagnostics, sensor)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
 
@@ -91,8 +102,8 @@ def run(args: argparse.Namespace) -> int:
             listen(time.monotonic() + min(1.0, args.wait))
             print(render(book, time.monotonic()))
             if not book.heard_anything:
-                print(f'nothing heard within {args.wait:g} s on ROS_DOMAIN_ID='
-                      f'{os.environ.get("ROS_DOMAIN_ID", "0")}', file=sys.stderr)
+                print(f'nothing heard within {args.wait:g} s on {listening_text(os.environ)}',
+                      file=sys.stderr)
                 return 1
             return 0
         with LiveScreen(sys.stdout) as screen:

@@ -107,7 +107,8 @@ class ObservationBook:
                 crash = self.crashes.get((scale, name))
                 out.setdefault(name, {})[scale] = CopyObs(
                     report.state, report.ready, None if crash is None else crash[0],
-                    crash[1] if crash is not None else report.exit_reason)
+                    crash[1] if crash is not None else report.exit_reason,
+                    report.exit_code, report.log_tail or '')
         return out
 
     def scale_status(self, msg: ScaleStatus, now: float) -> None:

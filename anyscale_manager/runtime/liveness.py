@@ -13,22 +13,26 @@ turns them into notices on change, not every turn, and a one-line summary for /d
   running and are placed elsewhere where allowed; the master's are kept;
 - ``agent_back`` (info): heard again, with how long it was silent;
 - ``unplaceable`` (error): a node that no scale with a live agent and a reachable link may host
-  (``MigrationPolicy.unplaceable``), with the reason; ``placeable`` (info) when that ends.
+  (``MigrationPolicy.unplaceable``), with the reason; ``placeable`` (info) when that ends;
+- ``node_exit`` (error): a copy that stopped against its will (a node whose script is missing
+  exits at once, and again at each restart), with its exit code and the last line of its log
+  as its agent read them: said once, until that copy serves again.
 """
 
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Dict, List, Mapping, Optional, Set, Tuple
 
 from ..model.types import DeciderSettings, Deployment
-from ..protocol import ERROR, OK, WARN
+from ..protocol import ERROR, OK, WARN, ProcState
 from .constraints import ConstraintReport
-from .observations import Observations
+from .observations import CopyObs, Observations
 
 AGENT_SILENT = 'agent_silent'
 AGENT_BACK = 'agent_back'
 SCALE_LOST = 'scale_lost'
 UNPLACEABLE = 'unplaceable'
 PLACEABLE = 'placeable'
+NODE_EXIT = 'node_exit'
 
 
 @dataclass(frozen=True)
@@ -53,6 +57,7 @@ class LivenessWatch:
         self.silent_since: Dict[str, float] = {}    # scale -> when its agent fell silent
         self.lost: Dict[str, float] = {}            # scale -> when it was declared lost
         self.unplaceable: Dict[str, str] = {}       # node -> why
+        self.exited: Set[Tuple[str, str]] = set()   # (node, scale) whose exit was said
         self.now = 0.0
 
     def update(self, obs: Observations, unplaceable: Mapping[str, str],
@@ -92,6 +97,23 @@ class LivenessWatch:
                 out.append(Notice(PLACEABLE, 'info', layout.get(node, ''), node,
                                   f'{node} can be placed again'))
         self.unplaceable = dict(unplaceable)
+        out += self._exits(obs)
+        return out
+
+    def _exits(self, obs: Observations) -> List[Notice]:
+        """A copy's exit, said once with what its agent read of it, until it serves again."""
+        out: List[Notice] = []
+        down = set()
+        for node, copies in sorted(obs.copies.items()):
+            for scale, c in sorted(copies.items()):
+                known = c.exit_code is not None or bool(c.log_tail) \
+                    or c.state == ProcState.FAILED
+                if c.crashed_at is None or not known:
+                    continue
+                down.add((node, scale))
+                if (node, scale) not in self.exited:
+                    out.append(Notice(NODE_EXIT, 'error', scale, node, exit_text(node, scale, c)))
+        self.exited = down
         return out
 
     def summary(self) -> Tuple[int, str]:
@@ -145,5 +167,27 @@ class LivenessWatch:
                 'where allowed')
 
 
+def exit_text(node: str, scale: str, copy: CopyObs) -> str:
+    """'amcl on laptop exited unasked, exit code 2; the last line of its log: ...': one line,
+    for an event and for ``status``."""
+    reason = copy.exit_reason
+    if copy.exit_code is not None:
+        text = f'{node} on {scale} exited unasked, exit code {copy.exit_code}'
+        said = f'exited with status {copy.exit_code}'     # what the code says already
+        if reason.startswith(said + ';'):
+            text += f' ({reason[len(said) + 1:].strip()})'  # leftover processes killed
+        elif reason and reason != said:
+            text += f' ({reason})'
+    elif copy.state == ProcState.FAILED:
+        text = f'{node} on {scale} cannot be started: {reason or "no reason given"}'
+    else:
+        text = f'{node} on {scale} exited unasked ({reason or "exit status unknown"})'
+    if copy.log_tail:
+        text += f'; the last line of its log: {copy.log_tail}'
+    elif copy.exit_code is not None:
+        text += '; it wrote nothing to its log'
+    return text
+
+
 __all__ = ['LivenessWatch', 'Notice', 'AGENT_SILENT', 'AGENT_BACK', 'SCALE_LOST',
-           'UNPLACEABLE', 'PLACEABLE']
+           'UNPLACEABLE', 'PLACEABLE', 'NODE_EXIT', 'exit_text']

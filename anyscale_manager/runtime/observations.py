@@ -56,6 +56,10 @@ class CopyObs:
     # restarted), and why; None when it has not since it last served.
     crashed_at: Optional[float] = None
     exit_reason: str = ''
+    # Of that exit: the process's exit code (None: not known, or not an exit) and the last
+    # line it wrote to its log ('' none), as the agent read them.
+    exit_code: Optional[int] = None
+    log_tail: str = ''
 
 
 @dataclass(frozen=True)

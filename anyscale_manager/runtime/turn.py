@@ -33,6 +33,9 @@ EventTuple = Tuple[str, str, str, str, str, int]
 LayoutTuple = Tuple[int, Dict[str, str], str]
 # Said of a takeover whose leader's layout was not heard.
 NOT_HEARD = 'its layout was not heard: what runs is adopted'
+# The diagnostic value of the time since this generation's layout was made (seconds; '' before
+# the first): re-publications re-stamp a layout, so a view that heard it late reads its age here.
+LAYOUT_AGE = 'layout age s'
 
 
 class TurnPolicy(Protocol):
@@ -102,6 +105,7 @@ class DeciderTurn:
         self.expected = expectations(deployment, self.placements)
         self.generation = 0
         self.layout: Optional[Dict[str, str]] = None
+        self.layout_made: Optional[float] = None      # when this generation was made
         self.reason = ''
         self.last_report: Optional[ConstraintReport] = None
         self.decisions = 0
@@ -140,7 +144,8 @@ class DeciderTurn:
         if decisions:
             self.layout = layout = dict(self.policy.layout)
             self.generation += 1
-            self._new_layout('; '.join(f'{d.kind} {d.node}: {d.reason}' for d in decisions), out)
+            self._new_layout('; '.join(f'{d.kind} {d.node}: {d.reason}' for d in decisions), out,
+                             now)
             out.decisions.extend(decisions)
             for d in decisions:
                 self.decisions += 1
@@ -192,6 +197,7 @@ class DeciderTurn:
             'perf_map': round(perf, 3), 'perf integral': round(integral, 3),
             'migration': self.settings.migration,
             'single machine': self.machines.summary() or 'no',
+            LAYOUT_AGE: '' if self.layout_made is None else round(now - self.layout_made, 1),
         }
 
     # --- the first layout ---------------------------------------------------------------------
@@ -225,7 +231,7 @@ class DeciderTurn:
         reason = f'first layout ({self.settings.initial_layout})'
         if notes:
             reason += ': ' + '; '.join(notes)
-        self._new_layout(reason, out)
+        self._new_layout(reason, out, now)
         for note in notes:
             self._event(out, 'adopt', '', '', '', note)
         if lost:
@@ -297,7 +303,7 @@ class DeciderTurn:
             self.generation = 1
         self.layout = layout
         self.policy.reset(layout, now, running, settled=True)
-        self._new_layout(reason, out)
+        self._new_layout(reason, out, now)
         out.logs.append(('info', f'generation {self.generation}: {reason}'))
         return out
 
@@ -306,8 +312,9 @@ class DeciderTurn:
                reason: str) -> None:
         out.events.append((kind, node, from_scale, to_scale, reason, self.generation))
 
-    def _new_layout(self, reason: str, out: TurnOutput) -> None:
+    def _new_layout(self, reason: str, out: TurnOutput, now: float) -> None:
         self.reason = reason[:2000]
+        self.layout_made = now
         out.layouts.append((self.generation, dict(self._layout()), self.reason))
         self._event(out, 'layout', '', '', '', self.reason)
 

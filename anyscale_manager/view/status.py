@@ -12,17 +12,29 @@ generation (or its assignments) changed, as this view witnessed it; the decider 
 re-publication, so the message's own stamp says when it was last sent, not when it was made.
 Scales whose agents report one machine are said (single-machine mode, ``runtime.hosts``), and a
 scale's CPU measured as its agent's own processes is marked ``own processes``.
+
+A layout heard before the view started is as old as the leading decider's diagnostics say
+(``runtime.turn.LAYOUT_AGE``, taken with ``take_decider_values``). CPU is in reference-core
+percent, the unit of ``capacity_cpu``; a scale spreads its capacity over the CPUs it measures
+(``ScaleStatus.cores``), so one busy CPU reads ``capacity_cpu / cores`` there, and where that is
+not 100 the same load is also shown in percent of one of its machine's CPUs (``core%``, as top
+shows a process), with a legend. A copy that exited unasked is said under the nodes with its
+exit code and the last line of its log (``runtime.liveness.exit_text``). With nothing heard, the
+view says which ROS domain and discovery range it listened on and what to check.
 """
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 from .. import protocol as p
 from .. import protocol_auth as auth
 from ..model.types import Deployment
 from ..runtime.hosts import describe, shared_groups
+from ..runtime.liveness import exit_text
+from ..runtime.observations import CopyObs
 from ..runtime.rates import two_senders_past
+from ..runtime.turn import LAYOUT_AGE
 
 # A measured bandwidth older than this many probe intervals: probes fail or cannot run.
 BANDWIDTH_STALE_INTERVALS = 2.0
@@ -91,6 +103,11 @@ class StatusBook:
     # and topic); the others are counted in ``refused`` and dropped.
     key: Optional[bytes] = None
     refused: int = 0
+    # The environment the view listens with (ROS_DOMAIN_ID, ROS_AUTOMATIC_DISCOVERY_RANGE):
+    # said when nothing is heard. None: not known, not said.
+    environ: Optional[Mapping[str, str]] = None
+    # The leading decider's diagnostic values (runtime/turn.py values), when they were heard.
+    decider_values: Optional[Tuple[Dict[str, str], float]] = None
     _gates: Dict[str, auth.Gate] = field(default_factory=dict)
     _wall: float = 0.0
 
@@ -152,6 +169,12 @@ class StatusBook:
         except p.ProtocolError:
             self.ignored += 1
 
+    def take_decider_values(self, values: Mapping[str, str], now: float) -> None:
+        """The leading decider's diagnostic values (its /diagnostics status), heard at ``now``:
+        the age of its layout. Unsigned: what they say is shown, never acted on."""
+        self.decider_values = ({str(k): str(v)[:100] for k, v in list(values.items())[:64]},
+                               now)
+
     def _verified(self, topic: str, text: str, message: Any) -> bool:
         """Without a key, everything; with one, what its topic's gate lets through."""
         if self.key is None:
@@ -202,12 +225,62 @@ def _table(rows: List[List[str]]) -> List[str]:
     return ['  '.join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
 
 
+def discovery_range(environ: Mapping[str, str]) -> str:
+    """The discovery range a ROS process with ``environ`` uses (Jazzy: SUBNET by default;
+    the deprecated ROS_LOCALHOST_ONLY=1 means LOCALHOST when no range is given)."""
+    given = environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', '').strip().upper()
+    if given:
+        return given
+    return 'LOCALHOST' if environ.get('ROS_LOCALHOST_ONLY', '').strip() == '1' else 'SUBNET'
+
+
+def listening_text(environ: Mapping[str, str]) -> str:
+    """'ROS_DOMAIN_ID=7, ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST (this machine only)': where a
+    ROS process with this environment looks for the others."""
+    domain = environ.get('ROS_DOMAIN_ID', '').strip()
+    text = f'ROS_DOMAIN_ID={domain}' if domain else 'ROS_DOMAIN_ID=0 (unset: the default)'
+    reach = discovery_range(environ)
+    how = {'LOCALHOST': 'this machine only', 'OFF': 'no discovery at all',
+           'SUBNET': 'this machine and its subnet'}.get(reach, '')
+    if not environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE', '').strip():
+        how = ('from ROS_LOCALHOST_ONLY=1; ' if reach == 'LOCALHOST' else 'unset: the default; ') \
+            + how
+    text += f', ROS_AUTOMATIC_DISCOVERY_RANGE={reach}' + (f' ({how})' if how else '')
+    peers = environ.get('ROS_STATIC_PEERS', '').strip()
+    return text + (f', ROS_STATIC_PEERS={peers}' if peers else '')
+
+
+def nothing_heard_text(book: StatusBook) -> str:
+    """Why a view may hear no layout, and what to check."""
+    if book.environ is None:
+        listened, reach = '', ''
+    else:
+        listened, reach = f' on {listening_text(book.environ)}', discovery_range(book.environ)
+    if book.heard_anything:
+        return (f'no layout heard{listened}, though agents or monitors of this deployment '
+                'were: is the decider running (ros2 node list shows /anyscale_decider)?')
+    text = (f'no layout heard, nor anything else{listened}: check that the decider and the '
+            'agents run with the same ROS_DOMAIN_ID')
+    if reach == 'LOCALHOST':
+        text += ("; LOCALHOST hears this machine's processes only: run the view on the "
+                 'master scale, or with the discovery range the scales use')
+    elif reach == 'OFF':
+        text += '; OFF discovers nothing, not even on this machine'
+    else:
+        text += ('; that a decider on this machine runs with the same discovery range, and '
+                 'that the scales are on this subnet (else ROS_STATIC_PEERS)')
+    return text + '; and the same Fast DDS profile (FASTRTPS_DEFAULT_PROFILES_FILE)'
+
+
 def _layout_line(book: StatusBook, now: float) -> str:
     if not book.layout:
-        return 'no layout heard (is the decider running?)'
+        return nothing_heard_text(book)
     layout, heard = book.layout
+    told = _decider_layout_age(book, layout.generation, now)
     if book.layout_made is not None:
         made = f'made {now - book.layout_made:.1f} s ago'
+    elif told is not None:
+        made = f'made {told:.1f} s ago'
     else:
         made = f'made before this view started (over {now - book.layout_first_heard:.1f} s ago)'
     text = f'layout generation {layout.generation}, {made}'
@@ -216,6 +289,20 @@ def _layout_line(book: StatusBook, now: float) -> str:
     if now - heard > book.deployment.decider.lease_s:
         text += f'; decider silent, {stale_mark(now - heard)}'
     return text
+
+
+def _decider_layout_age(book: StatusBook, generation: int, now: float) -> Optional[float]:
+    """The age of layout ``generation`` now, as the leading decider's diagnostics said it."""
+    if book.decider_values is None:
+        return None
+    values, at = book.decider_values
+    try:
+        if int(values.get('generation', '')) != generation:
+            return None
+        age = float(values.get(LAYOUT_AGE, ''))
+    except ValueError:
+        return None
+    return age + (now - at) if age >= 0 else None
 
 
 def _deciders_line(book: StatusBook, now: float) -> str:
@@ -257,6 +344,49 @@ def _single_machine_line(book: StatusBook) -> str:
             'a loopback bandwidth is capped at the nominal)')
 
 
+def per_core(book: StatusBook, scale: str) -> Tuple[float, float, bool]:
+    """(what one busy CPU reads on ``scale`` in reference-core percent, its CPUs, whether they
+    are the ones its monitor reports): capacity_cpu spread over the CPUs it measures (the
+    declared ``cores`` when its agent does not say)."""
+    s = book.deployment.scale(scale)
+    found = book.scales.get(scale)
+    measured = found[0].cores if found is not None else None
+    cores = float(s.cores if measured is None else measured)
+    return s.capacity_cpu / max(cores, 1e-3), cores, measured is not None
+
+
+def same_unit(ref_per_core: float) -> bool:
+    """Whether a reference-core percent reads as a percent of one of the scale's CPUs."""
+    return abs(ref_per_core - 100.0) < 0.5
+
+
+def cpu_text(ref: float, ref_per_core: float) -> str:
+    """'64' where the units agree, '64 = 18 core%' where they do not."""
+    text = f'{ref:.0f}'
+    if not same_unit(ref_per_core) and ref_per_core > 0:
+        text += f' = {100.0 * ref / ref_per_core:.0f} core%'
+    return text
+
+
+def cpu_legend(book: StatusBook) -> str:
+    """One line saying why a scale's CPU and its core% differ ('' where none does)."""
+    parts = []
+    for s in book.deployment.scales:
+        if s.name not in book.scales:
+            continue
+        ratio, cores, reported = per_core(book, s.name)
+        if not same_unit(ratio):
+            how = '' if reported else ', as declared'
+            parts.append(f'{ratio:.0f} on {s.name} ({s.capacity_cpu:g} over {cores:g} '
+                         f'CPU{"" if cores == 1 else "s"}{how})')
+    if not parts:
+        return ''
+    return ("CPU in reference-core percent (capacity_cpu's unit): a scale spreads its "
+            'capacity_cpu over the CPUs it measures, so one busy CPU reads ' + ', '.join(parts)
+            + "; core% is the same load in percent of one of its machine's CPUs, as top "
+            'shows a process')
+
+
 def _scale_rows(book: StatusBook, now: float) -> List[str]:
     d = book.deployment
     rows = [['SCALE', 'ROLE', 'CPU USED / CAPACITY', 'AGENT']]
@@ -266,6 +396,9 @@ def _scale_rows(book: StatusBook, now: float) -> List[str]:
             st, at = book.scales[s.name]
             cpu = f'{st.cpu_total:.0f} / {s.capacity_cpu:.0f} ' \
                   f'({st.cpu_total / s.capacity_cpu:.0%})'
+            ratio = per_core(book, s.name)[0]
+            if not same_unit(ratio):
+                cpu += f' = {100.0 * st.cpu_total / ratio:.0f} core%'
             if st.cpu_source == 'processes':
                 cpu += ' own processes'
             if now - at > d.decider.observation_max_age_s:
@@ -359,10 +492,19 @@ def _connection_rows(book: StatusBook, now: float, running) -> List[str]:
     return _table(rows)
 
 
+def _node_cpu(book: StatusBook, node: str, scale: str, now: float) -> str:
+    """The node's CPU on the scale it runs on, by its monitor's latest fresh reading."""
+    found = book.scales.get(scale)
+    if found is None or now - found[1] > book.deployment.decider.observation_max_age_s:
+        return '-'
+    value = found[0].cpu_by_node.get(node)
+    return '-' if value is None else cpu_text(value, per_core(book, scale)[0])
+
+
 def _node_rows(book: StatusBook, now: float, running, standby) -> List[str]:
     d = book.deployment
     wanted = book.layout[0].assignments if book.layout else {}
-    rows = [['NODE', 'LAYOUT', 'RUNNING ON', 'STATE', 'STANDBY ON']]
+    rows = [['NODE', 'LAYOUT', 'RUNNING ON', 'STATE', 'CPU', 'STANDBY ON']]
     for n in d.nodes:
         if not n.managed:
             continue
@@ -376,8 +518,26 @@ def _node_rows(book: StatusBook, now: float, running, standby) -> List[str]:
             # Nothing can start it there (the decider says so in an 'unplaceable' event).
             mark = f'  (not placed: agent of {target} silent)'
         rows.append([n.name, wanted.get(n.name, '-'), where + mark, state,
+                     _node_cpu(book, n.name, where, now),
                      ', '.join(sorted(standby.get(n.name, ()))) or '-'])
     return _table(rows)
+
+
+def exit_lines(book: StatusBook) -> List[str]:
+    """One line per copy that exited unasked or cannot be started, as its agent reports it:
+    its exit code and the last line of its log."""
+    out = []
+    for scale in book.deployment.scale_names:
+        if scale not in book.agents:
+            continue
+        for name, r in sorted(book.agents[scale][0].nodes.items()):
+            if r.exit_code is None and not r.log_tail and r.state != p.ProcState.FAILED:
+                continue
+            copy = CopyObs(r.state, r.ready, None, r.exit_reason, r.exit_code,
+                           r.log_tail or '')
+            restarts = f' (restarts: {r.restarts})' if r.restarts else ''
+            out.append(f'  {r.state}{restarts}: {exit_text(name, scale, copy)}')
+    return out
 
 
 def render(book: StatusBook, now: float) -> str:
@@ -389,10 +549,13 @@ def render(book: StatusBook, now: float) -> str:
     shared = _single_machine_line(book)
     lines += [shared, ''] if shared else ['']
     running, standby = _placement(book)
-    lines += _scale_rows(book, now) + ['']
+    lines += _scale_rows(book, now)
+    legend = cpu_legend(book)
+    lines += [legend, ''] if legend else ['']
     lines += _link_rows(book, now) + ['']
     lines += _connection_rows(book, now, running) + ['']
     lines += _node_rows(book, now, running, standby)
+    lines += exit_lines(book)
     if book.events:
         lines += ['', 'RECENT EVENTS']
         lines += [f'  {e.kind} {e.node} {e.from_scale}->{e.to_scale}: {e.reason}'[:160]
@@ -411,4 +574,6 @@ def render(book: StatusBook, now: float) -> str:
 
 
 __all__ = ['BANDWIDTH_STALE_INTERVALS', 'StatusBook', 'bandwidth_stale_after_s',
-           'bandwidth_text', 'render', 'rtt_text', 'stale_mark']
+           'bandwidth_text', 'cpu_legend', 'cpu_text', 'discovery_range', 'exit_lines',
+           'listening_text',
+           'nothing_heard_text', 'per_core', 'render', 'rtt_text', 'stale_mark']

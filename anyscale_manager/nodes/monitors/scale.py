@@ -236,7 +236,8 @@ class ScaleMonitor:
             capacity_cpu=capacity,
             cpu_by_node={name: self._ref(v) for name, v in sorted(by_node.items())},
             mem_percent=float(psutil.virtual_memory().percent),
-            load_1m=float(os.getloadavg()[0]), cpu_source=self.source)
+            load_1m=float(os.getloadavg()[0]), cpu_source=self.source,
+            cores=self._system.cores)
         self.last = message
         self._out.send(message)
         level = p.WARN if cpu_total >= 0.9 * capacity else p.OK
