@@ -696,3 +696,36 @@ def test_status_once_hearing_nothing_says_the_domain_and_range_it_listened_on(
     assert r.stdout.splitlines()[1].startswith(f'no layout heard, nor anything else on {where}: '
                                                'check that the decider'), r.stdout
     assert f'nothing heard within 0.5 s on {where}' in r.stderr
+
+
+def test_status_once_takes_a_late_layouts_age_from_the_leading_deciders_diagnostics(
+        deployment_path, ros_env, world):
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    diag = world.node.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS, 10)
+
+    def say(name, age_s):
+        status = DiagnosticStatus(level=bytes([0]), name=name, message='constraints hold',
+                                  values=[KeyValue(key='generation', value='3'),
+                                          KeyValue(key=LAYOUT_AGE, value=str(age_s))])
+        diag.publish(DiagnosticArray(status=[status]))
+
+    world.set_layout(3, 'robot')
+    proc = subprocess.Popen([sys.executable, '-m', 'anyscale_manager.cli', 'status',
+                             '--params-file', deployment_path, '--once', '--wait', '5'],
+                            env=ros_env, cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60.0
+        while proc.poll() is None and time.monotonic() < deadline:
+            world.beat()
+            say(f'anyscale_decider: {NAME}', 15.0)
+            say(f'anyscale_decider (standby b2): {NAME}', 99.0)   # a standby's: not its age
+            time.sleep(0.1)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    line = out.splitlines()[1]
+    assert re.fullmatch(r'layout generation 3, made 1[5-9]\.\d s ago', line), out
