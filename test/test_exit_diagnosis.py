@@ -155,3 +155,56 @@ def test_a_copy_that_cannot_be_started_is_said_with_its_reason(d):
     turn.book.agent_state(robot, 2.0)
     assert [e[4] for e in exits(turn.turn(2.0))] == [
         "user on robot cannot be started: command 'x' not found on PATH"]
+
+
+def test_node_reports_carry_the_exit_code_and_log_line():
+    from anyscale_manager.agent.supervisor import Report
+    from anyscale_manager.agent.turn import node_reports
+    reports = {'worker': Report(p.ProcState.BACKOFF, 0, 5.0, 2, False, 'exited with status 2',
+                                2, "python3: can't open file"),
+               'fine': Report(p.ProcState.RUNNING, 9, 5.0, 0, True, '')}
+    nodes = node_reports(reports, {}, 100.0)
+    assert (nodes['worker'].exit_code, nodes['worker'].log_tail) == (2, "python3: can't open file")
+    assert nodes['fine'].exit_code is None and nodes['fine'].log_tail is None
+    assert 'exit_code' not in nodes['fine'].to_json()
+
+
+# --- the real programs ---------------------------------------------------------------------------
+
+def test_a_missing_script_reaches_the_agents_report_and_one_decider_event(tmp_path, ros_env):
+    import home_away as ha
+    from spinning import spin_until
+    name = f'exit_diagnosis_{os.getpid()}'
+    nodes, connections = ha.worker_and_pinned(f'/{name}')
+    nodes['pinned'] = dict(nodes['pinned'], launch={'command': [sys.executable, MISSING]})
+    path = ha.write_deployment(tmp_path, name, (nodes, connections), port_offset=11)
+    procs = []
+    with ha.listening(f'{name}_listener') as (ex, seen):
+        try:
+            ha.start_agents(procs, tmp_path, ros_env, path)
+            ha.start(procs, tmp_path, ros_env, path, 'decider')
+
+            def report():
+                s = seen['states'].get('home')
+                return s.nodes.get('pinned') if s is not None else None
+
+            def exits():
+                return [e for e in seen['events'] if e.kind == NODE_EXIT]
+            spin_until(ex, lambda: report() is not None and report().log_tail, 60.0,
+                       "the home agent's report of the missing script", procs, watch=True)
+            r = report()
+            assert r.exit_code == 2 and r.log_tail == \
+                f"{sys.executable}: can't open file '{MISSING}': [Errno 2] No such file or " \
+                'directory', r
+            spin_until(ex, exits, 30.0, 'the decider says it', procs, watch=True)
+            # Two more exits of the crash loop: still said once.
+            later = r.restarts + 2
+            spin_until(ex, lambda: report().restarts >= later, 30.0, 'two more exits', procs,
+                       watch=True)
+            (event,) = exits()
+            assert (event.node, event.from_scale) == ('pinned', 'home')
+            assert event.reason == f'pinned on home exited unasked, exit code 2; the last ' \
+                                   f'line of its log: {r.log_tail}'
+        finally:
+            codes = {n: proc.stop() for n, proc in reversed(procs)}
+    assert codes['decider'] == 0

@@ -115,7 +115,7 @@ def start_and_wait(argv, env, timeout_s=60.0):
     return subprocess.run(argv, env=env, capture_output=True, text=True, timeout=timeout_s)
 
 
-@pytest.mark.parametrize('program', ['decider'])
+@pytest.mark.parametrize('program', ['decider', 'agent'])
 def test_a_malformed_file_exits_2_naming_file_line_and_what_was_expected(
         tmp_path, ros_env, program):
     path = tmp_path / 'd.yaml'

@@ -115,7 +115,8 @@ def node_reports(reports: Mapping[str, Report], drivers: Mapping[str, lc.Driver]
             state, ready, reason, label = lc.report(r.state, r.ready, r.exit_reason, driver)
         nodes[name] = protocol.NodeReport(state=state, pid=r.pid, since=since,
                                           restarts=r.restarts, ready=ready,
-                                          exit_reason=reason, lifecycle=label)
+                                          exit_reason=reason, lifecycle=label,
+                                          exit_code=r.exit_code, log_tail=r.log_tail or None)
     return nodes
 
 

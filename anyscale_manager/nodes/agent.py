@@ -44,6 +44,7 @@ from ..agent.process import (places, restart_in_place, RESTART, scale_from_args,
 from ..agent.supervisor import Supervisor
 from ..agent.turn import AgentInputs, AgentOutput, AgentTurn, name_counts, TICK_S
 from ..model.loader import DeploymentError, load_from_parameters
+from ..model.params_file import refuse_bad_params_files
 from ..interrupt import restore_ctrl_c
 
 EXIT_WAKE_S = 0.001          # the one-shot wake after a node exits (agent/exits.py)
@@ -319,6 +320,8 @@ def main(args: Optional[List[str]] = None) -> int:
         return 2
     if not SCALE_RE.match(scale):
         print(f'agent: scale {scale!r} is not a valid scale name', file=sys.stderr)
+        return 2
+    if refuse_bad_params_files('agent', argv):    # said with its line, not as rcl words it
         return 2
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
