@@ -159,3 +159,25 @@ def test_the_state_kept_is_bounded(make_sup, size, kept):
     out = agent.step()
     assert (agent.turn.states.latest('lc') is not None) == kept
     assert any('state_max_bytes' in t for _, t in out.logs) != kept
+
+
+def test_what_others_publish_on_the_restore_topic_reaches_the_serving_copy_only(make_sup):
+    """A pose set in RViz on /initialpose: the copies' inputs are remapped, so the agent of the
+    serving copy hands it over; a standby copy gets nothing."""
+    agent = Agent(make_sup)
+    agent.channel.subscribed = agent.channel.acked = True
+    agent.turn.on_layout(layout(1, lc='b'), agent.now)         # standby here
+    agent.until(lambda out: agent.label() == lc.INACTIVE, 'the standby copy configured')
+    agent.heard, requests = [], [('lc', b'set by a person')]
+    agent.now += 0.1
+    agent.turn.step(agent.now, AgentInputs(wall=0.0, poll=agent.poll, requests=requests,
+                                           restore=agent.channel))
+    assert agent.channel.sent == []
+    agent.turn.on_layout(layout(2, lc='a'), agent.now)         # serving here
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
+    agent.now += 0.1
+    out = agent.turn.step(agent.now, AgentInputs(wall=0.0, poll=agent.poll, requests=requests,
+                                                 restore=agent.channel))
+    assert agent.channel.sent == [('lc', b'set by a person')]
+    assert any('a message on /lc_restore handed to its copy serving here' in t
+               for _, t in out.logs)

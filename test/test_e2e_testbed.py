@@ -17,7 +17,7 @@ import signal
 import pytest
 
 from anyscale_manager.testbed import netns
-from anyscale_manager.testbed import harness
+from anyscale_manager.testbed import harness, poses
 from anyscale_manager.testbed.known import KNOWN_OPEN
 
 HYSTERESIS_S = 8.0
@@ -634,3 +634,18 @@ def test_10_d_robot_agent_restarted_while_its_copies_are_inactive_adopts_them(be
         live = bed.node_pids(n, ROBOT)
         assert live == [pid], f'{n}: robot processes {live}, adopted {pid}'
     assert_within_delta(bed, t_kill, bed.now(), 'the robot agent restarted')
+
+
+def test_11_the_robot_pose_never_jumped_at_any_change_of_serving_copy(bed):
+    """AMCL's state is the robot's pose: at every move, failover, relocation and restart of
+    the tests above, the copy that took over continued from the last pose (handed over by the
+    agents), judged on the poses the harness's own observer heard on /amcl_pose."""
+    bed.wait_heard(bed.now())
+    with bed.lock:
+        changes = [e for _, e in bed.record.moves() if e.node == 'amcl']
+        jumps = poses.record_jumps(bed.record, 0.0, bed.now())
+        heard = len(bed.record.poses.get('/amcl_pose', []))
+    assert heard > 100, f'only {heard} poses heard on /amcl_pose'
+    assert len(changes) >= 4, f'AMCL changed serving copy only {len(changes)} times'
+    assert jumps == {'/amcl_pose': []}, \
+        f'the pose jumped at a change of serving copy: {[str(j) for j in jumps["/amcl_pose"]]}'

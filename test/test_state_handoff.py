@@ -175,6 +175,17 @@ def test_the_count_continues_across_a_restart_in_place_and_a_cold_move(
         assert handed(tmp_path, 'home') >= 1
         assert not counts.restarts(), f'copies that started their count anew: ' \
                                       f'{counts.restarts()}'
+        # A person sets the count on the node's own restore topic: the serving copy takes it.
+        ros = RosContext()
+        try:
+            writer = ros.node('state_setter').create_publisher(Int64, '/restore', 1)
+            ros.spin_until(lambda: writer.get_subscription_count() >= 1, 10.0,
+                           'an agent reading /restore')
+            writer.publish(Int64(data=100000))
+            spin_until(ex, lambda: any(v > 100000 for _, v in counts.heard), 10.0,
+                       'the count continuing from the one set by hand', procs)
+        finally:
+            ros.close()
     finally:
         counts.close()
         for name, pr in reversed(procs):

@@ -49,6 +49,7 @@ class Entry:
     # (its ``restore`` topic remapped here, so that only this copy hears what it is handed).
     state_topic: str = ''
     restore_topic: str = ''
+    restore_input: str = ''     # the node's own restore topic, as others publish to it
 
     @property
     def startable(self) -> bool:
@@ -212,5 +213,6 @@ def build_catalogue(deployment: t.Deployment, scale: str,
                                services=lifecycle_services(node, scale) if node.lifecycle
                                else '', nice=node.nice, critical=node.name in critical,
                                state_topic=node.state.topic if node.state else '',
-                               restore_topic=restore_topic(node, scale) if node.state else '')
+                               restore_topic=restore_topic(node, scale) if node.state else '',
+                               restore_input=node.state.restore if node.state else '')
     return out

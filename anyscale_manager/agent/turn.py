@@ -73,6 +73,9 @@ class AgentInputs:
     probed: Collection[str] = ()             # the connections the probes watch now
     # State messages heard since the last step: (node, serialised message, sequence number).
     heard: Sequence[Tuple[str, bytes, int]] = ()
+    # Messages others published on a node's own restore topic (a pose set in RViz), which
+    # its copies, remapped, do not hear: (node, serialised message).
+    requests: Sequence[Tuple[str, bytes]] = ()
     restore: Optional[RestoreChannel] = None     # None: no state is handed to any copy
 
 
@@ -353,6 +356,7 @@ class AgentTurn:
         sup = self.supervisor
         for node, data, seq in inputs.heard:
             out.logs.extend(self.states.heard(node, data, now, seq))
+        self._forward_requests(inputs, out)
         if self.shutdown_requests:
             want: Set[str] = set()
             goals: Dict[str, Optional[LifecycleState]] = {n: lc.FINALIZED for n in self.drivers}
@@ -405,6 +409,19 @@ class AgentTurn:
         fast = stopping or bool(self.states.pending())
         self.tick_s = out.tick_s = STOPPING_TICK_S if fast else TICK_S
         return out
+
+    def _forward_requests(self, inputs: AgentInputs, out: AgentOutput) -> None:
+        """What others publish on a node's restore topic goes to the copy serving here."""
+        if not inputs.requests or inputs.restore is None:
+            return
+        serving = self.serving()
+        for node, data in inputs.requests:
+            if node in serving and self.states.pending_for(node) is None \
+                    and inputs.restore.ready(node):
+                inputs.restore.send(node, data)
+                out.logs.append(('info', f'{node}: a message on '
+                                         f'{self.states.specs[node].restore} handed to its '
+                                         'copy serving here'))
 
     def _hand_plain_states(self, now: float, inputs: AgentInputs) -> None:
         """A plain copy (no lifecycle to hold it back) of a stateful node serving here is

@@ -231,13 +231,13 @@ class AgentNode(Node):
         if probes is not None:
             probes.poll_writers(now)
         graph = self.get_node_names_and_namespaces() if self.turn.watches_graph else ()
+        heard, requests = self._relay.drain(now) if self._relay is not None else ((), ())
         self._act(self.turn.step(now, AgentInputs(
             wall=time.time(), visible=name_counts(graph),
             poll=lambda name: self._lifecycle[name].poll(),
             writer_joined=None if probes is None else probes.writer_joined_since,
             probed=() if probes is None else frozenset(probes.connections),
-            heard=self._relay.drain(now) if self._relay is not None else (),
-            restore=self._relay)))
+            heard=heard, requests=requests, restore=self._relay)))
 
     def _act(self, out: AgentOutput) -> None:
         """Log, publish and reschedule what the turn asks for."""

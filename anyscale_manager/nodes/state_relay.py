@@ -8,6 +8,10 @@ state's fields. And one writer of the copy's own restore topic (``Entry.restore_
 only this scale's copy subscribes to), reliable and transient-local so that it matches a restore
 input of any reliability and durability (Nav2 AMCL's /initialpose is reliable, volatile).
 
+Messages that others publish on the node's own restore topic (RViz's "2D Pose Estimate" on
+/initialpose) no longer reach a copy, whose input is remapped: one more reader of that topic
+(reliable, as RViz publishes) hands them to the copy that serves here.
+
 A hand-over is published once the copy's restore input is matched, and counts as delivered when
 the copy's reader has acknowledged it: the agent activates the copy only then, so the state is
 there before the copy's first output. The type of a state topic the file does not declare is
@@ -29,6 +33,9 @@ READER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 WRITER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+REQUEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE)
 LEARN_PERIOD_S = 1.0
 # A hand-over's acknowledgement is waited for this long in the step that sends it (on one
 # machine or a LAN it comes within milliseconds), then looked at again at each step.
@@ -45,6 +52,7 @@ class _Relay:
         self.msg_type = msg_type
         self.reader: Any = None
         self.writer: Any = None
+        self.requests: Any = None
 
 
 class StateRelay:
@@ -78,6 +86,8 @@ class StateRelay:
         relay.reader = self._watch.create_subscription(
             cls, relay.entry.state_topic, lambda _m: None, READER_QOS, raw=True)
         relay.writer = self._node.create_publisher(cls, relay.entry.restore_topic, WRITER_QOS)
+        relay.requests = self._watch.create_subscription(
+            cls, relay.entry.restore_input, lambda _m: None, REQUEST_QOS, raw=True)
         self._log('info', f'{relay.entry.name}: keeping its state from '
                           f'{relay.entry.state_topic} ({relay.msg_type}); its copy here takes '
                           f'it on {relay.entry.restore_topic}')
@@ -94,20 +104,28 @@ class StateRelay:
                 relay.msg_type = found[0]
                 self._open(relay)
 
-    def drain(self, now: float) -> List[Heard]:
-        """The messages heard on each state topic since the last drain (the latest only)."""
+    def drain(self, now: float) -> Tuple[List[Heard], List[Tuple[str, bytes]]]:
+        """The messages heard on each state topic since the last drain (the latest only), and
+        those published by others on each node's own restore topic (every one)."""
         self._learn_types(now)
-        out: List[Heard] = []
+        heard: List[Heard] = []
+        requests: List[Tuple[str, bytes]] = []
         for name, relay in self._relays.items():
             if relay.reader is None:
                 continue
             with relay.reader.handle:
                 taken = relay.reader.handle.take_message(relay.reader.msg_type, True)
-            if taken is None:
-                continue
-            info = taken[1] if len(taken) > 1 and isinstance(taken[1], dict) else {}
-            out.append((name, taken[0], int(info.get('publication_sequence_number', -1))))
-        return out
+            if taken is not None:
+                info = taken[1] if len(taken) > 1 and isinstance(taken[1], dict) else {}
+                heard.append((name, taken[0],
+                              int(info.get('publication_sequence_number', -1))))
+            with relay.requests.handle:
+                for _ in range(5):
+                    taken = relay.requests.handle.take_message(relay.requests.msg_type, True)
+                    if taken is None:
+                        break
+                    requests.append((name, taken[0]))
+        return heard, requests
 
     def ready(self, name: str) -> bool:
         """Whether a hand-over can go out now: the writer exists and the copy subscribes."""

@@ -42,10 +42,12 @@ from rclpy.utilities import remove_ros_args
 
 from .workload_messages import (DEFAULT_TYPE, MAX_BYTES, Endpoint, EndpointError,
                                 build_message, message_class, parse_endpoint, stamper)
+from .workload_pose import PoseTrack, parse_motion, yaw_of
 from ..interrupt import ignore_interrupts, interrupt_once, restore_ctrl_c, \
     rclpy_stops_on_sigint
 
 REFERENCE_CORE = 0.3      # one reference (robot) core as a fraction of one core of this machine
+POSE_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,10 @@ class WorkloadSpec:
     once: bool
     reference_core: float
     lifecycle: bool = False
+    # The AMCL stand-in's state (workload_pose.py): its pose outputs carry a pose moving at
+    # (speed m/s, turn rad/s), restored from a pose on ``restore``.
+    pose_motion: Optional[Tuple[float, float]] = None
+    restore: str = ''
 
     @property
     def pubs(self) -> Tuple[str, ...]:
@@ -132,6 +138,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--lifecycle', action='store_true',
                    help='be a lifecycle (managed) node: unconfigured at start, working only '
                         'while active')
+    p.add_argument('--pose-motion', metavar='SPEED,TURN', default=None,
+                   help='the geometry_msgs/msg/PoseWithCovarianceStamped outputs carry the '
+                        'pose of the robot, moving at SPEED m/s and TURN rad/s (its state)')
+    p.add_argument('--restore', metavar='TOPIC', default='',
+                   help='with --pose-motion: continue from a PoseWithCovarianceStamped '
+                        'received here (subscribed from configure to cleanup)')
     return p
 
 
@@ -157,9 +169,20 @@ def parse_spec(argv: Sequence[str]) -> WorkloadSpec:
     if a.bytes is not None and all(e.msg_type != DEFAULT_TYPE for e in outputs):
         parser.error(f'--bytes sizes {DEFAULT_TYPE} outputs and this node has none: give '
                      'the shape of a typed output after its type (--pub TOPIC:TYPE:SHAPE)')
+    motion = None
+    if a.pose_motion is not None:
+        try:
+            motion = parse_motion(a.pose_motion)
+        except ValueError as e:
+            parser.error(f'--pose-motion: {e}')
+        if all(e.msg_type != POSE_TYPE for e in outputs):
+            parser.error(f'--pose-motion moves the {POSE_TYPE} outputs and this node has none')
+    if a.restore and motion is None:
+        parser.error('--restore takes a pose: give --pose-motion too')
     return WorkloadSpec(name=a.name, outputs=outputs, inputs=tuple(endpoints['--sub']),
                         rate_hz=a.rate_hz, work_ms=a.work_ms, once=a.once,
-                        reference_core=a.reference_core, lifecycle=a.lifecycle)
+                        reference_core=a.reference_core, lifecycle=a.lifecycle,
+                        pose_motion=motion, restore=a.restore)
 
 
 def burn_cpu(cpu_s: float, clock: Callable[[], float] = time.thread_time) -> int:
@@ -283,6 +306,8 @@ class WorkloadBehaviour:
         self._pending = False
         self._retry = None
         self._first_output_logged = False
+        self.pose = PoseTrack(*spec.pose_motion) if spec.pose_motion else None
+        self._posed = [e.msg_type == POSE_TYPE and self.pose is not None for e in spec.outputs]
 
     def describe(self) -> str:
         spec = self.spec
@@ -334,12 +359,46 @@ class WorkloadBehaviour:
             for msg, stamp in zip(self._msgs, self._stampers):
                 if stamp is not None:
                     stamp(msg, now)
+        if self.pose is not None:
+            stamp_s = self.get_clock().now().nanoseconds / 1e9
+            x, y, yaw = self.pose.at(stamp_s)
+            for msg, posed in zip(self._msgs, self._posed):
+                if posed:
+                    set_pose(msg, x, y, yaw)
         for pub, msg in zip(self._pubs, self._msgs):
             pub.publish(msg)
         self.outputs += 1
         if not self._first_output_logged:
             self._first_output_logged = True
             self.get_logger().info('first output published')
+
+    def _subscribe_restore(self):
+        """The restore input of a node with a state (``--restore``), or None."""
+        if not self.spec.restore:
+            return None
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        return self.create_subscription(PoseWithCovarianceStamped, self.spec.restore,
+                                        self._on_restore, 1)
+
+    def _on_restore(self, msg) -> None:
+        p, o = msg.pose.pose.position, msg.pose.pose.orientation
+        stamp_s = msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9
+        values = (p.x, p.y, o.z, o.w, stamp_s)
+        if not all(math.isfinite(v) for v in values) or abs(o.z) + abs(o.w) == 0.0 \
+                or stamp_s <= 0.0:
+            # A pose it cannot take is refused with its reason; it goes on with its own.
+            self.get_logger().error(f'restore refused: not a pose in the plane with a stamp '
+                                    f'(x {p.x}, y {p.y}, qz {o.z}, qw {o.w}, stamp {stamp_s})')
+            return
+        assert self.pose is not None
+        self.pose.restore(p.x, p.y, yaw_of(o.z, o.w), stamp_s)
+        self.get_logger().info(f'restored: pose ({p.x:.3f}, {p.y:.3f}) of stamp {stamp_s:.3f}')
+
+
+def set_pose(msg, x: float, y: float, yaw: float) -> None:
+    msg.pose.pose.position.x, msg.pose.pose.position.y = x, y
+    msg.pose.pose.orientation.z = math.sin(yaw / 2.0)
+    msg.pose.pose.orientation.w = math.cos(yaw / 2.0)
 
 
 class WorkloadNode(WorkloadBehaviour, Node):
@@ -358,6 +417,7 @@ class WorkloadNode(WorkloadBehaviour, Node):
         self._retry = self.create_timer(1.0, self._on_retry)
         self._retry.cancel()
         self._subscribe_inputs()
+        self._subscribe_restore()
         self.get_logger().info(f'up: {self.describe()}')
         if spec.once:
             self._publish()

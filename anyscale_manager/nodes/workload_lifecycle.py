@@ -35,6 +35,7 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
         self._init_behaviour(spec, clock)
         self._input_subs = []
         self._active_timers = []
+        self._restore_sub = None
         self._refuse_invalid_transitions()
         self.get_logger().info(f'unconfigured: will be {self.describe()} once active')
 
@@ -79,7 +80,10 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
 
     def _configure(self, state: LifecycleState) -> str:
         self._pubs = [self._new_publisher(e) for e in self.spec.outputs]
-        return f'configured: inactive, {len(self._pubs)} publisher(s) ready'
+        # Its state's restore input: the one subscription an inactive copy keeps.
+        self._restore_sub = self._subscribe_restore()
+        return f'configured: inactive, {len(self._pubs)} publisher(s) ready' + (
+            f', taking its state on {self.spec.restore}' if self._restore_sub else '')
 
     def _activate(self, state: LifecycleState) -> str:
         if super().on_activate(state) != SUCCESS:       # enables the lifecycle publishers
@@ -100,6 +104,8 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
 
     def _deactivate(self, state: LifecycleState) -> str:
         self._drop_inputs_and_timers()
+        if self.pose is not None:
+            self.pose.pause()
         if super().on_deactivate(state) != SUCCESS:     # publish() is dropped from now on
             raise RuntimeError('a lifecycle publisher refused to deactivate')
         if self.spec.once:
@@ -135,6 +141,9 @@ class LifecycleWorkloadNode(WorkloadBehaviour, LifecycleNode):
         for pub in self._pubs:
             self.destroy_lifecycle_publisher(pub)
         self._pubs = []
+        if self._restore_sub is not None:
+            self.destroy_subscription(self._restore_sub)
+            self._restore_sub = None
 
     def _tidy(self) -> None:
         self._drop_inputs_and_timers()

@@ -42,7 +42,7 @@ from ..agent import shm
 from ..agent.catalogue import ENV_NODE, ENV_SCALE
 from ..model.loader import load_deployment
 from ..model.types import Deployment
-from ..nodes.workload import REFERENCE_CORE
+from ..nodes.workload import POSE_TYPE, REFERENCE_CORE
 from . import links, netns
 from .errors import HarnessError
 from .links import LOOPBACK, NETNS
@@ -227,6 +227,13 @@ class Testbed:
                        for c in d.connections
                        if scale == d.master.name or scale in d.allowed_scales(c.publisher)})
 
+    def pose_topics(self) -> List[str]:
+        """The state topics that carry a pose (the AMCL stand-in's /amcl_pose): the observer
+        writes their poses, for the judge of a carried state (testbed/poses.py)."""
+        d = self.deployment
+        return sorted({n.state.topic for n in d.nodes if n.state is not None
+                       and d.state_msg_type(n.name) == POSE_TYPE})
+
     def master_links(self) -> List[str]:
         """The links that touch the master scale."""
         master = self.deployment.master.name
@@ -336,6 +343,9 @@ class Testbed:
             argv += ['--topic', topic]
         for topic in project or ():
             argv += ['--project', topic]
+        if project is None:
+            for topic in self.pose_topics():
+                argv += ['--pose', topic]
         record.topics = frozenset(topic.partition(':')[0] for topic in topics)
         name = f'observer_{scale}'
         observer = self._spawn(name, scale, argv, quota=False, stdout=subprocess.PIPE)

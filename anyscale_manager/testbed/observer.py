@@ -11,9 +11,10 @@ JSON object per line: ``{"t": <monotonic>, "topic": ..., "data": <the String's J
 project messages and ``{"t": ..., "arrivals": {topic: [monotonic, ...]}, "seqs": {topic: [n,
 ...]}}`` every 0.2 s for the data topics (``seqs``: each message's publication sequence number,
 -1 where the middleware gives none; every DDS writer counts its own from 1, so two copies of a
-node publishing at once show as two interleaved series). CLOCK_MONOTONIC is the same in every
-network namespace, so the harness can put these times next to its own (link cuts, kills). It
-parses nothing: judging is the harness's job.
+node publishing at once show as two interleaved series), and ``{"t": ..., "poses": {topic:
+[[monotonic, x, y, stamp], ...]}}`` for the ``--pose`` topics (a node's state, a pose).
+CLOCK_MONOTONIC is the same in every network namespace, so the harness can put these times next
+to its own (link cuts, kills). It parses nothing but those poses: judging is the harness's job.
 """
 
 import argparse
@@ -47,9 +48,11 @@ FLUSH_S = 0.2
 
 class Observer(Node):
     def __init__(self, data_topics: List[str], out=sys.stdout,
-                 project_topics: Optional[List[str]] = None):
+                 project_topics: Optional[List[str]] = None, pose_topics: List[str] = ()):
         """``data_topics``: ``TOPIC[:TYPE]`` each (the type a raw subscription needs to match
-        its writers; std_msgs/msg/UInt8MultiArray when left out)."""
+        its writers; std_msgs/msg/UInt8MultiArray when left out). ``pose_topics``: topics of
+        geometry_msgs/msg/PoseWithCovarianceStamped whose poses are written too (a node's
+        state: the end-to-end tests judge that it does not jump)."""
         super().__init__('anyscale_testbed_observer')
         self._out = out
         types = dict((t.split(':', 1) + [DEFAULT_TYPE])[:2] for t in data_topics)
@@ -63,6 +66,12 @@ class Observer(Node):
         for topic in data_topics:
             self.create_subscription(message_class(types[topic]), topic, self._data(topic),
                                      BEST_EFFORT, raw=True)
+        self._poses: Dict[str, List[list]] = {t: [] for t in pose_topics}
+        if pose_topics:
+            from geometry_msgs.msg import PoseWithCovarianceStamped
+            for topic in pose_topics:
+                self.create_subscription(PoseWithCovarianceStamped, topic, self._pose(topic),
+                                         BEST_EFFORT)
         self.create_timer(FLUSH_S, self._flush)
         self._write({'t': time.monotonic(), 'ready': True})
 
@@ -85,8 +94,20 @@ class Observer(Node):
             self._seqs[topic].append(seq if isinstance(seq, int) else -1)
         return callback
 
+    def _pose(self, topic: str):
+        def callback(msg) -> None:
+            stamp = msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9
+            position = msg.pose.pose.position
+            self._poses[topic].append([time.monotonic(), position.x, position.y, stamp])
+        return callback
+
     def _flush(self) -> None:
         self._offset_s = clock_offset_s()
+        poses = {t: v for t, v in self._poses.items() if v}
+        if poses:
+            self._write({'t': time.monotonic(), 'poses': poses})
+            for topic in poses:
+                self._poses[topic] = []
         batch = {t: a for t, a in self._arrivals.items() if a}
         if batch:
             # In reception order (DDS threads may hand over two messages out of order).
@@ -106,11 +127,13 @@ def main(args: Optional[List[str]] = None) -> int:
     parser.add_argument('--topic', action='append', default=[], metavar='TOPIC[:TYPE]')
     parser.add_argument('--project', action='append', choices=sorted(PROJECT_TOPICS),
                         help='listen to only these project topics (default: all of them)')
+    parser.add_argument('--pose', action='append', default=[], metavar='TOPIC',
+                        help='also write the poses of this PoseWithCovarianceStamped topic')
     a = parser.parse_args(remove_ros_args(argv)[1:])
     rclpy.init(args=argv)
     node = None
     try:
-        node = Observer(a.topic, project_topics=a.project)
+        node = Observer(a.topic, project_topics=a.project, pose_topics=a.pose)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException, BrokenPipeError):
         pass

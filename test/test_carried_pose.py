@@ -1,0 +1,101 @@
+"""The test-bed's AMCL stand-in carries the robot's pose (nodes/workload_pose.py) and the judge
+of a carried state (testbed/poses.py): pure, then one real lifecycle workload over DDS handed a
+pose on its restore input before it is activated."""
+
+import math
+
+import pytest
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+from anyscale_manager.nodes.workload import parse_spec, set_pose
+from anyscale_manager.nodes.workload_pose import parse_motion, PoseTrack, START, yaw_of
+from anyscale_manager.testbed.poses import pose_jumps, pose_speed
+from test_workload import (_start, _stop, ACTIVATE, CONFIGURE, LifecycleProbe, scale_remaps)
+
+POSE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+
+
+def test_the_pose_moves_along_exact_arcs_and_holds_still_while_paused():
+    track = PoseTrack(0.2, 0.05)
+    assert track.at(10.0) == START                      # the first output: the start pose
+    x, y, yaw = track.at(20.0)
+    chord = math.hypot(x - START[0], y - START[1])
+    assert chord == pytest.approx(8.0 * math.sin(0.25))  # an arc of 2 m on a 4-m circle
+    assert yaw == pytest.approx(START[2] + 0.5)
+    track.pause()
+    assert track.at(100.0) == (x, y, yaw)               # inactive: it tracked nothing
+    track.restore(1.0, 2.0, 0.0, 200.0)
+    x, y, _ = track.at(201.0)
+    assert math.hypot(x - 1.0, y - 2.0) == pytest.approx(0.2, abs=1e-3)
+
+
+@pytest.mark.parametrize('text', ['0.2', 'a,b', '1e9,0', 'nan,0'])
+def test_a_bad_motion_is_refused_with_its_reason(text):
+    with pytest.raises(ValueError):
+        parse_motion(text)
+
+
+def test_pose_options_are_checked_together(capsys):
+    spec = parse_spec(['--name', 'amcl', '--sub', '/scan', '--pub', f'/amcl_pose:{POSE}',
+                       '--pose-motion', '0.2,0.05', '--restore', '/initialpose'])
+    assert spec.pose_motion == (0.2, 0.05) and spec.restore == '/initialpose'
+    for argv, words in ((['--pub', '/x', '--pose-motion', '0.2,0'], 'has none'),
+                        (['--pub', f'/x:{POSE}', '--restore', '/y'], '--pose-motion too')):
+        with pytest.raises(SystemExit):
+            parse_spec(['--name', 'n', *argv])
+        assert words in capsys.readouterr().err
+
+
+def test_the_judge_finds_a_jump_and_passes_a_continued_pose():
+    track = PoseTrack(0.2, 0.05)
+    heard = []
+    for i in range(50):                                  # one copy at 5 Hz
+        x, y, _ = track.at(100.0 + i * 0.2)
+        heard.append((i * 0.2, x, y, 100.0 + i * 0.2))
+    handed = PoseTrack(0.2, 0.05)                        # the copy that took over, 0.6 s later
+    handed.restore(heard[-1][1], heard[-1][2], track.yaw, heard[-1][3])
+    x, y, _ = handed.at(100.0 + 49 * 0.2 + 0.6)
+    continued = heard + [(49 * 0.2 + 0.6, x, y, 100.0 + 49 * 0.2 + 0.6)]
+    assert pose_jumps(continued, 0.0, 100.0, 0.2) == []
+    fresh = heard + [(49 * 0.2 + 0.6, START[0], START[1], 100.0 + 49 * 0.2 + 0.6)]
+    jumps = pose_jumps(fresh, 0.0, 100.0, 0.2)
+    assert len(jumps) == 1 and jumps[0].distance_m > 1.5, jumps
+    assert pose_speed(['--x', '--pose-motion', '0.25,0.1']) == 0.25
+
+
+def test_a_lifecycle_stand_in_continues_from_a_pose_handed_while_inactive(python, ros_env):
+    proc = _start(python, ros_env, '--name', 'pose_lc', '--sub', '/pose_lc_in', '--pub',
+                  f'/pose_lc_out:{POSE}', '--rate-hz', '20', '--lifecycle', '--pose-motion',
+                  '0.2,0.05', '--restore', '/pose_lc_restore', *scale_remaps('robot'))
+    probe = LifecycleProbe([], feed='/pose_lc_in')
+    poses = []
+    probe.node.create_subscription(PoseWithCovarianceStamped, '/pose_lc_out',
+                                   lambda m: poses.append(m), 10)
+    writer = probe.node.create_publisher(
+        PoseWithCovarianceStamped, '/pose_lc_restore',
+        QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    robot = '/pose_lc/robot'
+    try:
+        assert probe.change(robot, CONFIGURE)
+        probe.spin_until(lambda: writer.get_subscription_count() == 1, 10.0,
+                         'the restore input of the inactive copy')
+        handed = PoseWithCovarianceStamped()
+        handed.header.frame_id = 'map'
+        handed.header.stamp = probe.node.get_clock().now().to_msg()
+        set_pose(handed, -3.0, 4.0, 1.0)
+        writer.publish(handed)
+        probe.spin_until(lambda: writer.wait_for_all_acked(), 5.0, 'the hand-over taken')
+        assert probe.change(robot, ACTIVATE)
+        probe.spin_until(lambda: len(poses) >= 3, 15.0, 'three poses of the active copy')
+        first = poses[0].pose.pose
+        assert math.hypot(first.position.x + 3.0, first.position.y - 4.0) < 0.5, first
+        assert yaw_of(first.orientation.z, first.orientation.w) == pytest.approx(1.0, abs=0.1)
+    finally:
+        probe.close()
+        code = _stop(proc)
+        log = proc.stdout.read()
+        print(log)
+    assert code == 0, log
+    assert 'restored: pose (-3.000, 4.000)' in log, log
