@@ -6,7 +6,7 @@ lifecycle node to its standby copy, a plain node restarted in place, agents rest
                                    [--both-hups 20] [--agent-kills 10] [--decider-kills 20]
                                    [--decider-stops 10] [--rate-hz 20] [--domain-id N]
                                    [--keep DIR] [--no-profile]
-                                   [--own-namespace] [--node-transports T]
+                                   [--own-namespace] [--node-transports T] [--state]
 
 Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
 beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
@@ -37,6 +37,12 @@ copy on both scales) -> pinned (home, a plain workload), every output at --rate-
 - SIGSTOP of the leading decider for 2 s, then SIGCONT, --decider-stops times: the time until the
   standby's first layout, whether any layout of the stopped one arrived after it resumed, and
   whether an agent ever reported following it again (both must be no).
+With --state the worker carries a state, as the test-bed's AMCL does: its output is the robot's
+pose (geometry_msgs/msg/PoseWithCovarianceStamped, moving at 0.2 m/s), declared with
+``state: {topic, restore}``, so each failover hands the last pose to the copy that takes over.
+The bench then also prints, over the failovers, how many first outputs did not continue the
+last pose (a jump larger than the robot could have moved, testbed/poses.py) and the age of the
+state when handed over (from the agents' logs).
 Prints one line per fault, then p50/p95/max of each figure. Every process uses the packaged
 discovery profile (config/fastdds_discovery.xml) unless the environment names a profile or
 --no-profile is given: without it a restarted node waits up to Fast DDS's 3 s announcement
@@ -65,12 +71,19 @@ DEAF_S = 25.0            # an agent not back this long after its SIGHUP heard no
 HEALTHY_RUN_S = 3.0      # restart_backoff_max_s: a node up this long crashes as a first crash
 
 
-def deployment(folder, topic, rate_hz, node_transports=None):
+POSE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+SPEED_MPS = 0.2
+
+
+def deployment(folder, topic, rate_hz, node_transports=None, state=False):
     def workload(name, *args):
         return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args,
                             '--rate-hz', str(rate_hz)]}
     conn = {'msg_type': 'std_msgs/msg/UInt8MultiArray', 'bandwidth_kbps': 1.0,
             'freq_min_hz': rate_hz / 2, 'tolerance_s': 1.0}
+    out = f'{topic}/w:{POSE}' if state else topic + '/w'
+    carried = ('--pose-motion', f'{SPEED_MPS},0.05', '--restore', topic + '/restore') \
+        if state else ()
     params = {
         'deployment': {'name': f'bench_failover_{os.getpid()}'},
         'scales': {'names': ['home', 'away'],
@@ -84,17 +97,18 @@ def deployment(folder, topic, rate_hz, node_transports=None):
                   'sensor': {'launch': workload('sensor', '--pub', topic + '/s'), 'cpu': 1.0,
                              'residence': ['home']},
                   'worker': {'launch': workload('worker', '--sub', topic + '/s', '--pub',
-                                                topic + '/w', '--lifecycle'),
+                                                out, '--lifecycle', *carried),
                              'cpu': 1.0, 'lifecycle': True, 'standby': True,
                              'move_order': 'start_before_stop'},
-                  'pinned': {'launch': workload('pinned', '--sub', topic + '/w', '--pub',
+                  'pinned': {'launch': workload('pinned', '--sub', out, '--pub',
                                                 topic + '/p'),
                              'cpu': 1.0, 'residence': ['home']}},
         'connections': {'names': ['sensor_worker', 'worker_pinned'],
                         'sensor_worker': dict(conn, topic=topic + '/s', publisher='sensor',
                                               subscriber='worker'),
                         'worker_pinned': dict(conn, topic=topic + '/w', publisher='worker',
-                                              subscriber='pinned')},
+                                              subscriber='pinned',
+                                              msg_type=POSE if state else conn['msg_type'])},
         'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 1.0,
                     'agent_timeout_s': 3.0, 'observation_max_age_s': 3.0,
                     'hysteresis_s': HYSTERESIS_S},
@@ -108,6 +122,8 @@ def deployment(folder, topic, rate_hz, node_transports=None):
     }
     if node_transports is not None:
         params['agent']['node_dds_transports'] = node_transports
+    if state:
+        params['nodes']['worker']['state'] = {'topic': topic + '/w', 'restore': topic + '/restore'}
     path = os.path.join(folder, 'deployment.yaml')
     with open(path, 'w') as f:
         yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
@@ -124,6 +140,17 @@ def stats(values):
 
 
 IN_NAMESPACE = 'BENCH_FAILOVER_NAMESPACE'
+HANDED = re.compile(r'worker: state of (\d+\.\d+) s ago handed')
+
+
+def handed_ages(folder):
+    """The age of each state the agents handed over, from their logs."""
+    ages = []
+    for name in sorted(os.listdir(folder)):
+        if name.startswith('agent') and name.endswith('.out'):
+            with open(os.path.join(folder, name), errors='replace') as f:
+                ages += [float(m.group(1)) for m in HANDED.finditer(f.read())]
+    return ages
 
 
 def in_own_namespace() -> int:
@@ -167,6 +194,8 @@ def main() -> int:
     ap.add_argument('--node-transports', default=None,
                     help="the deployment's agent.node_dds_transports (default: the setting's "
                          "default; '' for Fast DDS's default, shared memory included)")
+    ap.add_argument('--state', action='store_true',
+                    help='the worker carries a state (a pose), handed over at each failover')
     args = ap.parse_args()
     if args.own_namespace and os.environ.get(IN_NAMESPACE) is None:
         return in_own_namespace()
@@ -190,7 +219,11 @@ def main() -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.serialization import deserialize_message
     from std_msgs.msg import String, UInt8MultiArray
+
+    from anyscale_manager.testbed.poses import pose_jumps
 
     from anyscale_manager import protocol as p
     from anyscale_manager.nodes import qos
@@ -206,6 +239,7 @@ def main() -> int:
     states, events, links, layouts, beats, ready = {}, [], [], [], {}, set()
 
     offset = [clock_offset_s()]
+    poses = []                                  # (arrival, x, y, stamp) with --state
 
     def keep(suffix):
         def take(_raw, info):
@@ -219,10 +253,15 @@ def main() -> int:
                 heard[suffix].append(at)
                 if source_ns:
                     sent[suffix].append(source_ns / 1e9 - offset[0])
+            if args.state and suffix == '/w':
+                msg = deserialize_message(_raw, PoseWithCovarianceStamped)
+                stamp = msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9
+                with lock:
+                    poses.append((at, msg.pose.pose.position.x, msg.pose.pose.position.y, stamp))
         return take
     for suffix in heard:
-        node.create_subscription(UInt8MultiArray, topic + suffix, keep(suffix), qos.PROBE,
-                                 raw=True)
+        cls = PoseWithCovarianceStamped if args.state and suffix == '/w' else UInt8MultiArray
+        node.create_subscription(cls, topic + suffix, keep(suffix), qos.PROBE, raw=True)
 
     def state(m):
         s = p.AgentState.from_json(m.data)
@@ -306,7 +345,7 @@ def main() -> int:
         os.makedirs(args.keep, exist_ok=True)
     with (contextlib.nullcontext(args.keep) if args.keep
           else tempfile.TemporaryDirectory()) as folder:
-        path = deployment(folder, topic, args.rate_hz, args.node_transports)
+        path = deployment(folder, topic, args.rate_hz, args.node_transports, args.state)
         env = dict(os.environ, PYTHONUNBUFFERED='1')
 
         def start(exe, *extra):
@@ -316,7 +355,7 @@ def main() -> int:
                                           stdout=log, stderr=subprocess.STDOUT,
                                           start_new_session=True))
             return procs[-1]
-        failover, in_place = [], []
+        failover, in_place, jumped = [], [], 0
         hups = {'home': [], 'away': []}      # (moves, restarts, links down, longest gap)
         both_back, deaf = [], 0
         fenced, overlap, agent_gap = [], [], []
@@ -349,6 +388,13 @@ def main() -> int:
                 input_sent_gap = judge('/s', t0, t1, stamps=sent)
                 kinds = [e.kind for _, e in events if e.node == 'worker']
                 failover.append(gap)
+                if args.state:
+                    with lock:
+                        jumps = pose_jumps(poses, t0 - 1.0, t1, SPEED_MPS)
+                    jumped += bool(jumps)
+                    if jumps:
+                        print(f'failover {k + 1:2}: the pose jumped: '
+                              f'{", ".join(str(j) for j in jumps)}', flush=True)
                 # Where the time went: the decider's failover event, the agent's report of the
                 # copy serving (both as heard here) and the first output after the kill.
                 decided = next((t for t, e in events if t > t0 and e.node == 'worker'
@@ -546,6 +592,7 @@ def main() -> int:
                       f'{t_new - t0:.3f} s; layouts of the resumed one {stale}; agents not '
                       f'following the new leader {followed}', flush=True)
                 deciders = [other, leader]
+            ages = handed_ages(folder) if args.state else []
         finally:
             for proc in reversed(procs):
                 stop_popen(proc, 5.0, 5.0)
@@ -555,6 +602,9 @@ def main() -> int:
             node.destroy_node()
             rclpy.try_shutdown()
     print(f'failover to a standby copy, longest gap at the consumer: {stats(failover)}')
+    if args.state:
+        print(f'state carried: failovers whose first output did not continue the last pose '
+              f'{jumped} of {len(failover)}; age of the state when handed over {stats(ages)}')
     print(f'plain node restarted in place, longest gap: {stats(in_place)}')
     for scale, rows in hups.items():
         if rows:

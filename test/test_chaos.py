@@ -392,7 +392,8 @@ def _report(**changes):
     found = {'duplicates': [], 'duplicates_reported': [], 'delta_violations': [], 'nowhere': [],
              'unneeded_moves_back': [],
              'forged_applied': [], 'forged_applied_count': 0, 'rival_followed': [],
-             'rival_followed_count': 0, 'delta_excused': [], 'delta_known_open': []}
+             'rival_followed_count': 0, 'delta_excused': [], 'delta_known_open': [],
+             'state_jumps': []}
     teardown = {'leftovers': [], 'tracebacks': [], 'resources_end': {'decider': None}}
     bounds = {'overlap_s': 3.0, 'nowhere_s': 7.0, 'restart_s': 1.0, 'duplicate_process_s': 3.0}
     return soak_report.build(

@@ -17,7 +17,7 @@ import signal
 
 import pytest
 
-from anyscale_manager.testbed import harness, netns
+from anyscale_manager.testbed import harness, netns, poses
 from anyscale_manager.testbed.known import KNOWN_OPEN
 
 HYSTERESIS_S = 8.0
@@ -266,3 +266,18 @@ def test_7_server_agent_killed_nodes_serve_on_the_laptop_and_return_with_it(bed)
     bed.start_agent(SERVER)
     bed.wait_for(all_on(bed, SERVER), 60.0, 'amcl and ar back on the restarted server')
     assert_within_delta(bed, t_back, bed.now(), 'the server agent back')
+
+
+def test_8_the_robot_pose_never_jumped_at_any_change_of_serving_copy(bed):
+    """AMCL's state is the robot's pose: at every move, next-best activation, rebalance and
+    relocation of the tests above, the copy that took over continued from the last pose,
+    judged on the poses the harness's own observer heard on /amcl_pose at the robot."""
+    bed.wait_heard(bed.now())
+    with bed.lock:
+        changes = [e for _, e in bed.record.moves() if e.node == 'amcl']
+        jumps = poses.record_jumps(bed.record, 0.0, bed.now())
+        heard = len(bed.record.poses.get('/amcl_pose', []))
+    assert heard > 100, f'only {heard} poses heard on /amcl_pose'
+    assert len(changes) >= 4, f'AMCL changed serving copy only {len(changes)} times'
+    assert jumps == {'/amcl_pose': []}, \
+        f'the pose jumped at a change of serving copy: {[str(j) for j in jumps["/amcl_pose"]]}'

@@ -15,6 +15,7 @@ from ..agent.reconcile import HEAR_PATIENCE_S
 from ..model.types import Deployment
 from . import chaos
 from .known import KNOWN_OPEN
+from .poses import record_jumps
 from .record import Record, Violation
 
 # Two copies of a node may publish at once during a start_before_stop handover: the losing copy
@@ -143,6 +144,9 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
     # one without the other says which of the two judges is wrong.
     reported = [{'at_s': rel(t), 'node': e.node, 'scale': e.from_scale, 'reason': e.reason[:160]}
                 for t, e in r.events if t0 <= t <= t_end and e.kind == 'duplicate']
+    # A carried state (a pose) that jumped at a change of serving copy (testbed/poses.py).
+    jumps = [{'topic': topic, 'at_s': rel(j.t), 'jump': str(j)}
+             for topic, found in record_jumps(r, t0, t_end).items() for j in found]
     return {
         'duplicates': [{'node': x.node, 'topic': x.topic, 'start_s': rel(x.start),
                         'length_s': round(x.length_s, 2)} for x in dups],
@@ -155,6 +159,7 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
         'forged_applied': forged[:20], 'forged_applied_count': len(forged),
         'rival_followed': followed_rival[:20], 'rival_followed_count': len(followed_rival),
         'observer_refused': len(r.refused), 'observer_undecodable': len(r.problems),
+        'state_jumps': jumps,
     }
 
 

@@ -1,0 +1,193 @@
+#!/usr/bin/env python3
+"""A node's state across every kind of change of serving copy, on the ICAR test-bed (needs
+root): the test-bed's AMCL, whose state is the robot's pose (declared with ``state:``), judged on
+the poses the harness's own observer heard on /amcl_pose.
+
+    sudo python bench/bench_state.py [--moves 40] [--cold 20] [--in-place 20] [--out FILE]
+
+1. Planned moves (AMCL with a standby copy on both scales, as config/icar2015_testbed.yaml
+   has it): the WiFi is cut (AMCL's robot copy is activated) and restored (after the hysteresis
+   T, its laptop copy is activated), ``--moves`` changes of serving copy in all.
+2. Cold moves (the same file with ``standby`` off): the same cuts and restores, each move a
+   process started on the other scale, ``--cold`` changes in all.
+3. Restarts in place (standby off): AMCL's serving copy SIGKILLed, restarted by its agent,
+   ``--in-place`` times.
+(Failovers to a standby copy: bench/bench_failover.py --state.)
+
+For each change: whether the first pose of the copy that took over continued the last one (a
+jump larger than the robot could have moved between the two stamps, testbed/poses.py, is a
+change that did not), and the age of the state each agent handed over (from its log). Runs with
+the decider's hysteresis T set to --hysteresis (8 s) so that forty moves take minutes.
+"""
+
+import argparse
+import json
+import os
+import re
+import statistics
+import sys
+import tempfile
+
+import yaml
+
+from anyscale_manager.testbed import harness, netns
+from anyscale_manager.testbed.poses import pose_jumps, pose_speed
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'icar2015_testbed.yaml')
+HANDED = re.compile(r'amcl: state of (\d+\.\d+) s ago handed')
+NO_STATE = 'amcl: no state heard yet'
+
+
+def stats(values, unit='s'):
+    values = sorted(values)
+    if not values:
+        return 'none'
+    p95 = values[min(len(values) - 1, int(round(0.95 * (len(values) - 1))))]
+    return (f'p50 {statistics.median(values):.3f} {unit}, p95 {p95:.3f} {unit}, '
+            f'max {values[-1]:.3f} {unit} (n = {len(values)})')
+
+
+def without_standby(folder):
+    """The test-bed's file with AMCL's standby copies off: every move is a cold start."""
+    with open(CONFIG) as f:
+        data = yaml.safe_load(f)
+    data['/**']['ros__parameters']['nodes']['amcl']['standby'] = False
+    path = os.path.join(folder, 'icar2015_testbed_cold.yaml')
+    with open(path, 'w') as f:
+        yaml.safe_dump(data, f)
+    return path
+
+
+def serving_on(scale):
+    return lambda r: r.where('amcl') == (scale,) and bool(r.running_on(scale, ready_only=True)
+                                                           .get('amcl'))
+
+
+class Run:
+    """One test-bed and its changes of serving copy: (kind, time of the change)."""
+
+    def __init__(self, path, domain_id, hysteresis_s):
+        options = harness.Options(path, domain_id, mode='netns',
+                                  decider_parameters={'decider.hysteresis_s': str(hysteresis_s)},
+                                  link_up_at_start=False)
+        self.tb = harness.Testbed(options).start()
+        self.speed = pose_speed(self.tb.deployment.node('amcl').launch.arguments)
+        self.changes = []
+        self.hysteresis_s = hysteresis_s
+
+    def settle(self, scale, timeout_s):
+        self.tb.wait_for(serving_on(scale), timeout_s, f'AMCL serving on {scale} only')
+        self.tb.sleep(2.0)                      # poses of the new copy, before the next change
+
+    def moves(self, count, kind):
+        tb = self.tb
+        tb.restore()
+        tb.throttle(netns.DEFAULT_RATE_KBPS)
+        self.settle('laptop', 90.0)
+        while len([c for c in self.changes if c[0] == kind]) < count:
+            tb.sleep(self.hysteresis_s / 2)
+            t = tb.now()
+            tb.cut()
+            self.settle('robot', 30.0)
+            self.changes.append((kind, t, 'laptop -> robot'))
+            print(f'{kind} {len(self.changes)}: laptop -> robot', flush=True)
+            t = tb.now()
+            tb.restore()
+            self.settle('laptop', self.hysteresis_s + 60.0)
+            self.changes.append((kind, t, 'robot -> laptop'))
+            print(f'{kind} {len(self.changes)}: robot -> laptop', flush=True)
+
+    def restarts(self, count):
+        tb = self.tb
+        for k in range(count):
+            where = tb.record.where('amcl')
+            scale = where[0] if where else 'robot'
+            tb.sleep(4.0)                       # a healthy run: each crash is a first one
+            t = tb.now()
+            old = tb.kill_node('amcl', scale)
+            tb.wait_for(lambda r: serving_on(scale)(r)
+                        and r.running_on(scale).get('amcl').pid != old, 30.0,
+                        'AMCL restarted in place')
+            tb.sleep(2.0)
+            self.changes.append(('in place', t, f'on {scale}'))
+            print(f'in place {k + 1}: on {scale}', flush=True)
+
+    def judge(self):
+        """(kind, change, jumped) for each change, and every handed state's age."""
+        tb = self.tb
+        tb.wait_heard(tb.now())
+        out = []
+        with tb.lock:
+            heard = list(tb.record.poses.get('/amcl_pose', []))
+        for kind, t, what in self.changes:
+            jumps = pose_jumps(heard, t - 1.0, t + 15.0, self.speed)
+            out.append((kind, what, [str(j) for j in jumps]))
+        ages, fresh = [], 0
+        for scale in ('robot', 'laptop'):
+            log = os.path.join(tb.run_dir, 'logs', f'agent_{scale}.log')
+            with open(log, errors='replace') as f:
+                text = f.read()
+            ages += [float(m.group(1)) for m in HANDED.finditer(text)]
+            fresh += text.count(NO_STATE)
+        return out, ages, fresh
+
+    def stop(self):
+        return self.tb.stop()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--moves', type=int, default=40)
+    ap.add_argument('--cold', type=int, default=20)
+    ap.add_argument('--in-place', type=int, default=20)
+    ap.add_argument('--hysteresis', type=float, default=8.0)
+    ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '61')))
+    ap.add_argument('--out', help='write the figures as JSON here')
+    args = ap.parse_args()
+    ok, why = netns.available()
+    if not ok:
+        print(f'bench_state: needs the test-bed: {why}', file=sys.stderr)
+        return 2
+    results, ages, fresh = [], [], 0
+    with tempfile.TemporaryDirectory() as folder:
+        for path, phases in ((CONFIG, ('moves',)),
+                             (without_standby(folder), ('cold', 'in place'))):
+            wanted = {'moves': args.moves, 'cold': args.cold, 'in place': args.in_place}
+            if not any(wanted[p] for p in phases):
+                continue
+            run = Run(path, args.domain_id, args.hysteresis)
+            try:
+                for phase in phases:
+                    if phase == 'in place':
+                        run.restarts(args.in_place)
+                    elif wanted[phase]:
+                        run.moves(wanted[phase], phase)
+                found, handed, none = run.judge()
+                results += found
+                ages += handed
+                fresh += none
+            finally:
+                notes = run.stop()
+                if notes:
+                    print(f'teardown: {notes}', flush=True)
+    by_kind = {}
+    for kind, what, jumps in results:
+        n, bad = by_kind.get(kind, (0, 0))
+        by_kind[kind] = (n + 1, bad + bool(jumps))
+        if jumps:
+            print(f'{kind} {what}: the pose jumped: {jumps}', flush=True)
+    for kind, (n, bad) in by_kind.items():
+        print(f'{kind}: changes of serving copy whose first pose did not continue the last: '
+              f'{bad} of {n}')
+    print(f'state handed over: age {stats(ages)}; copies started with no state heard: {fresh}')
+    if args.out:
+        with open(args.out, 'w') as f:
+            json.dump({'changes': {k: {'n': n, 'not_continued': b}
+                                   for k, (n, b) in by_kind.items()},
+                       'ages_s': ages, 'no_state': fresh}, f, indent=1)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
