@@ -45,8 +45,9 @@ class Entry:
     services: str = ''          # a lifecycle copy's service namespace: '/amcl/robot'
     nice: int = 0               # the node's own niceness, added to agent.node_nice
     critical: bool = False      # pinned by a tolerance-0 connection: not niced by node_nice
-    # A node with ``state:``: where it publishes its state, and this copy's own restore input
-    # (its ``restore`` topic remapped here, so that only this copy hears what it is handed).
+    # A node with ``state:``: where it publishes its state, and the prefix of each started
+    # process's own restore input (its ``restore`` topic remapped under it per start,
+    # ``copy_restore_topic``: only that process hears what it is handed).
     state_topic: str = ''
     restore_topic: str = ''
     restore_input: str = ''     # the node's own restore topic, as others publish to it
@@ -155,15 +156,27 @@ def build_argv(node: t.Node, search_path: str,
     if node.lifecycle and scale:
         for name in LIFECYCLE_SERVICES + LIFECYCLE_TOPICS:
             argv += ['-r', f'~/{name}:=~/{scale}/{name}']
-    if node.state is not None and scale:
-        argv += ['-r', f'{node.state.restore}:={restore_topic(node, scale)}']
     return tuple(argv), ''
 
 
 def restore_topic(node: t.Node, scale: str) -> str:
-    """Where ``scale``'s copy of a node with ``state:`` takes its state: '/ns/amcl/robot/restore'
-    (its own, beside its lifecycle services)."""
+    """The prefix of the restore topics of ``scale``'s copies of a node with ``state:``:
+    '/ns/amcl/robot/restore' (beside its lifecycle services)."""
     return lifecycle_services(node, scale) + '/restore'
+
+
+def copy_restore_topic(entry: Entry, instance: str) -> str:
+    """The restore topic of one started process of ``entry`` (``instance``: its per-start
+    token): a process of its own, so that a copy killed a moment ago, whose reader DDS still
+    counts until its lease ends, never holds up the hand-over to the copy that follows it."""
+    return f'{entry.restore_topic}/i{instance[:16]}'
+
+
+def restore_remap(entry: Entry, instance: str) -> Tuple[str, ...]:
+    """The ROS arguments that give one started process its own restore topic ('' entries: none)."""
+    if not entry.restore_topic:
+        return ()
+    return ('-r', f'{entry.restore_input}:={copy_restore_topic(entry, instance)}')
 
 
 def lifecycle_services(node: t.Node, scale: str) -> str:

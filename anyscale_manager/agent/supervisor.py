@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Dict, FrozenSet, Iterable, List, Mapping, Optional, Tuple
 
 from . import ports, procs, shm
-from .catalogue import ENV_INSTANCE, Entry
+from .catalogue import ENV_INSTANCE, Entry, restore_remap
 from .log_tail import last_line
 from ..model.types import AgentSettings
 from ..protocol import LIVE_STATES, ProcState
@@ -140,6 +140,11 @@ class Supervisor:
     def pids(self) -> Dict[str, int]:
         """Live nodes' pids."""
         return {n: p.pid for n, p in self._procs.items() if p.state in ACTIVE and p.pid}
+
+    def instances(self) -> Dict[str, str]:
+        """Live nodes' per-start tokens (ENV_INSTANCE)."""
+        return {n: p.instance for n, p in self._procs.items()
+                if p.state in ACTIVE and p.pid and p.instance}
 
     def dds_ports(self, name: str) -> FrozenSet[int]:
         """The unicast ports found of the node's live participants (empty until found)."""
@@ -363,7 +368,8 @@ class Supervisor:
             # connection: it may never be below its minimum) is not niced by node_nice: on a
             # saturated scale it runs beside the agent, ahead of the heavy nodes that may move.
             # A node's own nice adds to the rest. nice(1) execs the node: same pid.
-            argv = list(entry.argv)
+            # A node with a state gets a restore input of this process's own (catalogue.py).
+            argv = list(entry.argv) + list(restore_remap(entry, p.instance))
             niceness = min(19, (0 if entry.critical else self.settings.node_nice) + entry.nice)
             if niceness:
                 argv = ['nice', '-n', str(niceness)] + argv

@@ -20,7 +20,7 @@ from ..protocol import LIVE_STATES, LifecycleState, ProcState
 from ..runtime.hosts import HostBook
 from . import lifecycle as lc
 from .authority import Follower
-from .catalogue import Entry
+from .catalogue import copy_restore_topic, Entry
 from .reconcile import Reconciler
 from .state import StateBook
 from .supervisor import Report, Supervisor
@@ -44,16 +44,18 @@ def _no_poll(name: str) -> None:
 
 
 class RestoreChannel(Protocol):
-    """The agent's writers of its copies' restore topics (nodes/state_relay.py)."""
+    """The agent's writers of its copies' restore topics (nodes/state_relay.py): one per node,
+    on the restore topic of its live process (catalogue.copy_restore_topic)."""
 
-    def ready(self, name: str) -> bool:
-        """Whether node ``name``'s copy here subscribes to its restore topic."""
+    def ready(self, name: str, topic: str) -> bool:
+        """Whether node ``name``'s process here subscribes to ``topic`` (its writer follows
+        ``topic`` from now on)."""
 
-    def send(self, name: str, data: bytes) -> None:
-        """Publish a serialised state message on that copy's restore topic."""
+    def send(self, name: str, topic: str, data: bytes) -> None:
+        """Publish a serialised state message on ``topic``."""
 
-    def delivered(self, name: str) -> bool:
-        """Whether the copy's reader acknowledged what was sent."""
+    def delivered(self, name: str, topic: str) -> bool:
+        """Whether the process's reader acknowledged what was sent on ``topic``."""
 
 
 @dataclass
@@ -237,22 +239,23 @@ class AgentTurn:
             return 'its state is handed to the copy once it is configured'
         pending = states.begin(name, pid, now)
         channel = inputs.restore
+        topic = self._restore_topic(name)
         if not pending.sent:
             handover, lines = states.handover(name, pid, now)
             if handover.data is None:
                 self._logs.extend(lines)            # nothing heard yet: it starts from its own
                 states.handed(name, pid)
                 return ''
-            if channel is None:                     # no ROS side to hand it with (a test)
+            if channel is None or not topic:        # no ROS side to hand it with (a test)
                 states.handed(name, pid)
                 return ''
-            if not channel.ready(name):
+            if not channel.ready(name, topic):
                 return f'its state is handed to the copy first: waiting for its restore ' \
-                       f'input ({self.catalogue[name].restore_topic})'
-            channel.send(name, handover.data)       # the latest, as it is now
+                       f'input ({topic})'
+            channel.send(name, topic, handover.data)     # the latest, as it is now
             pending.sent = True
             self._logs.extend(lines)
-        if channel is None or channel.delivered(name):
+        if channel is None or not topic or channel.delivered(name, topic):
             states.handed(name, pid)
             return ''
         return 'its state is handed to the copy first: waiting for its acknowledgement'
@@ -390,6 +393,7 @@ class AgentTurn:
         changed = sup.step(now, lambda entry: self._visible(entry, now, inputs.visible))
         self._sync_drivers()
         self._hand_plain_states(now, inputs)
+        self._follow_restore_topics(inputs)
         self._drive_lifecycles(now, inputs.poll)
         out.logs.extend(self.states.expired(now, self.deployment.agent.lifecycle_timeout_s))
         out.logs.extend(sup.events)
@@ -410,15 +414,31 @@ class AgentTurn:
         self.tick_s = out.tick_s = STOPPING_TICK_S if fast else TICK_S
         return out
 
+    def _restore_topic(self, name: str) -> str:
+        """The restore topic of ``name``'s live process here ('' when none runs)."""
+        instance = self.supervisor.instances().get(name)
+        return copy_restore_topic(self.catalogue[name], instance) if instance else ''
+
+    def _follow_restore_topics(self, inputs: AgentInputs) -> None:
+        """Each live stateful process's writer follows its restore topic from its start: by
+        the time it is to serve (a failover), the writer and its reader are matched."""
+        if inputs.restore is None:
+            return
+        for name in self.states.specs:
+            topic = self._restore_topic(name)
+            if topic:
+                inputs.restore.ready(name, topic)
+
     def _forward_requests(self, inputs: AgentInputs, out: AgentOutput) -> None:
         """What others publish on a node's restore topic goes to the copy serving here."""
         if not inputs.requests or inputs.restore is None:
             return
         serving = self.serving()
         for node, data in inputs.requests:
-            if node in serving and self.states.pending_for(node) is None \
-                    and inputs.restore.ready(node):
-                inputs.restore.send(node, data)
+            topic = self._restore_topic(node)
+            if node in serving and topic and self.states.pending_for(node) is None \
+                    and inputs.restore.ready(node, topic):
+                inputs.restore.send(node, topic, data)
                 out.logs.append(('info', f'{node}: a message on '
                                          f'{self.states.specs[node].restore} handed to its '
                                          'copy serving here'))

@@ -6,7 +6,10 @@ executor spins, taken by the agent's turn (``drain``): receiving costs DDS its c
 message, and Python one take per turn at most. Messages stay serialised: nothing here knows the
 state's fields. And one writer of the copy's own restore topic (``Entry.restore_topic``, which
 only this scale's copy subscribes to), reliable and transient-local so that it matches a restore
-input of any reliability and durability (Nav2 AMCL's /initialpose is reliable, volatile).
+input of any reliability and durability (Nav2 AMCL's /initialpose is reliable, volatile). Each
+started process has a restore topic of its own (``copy_restore_topic``): the writer follows the
+live process's, so a reader of a process killed a moment ago (DDS counts it until its lease
+ends, 20 s) never holds up the acknowledgement of the next one.
 
 Messages that others publish on the node's own restore topic (RViz's "2D Pose Estimate" on
 /initialpose) no longer reach a copy, whose input is remapped: one more reader of that topic
@@ -52,6 +55,8 @@ class _Relay:
         self.msg_type = msg_type
         self.reader: Any = None
         self.writer: Any = None
+        self.topic = ''                 # the writer's topic: the live process's restore topic
+        self.cls: Any = None
         self.requests: Any = None
 
 
@@ -85,12 +90,12 @@ class StateRelay:
         assert self._watch is not None
         relay.reader = self._watch.create_subscription(
             cls, relay.entry.state_topic, lambda _m: None, READER_QOS, raw=True)
-        relay.writer = self._node.create_publisher(cls, relay.entry.restore_topic, WRITER_QOS)
+        relay.cls = cls
         relay.requests = self._watch.create_subscription(
             cls, relay.entry.restore_input, lambda _m: None, REQUEST_QOS, raw=True)
         self._log('info', f'{relay.entry.name}: keeping its state from '
-                          f'{relay.entry.state_topic} ({relay.msg_type}); its copy here takes '
-                          f'it on {relay.entry.restore_topic}')
+                          f'{relay.entry.state_topic} ({relay.msg_type}); each copy started here '
+                          f'takes it on a topic of its own under {relay.entry.restore_topic}')
 
     def _learn_types(self, now: float) -> None:
         waiting = [r for r in self._relays.values() if r.reader is None and not r.msg_type]
@@ -127,23 +132,30 @@ class StateRelay:
                     requests.append((name, taken[0]))
         return heard, requests
 
-    def ready(self, name: str) -> bool:
-        """Whether a hand-over can go out now: the writer exists and the copy subscribes."""
+    def _writer(self, name: str, topic: str) -> Any:
+        """The node's writer, on ``topic`` (made anew when the live process changed)."""
         relay = self._relays.get(name)
-        return relay is not None and relay.writer is not None \
-            and relay.writer.get_subscription_count() > 0
+        if relay is None or relay.cls is None:
+            return None
+        if relay.topic != topic:
+            if relay.writer is not None:
+                self._node.destroy_publisher(relay.writer)
+            relay.writer = self._node.create_publisher(relay.cls, topic, WRITER_QOS)
+            relay.topic = topic
+        return relay.writer
 
-    def send(self, name: str, data: bytes) -> None:
-        relay = self._relays[name]
-        relay.writer.publish(data)
+    def ready(self, name: str, topic: str) -> bool:
+        """Whether a hand-over can go out now: the process subscribes to its restore topic."""
+        writer = self._writer(name, topic)
+        return writer is not None and writer.get_subscription_count() > 0
 
-    def delivered(self, name: str) -> bool:
-        """Whether every reader of the copy's restore topic acknowledged what was sent (waits
-        ACK_WAIT at most)."""
-        relay = self._relays.get(name)
-        if relay is None or relay.writer is None:
-            return False
-        return relay.writer.wait_for_all_acked(ACK_WAIT)
+    def send(self, name: str, topic: str, data: bytes) -> None:
+        self._writer(name, topic).publish(data)
+
+    def delivered(self, name: str, topic: str) -> bool:
+        """Whether the process's reader acknowledged what was sent (waits ACK_WAIT at most)."""
+        writer = self._writer(name, topic)
+        return writer is not None and writer.wait_for_all_acked(ACK_WAIT)
 
     def destroy(self) -> None:
         for relay in self._relays.values():
