@@ -92,7 +92,7 @@ def test_the_supervisor_reports_a_missing_scripts_exit_code_and_log_line(make_su
     sup.stop('worker', time.monotonic())
     assert drive(sup, lambda: sup.reports()['worker'].state == p.ProcState.STOPPED, 10.0)
     assert sup.reports()['worker'].exit_code is None
-    assert sup.reports()['worker'].log_tail == ''
+    assert sup.reports()['worker'].log_tail is None
 
 
 # --- the decider ---------------------------------------------------------------------------------
@@ -134,6 +134,15 @@ def test_the_decider_says_a_copys_exit_once_with_its_code_and_log_line(d):
             "python3: can't open file '/opt/user.py': [Errno 2] No such file")
     assert said == [(NODE_EXIT, 'user', 'robot', '', text, turn.generation)]
     assert logs == [('error', text)]
+    # Between two exits the copy starts again and its report carries no exit: not news.
+    where = master_layout(d)
+    feed(turn, d, 6.5, where)
+    robot = agent(d, 'robot', where, standby=[n for n in d.node_names if d.standby_scales(n)])
+    robot.nodes['user'] = p.NodeReport(state='starting', pid=7, since=6.5, restarts=6,
+                                       ready=False, exit_reason='')
+    turn.book.agent_state(robot, 6.5)
+    assert not exits(turn.turn(6.5))
+    assert not exits(crash_loop(d, turn, 6.8, restarts=6))
     # Serving again, then another exit: said again.
     feed(turn, d, 7.0, master_layout(d))
     assert not exits(turn.turn(7.0))
@@ -158,11 +167,11 @@ def test_a_copy_that_cannot_be_started_is_said_with_its_reason(d):
 
 
 def test_node_reports_carry_the_exit_code_and_log_line():
-    from anyscale_manager.agent.supervisor import Report
     from anyscale_manager.agent.turn import node_reports
-    reports = {'worker': Report(p.ProcState.BACKOFF, 0, 5.0, 2, False, 'exited with status 2',
-                                2, "python3: can't open file"),
-               'fine': Report(p.ProcState.RUNNING, 9, 5.0, 0, True, '')}
+    reports = {'worker': p.NodeReport(p.ProcState.BACKOFF, 0, 5.0, 2, False,
+                                      'exited with status 2', exit_code=2,
+                                      log_tail="python3: can't open file"),
+               'fine': p.NodeReport(p.ProcState.RUNNING, 9, 5.0, 0, True, '')}
     nodes = node_reports(reports, {}, 100.0)
     assert (nodes['worker'].exit_code, nodes['worker'].log_tail) == (2, "python3: can't open file")
     assert nodes['fine'].exit_code is None and nodes['fine'].log_tail is None

@@ -27,7 +27,7 @@ from . import ports, procs, shm
 from .catalogue import ENV_INSTANCE, Entry, restore_remap
 from .log_tail import last_line
 from ..model.types import AgentSettings
-from ..protocol import LIVE_STATES, ProcState
+from ..protocol import LIVE_STATES, NodeReport, ProcState
 
 STATE_VERSION = 1
 # A state file records a few lines per node: anything much larger is not one of ours.
@@ -38,22 +38,6 @@ ACTIVE = (ProcState.STARTING, ProcState.RUNNING, ProcState.STOPPING)
 PORTS_EVERY_S, PORTS_LOOK_S = 0.25, 30.0
 # A crashed or unstartable node, waiting for its restart.
 DOWN = (ProcState.BACKOFF, ProcState.FAILED)
-
-
-@dataclass(frozen=True)
-class Report:
-    """What the supervisor knows of one node (``since`` on the caller's monotonic clock)."""
-
-    state: ProcState
-    pid: int
-    since: float
-    restarts: int
-    ready: bool
-    exit_reason: str
-    # Of a process that exited unasked, until its next start is up: its exit code (-N:
-    # killed by signal N; None: not known) and the last line it wrote to its log ('' none).
-    exit_code: Optional[int] = None
-    log_tail: str = ''
 
 
 @dataclass
@@ -125,9 +109,13 @@ class Supervisor:
     def names(self) -> Tuple[str, ...]:
         return tuple(self._procs)
 
-    def reports(self) -> Dict[str, Report]:
-        return {n: Report(p.state, p.pid if p.state in ACTIVE else 0, p.since,
-                          p.restarts, p.ready, p.exit_reason, p.exit_code, p.log_tail)
+    def reports(self) -> Dict[str, NodeReport]:
+        """Each node's report as it goes on the wire, but ``since`` on the caller's monotonic
+        clock (the agent's turn puts it on the wall clock, agent/turn.py node_reports)."""
+        return {n: NodeReport(state=p.state, pid=p.pid if p.state in ACTIVE else 0,
+                              since=p.since, restarts=p.restarts, ready=p.ready,
+                              exit_reason=p.exit_reason, exit_code=p.exit_code,
+                              log_tail=p.log_tail or None)
                 for n, p in self._procs.items()}
 
     def state(self, name: str) -> ProcState:

@@ -10,7 +10,7 @@ unit tests drive the same object with a hand-written clock. Nothing here reads a
 touches ROS: time and the wall clock come in as arguments.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import (Callable, Collection, Dict, Iterable, List, Mapping, Optional, Protocol,
                     Sequence, Set, Tuple)
 
@@ -23,7 +23,7 @@ from .authority import Follower
 from .catalogue import copy_restore_topic, Entry
 from .reconcile import Reconciler
 from .state import StateBook
-from .supervisor import Report, Supervisor
+from .supervisor import Supervisor
 
 TICK_S = 0.1
 # While a node is stopping the loop runs this often: a stop_before_start move waits until the
@@ -107,10 +107,11 @@ def name_counts(names_and_namespaces: Iterable[Tuple[str, str]]) -> Dict[str, in
     return counts
 
 
-def node_reports(reports: Mapping[str, Report], drivers: Mapping[str, lc.Driver],
+def node_reports(reports: Mapping[str, protocol.NodeReport], drivers: Mapping[str, lc.Driver],
                  wall_offset: float) -> Dict[str, protocol.NodeReport]:
-    """Each node's part of the agent's report: the supervisor's, a lifecycle copy's read
-    through its driver (agent/lifecycle.py report), ``since`` on the wall clock."""
+    """Each node's part of the agent's report: the supervisor's (``since`` on the monotonic
+    clock) with ``since`` on the wall clock, a lifecycle copy's read through its driver
+    (agent/lifecycle.py report)."""
     nodes = {}
     for name, r in reports.items():
         since = r.since + wall_offset if r.since else 0.0
@@ -118,10 +119,8 @@ def node_reports(reports: Mapping[str, Report], drivers: Mapping[str, lc.Driver]
         driver = drivers.get(name)
         if driver is not None:
             state, ready, reason, label = lc.report(r.state, r.ready, r.exit_reason, driver)
-        nodes[name] = protocol.NodeReport(state=state, pid=r.pid, since=since,
-                                          restarts=r.restarts, ready=ready,
-                                          exit_reason=reason, lifecycle=label,
-                                          exit_code=r.exit_code, log_tail=r.log_tail or None)
+        nodes[name] = replace(r, state=state, since=since, ready=ready, exit_reason=reason,
+                              lifecycle=label)
     return nodes
 
 

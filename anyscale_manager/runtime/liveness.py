@@ -103,17 +103,19 @@ class LivenessWatch:
     def _exits(self, obs: Observations) -> List[Notice]:
         """A copy's exit, said once with what its agent read of it, until it serves again."""
         out: List[Notice] = []
-        down = set()
         for node, copies in sorted(obs.copies.items()):
             for scale, c in sorted(copies.items()):
+                if c.state == ProcState.RUNNING and c.ready:
+                    # Served again: its next exit is news. (A report between two exits of a
+                    # crash loop that carries no exit, a copy starting, is not.)
+                    self.exited.discard((node, scale))
+                    continue
                 known = c.exit_code is not None or bool(c.log_tail) \
                     or c.state == ProcState.FAILED
-                if c.crashed_at is None or not known:
+                if c.crashed_at is None or not known or (node, scale) in self.exited:
                     continue
-                down.add((node, scale))
-                if (node, scale) not in self.exited:
-                    out.append(Notice(NODE_EXIT, 'error', scale, node, exit_text(node, scale, c)))
-        self.exited = down
+                self.exited.add((node, scale))
+                out.append(Notice(NODE_EXIT, 'error', scale, node, exit_text(node, scale, c)))
         return out
 
     def summary(self) -> Tuple[int, str]:
