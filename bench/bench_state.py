@@ -14,6 +14,16 @@ the poses the harness's own observer heard on /amcl_pose.
    ``--in-place`` times.
 (Failovers to a standby copy: bench/bench_failover.py --state.)
 
+    python bench/bench_state.py --cost [--seconds 60]
+
+What keeping a state costs each agent, on loopback (no root): two scales of this machine, a
+worker whose output is a pose at AMCL's 5 Hz (bench_failover.py's deployment), once without and
+once with ``state:`` declared; each agent's CPU (its own process, % of one core) over
+``--seconds`` after the layout has settled, and the state messages each agent's reader
+receives (bytes/s of serialised payload, counted by a reader of this bench with the same QoS:
+what DDS delivers to each reading participant; on a real link add RTPS and UDP headers, about
+90 bytes a message).
+
 For each change: whether the first pose of the copy that took over continued the last one (a
 jump larger than the robot could have moved between the two stamps, testbed/poses.py, is a
 change that did not), and the age of the state each agent handed over (from its log). Runs with
@@ -136,6 +146,77 @@ class Run:
         return self.tb.stop()
 
 
+def cost(seconds: float, domain_id: int) -> int:
+    """The --cost measurement (see the module)."""
+    import subprocess
+    import time
+
+    import psutil
+    sys.path.insert(0, HERE)
+    import bench_failover as bf
+    os.environ.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    from anyscale_manager import config_files
+    os.environ.update(config_files.with_discovery_profile(os.environ))
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from anyscale_manager.agent.procs import stop_popen
+    from anyscale_manager.nodes.state_relay import READER_QOS
+    rclpy.init()
+    node = rclpy.create_node('bench_state_cost')
+    rows = {}
+    try:
+        for state in (False, True):
+            with tempfile.TemporaryDirectory() as folder:
+                topic = f'/bench_state_{os.getpid()}_{int(state)}'
+                path = bf.deployment(folder, topic, 5.0, state=True)
+                if not state:
+                    with open(path) as f:
+                        data = yaml.safe_load(f)
+                    del data['/**']['ros__parameters']['nodes']['worker']['state']
+                    with open(path, 'w') as f:
+                        yaml.safe_dump(data, f)
+                sizes = []
+                sub = node.create_subscription(PoseWithCovarianceStamped, topic + '/w',
+                                               lambda raw: sizes.append(len(raw)), READER_QOS,
+                                               raw=True)
+                procs = [subprocess.Popen([os.path.join(bf.BIN, exe), '--ros-args',
+                                           '--params-file', path, *extra],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+                                          start_new_session=True)
+                         for exe, extra in (('agent', ('-p', 'scale:=home')),
+                                            ('agent', ('-p', 'scale:=away')), ('decider', ()))]
+                try:
+                    end = time.monotonic() + 20.0           # the worker moves out, settles
+                    while time.monotonic() < end:
+                        rclpy.spin_once(node, timeout_sec=0.1)
+                    agents = [psutil.Process(p.pid) for p in procs[:2]]
+                    before = [sum(a.cpu_times()[:2]) for a in agents]
+                    del sizes[:]
+                    t0 = time.monotonic()
+                    while time.monotonic() < t0 + seconds:
+                        rclpy.spin_once(node, timeout_sec=0.1)
+                    took = time.monotonic() - t0
+                    used = [sum(a.cpu_times()[:2]) - b for a, b in zip(agents, before)]
+                    rows[state] = ([100.0 * u / took for u in used], sum(sizes) / took,
+                                   len(sizes) / took)
+                finally:
+                    for p in reversed(procs):
+                        stop_popen(p, 5.0, 5.0)
+                    node.destroy_subscription(sub)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    for state, (cpu, rate_bytes, rate_msgs) in rows.items():
+        print(f'{"with" if state else "without"} state: agent home {cpu[0]:.2f} %, agent away '
+              f'{cpu[1]:.2f} % of one core over {seconds:g} s; the state topic carries '
+              f'{rate_msgs:.1f} messages/s, {rate_bytes:.0f} B/s of payload to each reader')
+    (home0, away0), (home1, away1) = rows[False][0], rows[True][0]
+    print(f'keeping the state costs: agent home {home1 - home0:+.2f} %, agent away '
+          f'{away1 - away0:+.2f} % of one core; {rows[True][1] * 8 / 1000:.1f} kbit/s of '
+          'payload into each agent that reads it from across a link')
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--moves', type=int, default=40)
@@ -144,7 +225,11 @@ def main() -> int:
     ap.add_argument('--hysteresis', type=float, default=8.0)
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', '61')))
     ap.add_argument('--out', help='write the figures as JSON here')
+    ap.add_argument('--cost', action='store_true', help='measure what keeping a state costs')
+    ap.add_argument('--seconds', type=float, default=60.0)
     args = ap.parse_args()
+    if args.cost:
+        return cost(args.seconds, args.domain_id)
     ok, why = netns.available()
     if not ok:
         print(f'bench_state: needs the test-bed: {why}', file=sys.stderr)
