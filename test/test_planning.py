@@ -16,7 +16,6 @@ from anyscale_manager.model.types import (Connection, DeciderSettings, Deploymen
                                           Link, Node, Scale, Settings)
 from anyscale_manager.planning import Instance, Regression, check_layout, fit_profile, solve
 from anyscale_manager.planning.generate import generate_deployment
-from anyscale_manager.planning.instance import own_scales_of_all
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 IROS = os.path.join(REPO, 'config', 'iros2016')
@@ -353,10 +352,8 @@ def test_the_testbed_plans_with_every_node_fixed():
 
 def test_instance_residence_matches_the_model():
     for d in (load_deployment(TESTBED), instance(6), generate_deployment(60, 6, seed=3)):
-        own = own_scales_of_all(d)
         inst = Instance(d)
         for n in d.nodes:
-            assert own[n.name] == set(d.own_scales(n.name))
             u = inst.unit_of[inst.node_index[n.name]]
             assert tuple(inst.scales[s] for s in inst.unit_allowed[u]) == \
                 d.allowed_scales(n.name)

@@ -11,6 +11,7 @@ from dataclasses import replace
 from typing import Callable, Collection, Dict, FrozenSet, List, Set, Tuple
 
 from . import types as t
+from .placement import allowed
 from .reader import Context, Problem, did_you_mean
 
 # A check: the deployment as read and what the reading found -> its problems.
@@ -276,7 +277,7 @@ def layout_allowed(d: t.Deployment, read: Context) -> List[Problem]:
     out = []
     for node, scale in d.decider.layout.items():
         if node in d.node_names and scale in d.scale_names and d.allowed_scales(node) \
-                and scale not in d.allowed_scales(node):
+                and not allowed(d, node, scale).passed:
             out.append(Problem(d.source, f'decider.layout.{node}',
                                f'node {node!r} may not run on {scale!r} (allowed: '
                                f'{", ".join(d.allowed_scales(node))})'))

@@ -582,15 +582,23 @@ class Deployment:
 
     def own_scales(self, node: str) -> Tuple[str, ...]:
         """Scales one node may run on by itself: criticality, residence, provider pinning."""
-        n = self.node(node)
-        master = self.master.name
-        if node in self.critical_nodes:
-            return (master,)
-        if n.residence:
-            return tuple(s for s in self.scale_names if s in n.residence)
-        if node in self.data_providers or not n.managed:
-            return (master,)
-        return self.scale_names
+        return _lookup('node', self._own, node)
+
+    @cached_property
+    def _own(self) -> Mapping[str, Tuple[str, ...]]:
+        critical, providers = set(self.critical_nodes), set(self.data_providers)
+        master: Tuple[str, ...] = (self.master.name,)
+        out: Dict[str, Tuple[str, ...]] = {}
+        for n in self.nodes:
+            if n.name in critical:
+                out[n.name] = master
+            elif n.residence:
+                out[n.name] = tuple(s for s in self.scale_names if s in n.residence)
+            elif n.name in providers or not n.managed:
+                out[n.name] = master
+            else:
+                out[n.name] = self.scale_names
+        return frozen_map(out)
 
     def allowed_scales(self, node: str) -> Tuple[str, ...]:
         """Scales a node may run on, its coresidence group's constraints included."""

@@ -6,14 +6,17 @@ coresidence, CPU per computer, bandwidth per link with both directions summed, a
 between two scales that have no link at all. It returns every violation with its reason; an
 empty tuple means feasible. ``Loads`` applies the same rules incrementally while a solver moves
 units around, and ``explain_infeasible`` names the constraints that cannot all be met.
+Residence and coresidence are model/placement.py's filters, as the first layout's check and
+the migration policy judge them.
 """
 
 from dataclasses import dataclass
 from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.capacity import usable_cpu
+from ..model.placement import apart, residence
 from ..model.types import Deployment
-from .instance import Instance, own_scales_of_all
+from .instance import Instance
 
 TOLERANCE = 1e-6
 
@@ -28,18 +31,6 @@ class Violation:
 
     def __str__(self) -> str:
         return self.reason
-
-
-def _residence_reason(d: Deployment, node: str, allowed: Tuple[str, ...]) -> str:
-    n = d.node(node)
-    where = ', '.join(allowed) or 'no scale'
-    if node in d.critical_nodes:
-        return f'is critical ({d.why_critical(node)}) and must run on {where}'
-    if n.residence:
-        return f'may run only on {where} (residence)'
-    if not n.managed:
-        return f'is not managed by an agent and stays on {where}'
-    return f'is a data provider and stays on {where}'
 
 
 def _usable(d: Deployment, scale: str, cpu: float, given: bool = False) -> str:
@@ -64,7 +55,6 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str],
     out: List[Violation] = []
     scales = set(d.scale_names)
     node_names = set(d.node_names)
-    own_scales = own_scales_of_all(d)
     links = {frozenset(link.ends): link for link in d.links}
     cpu = dict(cpu or {})
     for name in layout:
@@ -78,10 +68,10 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str],
             out.append(Violation('placement', n.name,
                                  f'node {n.name} is placed on unknown scale {scale!r}'))
         else:
-            if scale not in own_scales[n.name]:
-                own = tuple(s for s in d.scale_names if s in own_scales[n.name])
-                out.append(Violation('residence', n.name, f'node {n.name} is on {scale} but '
-                                     + _residence_reason(d, n.name, own)))
+            alone = residence(d, n.name, scale)
+            if not alone.passed:
+                out.append(Violation(alone.code.value, n.name,
+                                     f'node {n.name} is on {scale} but {alone.reason}'))
         share = cpu.get(n.name, n.cpu)
         profiled = n.settings
         if profiled is not None and profiled.configurable:
@@ -95,9 +85,12 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str],
                                                     f'{n.cpu:g}, not {share:g}'))
     for n in d.nodes:
         here = layout.get(n.name)
-        for other in n.coresidence:
-            there = layout.get(other)
-            if here in scales and there in scales and here != there:
+        if here not in scales:
+            continue
+        # Each pair as declared (a node's own coresidence list), once per declaring node.
+        for other in apart(d, n.name, here, layout, among=n.coresidence):
+            there = layout[other]
+            if there in scales:
                 out.append(Violation('coresidence', n.name,
                                      f'node {n.name} must share a scale with {other}, but is '
                                      f'on {here} and {other} on {there}'))

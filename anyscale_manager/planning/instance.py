@@ -55,25 +55,6 @@ def _node_options(node, problem: int, settings: str
     return tuple(Option(c, float(p)) for c, p in zip(cpus, perf)), profile
 
 
-def own_scales_of_all(d: Deployment) -> Dict[str, set]:
-    """``Deployment.own_scales`` for every node at once (the same rules, computed in one
-    pass: the model's per-node form rescans every connection for each node)."""
-    critical = set(d.critical_nodes)
-    providers = set(d.data_providers)
-    master = d.master.name
-    out = {}
-    for n in d.nodes:
-        if n.name in critical:
-            out[n.name] = {master}
-        elif n.residence:
-            out[n.name] = set(n.residence)
-        elif n.name in providers or not n.managed:
-            out[n.name] = {master}
-        else:
-            out[n.name] = set(d.scale_names)
-    return out
-
-
 class Instance:
     """The planning view of one deployment for one problem and settings mode."""
 
@@ -130,12 +111,11 @@ class Instance:
             units.append(tuple(members))
         self.units: Tuple[Tuple[int, ...], ...] = tuple(units)
         self.unit_of: Tuple[int, ...] = tuple(unit_of)
-        own = own_scales_of_all(d)
         allowed_units = []
         for unit in self.units:
             allowed = set(self.scales)
             for m in unit:
-                allowed &= own[self.nodes[m]]
+                allowed &= set(d.own_scales(self.nodes[m]))
             allowed_units.append(tuple(i for i, s in enumerate(self.scales) if s in allowed))
         self.unit_allowed: Tuple[Tuple[int, ...], ...] = tuple(allowed_units)
         # Links, both orientations; -1 = no link between the two scales.

@@ -7,6 +7,7 @@ is allowed, instead of restarting them where the plan would put them.
 from dataclasses import replace
 from typing import TYPE_CHECKING, Dict, List, Mapping, Optional, Tuple
 
+from ..model.placement import allowed, apart
 from ..model.types import DeciderSettings, Deployment
 
 if TYPE_CHECKING:
@@ -112,13 +113,12 @@ def check_layout(deployment: Deployment, layout: Mapping[str, str]) -> List[str]
         if scale not in deployment.scale_names:
             problems.append(f'{node}: unknown scale {scale!r}')
             continue
-        allowed = deployment.allowed_scales(node)
-        if scale not in allowed:
-            problems.append(f'{node} may not run on {scale} (allowed: {", ".join(allowed)})')
-        for other in deployment.coresidence_group(node):
-            if other in layout and layout[other] != scale:
-                problems.append(f'{node} and {other} must share a scale '
-                                f'({scale} vs {layout[other]})')
+        if not allowed(deployment, node, scale).passed:
+            problems.append(f'{node} may not run on {scale} (allowed: '
+                            f'{", ".join(deployment.allowed_scales(node))})')
+        for other in apart(deployment, node, scale, layout):
+            problems.append(f'{node} and {other} must share a scale '
+                            f'({scale} vs {layout[other]})')
     return problems
 
 
@@ -141,7 +141,7 @@ def adopt(deployment: Deployment, planned: Mapping[str, str],
         if not wheres or all(running.get(m, layout[m]) == layout[m] for m in group):
             continue
         where = next(iter(wheres))
-        if len(wheres) == 1 and where in deployment.allowed_scales(node):
+        if len(wheres) == 1 and allowed(deployment, node, where).passed:
             for m in group:
                 if layout[m] != where:
                     notes.append(f'adopted {m} where it runs ({where}; planned {layout[m]})')
