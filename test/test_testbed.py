@@ -18,8 +18,10 @@ from anyscale_manager.runtime.delta import STALL_ALLOWANCE_S
 from anyscale_manager.testbed import harness, links, netns
 from anyscale_manager.testbed import schedule as sched
 from anyscale_manager.testbed.record import HEARD_LAG_S, Record, Violation
-from anyscale_manager.testbed.report import (category, draw_timeline, event_log, spans,
-                                             status_table, write_event_log)
+from anyscale_manager.testbed.report import (
+    category, connection_dips, cpu_series, cut_off_spans, dips, draw_timeline, event_line,
+    event_log, fold_notes, location, loss_text, loss_window_s, machine_note, serving, spans,
+    split_readings, status_table, with_own_reports, wrap_lines, write_event_log)
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TESTBED = os.path.join(REPO, 'config', 'icar2015_testbed.yaml')
@@ -257,6 +259,276 @@ def test_timeline_png_and_event_log_are_written(record, tmp_path):
     assert [r['kind'] for r in rows] == ['action', 'migrate_back']
     assert 'migrate_back amcl laptop -> robot' in open(text).read()
     assert event_log(record, 0.0) == rows
+
+
+# --- reading the demo at a glance ---------------------------------------------------------------
+
+def _report(scale, t, serving_nodes, standby=()):
+    """An agent's report at t: ``serving_nodes`` active and ready, ``standby`` inactive."""
+    state = _state(scale, list(serving_nodes) + list(standby))
+    for n in standby:
+        state.nodes[n] = p.NodeReport(state='standby', pid=500, since=0.0, restarts=0,
+                                      ready=False, exit_reason='', lifecycle='inactive')
+    return t, state
+
+
+def _cut_at_10(record, laptop_stands_down_at=None):
+    """AMCL and AR serve on the laptop; the link is cut at 10 s. The robot's agent activates
+    its standby copies, ready from 10.4 s. The robot's observer last hears the laptop's agent
+    at 9.9 s; the laptop's own observer (a view of its own) hears it until the end, standing
+    its copies down at ``laptop_stands_down_at``. Returns the laptop's view."""
+    record.link_set(0.0, True, 54000.0)
+    record.link_set(10.0, False, 54000.0)
+    laptop_view = Record(record.deployment)
+    for k in range(0, 41):
+        t = k * 0.5 - 0.1
+        pinned = ['laser', 'camera', 'ekf', 'navigation']
+        robot = _report('robot', t, pinned + (['amcl', 'ar'] if t >= 10.4 else []),
+                        standby=() if t >= 10.4 else ('amcl', 'ar'))
+        record.agent_states.setdefault('robot', []).append(robot)
+        down = laptop_stands_down_at is not None and t >= laptop_stands_down_at
+        laptop = _report('laptop', t, [] if down else ['amcl', 'ar'],
+                         standby=('amcl', 'ar') if down else ())
+        laptop_view.agent_states.setdefault('laptop', []).append(laptop)
+        if t < 10.0:
+            record.agent_states.setdefault('laptop', []).append(laptop)
+    return laptop_view
+
+
+def test_the_layout_band_shows_where_a_node_serves_not_a_cut_off_report(record):
+    """The laptop's last report (9.9 s) says AMCL and AR run there for agent_timeout_s more,
+    but the link is cut at 10 s: what the robot's consumers hear from 10.4 s is the robot's
+    copies. The band says so, and draws the cut-off copies apart."""
+    laptop_view = _cut_at_10(record, laptop_stands_down_at=11.5)
+    assert record.deployment.decider.agent_timeout_s > 2.0
+    assert 'laptop' in record.where('amcl', 12.0)            # the reports alone still say it
+    assert serving(record, 'amcl', 12.0) == (('robot',), ('laptop',))
+    assert location(record, 'amcl', 9.0) == 'laptop'
+    assert location(record, 'amcl', 10.2) == ''              # between the cut and the robot
+    assert location(record, 'amcl', 10.5) == 'robot'
+    assert category(record, 10.5)[0] == 'AMCL and AR on the robot'
+    band = spans(record, 0.0, 19.0)
+    red = next(start for start, _, label, _ in band if label == 'AMCL and AR on the robot')
+    assert 10.0 <= red <= 10.75
+    # The cut-off copies, as far as the robot heard (until that report aged out) ...
+    stale = 9.9 + record.deployment.decider.agent_timeout_s
+    [(a, b, text)] = cut_off_spans(record, 0.0, 19.0)
+    assert (a, text) == (10.0, 'AMCL, AR on laptop') and stale <= b <= stale + 0.25
+    # ... and as the laptop's own observer heard them: active until its agent stood them down.
+    seen = with_own_reports(record, {'robot': record, 'laptop': laptop_view})
+    found = cut_off_spans(seen, 0.0, 19.0)
+    assert [(a, text) for a, _, text in found] == [(10.0, 'AMCL, AR on laptop')]
+    assert 11.9 <= found[0][1] <= 12.25
+    assert seen.agent_states['robot'] is record.agent_states['robot']
+
+
+def _reading(rate, level=p.OK, below=0.0, ended=None):
+    return p.ConnectionReading(rate_hz=rate, bytes_per_s=0.0, below_for_s=below, level=level,
+                               ended_below_s=ended)
+
+
+def test_a_dip_within_delta_is_allowed_and_one_past_delta_is_not():
+    points = [(1.0, _reading(10.0)), (1.5, _reading(0.0, p.WARN, 0.3)),
+              (2.0, _reading(0.0, p.WARN, 0.8)), (2.5, _reading(9.0, ended=1.1)),
+              (3.0, _reading(10.0)),
+              (5.0, _reading(3.0, p.WARN, 1.5)), (6.0, _reading(0.0, p.ERROR, 2.5)),
+              (6.5, _reading(10.0, ended=2.9)),
+              (8.0, _reading(4.0, p.OK))]                     # below, still open at the end
+    found = dips('laser_amcl', points, 5.0)
+    assert [(round(x.start, 2), x.end, x.min_rate_hz, x.below_s, x.allowed) for x in found] == [
+        (1.2, 2.5, 0.0, 1.1, True), (3.5, 6.5, 0.0, 2.9, False), (8.0, 8.0, 4.0, 0.0, True)]
+    # A stretch never starts before the reading above it.
+    assert dips('x', [(1.0, _reading(10.0)), (1.5, _reading(0.0, p.WARN, 5.0))],
+                5.0)[0].start == 1.0
+
+
+def test_dips_are_read_at_the_serving_subscriber_not_at_a_copy_standing_by(record):
+    """laser_amcl is probed where AMCL serves: the laptop's probe until the cut, the robot's
+    after. The cut-off laptop's probe reading 0 Hz is another scale's, not a dip; the robot's
+    first readings at 0 Hz (within Δ 2 s) are one allowed dip."""
+    _cut_at_10(record)
+    rows = []
+    for k in range(40):
+        t = k * 0.5
+        if t < 10.0:
+            rows.append((t, 'laptop', _reading(10.0)))
+        else:
+            rows.append((t, 'laptop', _reading(0.0, p.ERROR if t > 12.0 else p.WARN, t - 10.0)))
+        if 10.5 <= t < 11.5:
+            rows.append((t, 'robot', _reading(0.0, p.WARN, t - 10.4)))
+        elif t >= 11.5:
+            rows.append((t, 'robot', _reading(10.0, ended=1.2 if t == 11.5 else None)))
+    record.readings['laser_amcl'] = rows
+    conn = record.deployment.connection('laser_amcl')
+    served, others = split_readings(record, conn, 0.0, 19.5)
+    assert {s for _, s, _ in others} == {'laptop'} and all(t >= 10.0 for t, _, _ in others)
+    assert [t for t, _ in served] == [k * 0.5 for k in range(20)] + [
+        10.5 + k * 0.5 for k in range(19)]
+    found = connection_dips(record, 0.0, 19.5)
+    assert [(x.connection, x.allowed, round(x.start, 2), x.end, x.below_s) for x in found] == [
+        ('laser_amcl', True, 10.4, 11.5, 1.2)]
+
+
+def test_the_cpu_panel_plots_each_scale_against_its_capacity(record):
+    def status(t, scale, cpu, capacity, cores):
+        record.ingest_line(_line(t, p.TOPIC_SCALE_STATUS, p.ScaleStatus(
+            scale=scale, stamp=t, cpu_total=cpu, capacity_cpu=capacity, cpu_by_node={},
+            mem_percent=1.0, load_1m=0.1, cpu_source='cgroup', cores=cores)))
+    for k in range(21):
+        t = k * 0.5
+        status(t, 'robot', 150.0 + k, 200.0, 0.6)
+        if not 4.0 < t < 8.0:                       # not heard while the link was cut
+            status(t + 0.1, 'laptop', 90.0, 700.0, 2.1)
+    robot, laptop = cpu_series(record, 2.0, 10.0)
+    assert (robot.scale, robot.capacity_cpu, robot.source, robot.cores) == (
+        'robot', 200.0, 'cgroup', 0.6)
+    assert robot.times[0] == 0.0 and robot.cpu[0] == 154.0 and len(robot.times) == 17
+    assert laptop.capacity_cpu == 700.0
+    gap = [i for i, x in enumerate(laptop.times) if x != x]      # NaN: the line breaks
+    assert len(gap) == 1 and laptop.times[gap[0] - 1] == pytest.approx(2.1)
+    assert laptop.times[gap[0] + 1] == pytest.approx(6.1)
+    assert cpu_series(record, 20.0, 30.0)[0].times == ()
+
+
+def _link_report(t, up, loss, rtt=0.3):
+    return t, p.LinkStatus(master='robot', remote='laptop', stamp=t, up=up, rtt_ms=rtt,
+                           loss=loss, bandwidth_available_kbps=None,
+                           bandwidth_available_age_s=None, bandwidth_used_kbps=0.0)
+
+
+def test_a_loss_counted_over_a_cut_is_not_shown_as_the_links_loss(record):
+    window = loss_window_s(record.deployment)
+    assert 10.0 <= window <= 12.0        # 40 beats at 4 Hz and the 3 periods a beat may wait
+    reports = [_link_report(t * 0.25, not 5.0 <= t * 0.25 < 12.0,
+                            0.0 if t * 0.25 < 5.0 else 0.73) for t in range(80)]
+    assert loss_text(reports[:10], window) == 'loss 0%'
+    assert loss_text(reports[:30], window) == ''                 # down: no loss figure
+    up_again = reports[:52]                                      # 13 s: up 1 s, 73 % counted
+    assert up_again[-1][1].up and up_again[-1][1].loss == 0.73
+    assert loss_text(up_again, window) == \
+        f'loss - (its last {window:.0f} s of beats hold the cut)'
+    later = reports + [_link_report(12.0 + window + 0.5, True, 0.05)]
+    assert loss_text(later, window) == 'loss 5%'
+
+
+def test_the_demo_table_says_no_loss_figure_right_after_a_cut(record):
+    for t, s in [_link_report(1.0, True, 0.0), _link_report(2.0, False, 0.5),
+                 _link_report(6.0, True, 0.73)]:
+        record.link_status.append((t, s))
+    record.link_set(0.0, True, 54000.0)
+    monitor = status_table(record, 6.2, 0.0, 'netns').splitlines()[2]
+    assert monitor.startswith('  monitor: up, rtt 0.3 ms, loss - (its last')
+    assert '73' not in monitor
+    assert status_table(record, 6.2, 0.0, 'netns').splitlines()[1] == \
+        'link wifi: UP, shaped to 54.0 Mbit/s'
+    assert 'emulated on loopback: not shaped' in status_table(record, 6.2, 0.0, 'loopback')
+
+
+def test_long_lines_wrap_at_words_with_an_indent():
+    line = '  migrate amcl robot -> laptop: ' + ' '.join(f'word{i}' for i in range(40))
+    wrapped = wrap_lines('short\n' + line, 60).split('\n')
+    assert wrapped[0] == 'short' and all(len(x) <= 60 for x in wrapped)
+    assert wrapped[1].startswith('  migrate') and all(x.startswith('      ') for x in wrapped[2:])
+    assert ' '.join(' '.join(wrapped[1:]).split()) == ' '.join(line.split())   # no word cut
+
+
+def test_the_demo_table_wraps_an_events_reason_instead_of_cutting_it(record):
+    _busy_record(record)
+    reason = ('amcl: CPU 152, the most CPU-intensive migratable node that fits, to laptop '
+              '(power 11.2): CPU 30 + 152 <= 630; link wifi 224/43200 kbit/s')
+    record.events.append((12.0, p.Event(stamp=0.0, kind='migrate', node='amcl',
+                                        from_scale='robot', to_scale='laptop', reason=reason,
+                                        generation=4)))
+    record.events.append((13.0, p.Event(stamp=0.0, kind='scale_lost', node='',
+                                        from_scale='laptop', to_scale='',
+                                        reason='scale laptop lost', generation=4)))
+    lines = status_table(record, 15.0, 0.0, 'netns', width=80).splitlines()
+    assert all(len(x) <= 80 for x in lines)
+    assert lines[-1] == '  scale_lost laptop: scale laptop lost'      # no arrow to nowhere
+    start = next(i for i, x in enumerate(lines) if x.startswith('  migrate amcl robot'))
+    event = ' '.join(x.strip() for x in lines[start:start + 3])
+    assert event.endswith('link wifi 224/43200 kbit/s') and lines[start + 1].startswith('      ')
+
+
+def _note(t, reason, kind='note', node=''):
+    return {'t': t, 'source': 'decider', 'kind': kind, 'node': node, 'from_scale': '',
+            'to_scale': '', 'reason': reason, 'generation': 3}
+
+
+def test_a_repeated_note_is_said_once_then_how_long_it_held():
+    held = [_note(10.0 + 0.5 * k, f'amcl -> laptop: amcl migrated back from laptop '
+                                  f'{0.5 * k:.1f} s ago, within T = 20 s') for k in range(41)]
+    other = [_note(12.0 + 2.0 * k, f'scale robot at {97 + k}% of its CPU capacity: the plan '
+                                   f'does not hold there ({"amcl, ar" if k else "ar"} below '
+                                   'their expected rate)', kind='warning') for k in range(3)]
+    flapping = [_note(11.0 + 3.0 * k, 'cpu: scale robot CPU 195 > usable 180', 'violation')
+                for k in range(3)]
+    harness_row = {'t': 15.0, 'source': 'harness', 'kind': 'action', 'reason': 'link cut'}
+    again = _note(45.0, 'amcl -> laptop: amcl migrated back from laptop 1.0 s ago, within '
+                        'T = 20 s')
+    rows = sorted(held + other + flapping + [harness_row, again], key=lambda r: r['t'])
+    assert len(rows) == 49
+    folded = fold_notes(rows)
+    assert [(r['t'], r['kind'], r.get('times')) for r in folded] == [
+        (10.0, 'note', None), (11.0, 'violation', None), (12.0, 'warning', None),
+        (15.0, 'action', None), (16.0, 'warning', 3), (17.0, 'violation', 3),
+        (30.0, 'note', 41), (45.0, 'note', None)]
+    text = [event_line(r) for r in folded]
+    assert text[0] == ('    10.0  note         amcl -> laptop: amcl migrated back from laptop '
+                       '0.0 s ago, within T = 20 s')
+    assert text[6] == ('    30.0  note         (held 20.0 s, 41 times) amcl -> laptop: amcl '
+                       'migrated back from laptop 20.0 s ago, within T = 20 s')
+    assert text[4].startswith('    16.0  warning      (held 4.0 s, 3 times) scale robot at 99%')
+    assert text[5] == ('    17.0  violation    (3 times in 6.0 s, the last:) cpu: scale robot '
+                       'CPU 195 > usable 180')        # it came and went: it did not hold
+    assert folded[3] == harness_row and folded[-1] == again
+
+
+def test_a_move_ends_the_notes_that_name_the_node_it_moved():
+    def notes(t, k):
+        return [_note(t, f'amcl -> laptop: within T, {k} s'),
+                _note(t, f'ar -> laptop: within T, {k + 5} s')]
+    rows = [n for k in range(9) for n in notes(10.0 + 0.5 * k, k)]
+    move = {'t': 14.2, 'source': 'decider', 'kind': 'migrate', 'node': 'amcl',
+            'from_scale': 'robot', 'to_scale': 'laptop', 'reason': 'fits', 'generation': 4}
+    rows += [dict(move, kind='layout', node='', from_scale='', to_scale=''), move]
+    rows += [n for k in range(4) for n in notes(14.5 + 0.5 * k, k)]
+    folded = fold_notes(rows)
+    assert [(r['t'], r['kind'], r['reason'][:2], r.get('times')) for r in folded] == [
+        (10.0, 'note', 'am', None), (10.0, 'note', 'ar', None), (14.0, 'note', 'am', 9),
+        (14.2, 'layout', 'fi', None), (14.2, 'migrate', 'fi', None),
+        (14.5, 'note', 'am', None), (16.0, 'note', 'ar', 13), (16.0, 'note', 'am', 4)]
+    assert event_line(folded[4]) == '    14.2  migrate      amcl robot -> laptop: fits'
+
+
+def test_the_event_log_folds_notes_and_says_what_single_machine_means_here(record, tmp_path):
+    def event(t, kind, reason):
+        record.events.append((t, p.Event(stamp=t, kind=kind, node='', from_scale='',
+                                         to_scale='', reason=reason, generation=1)))
+    event(1.0, 'single_machine', 'single-machine mode: scales robot, laptop on host vm share '
+                                 'one machine: each scale that no cgroup quota confines ...')
+    for k in range(130):
+        event(2.0 + 0.25 * k, 'note', f'amcl -> laptop: amcl migrated back from laptop '
+                                      f'{0.25 * k:.2f} s ago, within T = 40 s')
+    for t, scale, cores in [(1.5, 'robot', 0.6), (1.6, 'laptop', 2.1)]:
+        record.ingest_line(_line(t, p.TOPIC_SCALE_STATUS, p.ScaleStatus(
+            scale=scale, stamp=t, cpu_total=10.0, capacity_cpu=100.0, cpu_by_node={},
+            mem_percent=1.0, load_1m=0.1, cpu_source='cgroup', cores=cores)))
+    jsonl, text = write_event_log(record, str(tmp_path), 0.0)
+    lines = open(text).read().splitlines()
+    assert len(open(jsonl).read().splitlines()) == 131          # the raw log keeps every row
+    assert len(lines) == 4
+    assert lines[1].startswith(' ' * 10 + 'here: ') and \
+        "each of robot, laptop measures its CPU as its own cgroup's usage, against its " \
+        'capacity spread over the CPUs its quota lets it use (robot 0.6, laptop 2.1)' in lines[1]
+    assert '(held 32.2 s, 130 times)' in lines[3]
+    assert machine_note(record, 0.5) == ''                        # not said yet
+    assert "the scales share one machine (the decider's single-machine mode); each scale's CPU " \
+        "is its own cgroup's (robot 0.6, laptop 2.1 CPUs)" in \
+        status_table(record, 5.0, 0.0, 'netns', width=200).splitlines()
+    event(40.0, 'single_machine', 'single-machine mode ended: scales robot, laptop no longer '
+                                  'report one machine')
+    assert machine_note(record, 41.0) == ''
 
 
 # --- the demo command's checks (no test-bed started) --------------------------------------------

@@ -11,6 +11,7 @@ instead (namespaces only), with a schedule that throttles, cuts and restores eac
 import argparse
 import json
 import os
+import shutil
 import sys
 import time
 from dataclasses import replace
@@ -57,6 +58,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='status table refresh period (default 1)')
 
 
+def _say(text: str, file=None) -> None:
+    """Print ``text`` wrapped at words to the terminal's width (99 columns when piped), the
+    rest of a long line indented."""
+    from .report import wrap_lines
+    out = file or sys.stdout
+    width = shutil.get_terminal_size((100, 24)).columns - 1 if out.isatty() else 99
+    print(wrap_lines(text, max(40, width)), file=out, flush=True)
+
+
 def _fail(message: str) -> int:
     print(f'anyscale-manager demo: {message}', file=sys.stderr)
     return 2
@@ -64,7 +74,7 @@ def _fail(message: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from .harness import HarnessError, Options, Testbed
-    from .report import draw_timeline, status_table, write_event_log
+    from .report import draw_timeline, status_table, with_own_reports, write_event_log
 
     if not args.duration > 0 or args.duration > 24 * 3600:
         return _fail(f'--duration must be between 0 and 86400 s, got {args.duration:g}')
@@ -128,13 +138,17 @@ def run(args: argparse.Namespace) -> int:
     t0 = t1 = time.monotonic()
     try:
         testbed.start()
-        print(f'mode: {testbed.mode}: {testbed.mode_reason}')
+        _say(f'mode: {testbed.mode}: {testbed.mode_reason}')
         if testbed.mode == 'netns':
             quotas = ', '.join(f'{s} {c:.2f}' for s, c in testbed.cpu_cores.items())
             rates = ', '.join(f'{link} {testbed.link_state(link)[1] / 1000:g}'
                               for link in links)
-            print(f'CPU quotas: {quotas} cores of this machine (one reference core = '
-                  f'{options.reference_core:g} core); links (Mbit/s): {rates}')
+            _say(f'CPU quotas: {quotas} cores of this machine (one reference core = '
+                 f'{options.reference_core:g} core); links (Mbit/s): {rates}')
+            # The agents report one kernel, so the decider says single-machine mode; what it
+            # says of scales no quota confines applies to none here.
+            _say("each scale's CPU is its own cgroup's usage against its quota, also when "
+                 'the decider says single-machine mode (the scales share this kernel)')
         # The run is judged from a steady start: every probe on the robot reports its
         # connection within limits (right after the boot they read 0 Hz until discovery).
         monitored = [c.name for c in testbed.deployment.connections if c.monitored]
@@ -142,11 +156,11 @@ def run(args: argparse.Namespace) -> int:
             testbed.wait_for(lambda r: r.settled(time.monotonic(), monitored, 'robot', 0.0),
                              30.0, "every connection within its limits at the robot's probes")
         except HarnessError as e:
-            print(f'note: starting the schedule anyway: {e}', flush=True)
+            _say(f'note: starting the schedule anyway: {e}')
         up = ', '.join(f'{link} {_up_fraction(steps, args.duration, link, many):.0%}'
                        for link in links)
-        print('schedule: ' + ', '.join(str(s) for s in steps) +
-              f' (up: {up} of the run)', flush=True)
+        _say('schedule: ' + ', '.join(str(s) for s in steps) +
+             f' (up: {up} of the run)')
         t0 = time.monotonic()
         testbed.mark('schedule started')
         for link in testbed.master_links():
@@ -164,8 +178,10 @@ def run(args: argparse.Namespace) -> int:
                 if now - t0 >= args.duration:
                     break
                 if now >= next_show:
+                    # Wrapped to the screen (one column spare), else to 99 columns.
+                    width = screen.size()[0] - 1 if screen.terminal else 99
                     with testbed.lock:
-                        table = status_table(testbed.record, now, t0, testbed.mode)
+                        table = status_table(testbed.record, now, t0, testbed.mode, width)
                     screen.show(table, now)
                     next_show = now + args.refresh
                 time.sleep(0.05)
@@ -183,29 +199,33 @@ def run(args: argparse.Namespace) -> int:
         print('stopping every node and tearing the test-bed down ...', flush=True)
         notes = testbed.stop()
     for note in notes:
-        print(f'teardown: {note}', file=sys.stderr)
+        _say(f'teardown: {note}', file=sys.stderr)
 
     record = testbed.record
+    # Where each copy runs as its own scale's observer heard its agent: behind a cut link
+    # the master's observer no longer hears it.
+    seen = with_own_reports(record, testbed.views)
     files = []
     if t1 > t0:
         title = (f'{"three-scale" if many else "ICAR 2015"} test-bed, {testbed.mode}, '
                  f'{"migration disabled" if args.no_migration else "migration on"}')
-        files.append(draw_timeline(record, os.path.join(out, 'timeline.png'), t0, t1, title))
+        files.append(draw_timeline(seen, os.path.join(out, 'timeline.png'), t0, t1, title))
     files.extend(write_event_log(record, out, t0))
-    summary = _summary(testbed, t0, t1, steps, args, notes)
+    summary = _summary(testbed, seen, t0, t1, steps, args, notes)
     summary_path = os.path.join(out, 'summary.json')
     with open(summary_path, 'w') as f:
         json.dump(summary, f, indent=2, sort_keys=True)
     files.append(summary_path)
     print('')
-    print(f'moves: {summary["moves"]}; time per layout: ' + ', '.join(
+    _say(f'moves: {summary["moves"]}; time per layout: ' + ', '.join(
         f'{k} {v:.0%}' for k, v in summary['placement_shares'].items()))
     if summary['objective_integral'] is not None:
-        print(f'time-integrated performance (decider objective): '
-              f'{summary["objective_integral"]:.1f}')
+        _say(f'time-integrated performance (decider objective): '
+             f'{summary["objective_integral"]:.1f}')
     where = 'every scale' if many else testbed.deployment.master.name
-    print(f'connections past their Δ: {summary["violations"]} reported by the probes, '
-          f'{summary["observed_violations"]} heard by the observer at {where}')
+    _say(f'connections past their Δ: {summary["violations"]} reported by the probes, '
+         f'{summary["observed_violations"]} heard by the observer at {where}')
+    _say(allowed_dips_text(summary['allowed_dips']))
     print('written:')
     for path in files:
         print(f'  {path}')
@@ -215,10 +235,26 @@ def run(args: argparse.Namespace) -> int:
     return code
 
 
-def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> dict:
-    from .report import placement_shares
+def allowed_dips_text(rows: List[dict]) -> str:
+    """One line: the connections that went below freq_min within Δ (no violation), how often
+    and the longest, as the probe beside the serving subscriber read them."""
+    if not rows:
+        return 'below freq_min within Δ (allowed): none'
+    by: dict = {}
+    for row in rows:
+        by.setdefault(row['connection'], []).append(row)
+    return 'below freq_min within Δ (allowed, shaded in the figure): ' + ', '.join(
+        f'{name} {len(found)} time(s), longest {max(r["below_s"] for r in found):.1f} s '
+        f'(Δ {found[0]["tolerance_s"]:g} s), down to {min(r["min_rate_hz"] for r in found):g} Hz'
+        for name, found in by.items())
+
+
+def _summary(testbed, seen, t0: float, t1: float, steps, args, notes: List[str]) -> dict:
+    from .report import connection_dips, placement_shares
     record = testbed.record
+    deployment = testbed.deployment
     with testbed.lock:
+        allowed = [x for x in connection_dips(seen, t0, t1) if x.allowed]
         objective = [o for t, o in record.objectives if t0 <= t <= t1]
         violations = record.reported_violations(t0, t1, serving_only=True)
         # The same rule judged on what the harness's observers heard at each scale (readers no
@@ -237,7 +273,7 @@ def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> di
             'migration': not args.no_migration,
             'moves': len(record.moves(t0, t1)),
             'placement_shares': {k: round(v, 3) for k, v in
-                                 placement_shares(record, t0, t1).items()},
+                                 placement_shares(seen, t0, t1).items()},
             'objective_integral': (objective[-1].integral - objective[0].integral
                                    if len(objective) > 1 else None),
             'violations': len(violations),
@@ -245,6 +281,12 @@ def _summary(testbed, t0: float, t1: float, steps, args, notes: List[str]) -> di
                 {'connection': v.connection, 'start_s': round(v.start - t0, 2),
                  'end_s': round(v.end - t0, 2), 'tolerance_s': v.tolerance_s,
                  'reported_by': v.source} for v in violations],
+            'allowed_dips': [
+                {'connection': x.connection, 'start_s': round(x.start - t0, 2),
+                 'end_s': round(x.end - t0, 2), 'min_rate_hz': round(x.min_rate_hz, 2),
+                 'below_s': round(x.below_s, 2),
+                 'tolerance_s': deployment.connection(x.connection).tolerance_s}
+                for x in allowed],
             'observed_violations': len(observed),
             'observed_violation_details': [
                 {'connection': v.connection, 'start_s': round(v.start - t0, 2),
