@@ -12,7 +12,7 @@ from anyscale_manager import protocol_auth as auth
 from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.testbed import chaos, faults, samples, soak_report, verdict
 from anyscale_manager.testbed.hostile import LABELS, Forger
-from anyscale_manager.testbed.record import Record, Violation
+from anyscale_manager.testbed.record import DeltaBreach, Record
 
 from conftest import TESTBED
 
@@ -421,9 +421,9 @@ def test_a_span_a_kill_excuses_is_excused_even_on_a_known_open_defect():
     # 0 because of the kill, not because of the CPU-capped robot's known open defect.
     conns = [('ekf_navigation', 'ekf', 'navigation'), ('laser_amcl', 'laser', 'amcl')]
     excuse = chaos.kill_excuse(conns, 'ekf', 10.0, 12.0, 3.0, 'fault 2: ekf killed')
-    violations = [Violation('ekf_navigation', 10.1, 14.0, 0.0, 'observer'),   # in the excuse
-                  Violation('ekf_navigation', 40.0, 41.0, 0.0, 'observer'),   # known open
-                  Violation('laser_amcl', 40.0, 43.0, 2.0, 'observer')]       # counted
+    violations = [DeltaBreach('ekf_navigation', 10.1, 14.0, 0.0, 'observer'),   # in the excuse
+                  DeltaBreach('ekf_navigation', 40.0, 41.0, 0.0, 'observer'),   # known open
+                  DeltaBreach('laser_amcl', 40.0, 43.0, 2.0, 'observer')]       # counted
     counted, excused, known = verdict.sort_violations(violations, [excuse], lambda t: t)
     assert [(x['connection'], x['start_s'], x['excused_by']) for x in excused] == \
         [('ekf_navigation', 10.1, 'fault 2: ekf killed')]

@@ -17,7 +17,7 @@ from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.runtime.delta import STALL_ALLOWANCE_S
 from anyscale_manager.testbed import harness, links, netns
 from anyscale_manager.testbed import schedule as sched
-from anyscale_manager.testbed.record import HEARD_LAG_S, Record, Violation
+from anyscale_manager.testbed.record import HEARD_LAG_S, DeltaBreach, Record
 from anyscale_manager.testbed.report import (
     category, connection_dips, cpu_series, cut_off_spans, dips, draw_timeline, event_line,
     event_log, fold_notes, location, loss_text, loss_window_s, machine_note, serving, spans,
@@ -952,7 +952,7 @@ def test_the_observers_lag_is_not_judged_as_silence(record):
 def test_a_silence_says_whether_its_sender_stalled_or_its_messages_were_lost(record):
     ticks = [i / 40 for i in range(100)] + [3.0]          # about 0.52 s silent from 2.475
     record.arrivals['/wheel_ticks'] = ticks
-    v = Violation('odometer_odometry', 2.67, 3.0, 0.0, 'observer')
+    v = DeltaBreach('odometer_odometry', 2.67, 3.0, 0.0, 'observer')
     record.arrival_seqs['/wheel_ticks'] = list(range(1, 102))
     assert record.silence(v) == 'silent 0.52 s from 2.475, lost 0'
     record.arrival_seqs['/wheel_ticks'] = list(range(1, 101)) + [121]

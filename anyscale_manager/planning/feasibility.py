@@ -10,27 +10,15 @@ Residence and coresidence are model/placement.py's filters, as the first layout'
 the migration policy judge them.
 """
 
-from dataclasses import dataclass
 from typing import Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.capacity import usable_cpu
 from ..model.placement import apart, residence
 from ..model.types import Deployment
+from ..model.violation import Violation
 from .instance import Instance
 
 TOLERANCE = 1e-6
-
-
-@dataclass(frozen=True)
-class Violation:
-    """One violated constraint: its kind, what it concerns and why."""
-
-    kind: str       # placement | residence | coresidence | cpu | bandwidth | no_link | setting
-    subject: str    # the node, scale, link or connection concerned
-    reason: str
-
-    def __str__(self) -> str:
-        return self.reason
 
 
 def _usable(d: Deployment, scale: str, cpu: float, given: bool = False) -> str:

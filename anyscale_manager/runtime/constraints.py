@@ -27,6 +27,7 @@ from typing import Dict, FrozenSet, Iterable, List, Mapping, Optional, Tuple
 
 from ..model.capacity import usable_cpu
 from ..model.types import Connection, DeciderSettings, Deployment, Link, frozen_map
+from ..model.violation import Violation
 from .observations import ConnectionObs, Observations
 
 FREQUENCY = 'frequency'
@@ -37,20 +38,6 @@ STALE = 'stale'
 KINDS = (FREQUENCY, CPU, BANDWIDTH, LINK_DOWN, STALE)
 
 _EMPTY: Mapping[str, float] = frozen_map()
-
-
-@dataclass(frozen=True)
-class Violation:
-    """One broken constraint, with a reason a person can read."""
-
-    kind: str                      # frequency | cpu | bandwidth | link_down | stale
-    subject: str                   # the connection, scale or link concerned
-    reason: str
-    nodes: Tuple[str, ...] = ()    # nodes off the master whose return would address it
-
-    @property
-    def detail(self) -> str:
-        return self.reason
 
 
 @dataclass(frozen=True)

@@ -40,8 +40,8 @@ DEFAULT_WINDOW_S = 2.0
 
 
 @dataclass(frozen=True)
-class Verdict:
-    """One connection's judgement at one instant."""
+class ConnectionVerdict:
+    """One connection's judgement by the Δ rule at one instant."""
 
     below_for_s: float            # length of the open stretch below freq_min (0 when none)
     level: int                    # OK, WARN (below, within Δ), ERROR (below for longer than Δ)
@@ -133,7 +133,7 @@ class DeltaJudge:
         ended, self._ended = self._ended, []
         return ended
 
-    def verdict(self, now: float) -> Verdict:
+    def verdict(self, now: float) -> ConnectionVerdict:
         since = self.below_since(now)
         below = 0.0 if since is None else max(0.0, now - since)
         ended = max((b - a for a, b in self.take_ended()), default=0.0)
@@ -142,7 +142,7 @@ class DeltaJudge:
         else:
             tolerance = math.inf if self.tolerance_s is None else self.tolerance_s
             level = ERROR if below > tolerance else WARN
-        return Verdict(below, level, now - self._last > self.silence_s, ended)
+        return ConnectionVerdict(below, level, now - self._last > self.silence_s, ended)
 
 
 def below_spans(arrivals: Iterable[float], freq_min_hz: Optional[float], start: float,

@@ -29,8 +29,9 @@ LIVE_STATES = (p.ProcState.STARTING, p.ProcState.RUNNING, p.ProcState.STANDBY,
 
 
 @dataclass
-class Violation:
-    """A connection below freq_min for longer than its Δ."""
+class DeltaBreach:
+    """A connection below freq_min for longer than its Δ, as observed on the test-bed (a
+    stretch in time, not a constraint of the layout: model/violation.py)."""
 
     connection: str
     start: float           # when the rate first went below freq_min
@@ -331,10 +332,10 @@ class Record:
         return self.heard_until - HEARD_LAG_S
 
     def observed_violations(self, conn: Connection, start: float, end: float
-                            ) -> List[Violation]:
+                            ) -> List[DeltaBreach]:
         """Stretches where the observer lived below the connection's freq_min for longer than
         its Δ (Δ = 0 tolerates no stretch at all)."""
-        return [Violation(conn.name, a, b, conn.tolerance_s, 'observer')
+        return [DeltaBreach(conn.name, a, b, conn.tolerance_s, 'observer')
                 for a, b in self.below_spans(conn, start, end)
                 if b - a > conn.tolerance_s]
 
@@ -349,19 +350,19 @@ class Record:
             layout is not None and layout.assignments.get(sub) == scale)
 
     def delta_violations(self, start: float, end: float, scale: str = 'robot'
-                         ) -> List[Violation]:
+                         ) -> List[DeltaBreach]:
         """Every monitored connection into ``scale`` (where the observer listens) that stayed
         below its freq_min for longer than its Δ in [start, end], measured by the observer, a
         reader no agent started; a connection counts while its subscriber served on ``scale``
         when Δ ran out."""
-        out: List[Violation] = []
+        out: List[DeltaBreach] = []
         for conn in self.deployment.connections:
             for v in self.observed_violations(conn, start, end):
                 if self.into(conn, scale, min(v.end, v.start + v.tolerance_s)):
                     out.append(v)
         return sorted(out, key=lambda v: v.start)
 
-    def silence(self, v: Violation) -> Optional[str]:
+    def silence(self, v: DeltaBreach) -> Optional[str]:
         """Around a violation: the longest silence of its connection's topic heard between
         its start - 2 s and its end + 0.5 s: its length, when it began (the monotonic clock)
         and how many messages its writer numbered in between ('lost': sent, never heard here).
@@ -392,7 +393,7 @@ class Record:
 
     def reported_violations(self, start: float, end: float,
                             names: Optional[Sequence[str]] = None,
-                            gap_s: float = 2.0, serving_only: bool = False) -> List[Violation]:
+                            gap_s: float = 2.0, serving_only: bool = False) -> List[DeltaBreach]:
         """Spans where a probe reported a connection past its Δ (level ERROR).
 
         ``serving_only`` keeps only the reports of the probe on the scale where the layout
@@ -405,7 +406,7 @@ class Record:
         that stops reporting (its subscriber moved away, the link to it was cut) closes its
         span at its last ERROR reading.
         """
-        out: List[Violation] = []
+        out: List[DeltaBreach] = []
         for name, history in sorted(self.readings.items()):
             if names is not None and name not in names:
                 continue
@@ -420,17 +421,17 @@ class Record:
                 last_error = 0.0
                 for t, r in series:
                     if open_at is not None and t - last_error > gap_s:
-                        out.append(Violation(name, open_at, last_error, tolerance, scale))
+                        out.append(DeltaBreach(name, open_at, last_error, tolerance, scale))
                         open_at = None
                     if r.level == p.ERROR:
                         if open_at is None:
                             open_at = t - r.below_for_s
                         last_error = t
                     elif open_at is not None:
-                        out.append(Violation(name, open_at, t, tolerance, scale))
+                        out.append(DeltaBreach(name, open_at, t, tolerance, scale))
                         open_at = None
                 if open_at is not None:
-                    out.append(Violation(name, open_at, last_error, tolerance, scale))
+                    out.append(DeltaBreach(name, open_at, last_error, tolerance, scale))
         if serving_only:
             out = [v for v in out if self._serving(v)]
         return sorted(out, key=lambda v: v.start)
@@ -559,7 +560,7 @@ class Record:
                       if self.deployment.connection(name).topic == topic},
         }
 
-    def _serving(self, v: Violation) -> bool:
+    def _serving(self, v: DeltaBreach) -> bool:
         """Whether the scale that reported v hosted the serving subscriber when Δ ran out."""
         subscriber = self.deployment.connection(v.connection).subscriber
         layout = self.layout_at(min(v.end, v.start + v.tolerance_s))
@@ -568,4 +569,4 @@ class Record:
         return v.source in self.deployment.allowed_scales(subscriber)
 
 
-__all__ = ['LIVE_STATES', 'MIGRATION_KINDS', 'Record', 'Violation']
+__all__ = ['DeltaBreach', 'LIVE_STATES', 'MIGRATION_KINDS', 'Record']

@@ -16,7 +16,7 @@ from ..model.types import Deployment
 from . import chaos
 from .known import KNOWN_OPEN
 from .poses import record_jumps
-from .record import Record, Violation
+from .record import DeltaBreach, Record
 
 # Two copies of a node may publish at once during a start_before_stop handover: the losing copy
 # goes HEAR_PATIENCE_S after the new one is ready at the latest, then takes its deactivation.
@@ -66,7 +66,7 @@ class Tally:
     unfenced: int = 0                # a lost agent's nodes outlived the fencing bound
 
 
-def sort_violations(violations: Sequence[Violation], excuses: Sequence[chaos.Excuse],
+def sort_violations(violations: Sequence[DeltaBreach], excuses: Sequence[chaos.Excuse],
                     rel: Callable[[float], float]
                     ) -> Tuple[List[Dict[str, object]], List[Dict[str, object]],
                                List[Dict[str, object]]]:
