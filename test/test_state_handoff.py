@@ -1,7 +1,8 @@
 """A node's state goes with it (agent/state.py, nodes/state_relay.py): a counting lifecycle node
-of a user's own (fixtures/state_counter.py) continues its count across a move, failovers, a
-crash loop, a cold move and a restart in place. Real decider, real agents, real processes over
-DDS; judged by a reader of the test's own on the node's output."""
+of a user's own (fixtures/state_counter.py) continues its count across two failovers of a crash
+loop, a restart in place, a relocation after its agent died and a planned cold move; a count
+set by a person on its restore topic reaches the serving copy. Real decider, real agents, real
+processes over DDS; judged by a reader of the test's own on the node's output."""
 
 import os
 import signal
@@ -16,10 +17,11 @@ import home_away as ha
 from spinning import RosContext, spin_until
 
 RATE_HZ = 20.0
+HYSTERESIS_S = 5.0
 COUNTER = os.path.join(os.path.dirname(__file__), 'fixtures', 'state_counter.py')
 
 
-def deployment(tmp_path, topic, standby):
+def deployment(tmp_path, topic, standby, hysteresis_s=60.0):
     counter = {'launch': {'command': [sys.executable, COUNTER],
                           'parameters': {'input': topic + '/tick', 'output': topic + '/count'}},
                'cpu': 1.0, 'lifecycle': True, 'move_order': 'start_before_stop',
@@ -33,7 +35,8 @@ def deployment(tmp_path, topic, standby):
              'counter': counter}
     connections = {'sensor_counter': dict(ha.CONNECTION, topic=topic + '/tick',
                                           publisher='sensor', subscriber='counter')}
-    return ha.write_deployment(tmp_path, f'state_{os.getpid()}', (nodes, connections))
+    return ha.write_deployment(tmp_path, f'state_{os.getpid()}', (nodes, connections),
+                               decider={'hysteresis_s': hysteresis_s})
 
 
 class Counts:
@@ -101,8 +104,9 @@ def counting_on(ex, counts, procs, what):
 
 
 def handed(tmp_path, scale):
-    log = (tmp_path / f'agent_{scale}.out').read_text(errors='replace')
-    return log.count('counter: state of ')
+    """How many states the agent logged as ``agent_<scale>.out`` handed over (0: none yet)."""
+    path = tmp_path / f'agent_{scale}.out'
+    return path.read_text(errors='replace').count('counter: state of ') if path.exists() else 0
 
 
 @pytest.mark.timeout(240)
@@ -145,11 +149,11 @@ def test_the_count_continues_across_a_move_and_every_failover_of_a_crash_loop(
 
 
 @pytest.mark.timeout(240)
-def test_the_count_continues_across_a_restart_in_place_and_a_cold_move(
+def test_the_count_continues_across_a_restart_in_place_a_relocation_and_a_planned_cold_move(
         tmp_path, ros_env, listener):
     ex, seen = listener
     topic = f'/state_cold_{os.getpid()}'
-    path = deployment(tmp_path, topic, standby=False)
+    path = deployment(tmp_path, topic, standby=False, hysteresis_s=HYSTERESIS_S)
     counts = Counts(topic + '/count')
     procs = []
     try:
@@ -173,6 +177,14 @@ def test_the_count_continues_across_a_restart_in_place_and_a_cold_move(
                    'the counter relocated home', procs)
         counting_on(ex, counts, procs, 'at home')
         assert handed(tmp_path, 'home') >= 1
+        # away's agent back: after T the decider moves the counter out again, a process
+        # started there and handed the count.
+        before = handed(tmp_path, 'away_again')
+        ha.start(procs, tmp_path, ros_env, path, 'agent_away_again', '-p', 'scale:=away')
+        spin_until(ex, lambda: serving(seen, 'away', standby_elsewhere=False)
+                   and handed(tmp_path, 'away_again') > before, HYSTERESIS_S + 60.0,
+                   'the counter moved out to away again, handed its count', procs)
+        counting_on(ex, counts, procs, 'on away again')
         assert not counts.restarts(), f'copies that started their count anew: ' \
                                       f'{counts.restarts()}'
         # A person sets the count on the node's own restore topic: the serving copy takes it.
