@@ -34,6 +34,7 @@ import argparse
 import json
 import os
 import re
+import signal
 import statistics
 import sys
 import tempfile
@@ -115,9 +116,14 @@ class Run:
             scale = where[0] if where else 'robot'
             tb.sleep(4.0)                       # a healthy run: each crash is a first one
             t = tb.now()
-            old = tb.kill_node('amcl', scale)
+            with tb.lock:
+                old = tb.record.running_on(scale)['amcl'].pid
+            if old not in tb.node_pids('amcl', scale):
+                raise RuntimeError(f'pid {old} reported for AMCL on {scale} is not its process')
+            os.kill(old, signal.SIGKILL)
+            tb.mark(f'amcl on {scale} (pid {old}) sent SIGKILL')
             tb.wait_for(lambda r: serving_on(scale)(r)
-                        and r.running_on(scale).get('amcl').pid != old, 30.0,
+                        and r.running_on(scale)['amcl'].pid != old, 30.0,
                         'AMCL restarted in place')
             tb.sleep(2.0)
             self.changes.append(('in place', t, f'on {scale}'))
@@ -252,6 +258,10 @@ def main() -> int:
                 results += found
                 ages += handed
                 fresh += none
+                for kind in phases:
+                    rows = [f for f in found if f[0] == kind]
+                    print(f'{kind}: {sum(bool(f[2]) for f in rows)} of {len(rows)} changes did '
+                          f'not continue the last pose; ages so far {stats(ages)}', flush=True)
             finally:
                 notes = run.stop()
                 if notes:
