@@ -7,6 +7,7 @@ lifecycle node to its standby copy, a plain node restarted in place, agents rest
                                    [--decider-stops 10] [--rate-hz 20] [--domain-id N]
                                    [--keep DIR] [--no-profile]
                                    [--own-namespace] [--node-transports T] [--state]
+                                   [--kill-every S]
 
 Two scales of this machine (home, the master, and away) each run an agent, and a decider runs
 beside them, all real processes on DDS over loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
@@ -14,8 +15,9 @@ the given domain). The deployment: sensor (home) -> worker (a lifecycle workload
 copy on both scales) -> pinned (home, a plain workload), every output at --rate-hz.
 
 - Failover: SIGKILL of the worker's serving copy, wherever it serves, --kills times (each after
-  the hysteresis has passed and the stream has been steady for a second): the longest gap a
-  subscriber of this bench heard on the worker's output. (The killed copy is gone before the
+  the hysteresis has passed and the stream has been steady for a second; with --kill-every S,
+  every S seconds, a crash loop, as soon as a standby is ready): the longest gap a subscriber of
+  this bench heard on the worker's output. (The killed copy is gone before the
   standby serves: two senders cannot overlap here.)
 - In place: SIGKILL of pinned (no standby copy, it may run only home) after a healthy run,
   --in-place-kills times: the longest gap on its output (process start, discovery, first input).
@@ -169,6 +171,9 @@ def in_own_namespace() -> int:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--kills', type=int, default=20)
+    ap.add_argument('--kill-every', type=float, default=0.0, metavar='S',
+                    help='kill the serving copy every S seconds (a crash loop) instead of once '
+                         'the hysteresis has passed and the output has been steady for 1 s')
     ap.add_argument('--in-place-kills', type=int, default=10)
     ap.add_argument('--hups', type=int, default=10, help='SIGHUPs of each agent')
     ap.add_argument('--both-hups', type=int, default=20,
@@ -368,11 +373,17 @@ def main() -> int:
             wait(serving, 90.0, 'the worker serving with a standby on the other scale')
             print(f'ROS_DOMAIN_ID={args.domain_id}; outputs at {args.rate_hz:g} Hz; '
                   f'hysteresis {HYSTERESIS_S:g} s')
+            last_kill = time.monotonic()
             for k in range(args.kills):
-                time.sleep(HYSTERESIS_S)          # so the copy that crashed last may serve
+                if args.kill_every:
+                    # A crash loop: the serving copy killed every --kill-every seconds.
+                    time.sleep(max(0.0, last_kill + args.kill_every - time.monotonic()))
+                else:
+                    time.sleep(HYSTERESIS_S)      # past T since the last crash
                 where, victim = wait(serving, 60.0, 'a serving copy and a standby')
-                steady('/w', 1.0)
-                t0 = time.monotonic()
+                if not args.kill_every:
+                    steady('/w', 1.0)
+                t0 = last_kill = time.monotonic()
                 os.kill(victim.pid, signal.SIGKILL)
                 now_at, _ = wait(lambda: (serving() if (serving() or ('', None))[0]
                                           not in ('', where) else None), 30.0,
