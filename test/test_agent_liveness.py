@@ -13,7 +13,8 @@ import pytest
 
 from anyscale_manager import protocol as p
 from anyscale_manager.model.loader import load_deployment, load_mapping
-from anyscale_manager.runtime.constraints import FREQUENCY, DeltaTracker
+from anyscale_manager.runtime.constraints import FREQUENCY
+from anyscale_manager.runtime.delta import DeltaTracker
 from anyscale_manager.runtime.intake import ObservationBook
 from anyscale_manager.runtime.layout import master_layout
 from anyscale_manager.runtime.liveness import (AGENT_BACK, AGENT_SILENT, PLACEABLE, SCALE_LOST,

@@ -9,7 +9,8 @@ from anyscale_manager import protocol as p
 from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.runtime import layout as layout_mod
 from anyscale_manager.runtime.constraints import (BANDWIDTH, CPU, FREQUENCY, LINK_DOWN, STALE,
-                                                  DeltaTracker, evaluate, required_kbps)
+                                                  evaluate, required_kbps)
+from anyscale_manager.runtime.delta import DeltaTracker
 from anyscale_manager.runtime.cost import CostIntegrator, perf_map
 from anyscale_manager.runtime.intake import ObservationBook
 from anyscale_manager.runtime.layout import (LayoutError, adopt, check_layout, initial_layout,

@@ -62,7 +62,8 @@ def warnings(d: t.Deployment) -> List[str]:
         if d.standby_scales(name):
             continue
         short = [c for c in d.connections_of(name)
-                 if c.tolerance_s is not None and 0 < c.tolerance_s < budget]
+                 if c.tolerance_s is not None and not c.pins_both_ends
+                 and c.tolerance_s < budget]
         if not short:
             continue
         names = ', '.join(f'{c.name} ({c.tolerance_s:g} s)' for c in short)

@@ -218,7 +218,7 @@ def placement(d: t.Deployment, read: Context) -> List[Problem]:
     for n in d.nodes:
         here = f'nodes.{n.name}'
         why = d.why_critical(n.name)
-        zero = d.zero_tolerance_connections(n.name)
+        zero = d.pinning_connections(n.name)
         # Values replaced by a default when they could not be read: the checks that depend on
         # them would only repeat that problem.
         unread = any(read.damaged(f'{here}.{k}') for k in ('launch', 'lifecycle'))

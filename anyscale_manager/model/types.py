@@ -169,7 +169,14 @@ class Connection:
 
     @property
     def monitored(self) -> bool:
+        """Judged by the Δ rule (runtime/delta.py): both thresholds are set."""
         return self.freq_min_hz is not None and self.tolerance_s is not None
+
+    @property
+    def pins_both_ends(self) -> bool:
+        """It tolerates no stretch below freq_min (Δ = 0), which no link can promise: both its
+        ends are critical, pinned to the master (ICAR 2015)."""
+        return self.tolerance_s is not None and self.tolerance_s == 0
 
 
 def setting(default, help: str, *, low=None, high=None, low_open: bool = False,
@@ -469,18 +476,16 @@ class Deployment:
         return frozen_map({k: tuple(v) for k, v in out.items()})
 
     # --- derived sets (the ICAR paper's static analysis) ------------------------------------
-    def zero_tolerance_connections(self, node: str) -> Tuple[Connection, ...]:
-        """The node's connections with tolerance 0: each makes both its ends critical."""
-        return tuple(c for c in self.connections_of(node)
-                     if c.tolerance_s is not None and c.tolerance_s == 0)
+    def pinning_connections(self, node: str) -> Tuple[Connection, ...]:
+        """The node's connections that pin both their ends (``Connection.pins_both_ends``)."""
+        return tuple(c for c in self.connections_of(node) if c.pins_both_ends)
 
     @cached_property
     def critical_nodes(self) -> Tuple[str, ...]:
-        """Nodes pinned to the master: declared ``critical: true``, or in at least one connection
-        whose tolerance is 0 (ICAR 2015: a connection that tolerates no outage cannot cross a
-        link, whose rate nobody can promise)."""
+        """Nodes pinned to the master: declared ``critical: true``, or an end of at least one
+        connection that pins both its ends (``Connection.pins_both_ends``)."""
         return tuple(n.name for n in self.nodes
-                     if n.critical or self.zero_tolerance_connections(n.name))
+                     if n.critical or self.pinning_connections(n.name))
 
     @cached_property
     def data_providers(self) -> Tuple[str, ...]:
@@ -498,7 +503,7 @@ class Deployment:
             reasons.append('critical: true')
         zero = [f'{c.name} to {c.subscriber}' if c.publisher == node
                 else f'{c.name} from {c.publisher}'
-                for c in self.zero_tolerance_connections(node)]
+                for c in self.pinning_connections(node)]
         if zero:
             reasons.append(f'tolerance_s 0 on {_listed(zero)}')
         return '; '.join(reasons)

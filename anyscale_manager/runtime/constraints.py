@@ -28,7 +28,8 @@ from typing import Dict, FrozenSet, Iterable, List, Mapping, Optional, Tuple
 from ..model.capacity import usable_cpu
 from ..model.types import Connection, DeciderSettings, Deployment, Link, frozen_map
 from ..model.violation import Violation
-from .observations import ConnectionObs, Observations
+from .delta import ConnectionVerdict, below_start, time_below
+from .observations import Observations, is_fresh
 
 FREQUENCY = 'frequency'
 CPU = 'cpu'
@@ -93,18 +94,21 @@ class ScaleLoad:
 
 @dataclass(frozen=True)
 class ConnectionCheck:
-    """One monitored connection's frequency against its freq_min and Δ."""
+    """One monitored connection's frequency constraint: the Δ rule's verdict on it, and
+    whether that verdict counts now."""
 
     connection: str
     rate_hz: Optional[float]       # None: no fresh reading (counted as 0 Hz)
-    freq_min_hz: float
-    tolerance_s: float
-    below_for_s: float             # continuous time below freq_min (0 when at or above)
+    verdict: ConnectionVerdict     # its continuous time below freq_min against Δ
     judged: bool                   # False in a grace period or unjudged_connections
 
     @property
+    def below_for_s(self) -> float:
+        return self.verdict.below_for_s
+
+    @property
     def violated(self) -> bool:
-        return self.judged and self.below_for_s > self.tolerance_s
+        return self.judged and self.verdict.past_delta
 
 
 @dataclass(frozen=True)
@@ -138,10 +142,6 @@ class ConstraintReport:
 
 
 # --- helpers shared with the policy ------------------------------------------------------------
-
-def is_fresh(stamp: float, now: float, settings: DeciderSettings) -> bool:
-    return now - stamp <= settings.observation_max_age_s
-
 
 def link_observation_key(deployment: Deployment, link: Link) -> str:
     """The key of ``Observations.links`` for a link: its remote end when it touches the master,
@@ -262,82 +262,6 @@ def _off_master(deployment: Deployment, running: Mapping[str, str],
     return tuple(out)
 
 
-# --- the Δ timer ---------------------------------------------------------------------------------
-
-class DeltaTracker:
-    """Continuous time each monitored connection has spent below its freq_min.
-
-    Driven by observation times, not a wall clock. A fresh reading its probe judged below
-    freq_min (runtime/delta.py) starts (or continues) the timer, and the probe's own
-    ``below_for_s`` can only move its start earlier (the probe saw the drop before the reading
-    arrived). A missing or stale reading is
-    0 Hz from the moment it became missing (its stamp plus ``observation_max_age_s``; for a
-    connection never reported, the tracker's first update plus that age). A fresh reading not
-    judged below resets the timer. A connection in ``obs.unjudged_connections`` (its probe's
-    agent silent or just restarted) is not timed: its timer is reset, and a reading still
-    missing afterwards counts as missing from the last update that did not judge it.
-    """
-
-    def __init__(self, deployment: Deployment):
-        self.deployment = deployment
-        self._since: Dict[str, float] = {}       # connection -> start of its time below
-        self._unjudged_at: Dict[str, float] = {}  # connection -> last update that skipped it
-        self._started: Optional[float] = None
-
-    @property
-    def started(self) -> Optional[float]:
-        return self._started
-
-    def update(self, obs: Observations, settings: DeciderSettings) -> Mapping[str, float]:
-        now = obs.now
-        if self._started is None:
-            self._started = now
-        max_age = settings.observation_max_age_s
-        out: Dict[str, float] = {}
-        for c in self.deployment.connections:
-            if not c.monitored:
-                continue
-            if c.name in obs.unjudged_connections:
-                self._unjudged_at[c.name] = now
-                self._since.pop(c.name, None)
-                out[c.name] = 0.0
-                continue
-            reading = obs.connections.get(c.name)
-            start = self._since.get(c.name)
-            if reading is not None and is_fresh(reading.stamp, now, settings):
-                if not reading.below:
-                    start = None
-                else:
-                    probe_start = reading.stamp - max(0.0, reading.below_for_s)
-                    start = min(probe_start, now) if start is None else min(start, probe_start)
-            else:
-                missing_from = max((reading.stamp if reading is not None else self._started)
-                                   + max_age, self._unjudged_at.get(c.name, -math.inf))
-                if now >= missing_from:
-                    start = missing_from if start is None else min(start, missing_from)
-            if start is None:
-                self._since.pop(c.name, None)
-                out[c.name] = 0.0
-            else:
-                self._since[c.name] = start
-                out[c.name] = max(0.0, now - start)
-        return frozen_map(out)
-
-
-def _stateless_below_for(c: Connection, reading: Optional[ConnectionObs], now: float,
-                         settings: DeciderSettings, since: Optional[float]) -> float:
-    max_age = settings.observation_max_age_s
-    if reading is not None and is_fresh(reading.stamp, now, settings):
-        if not reading.below:
-            return 0.0
-        return max(0.0, reading.below_for_s + (now - reading.stamp))
-    if reading is not None:
-        return max(0.0, now - (reading.stamp + max_age))
-    if since is None:
-        return math.inf
-    return max(0.0, now - (since + max_age))
-
-
 # --- evaluation ----------------------------------------------------------------------------------
 
 def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observations,
@@ -349,7 +273,7 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
 
     ``grace_until``: node -> time until which its connections are not judged (after a move).
     ``below_for``: connection -> time below freq_min from a ``DeltaTracker``; without it, the
-    probe's ``below_for_s`` is used (and a missing reading counts from when it became missing).
+    same rule on this one snapshot (runtime/delta.py's ``below_start``).
     ``since``: when the caller started watching, so that something never observed is missing
     only after ``observation_max_age_s`` (None: missing at once).
     """
@@ -363,23 +287,22 @@ def evaluate(deployment: Deployment, settings: DeciderSettings, obs: Observation
     # (i) frequencies
     checks: Dict[str, ConnectionCheck] = {}
     for c in deployment.connections:
-        # Monitored: both thresholds set (spelled out for the type checker).
-        if c.freq_min_hz is None or c.tolerance_s is None:
+        if not c.monitored:
             continue
         reading = obs.connections.get(c.name)
         fresh = reading is not None and is_fresh(reading.stamp, now, settings)
         if below_for is not None:
             below = float(below_for.get(c.name, 0.0))
         else:
-            below = _stateless_below_for(c, reading, now, settings, since)
+            below = time_below(below_start(reading, now, settings,
+                                           -math.inf if since is None else since), now)
         in_grace = any(grace_until.get(n, -math.inf) > now for n in (c.publisher, c.subscriber))
         both_run = c.publisher in running and c.subscriber in running
         # A connection measured by a silent (or just restarted) agent's probe: no verdict.
         measured = c.name not in obs.unjudged_connections
         rate_hz = reading.rate_hz if reading is not None and fresh else None
         check = ConnectionCheck(connection=c.name, rate_hz=rate_hz,
-                                freq_min_hz=c.freq_min_hz, tolerance_s=c.tolerance_s,
-                                below_for_s=below,
+                                verdict=ConnectionVerdict.judge(below, c.tolerance_s),
                                 judged=both_run and not in_grace and measured)
         checks[c.name] = check
         if check.violated:

@@ -1,8 +1,11 @@
-"""The Δ rule: when a connection is below its freq_min, and for how long, from its arrivals.
+"""The Δ rule: when a connection is below its freq_min, for how long, and whether past Δ.
 
-This is the one judge of the package: the probes, the decider (through the probes' readings),
-the status view, /diagnostics, the test-bed's observer, the soak, the benches and the demo all
-judge a connection with it, so every figure means the same thing.
+This module owns the rule: the probes, the decider (its constraint check and its Δ timer), the
+status view, /diagnostics, the test-bed's observer and judge, the soak, the simulator, the
+benches and the demo all judge a connection with it, so every figure means the same thing.
+Whether a connection is monitored at all is the model's fact (``Connection.monitored``: both
+thresholds set); whether it pins both its ends to the master is another
+(``Connection.pins_both_ends``, Δ = 0), never read here as a tolerance.
 
 The rule, on the arrival times a subscriber lives through (``T = 1/freq_min + a``, ``a`` the
 stall allowance, ``STALL_ALLOWANCE_S``):
@@ -21,15 +24,23 @@ stall allowance, ``STALL_ALLOWANCE_S``):
 A stretch below runs from its first instant to the arrival that ends it; an outage (the gap
 between two messages) of ``Δ + 1/freq_min + 0.1 s`` is therefore always longer than Δ below
 freq_min, and one of ``Δ + 1/freq_min - 0.1 s`` never is. Δ is exceeded when a stretch lasts
-longer than Δ (so Δ = 0 tolerates no stretch at all).
+longer than Δ (``past_delta``; so Δ = 0 tolerates no stretch at all).
+
+Where only rates are known (a reading, the simulator's world), a rate is below when it is under
+freq_min (``rate_below``) and a stretch runs from the first such instant (``stretch_start``).
+The decider times each connection from its readings with ``DeltaTracker`` (``below_start``: a
+missing or stale reading is 0 Hz from when it went missing), and every connection's judgement
+at one instant is a ``ConnectionVerdict``.
 """
 
 import math
 from collections import deque
 from dataclasses import dataclass
-from typing import Deque, Iterable, List, Optional, Tuple
+from typing import Deque, Dict, Iterable, List, Mapping, Optional, Tuple
 
+from ..model.types import DeciderSettings, Deployment, frozen_map
 from ..protocol import ERROR, OK, WARN
+from .observations import ConnectionObs, Observations, is_fresh
 
 # A receiver stall forgiven before silence counts: far below any Δ worth setting, above the
 # 50 ms batches in which the probes take their messages and the scheduling stalls of a
@@ -39,14 +50,65 @@ STALL_ALLOWANCE_S = 0.09
 DEFAULT_WINDOW_S = 2.0
 
 
+def min_period_s(freq_min_hz: Optional[float]) -> float:
+    """The longest interval between messages at freq_min; infinite without a freq_min above 0
+    (nothing is ever below it)."""
+    return 1.0 / freq_min_hz if freq_min_hz is not None and freq_min_hz > 0 else math.inf
+
+
+def rate_below(freq_min_hz: Optional[float], rate_hz: float, slack_hz: float = 0.0) -> bool:
+    """Whether a rate reads below freq_min (by more than ``slack_hz``); never without one."""
+    return freq_min_hz is not None and rate_hz < freq_min_hz - slack_hz
+
+
+def past_delta(below_for_s: float, tolerance_s: Optional[float]) -> bool:
+    """Whether a stretch below freq_min of ``below_for_s`` exceeds Δ: it lasts longer than Δ
+    (Δ = 0 tolerates no stretch at all; without a Δ, none is ever past it)."""
+    return tolerance_s is not None and below_for_s > tolerance_s
+
+
+def stretch_start(since: Optional[float], now: float, below: bool) -> Optional[float]:
+    """The stretch below open at ``now``: it began at ``since``, or now if it opens now; None
+    once the connection is no longer below."""
+    if not below:
+        return None
+    return now if since is None else since
+
+
+def time_below(since: Optional[float], now: float) -> float:
+    """How long the stretch below that began at ``since`` has lasted at ``now`` (0 if none)."""
+    return 0.0 if since is None else max(0.0, now - since)
+
+
 @dataclass(frozen=True)
 class ConnectionVerdict:
     """One connection's judgement by the Δ rule at one instant."""
 
-    below_for_s: float            # length of the open stretch below freq_min (0 when none)
-    level: int                    # OK, WARN (below, within Δ), ERROR (below for longer than Δ)
-    silent: bool                  # nothing heard for longer than 1/freq_min + the allowance
+    below_for_s: float = 0.0      # length of the open stretch below freq_min (0 when none)
+    level: int = OK               # OK, WARN (below, within Δ), ERROR (below for longer than Δ)
+    silent: bool = False          # nothing heard for longer than 1/freq_min + the allowance
     ended_below_s: float = 0.0    # longest stretch that ended since the previous verdict
+
+    @classmethod
+    def judge(cls, below_for_s: float, tolerance_s: Optional[float],
+              below: Optional[bool] = None, *, silent: bool = False,
+              ended_below_s: float = 0.0) -> 'ConnectionVerdict':
+        """The verdict on a stretch below of ``below_for_s`` against Δ = ``tolerance_s``;
+        ``below`` says whether the connection is below at all (default: a stretch longer
+        than 0 is open)."""
+        if below is None:
+            below = below_for_s > 0.0
+        level = OK if not below else ERROR if past_delta(below_for_s, tolerance_s) else WARN
+        return cls(below_for_s if below else 0.0, level, silent, ended_below_s)
+
+    @property
+    def below(self) -> bool:
+        """Below freq_min now (within Δ or past it)."""
+        return self.level in (WARN, ERROR) or self.below_for_s > 0.0
+
+    @property
+    def past_delta(self) -> bool:
+        return self.level == ERROR
 
 
 def _check(value: Optional[float], what: str, allow_zero: bool) -> Optional[float]:
@@ -73,12 +135,12 @@ class DeltaJudge:
     def __init__(self, freq_min_hz: Optional[float], tolerance_s: Optional[float],
                  started: float = 0.0, window_s: float = DEFAULT_WINDOW_S,
                  stall_allowance_s: float = STALL_ALLOWANCE_S):
-        self.freq_min_hz = _check(freq_min_hz, 'freq_min_hz', allow_zero=True) or None
+        self.freq_min_hz = _check(freq_min_hz, 'freq_min_hz', allow_zero=True)
         self.tolerance_s = _check(tolerance_s, 'tolerance_s', allow_zero=True)
         self.window_s = _number(window_s, 'window_s', allow_zero=False)
         self.stall_allowance_s = _number(stall_allowance_s, 'stall_allowance_s',
                                          allow_zero=True)
-        self.period_s = 1.0 / self.freq_min_hz if self.freq_min_hz else math.inf
+        self.period_s = min_period_s(self.freq_min_hz)
         self.silence_s = self.period_s + self.stall_allowance_s
         self._last = started              # the last arrival, or when listening began
         self._heard = False
@@ -92,7 +154,8 @@ class DeltaJudge:
 
     @property
     def monitored(self) -> bool:
-        return self.freq_min_hz is not None
+        """Whether this judge has a freq_min to be below (``min_period_s`` is finite)."""
+        return math.isfinite(self.period_s)
 
     def add(self, t: float) -> None:
         """One message heard at ``t`` (a clock going backwards is clamped)."""
@@ -135,14 +198,11 @@ class DeltaJudge:
 
     def verdict(self, now: float) -> ConnectionVerdict:
         since = self.below_since(now)
-        below = 0.0 if since is None else max(0.0, now - since)
         ended = max((b - a for a, b in self.take_ended()), default=0.0)
-        if since is None:
-            level = OK
-        else:
-            tolerance = math.inf if self.tolerance_s is None else self.tolerance_s
-            level = ERROR if below > tolerance else WARN
-        return ConnectionVerdict(below, level, now - self._last > self.silence_s, ended)
+        return ConnectionVerdict.judge(time_below(since, now), self.tolerance_s,
+                                       since is not None,
+                                       silent=now - self._last > self.silence_s,
+                                       ended_below_s=ended)
 
 
 def below_spans(arrivals: Iterable[float], freq_min_hz: Optional[float], start: float,
@@ -152,7 +212,7 @@ def below_spans(arrivals: Iterable[float], freq_min_hz: Optional[float], start: 
     by the same rule as ``DeltaJudge``; listening began at ``start``, and a stretch still open
     at ``end`` closes there. Arrivals before ``start`` (up to a window's worth) set the
     intervals the first judgement sees."""
-    if freq_min_hz is None or freq_min_hz <= 0:
+    if not math.isfinite(min_period_s(freq_min_hz)):
         return []
     times = list(arrivals)
     before = [t for t in times if start - window_s <= t < start]
@@ -170,3 +230,74 @@ def below_spans(arrivals: Iterable[float], freq_min_hz: Optional[float], start: 
     if open_since is not None and open_since < end:
         spans.append((open_since, end))
     return [(max(a, start), b) for a, b in spans if b > start]
+
+
+# --- the decider's Δ timer, from the probes' readings -------------------------------------
+
+def below_start(reading: Optional[ConnectionObs], now: float, settings: DeciderSettings,
+                heard_from: float, start: Optional[float] = None,
+                unjudged_until: float = -math.inf) -> Optional[float]:
+    """Start of a connection's stretch below freq_min at ``now``, from its latest reading
+    (None: not below), continuing the stretch that began at ``start``.
+
+    A fresh reading its probe judged below opens (or continues) the stretch, and the probe's
+    own ``below_for_s`` can only move its start earlier (the probe saw the drop before the
+    reading arrived); a fresh reading not judged below closes it. A missing or stale reading is
+    0 Hz from the moment it went missing: its stamp plus ``observation_max_age_s``, or for a
+    connection never reported ``heard_from`` (when listening began; -inf: missing at once)
+    plus that age, and never before ``unjudged_until`` (the last time it was not judged).
+    """
+    if reading is not None and is_fresh(reading.stamp, now, settings):
+        if not reading.below:
+            return None
+        probe_start = reading.stamp - max(0.0, reading.below_for_s)
+        return min(probe_start, now) if start is None else min(start, probe_start)
+    missing_from = max((reading.stamp if reading is not None else heard_from)
+                       + settings.observation_max_age_s, unjudged_until)
+    if now >= missing_from:
+        return missing_from if start is None else min(start, missing_from)
+    return start
+
+
+class DeltaTracker:
+    """Continuous time each monitored connection has spent below its freq_min, by
+    ``below_start`` on each update's readings.
+
+    Driven by observation times, not a wall clock; a connection never reported is heard from
+    the tracker's first update. A connection in ``obs.unjudged_connections`` (its probe's agent
+    silent or just restarted) is not timed: its timer is reset, and a reading still missing
+    afterwards counts as missing from the last update that did not judge it.
+    """
+
+    def __init__(self, deployment: Deployment):
+        self.deployment = deployment
+        self._since: Dict[str, float] = {}       # connection -> start of its time below
+        self._unjudged_at: Dict[str, float] = {}  # connection -> last update that skipped it
+        self._started: Optional[float] = None
+
+    @property
+    def started(self) -> Optional[float]:
+        return self._started
+
+    def update(self, obs: Observations, settings: DeciderSettings) -> Mapping[str, float]:
+        now = obs.now
+        if self._started is None:
+            self._started = now
+        out: Dict[str, float] = {}
+        for c in self.deployment.connections:
+            if not c.monitored:
+                continue
+            if c.name in obs.unjudged_connections:
+                self._unjudged_at[c.name] = now
+                self._since.pop(c.name, None)
+                out[c.name] = 0.0
+                continue
+            start = below_start(obs.connections.get(c.name), now, settings, self._started,
+                                self._since.get(c.name),
+                                self._unjudged_at.get(c.name, -math.inf))
+            if start is None:
+                self._since.pop(c.name, None)
+            else:
+                self._since[c.name] = start
+            out[c.name] = time_below(start, now)
+        return frozen_map(out)

@@ -13,9 +13,10 @@ from dataclasses import dataclass
 from typing import Collection, Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
-from ..protocol import (ERROR, LINK_MONITOR_START_S, WARN, AgentState, ConnectionStatus,
-                        LinkStatus, ProcState, ScaleStatus)
+from ..protocol import (LINK_MONITOR_START_S, AgentState, ConnectionStatus, LinkStatus,
+                        ProcState, ScaleStatus)
 from .constraints import link_observation_key
+from .delta import ConnectionVerdict
 from .observations import ConnectionObs, CopyObs, LinkObs, Observations, ScaleObs
 
 _RANK = {ProcState.RUNNING: 2, ProcState.STARTING: 1}
@@ -194,7 +195,7 @@ class ObservationBook:
             self.readings[(msg.scale, name)] = ConnectionObs(
                 rate_hz=r.rate_hz, stamp=now, below_for_s=r.below_for_s,
                 bytes_per_s=max(0.0, r.bytes_per_s),
-                below=r.level in (WARN, ERROR) or r.below_for_s > 0.0,
+                below=ConnectionVerdict(r.below_for_s, r.level).below,
                 senders=r.senders or 0, senders_for_s=r.senders_for_s or 0.0)
 
     # --- views --------------------------------------------------------------------------------

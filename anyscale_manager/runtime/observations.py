@@ -8,7 +8,12 @@ only ever sees this snapshot and the time passed in with it.
 from dataclasses import dataclass, field
 from typing import FrozenSet, Mapping, Optional
 
-from ..model.types import frozen_map
+from ..model.types import DeciderSettings, frozen_map
+
+
+def is_fresh(stamp: float, now: float, settings: DeciderSettings) -> bool:
+    """Whether an observation received at ``stamp`` still counts at ``now``."""
+    return now - stamp <= settings.observation_max_age_s
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,8 @@ from typing import Dict, List, Mapping, Optional, Tuple
 
 from ..model.placement import allowed
 from ..model.types import DeciderSettings, Deployment, frozen_map
-from .constraints import ConstraintReport, DeltaTracker, evaluate
+from .constraints import ConstraintReport, evaluate
+from .delta import DeltaTracker
 from .layout import adopt, default_scale, master_layout
 from .moves.back import migrate_back
 from .moves.failover import failover

@@ -10,6 +10,8 @@ import math
 from collections import deque
 from typing import Deque, Dict, List, Optional
 
+from .delta import min_period_s
+
 
 def _positive(value: float, what: str) -> float:
     if not isinstance(value, (int, float)) or isinstance(value, bool) \
@@ -351,9 +353,7 @@ def live_window_s(freq_min_hz: Optional[float], forget_s: float) -> float:
     """How recently a writer must have been heard to count as sending: two of its periods at
     the connection's minimum rate, at least 0.5 s, at most ``forget_s`` (the streams' own
     memory, ``WriterStreams.forget_s``)."""
-    if freq_min_hz is None or not freq_min_hz > 0:
-        return forget_s
-    return min(forget_s, max(0.5, 2.0 / freq_min_hz))
+    return min(forget_s, max(0.5, 2.0 * min_period_s(freq_min_hz)))
 
 
 def two_senders_past(senders_for_s: Optional[float], bound_s: float) -> bool:

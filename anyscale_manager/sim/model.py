@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from typing import Dict, Mapping, Optional, Tuple
 
 from ..model.types import Deployment, frozen_map
+from ..runtime.delta import past_delta
 
 INDEPENDENT = 'independent'
 SHARED = 'shared'
@@ -103,11 +104,10 @@ def profiles_from_deployment(deployment: Deployment,
     providers = set(deployment.data_providers)
     out = {}
     for node in deployment.nodes:
-        outs = [c for c in deployment.connections if c.publisher == node.name]
-        mins = [c.freq_min_hz for c in outs if c.freq_min_hz is not None]
-        opts = [c.freq_opt_hz if c.freq_opt_hz is not None else c.freq_min_hz
-                for c in outs if c.freq_min_hz is not None]
-        tolerances = [c.tolerance_s for c in outs if c.tolerance_s is not None]
+        outs = [c for c in deployment.connections if c.publisher == node.name and c.monitored]
+        mins = [float(c.freq_min_hz or 0.0) for c in outs]
+        opts = [c.freq_opt_hz if c.freq_opt_hz is not None else m for c, m in zip(outs, mins)]
+        tolerances = [float(c.tolerance_s or 0.0) for c in outs]
         opt = max(opts) if opts else 0.0
         # A sensor driver publishes at its hardware rate; processing nodes only reach their
         # minimum on the master.
@@ -150,7 +150,7 @@ def robot_speed(path: PathModel, profiles: Mapping[str, NodeProfile],
             continue
         starved = starved_for_s.get(name, -1.0)
         if starved >= 0:
-            if starved > p.tolerance_s:
+            if past_delta(starved, p.tolerance_s):
                 return 0.0
             fallback = True
             continue

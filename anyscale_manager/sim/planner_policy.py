@@ -18,8 +18,9 @@ import math
 from typing import Dict, List, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
-from ..runtime.constraints import CPU, FREQUENCY, ConstraintReport, DeltaTracker, evaluate, \
-    link_capacity, node_cpu, scale_cpu
+from ..runtime.constraints import CPU, FREQUENCY, ConstraintReport, evaluate, link_capacity, \
+    node_cpu, scale_cpu
+from ..runtime.delta import DeltaTracker
 from ..runtime.observations import MIGRATE, MIGRATE_BACK, MOVE_AWAY, RELOCATE, Decision, \
     Observations
 from .model import profiles_from_deployment

@@ -23,6 +23,7 @@ from typing import Dict, Iterable, List, Mapping, Optional, Tuple
 
 from ..model.types import STOP_BEFORE_START, Deployment, frozen_map
 from ..runtime.constraints import link_observation_key, required_kbps
+from ..runtime.delta import rate_below, stretch_start, time_below
 from ..runtime.observations import ConnectionObs, Decision, LinkObs, Observations, ScaleObs
 from .model import PathModel, SimSystem, node_rate, robot_speed
 from .path import LinkSchedule
@@ -109,21 +110,15 @@ class World:
             ok = self.connected(self.placement[c.publisher], self.placement[c.subscriber])
             rate = out[c.publisher] if ok else 0.0
             self.connection_hz[c.name] = rate
-            low = c.freq_min_hz if c.freq_min_hz is not None else 0.0    # set when monitored
-            if rate < low - EPS:
-                if self._below_since[c.name] is None:
-                    self._below_since[c.name] = self.t
-            else:
-                self._below_since[c.name] = None
+            self._below_since[c.name] = stretch_start(
+                self._below_since[c.name], self.t, rate_below(c.freq_min_hz, rate, EPS))
         self.delivered_hz = {}
         for n in self._starved_since:
             rate = out[n] if self.connected(self.placement[n], self.master) else 0.0
             self.delivered_hz[n] = rate
-            if rate < self.profiles[n].rate_base_hz - EPS:
-                if self._starved_since[n] is None:
-                    self._starved_since[n] = self.t
-            else:
-                self._starved_since[n] = None
+            self._starved_since[n] = stretch_start(
+                self._starved_since[n], self.t, rate_below(self.profiles[n].rate_base_hz, rate,
+                                                           EPS))
 
     def reachable(self, scale: str) -> bool:
         return scale == self.master or self.link_up.get(scale, False)
@@ -133,7 +128,7 @@ class World:
         return a == b or (self.reachable(a) and self.reachable(b))
 
     def speed_mps(self) -> float:
-        starved = {n: self.t - since for n, since in self._starved_since.items()
+        starved = {n: time_below(since, self.t) for n, since in self._starved_since.items()
                    if since is not None}
         return robot_speed(self.path, self.profiles, self.delivered_hz, starved)
 
@@ -181,7 +176,7 @@ class World:
             since = self._below_since[c.name]
             connections[c.name] = ConnectionObs(
                 rate_hz=self.connection_hz[c.name], stamp=t,
-                below_for_s=0.0 if since is None else t - since, below=since is not None)
+                below_for_s=time_below(since, t), below=since is not None)
         return Observations(now=t, running=frozen_map(self.placement), scales=frozen_map(scales),
                             links=frozen_map(links), connections=frozen_map(connections),
                             lost_scales=self.lost_scales())

@@ -15,7 +15,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
 from .. import protocol as p
 from ..model.types import Connection, Deployment
 from ..protocol_auth import check_signature
-from ..runtime.delta import below_spans
+from ..runtime.delta import below_spans, past_delta, rate_below, stretch_start, time_below
 from ..runtime.rates import RateWindow
 
 MIGRATION_KINDS = ('migrate', 'migrate_back', 'move_away', 'rebalance')
@@ -337,7 +337,7 @@ class Record:
         its Δ (Δ = 0 tolerates no stretch at all)."""
         return [DeltaBreach(conn.name, a, b, conn.tolerance_s, 'observer')
                 for a, b in self.below_spans(conn, start, end)
-                if b - a > conn.tolerance_s]
+                if past_delta(b - a, conn.tolerance_s)]
 
     def into(self, conn: Connection, scale: str, t: float) -> bool:
         """Whether the connection flowed into ``scale`` at t: its subscriber may run only
@@ -471,7 +471,7 @@ class Record:
                             and r.state == p.ProcState.RUNNING and r.ready)
             left_s = first(scale, t, e.node, lambda r: r is None or r.state != p.ProcState.RUNNING)
             for c in self.deployment.connections:
-                if c.publisher != e.node or c.freq_min_hz is None:
+                if c.publisher != e.node or not c.monitored:
                     continue
                 seen = [(ts, r) for ts, where, r in self.readings.get(c.name, [])
                         if where == scale and t <= ts <= t + horizon_s]
@@ -481,12 +481,9 @@ class Record:
                 # (or to the last reading, if it is still below then).
                 longest, start = 0.0, None
                 for ts, r in seen:
-                    if r.rate_hz < c.freq_min_hz:
-                        start = ts if start is None else start
-                        longest = max(longest, ts - start)
-                    elif start is not None:
-                        longest = max(longest, ts - start)
-                        start = None
+                    was, start = start, stretch_start(start, ts, rate_below(c.freq_min_hz,
+                                                                            r.rate_hz))
+                    longest = max(longest, time_below(was if start is None else start, ts))
                 rows.append({'t': round(t - t0, 2), 'node': e.node, 'connection': c.name,
                              'min_rate_hz': round(min(r.rate_hz for _, r in seen), 2),
                              'freq_min_hz': c.freq_min_hz, 'below_s': round(longest, 2),

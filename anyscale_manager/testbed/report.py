@@ -13,6 +13,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from .. import protocol as p
 from ..model.types import Connection, Deployment
+from ..runtime.delta import rate_below
 from ..view.status import bandwidth_stale_after_s, bandwidth_text, rtt_text, stale_mark
 from .record import MIGRATION_KINDS, Record
 
@@ -372,7 +373,7 @@ class Dip:
 
 
 def dips(connection: str, points: Sequence[Tuple[float, p.ConnectionReading]],
-         freq_min_hz: float) -> List[Dip]:
+         freq_min_hz: Optional[float]) -> List[Dip]:
     """The stretches of ``points`` (one probe's readings, in time order) below freq_min: from
     when the probe says its stretch began (not before the reading above it) to its first
     reading back at freq_min (or its last reading). Past Δ only where the probe said so."""
@@ -381,7 +382,7 @@ def dips(connection: str, points: Sequence[Tuple[float, p.ConnectionReading]],
     previous: Optional[float] = None
     for t, r in points:
         below = max(r.below_for_s, r.ended_below_s or 0.0)
-        if r.rate_hz < freq_min_hz:
+        if rate_below(freq_min_hz, r.rate_hz):
             if run is None:
                 start = t - r.below_for_s
                 run = [max(start, previous) if previous is not None else start, t, r.rate_hz,
@@ -442,7 +443,7 @@ def connection_dips(record: Record, t0: float, t1: float, connections=None) -> L
         if not c.monitored or (connections is not None and c.name not in connections):
             continue
         served, _ = split_readings(record, c, t0, t1)
-        out.extend(dips(c.name, served, c.freq_min_hz or 0.0))
+        out.extend(dips(c.name, served, c.freq_min_hz))
     return sorted(out, key=lambda x: x.start)
 
 
@@ -589,13 +590,13 @@ def draw_timeline(record: Record, path: str, t0: float, t1: float, title: str = 
         if served:
             ax.plot([t - t0 for t, _ in served], [r.rate_hz for _, r in served], '.-', ms=2,
                     lw=0.8, color='#333333', label='rate heard by the\nserving subscriber')
-        if c.freq_min_hz is not None:
+        if c.monitored:
             ax.axhline(c.freq_min_hz, color=PAST_DELTA, ls='--', lw=1,
                        label=f'freq_min {c.freq_min_hz:g} Hz (Δ {c.tolerance_s:g} s)')
         if c.freq_opt_hz is not None:
             ax.axhline(c.freq_opt_hz, color='#2ca02c', ls=':', lw=1,
                        label=f'freq_opt {c.freq_opt_hz:g} Hz')
-        allowed = [x for x in dips(c.name, served, c.freq_min_hz or 0.0) if x.allowed]
+        allowed = [x for x in dips(c.name, served, c.freq_min_hz) if x.allowed]
         labelled = -math.inf
         for x in allowed:
             ax.axvspan(x.start - t0, x.end - t0, color=ALLOWED_DIP, alpha=0.35, lw=0)

@@ -29,6 +29,7 @@ import yaml
 
 from .. import protocol_auth
 from ..agent import procs
+from ..runtime.delta import rate_below
 from . import chaos, faults, harness, netns, soak_report, verdict
 from .record import Record
 from .samples import DUPLICATE_PROCESS_S, SAMPLE_PROCESSES_S, SAMPLE_RESOURCES_S, Samples
@@ -226,8 +227,12 @@ class Soak:
             # the robot (the boot only waits for every node to run).
             flowing = [c for c in self.d.connections if c.monitored]
             window = self.d.monitoring.probe_window_s
-            if self.wait(lambda r: all(r.topic_rate(c.topic, time.monotonic(), window)
-                                       >= c.freq_min_hz for c in flowing), 60.0) is None:
+
+            def at_freq_min(r: Record) -> bool:
+                return not any(rate_below(c.freq_min_hz,
+                                          r.topic_rate(c.topic, time.monotonic(), window))
+                               for c in flowing)
+            if self.wait(at_freq_min, 60.0) is None:
                 raise harness.HarnessError('the connections did not reach their freq_min '
                                            f'within 60 s of the boot; {self.tb.describe()}')
             self.t0 = time.monotonic()

@@ -30,6 +30,7 @@ from typing import Any, Dict, List, Mapping, Optional, Tuple
 from .. import protocol as p
 from .. import protocol_auth as auth
 from ..model.types import Deployment
+from ..runtime.delta import ConnectionVerdict, rate_below
 from ..runtime.hosts import describe, shared_groups
 from ..runtime.liveness import exit_text
 from ..runtime.observations import CopyObs
@@ -474,12 +475,10 @@ def _connection_rows(book: StatusBook, now: float, running) -> List[str]:
             rows.append([c.name, '-', f'{c.freq_min_hz:g}', f'- / {c.tolerance_s:g}',
                          f'{stale_mark(now - at)} (counts as 0 Hz), last {r.rate_hz:.1f} Hz'])
             continue
-        if r.rate_hz >= c.freq_min_hz:
-            status = 'ok'
-        elif r.below_for_s > c.tolerance_s:
-            status = 'VIOLATED (past Δ)'
-        else:
-            status = 'below, within Δ'
+        verdict = ConnectionVerdict.judge(r.below_for_s, c.tolerance_s,
+                                          rate_below(c.freq_min_hz, r.rate_hz))
+        status = ('VIOLATED (past Δ)' if verdict.past_delta else
+                  'below, within Δ' if verdict.below else 'ok')
         doubled = [(v.senders, v.senders_for_s or 0.0, s)
                    for (s, n), (v, got) in book.readings.items()
                    if n == c.name and now - got <= d.decider.observation_max_age_s
