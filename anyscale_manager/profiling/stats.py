@@ -12,7 +12,7 @@ readings, so thresholds suggested from them (``suggest.py``) hold for the run th
 import math
 import statistics
 from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import MonitorSettings
 from ..runtime.cpu import ProcessGroupCpu
@@ -20,6 +20,11 @@ from ..runtime.rates import RateWindow
 
 READING_PERIOD_S = 1.0
 PROBE_WINDOW_S = MonitorSettings().probe_window_s
+
+
+def _or_zero(statistic: Callable[[Sequence[float]], float], values: Sequence[float]) -> float:
+    """A statistic of the readings, 0 when there are none."""
+    return statistic(values) if values else 0.0
 
 
 @dataclass(frozen=True)
@@ -39,15 +44,15 @@ class RateSummary:
 
     @property
     def p50_hz(self) -> float:
-        return statistics.median(self.readings) if self.readings else 0.0
+        return _or_zero(statistics.median, self.readings)
 
     @property
     def lowest_hz(self) -> float:
-        return min(self.readings) if self.readings else 0.0
+        return _or_zero(min, self.readings)
 
     @property
     def highest_hz(self) -> float:
-        return max(self.readings) if self.readings else 0.0
+        return _or_zero(max, self.readings)
 
     def longest_below_s(self, threshold_hz: float) -> float:
         """The longest stretch of consecutive readings below ``threshold_hz``, in seconds."""
@@ -111,11 +116,11 @@ class CpuSummary:
 
     @property
     def mean_cores(self) -> float:
-        return statistics.fmean(self.readings) if self.readings else 0.0
+        return _or_zero(statistics.fmean, self.readings)
 
     @property
     def max_cores(self) -> float:
-        return max(self.readings) if self.readings else 0.0
+        return _or_zero(max, self.readings)
 
     def share(self, parts: int) -> 'CpuSummary':
         """This process's CPU split evenly over ``parts`` nodes that share it."""

@@ -16,31 +16,33 @@ def _f(x: float, digits: int = 1) -> str:
     return '-' if x is None or (isinstance(x, float) and math.isnan(x)) else f'{x:.{digits}f}'
 
 
+def _row(*cells: str) -> str:
+    """One line of the table: system, improvement, std, best case, oracle, gap, moves/lap, and
+    the other policy's improvement when there is one."""
+    widths = (-14, 13, 5, 11, 8, 15, 9, 13)
+    return ' '.join(f'{c:<{-w}}' if w < 0 else f'{c:>{w}}' for c, w in zip(cells, widths))
+
+
 def table(exp: Experiment, other: Optional[Experiment] = None) -> str:
     p = exp.path
     lines = [
         f'ICAR 2015 Fig. 7 in simulation: policy {exp.policy}, {exp.runs} run(s) per system, '
         f'seed {exp.seed}, links {p.links}, availability U({p.availability_low:g}, '
         f'{p.availability_high:g}), {p.outages_min}-{p.outages_max} hole(s) per lap and link',
-        f'{"system":<14} {"improvement %":>13} {"std":>5} {"best case %":>11} '
-        f'{"oracle %":>8} {"gap to oracle %":>15} {"moves/lap":>9}'
-        + (f' {other.policy + " %":>13}' if other else ''),
+        _row('system', 'improvement %', 'std', 'best case %', 'oracle %', 'gap to oracle %',
+             'moves/lap', *([other.policy + ' %'] if other else [])),
     ]
     others = {s.label: s for s in other.systems} if other else {}
     for s in exp.systems:
         moves = sum(r.migrations for r in s.runs) / max(1, len(s.runs))
-        line = (f'{s.label:<14} {_f(s.improvement_pct):>13} {_f(s.improvement_std_pct):>5} '
-                f'{_f(s.best_case_improvement_pct):>11} {_f(s.oracle_improvement_pct):>8} '
-                f'{_f(s.gap_to_oracle_pct):>15} {moves:>9.1f}')
-        if other:
-            line += f' {_f(others[s.label].improvement_pct):>13}'
-        lines.append(line)
-    line = (f'{"average":<14} {_f(exp.average_improvement_pct):>13} {"":>5} '
-            f'{_f(exp.best_case_improvement_pct):>11} {_f(exp.average_oracle_improvement_pct):>8} '
-            f'{_f(exp.average_gap_to_oracle_pct):>15} {"":>9}')
-    if other:
-        line += f' {_f(other.average_improvement_pct):>13}'
-    lines.append(line)
+        lines.append(_row(s.label, _f(s.improvement_pct), _f(s.improvement_std_pct),
+                          _f(s.best_case_improvement_pct), _f(s.oracle_improvement_pct),
+                          _f(s.gap_to_oracle_pct), f'{moves:.1f}',
+                          *([_f(others[s.label].improvement_pct)] if other else [])))
+    lines.append(_row('average', _f(exp.average_improvement_pct), '',
+                      _f(exp.best_case_improvement_pct), _f(exp.average_oracle_improvement_pct),
+                      _f(exp.average_gap_to_oracle_pct), '',
+                      *([_f(other.average_improvement_pct)] if other else [])))
     lines.append(f'paper: 6N x 2M x 2K {PAPER_TESTBED_PCT:g} %, average {PAPER_AVERAGE_PCT:g} %, '
                  f'best case {PAPER_BEST_CASE_PCT:g} %; heuristic estimated 10-15 % from the '
                  'optimum')

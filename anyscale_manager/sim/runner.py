@@ -181,21 +181,25 @@ class Experiment:
     simulated_s: float = 0.0
     overrides: Tuple[Tuple[str, object], ...] = ()
 
+    def _mean(self, figure: str) -> float:
+        """A figure of every system, averaged over the systems."""
+        return float(np.mean([getattr(s, figure) for s in self.systems]))
+
     @property
     def average_improvement_pct(self) -> float:
-        return float(np.mean([s.improvement_pct for s in self.systems]))
+        return self._mean('improvement_pct')
 
     @property
     def best_case_improvement_pct(self) -> float:
-        return float(np.mean([s.best_case_improvement_pct for s in self.systems]))
+        return self._mean('best_case_improvement_pct')
 
     @property
     def average_oracle_improvement_pct(self) -> float:
-        return float(np.mean([s.oracle_improvement_pct for s in self.systems]))
+        return self._mean('oracle_improvement_pct')
 
     @property
     def average_gap_to_oracle_pct(self) -> float:
-        return float(np.mean([s.gap_to_oracle_pct for s in self.systems]))
+        return self._mean('gap_to_oracle_pct')
 
     def to_dict(self) -> dict:
         return {

@@ -286,7 +286,7 @@ class Testbed:
             notes.append('processes left behind and killed: ' + ', '.join(
                 f'{p.pid} ({_cmdline(p)})' for p in leftovers))
             for p in leftovers:
-                _kill(p.pid, signal.SIGKILL)
+                netns.send_signal(p.pid, signal.SIGKILL)
             psutil.wait_procs(leftovers, timeout=5.0)
         notes.extend(self.link_control.teardown())
         self.link_control = links.LinkControl()
@@ -396,7 +396,7 @@ class Testbed:
         if proc is None or proc.popen.poll() is not None:
             raise HarnessError(f'{name} is not running')
         # Only the process itself: an agent's nodes are in their own sessions and live on.
-        _kill(proc.popen.pid, sig)
+        netns.send_signal(proc.popen.pid, sig)
         self.mark(f'{name} sent {signal.Signals(sig).name}')
         try:
             return proc.popen.wait(timeout=timeout_s)
@@ -437,7 +437,7 @@ class Testbed:
         if pid not in self.node_pids(node, scale):
             raise HarnessError(f'pid {pid}, reported for {node} on {scale}, is not a process '
                                f'that agent started for it (live: {self.node_pids(node, scale)})')
-        _kill(pid, sig)
+        netns.send_signal(pid, sig)
         self.mark(f'{node} on {scale} (pid {pid}, {report.state}) sent '
                   f'{signal.Signals(sig).name}')
         if sig in (signal.SIGKILL, signal.SIGTERM, signal.SIGINT):
@@ -492,18 +492,17 @@ class Testbed:
 
     def cut(self, link: Optional[str] = None) -> None:
         """Cut a link (the only one, or the one named): every packet dropped both ways."""
-        link = self._link_name(link)
-        self.link_control.cut(link)
-        many = len(self._links) > 1
-        self._link_set(link, False, self._links[link][1],
-                       f'link {link} cut' if many else 'link cut')
+        self._cut_or_restore(link, False)
 
     def restore(self, link: Optional[str] = None) -> None:
+        self._cut_or_restore(link, True)
+
+    def _cut_or_restore(self, link: Optional[str], up: bool) -> None:
         link = self._link_name(link)
-        self.link_control.restore(link)
-        many = len(self._links) > 1
-        self._link_set(link, True, self._links[link][1],
-                       f'link {link} restored' if many else 'link restored')
+        (self.link_control.restore if up else self.link_control.cut)(link)
+        what = 'restored' if up else 'cut'
+        self._link_set(link, up, self._links[link][1],
+                       f'link {link} {what}' if len(self._links) > 1 else f'link {what}')
 
     def throttle(self, rate_kbps: float, link: Optional[str] = None) -> None:
         link = self._link_name(link)
@@ -651,13 +650,6 @@ def _cmdline(p: psutil.Process) -> str:
         return '?'
 
 
-def _kill(pid: int, sig: int) -> None:
-    try:
-        os.kill(pid, sig)
-    except (ProcessLookupError, PermissionError):
-        pass
-
-
 def _live(pid: int) -> bool:
     """A process that exists and has not exited (a zombie waiting for its parent has)."""
     try:
@@ -670,7 +662,7 @@ def _signal_group(pid: int, sig: int) -> None:
     try:
         os.killpg(pid, sig)
     except (ProcessLookupError, PermissionError):
-        _kill(pid, sig)
+        netns.send_signal(pid, sig)
 
 
 def _reap(exclude=frozenset()) -> None:

@@ -244,7 +244,7 @@ def _remove_cgroup_dir(path: str, timeout_s: float) -> None:
         except (OSError, ValueError):
             pass
         for pid in pids:
-            _kill(pid, signal.SIGKILL)
+            send_signal(pid, signal.SIGKILL)
         try:
             os.rmdir(path)
             return
@@ -254,7 +254,8 @@ def _remove_cgroup_dir(path: str, timeout_s: float) -> None:
             time.sleep(0.05)
 
 
-def _kill(pid: int, sig: int) -> None:
+def send_signal(pid: int, sig: int) -> None:
+    """Signal a process that may have exited meanwhile (or is not ours to signal)."""
     try:
         os.kill(pid, sig)
     except (ProcessLookupError, PermissionError):
@@ -397,7 +398,7 @@ class Network:
         for sig in (signal.SIGTERM, signal.SIGKILL):
             pids = self.leftover_pids()
             for pid in pids:
-                _kill(pid, sig)
+                send_signal(pid, sig)
             deadline = time.monotonic() + (1.0 if sig == signal.SIGTERM else 3.0)
             while pids and time.monotonic() < deadline:
                 pids = [p for p in self.leftover_pids() if _alive(p)]
@@ -547,7 +548,7 @@ def remove_stale() -> List[str]:
         m = _NAME_RE.match(ns)
         if m and not _alive(int(m.group(1))):
             for pid in _run(['ip', 'netns', 'pids', ns], check=False).split():
-                _kill(int(pid), signal.SIGKILL)
+                send_signal(int(pid), signal.SIGKILL)
             _run(['ip', 'netns', 'del', ns], check=False)
             removed.append(ns)
     mode, root = cgroup_mode()
