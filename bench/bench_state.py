@@ -46,7 +46,7 @@ from anyscale_manager.testbed.poses import pose_jumps, pose_speed
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'icar2015_testbed.yaml')
-HANDED = re.compile(r'amcl: state of (\d+\.\d+) s ago handed')
+HANDED = re.compile(r'\[(\d+\.\d+)\] \[[^]]+\]: amcl: state of (\d+\.\d+) s ago handed')
 NO_STATE = 'amcl: no state heard yet'
 
 
@@ -130,23 +130,31 @@ class Run:
             print(f'in place {k + 1}: on {scale}', flush=True)
 
     def judge(self):
-        """(kind, change, jumped) for each change, and every handed state's age."""
+        """(kind, change, jumped, age handed over or None, state period) for each change, and
+        every handed state's age, and the copies started with no state heard."""
         tb = self.tb
         tb.wait_heard(tb.now())
-        out = []
         with tb.lock:
             heard = list(tb.record.poses.get('/amcl_pose', []))
-        for kind, t, what in self.changes:
-            jumps = pose_jumps(heard, t - 1.0, t + 15.0, self.speed)
-            out.append((kind, what, [str(j) for j in jumps]))
-        ages, fresh = [], 0
+            offset = tb.record.wall_offset
+        handed, fresh = [], 0            # (monotonic time of the hand-over, age)
         for scale in ('robot', 'laptop'):
             log = os.path.join(tb.run_dir, 'logs', f'agent_{scale}.log')
             with open(log, errors='replace') as f:
                 text = f.read()
-            ages += [float(m.group(1)) for m in HANDED.finditer(text)]
+            handed += [(float(m.group(1)) - offset, float(m.group(2)))
+                       for m in HANDED.finditer(text)]
             fresh += text.count(NO_STATE)
-        return out, ages, fresh
+        out = []
+        for kind, t, what in self.changes:
+            jumps = pose_jumps(heard, t - 1.0, t + 15.0, self.speed)
+            ages = [age for at, age in handed if t <= at <= t + 15.0]
+            before = sorted(a for a, *_ in heard if t - 5.0 <= a <= t)
+            period = statistics.median([b - a for a, b in zip(before, before[1:])]) \
+                if len(before) > 2 else float('nan')
+            out.append((kind, what, [str(j) for j in jumps], ages[0] if ages else None,
+                        period))
+        return out, [age for _, age in handed], fresh
 
     def stop(self):
         return self.tb.stop()
@@ -261,13 +269,20 @@ def main() -> int:
                 for kind in phases:
                     rows = [f for f in found if f[0] == kind]
                     print(f'{kind}: {sum(bool(f[2]) for f in rows)} of {len(rows)} changes did '
-                          f'not continue the last pose; ages so far {stats(ages)}', flush=True)
+                          f'not continue the last pose', flush=True)
+                    for what in sorted({f[1] for f in rows}):
+                        aged = [(f[3], f[4]) for f in rows if f[1] == what and f[3] is not None]
+                        within = sum(1 for age, period in aged if age <= period + 0.05)
+                        print(f'  {what}: state age when handed over '
+                              f'{stats([a for a, _ in aged])}; within one state period '
+                              f'(median {stats([p for _, p in aged])}) + 50 ms: '
+                              f'{within} of {len(aged)}', flush=True)
             finally:
                 notes = run.stop()
                 if notes:
                     print(f'teardown: {notes}', flush=True)
     by_kind = {}
-    for kind, what, jumps in results:
+    for kind, what, jumps, _, _ in results:
         n, bad = by_kind.get(kind, (0, 0))
         by_kind[kind] = (n + 1, bad + bool(jumps))
         if jumps:
