@@ -6,6 +6,7 @@
 - A leader stopped (SIGSTOP) is taken over the same way; resumed (SIGCONT), it publishes
   nothing, says it stands by, and takes over again when the new leader dies.
 - Two deciders started together: one leads, the other stands by, both stay up.
+- A decider alone publishes no beat (nobody reads it), and beats while a subscription listens.
 """
 
 import os
@@ -18,9 +19,12 @@ from std_msgs.msg import String
 
 from anyscale_manager import protocol as p
 from anyscale_manager.nodes import qos
+from anyscale_manager.nodes.decider import DeciderNode
+from anyscale_manager.nodes.executor import make_executor
 from home_away import runs, start, start_agents
-from spinning import spin_for, spin_until
+from spinning import RosContext, spin_for, spin_until
 from test_decider_agent import write_deployment
+from test_latched_peers import write_deployment as peers_deployment
 
 
 @pytest.fixture
@@ -192,3 +196,42 @@ def test_two_deciders_started_together_leave_one_leader_and_one_standby(tmp_path
     # every later term has one decider.
     assert all(len(ids) == 1 for term, ids in by_term.items() if term != 1), by_term
     assert all(d.proc.poll() is None for d in deciders)
+
+
+def test_a_decider_alone_sends_no_beat_and_beats_while_another_listens(tmp_path):
+    """Nobody reads the beats of a decider alone: it leads without publishing them, keeps
+    leading (a beat not sent is not a stall) and turns less often, and beats as soon as a
+    subscription appears, until it goes. Its own beats, which its own subscription receives,
+    are never decoded."""
+    path, _ = peers_deployment(tmp_path, decider={'discovery_s': 0.2})
+    with RosContext(make_executor) as decider_ros, RosContext() as listener_ros:
+        decider = decider_ros.add(DeciderNode(context=decider_ros.context,
+                                              cli_args=['--ros-args', '--params-file', path]))
+        published = []                  # every beat the thread hands to its publisher
+        publish = decider.beat.pub.publish
+        decider.beat.pub.publish = lambda msg: (published.append(msg.data), publish(msg))
+        decider_ros.spin_until(lambda: decider.lead.role == 'leader', 15.0, 'the decider leading')
+        decider_ros.spin_for(1.0)       # 20 beats' time, and more than takeover_s
+        assert published == []
+        assert decider.lead.role == 'leader' and decider.lead.may_command(decider._now())
+        # Alone, it turns every third of stall_s (0.3 s by default), not every beat_s.
+        assert decider.beat.wait_s == pytest.approx(decider.lead.stall_s / 3.0)
+        heard = []
+        listener = listener_ros.node('beat_listener')
+        sub = listener.create_subscription(
+            String, p.TOPIC_DECIDER, lambda m: heard.append(p.DeciderBeat.from_json(m.data)),
+            qos.BEAT)
+        end = time.monotonic() + 15.0
+        while time.monotonic() < end and not heard:
+            decider_ros.spin_for(0.05)
+            listener_ros.spin_for(0.05)
+        assert heard and heard[-1].role == 'leader' and heard[-1].decider.id == decider.identity.id
+        assert published and decider._rejected == 0
+        assert decider.beat.wait_s == decider.settings.beat_s
+        listener.destroy_subscription(sub)
+        end = time.monotonic() + 15.0
+        while time.monotonic() < end and decider.beat.listened():
+            decider_ros.spin_for(0.05)
+        sent = len(published)
+        decider_ros.spin_for(0.5)
+        assert len(published) == sent and decider.lead.role == 'leader'

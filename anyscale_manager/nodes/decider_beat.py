@@ -3,16 +3,27 @@
 Twenty beats a second through the rclpy executor cost about 7 % of a core per decider (the
 executor rebuilds its wait set for every wake-up); a plain thread that publishes and takes the
 beats itself costs about 1 %. The thread owns a node no executor spins (one DDS participant per
-context: no extra discovery), publishes this decider's beat every ``beat_s``, takes the beats
-that arrived, feeds them to the leadership (runtime/leadership.py), checks it and acts on a
-change of role (a takeover publishes at once), all under the decider's lock, which every
-executor callback holds too.
+context: no extra discovery), and every ``beat_s`` takes the beats that arrived, feeds them to
+the leadership (runtime/leadership.py), checks it and acts on a change of role (a takeover
+publishes at once), all under the decider's lock, which every executor callback holds too; then
+it beats.
+
+A beat is published only while someone else reads the topic (a standby or any other decider, a
+status view): the graph shows a subscription to it beside this thread's own. A decider alone
+would only encode, sign and publish twenty messages a second to nobody, about 0.6 % of a core
+on the robot. A decider that starts subscribes before it listens ``discovery_s`` for a leader,
+and the leader beats from its first turn after the graph shows it, as DDS matches the two. The
+leadership counts a beat as given all the same (its own stall check), and the beats it hears
+of itself (its own subscription receives them) are dropped before they are decoded. A leader
+alone turns every third of ``stall_s`` (0.1 s by default) rather than every ``beat_s``: a
+standby's turns time its takeover and stay at ``beat_s``.
 
 A beat says "this decider decides": a callback stuck with the lock stops the beats, and so
 does an executor that has not turned for ``period_s + takeover_s``; a standby then takes over,
 and the stuck leader steps down when it wakes.
 """
 
+import json
 import threading
 import time
 from typing import List
@@ -38,41 +49,64 @@ class BeatThread:
         self.pub = self.node.create_publisher(String, p.TOPIC_DECIDER, qos.BEAT)
         self.sub = self.node.create_subscription(String, p.TOPIC_DECIDER, lambda _m: None,
                                                  qos.BEAT)
-        self._stop = threading.Event()
+        # This decider's beats as its own subscription receives them: skipped undecoded.
+        self._own = '"id":' + json.dumps(decider.identity.id)
+        self.wait_s = decider.settings.beat_s      # until the next turn of the thread
+        self._stopping = False
         self.thread = threading.Thread(target=self._run, name='decider beat', daemon=True)
 
     def start(self) -> None:
         self.thread.start()
 
     def stop(self) -> None:
-        self._stop.set()
+        self._stopping = True
         if self.thread.is_alive():
             self.thread.join(2.0)
         self.node.destroy_node()
 
     def _run(self) -> None:
         d = self.decider
-        while not self._stop.is_set():
+        while not self._stopping:
             started = d._now()
             try:
                 self.step(started)
             except Exception as e:  # noqa: B902 - the beat must outlive any one bad turn
                 d.get_logger().error(f'decider beat failed: {type(e).__name__}: {e}',
                                      throttle_duration_sec=5.0)
-            self._stop.wait(max(0.0, d.settings.beat_s - (d._now() - started)))
+            # A plain sleep: a timed wait on an Event costs twice as much a wake-up.
+            time.sleep(max(0.0, self.wait_s - (d._now() - started)))
+
+    def listened(self) -> bool:
+        """Whether anyone but this decider reads the beats: a subscription to the topic in the
+        graph beside this thread's own. When the graph cannot be read, it beats."""
+        try:
+            return self.node.count_subscribers(p.TOPIC_DECIDER) > 1
+        except Exception:  # noqa: B902 - a beat too many is harmless, one missing is not
+            return True
 
     def step(self, now: float) -> None:
         d = self.decider
         texts = self._take()
+        listened = self.listened()
         with self.lock:
             now = d._now()          # after the wait for the lock: no beat went out meanwhile
             for text in texts:
                 d.heard_beat_text(text, now)
             d.check_role(now)
             stuck = now - self.executor_alive > d.settings.period_s + d.settings.takeover_s
-            beat = None if stuck and d.lead.role == LEADER else p.DeciderBeat(
+            beats = not (stuck and d.lead.role == LEADER)
+            beat = p.DeciderBeat(
                 stamp=time.time(), deployment=d.deployment.name, decider=d.identity,
-                role=d.lead.role, term=d.lead.term, generation=d.generation)
+                role=d.lead.role, term=d.lead.term, generation=d.generation) \
+                if beats and listened else None
+            if beats and beat is None:
+                d.lead.beaten(now)      # nobody to tell: the beat counts as given
+            # A leader nobody listens to turns three times per stall_s only: often enough to
+            # command without a pause (may_command), to take the beats of a decider that
+            # appears and to beat once it listens, in a tenth of a second.
+            alone = not listened and d.lead.role == LEADER
+            self.wait_s = max(d.settings.beat_s, d.lead.stall_s / 3.0) if alone \
+                else d.settings.beat_s
         if beat is not None:
             self.pub.publish(String(data=d.sealer.seal(beat)))
             # When it went out: a takeover's first layout, published in check_role, can take
@@ -88,5 +122,6 @@ class BeatThread:
                 taken = self.sub.handle.take_message(self.sub.msg_type, False)
                 if taken is None:
                     break
-                out.append(taken[0].data)
+                if self._own not in taken[0].data:
+                    out.append(taken[0].data)
         return out
