@@ -3,7 +3,7 @@ idle 3-node graph, beside a bare rclpy node.
 
     .venv/bin/python bench/bench_footprint.py [--window 60] [--settle 20] [--domain-id N]
         [--rate-hz 2] [--standby-decider] [--baseline-hz 1] [--out FILE] [--keep DIR]
-        [--profile DIR] [--source DIR] [--shared-home]
+        [--profile DIR] [--source DIR] [--against DIR] [--shared-home]
 
 Two scales of this machine, home (the master, a robot) and away, each run an agent (which
 starts its warden), and a decider runs on home; all real processes, DDS on loopback
@@ -31,9 +31,13 @@ manager process is also sampled over the window, and the main thread's CPU is sh
 what its samples were doing (the agent's turn, each monitor, the executor itself).
 
 --source DIR runs the manager (and the nodes) from another source tree of the package, a
-checkout of an earlier commit (git worktree add DIR COMMIT), for a before-and-after comparison
-on one machine. Prints a table per scale; --out FILE writes the figures as JSON. The bench
-itself joins no ROS domain: it reads the agents' state files and /proc only.
+checkout of an earlier commit (git worktree add DIR COMMIT); --against DIR runs a second
+deployment from DIR in the next domain at the same time, both measured over the same window:
+the way to compare two versions, since the same code reads up to twice as much CPU on this
+machine when it is idle as when it is loaded (the bare rclpy node read 0.35 % and 0.65 %).
+Prints a table per scale; --out FILE writes the figures as JSON (the other run under
+'against'). The bench itself joins no ROS domain: it reads the agents' state files and /proc
+only.
 """
 
 import argparse
@@ -123,7 +127,7 @@ COMPONENTS = (
 GENERIC = ('decider', 'agent')
 
 
-def deployment(folder: str, topic: str, rate_hz: float) -> str:
+def deployment(folder: str, topic: str, rate_hz: float, port: int) -> str:
     def workload(name, *args):
         return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args,
                             '--rate-hz', str(rate_hz)]}
@@ -152,7 +156,7 @@ def deployment(folder: str, topic: str, rate_hz: float) -> str:
                         'worker_pinned': dict(conn, topic=topic + '/w', publisher='worker',
                                               subscriber='pinned')},
         'monitoring': {'bandwidth_probe_interval_s': 86400.0,
-                       'bandwidth_probe_port': 40000 + os.getpid() % 20000},
+                       'bandwidth_probe_port': port},
         'agent': {'state_dir': os.path.join(folder, 'state'),
                   'log_dir': os.path.join(folder, 'log')},
     }
@@ -289,6 +293,130 @@ def busy_others() -> List[str]:
     return out
 
 
+class Run:
+    """One deployment of the graph from one source tree, in one domain: its processes, started,
+    measured and stopped."""
+
+    def __init__(self, args, label: str, source: str, domain: int, folder: str):
+        from anyscale_manager import config_files
+        self.args, self.label, self.source, self.domain = args, label, source, domain
+        self.shared_home = args.shared_home and label == 'this'
+        self.folder = folder
+        os.makedirs(folder, exist_ok=True)
+        self.env = config_files.with_discovery_profile(dict(
+            os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+            PYTHONUNBUFFERED='1'))
+        if source != REPO:
+            # Ahead of the editable install's finder: the agent's children (the warden, the
+            # workload nodes) inherit it.
+            self.env['PYTHONPATH'] = os.pathsep.join(
+                filter(None, [source, self.env.get('PYTHONPATH')]))
+        # Ports of its own: the wardens of both runs listen on this machine.
+        self.path = deployment(folder, f'/bench_footprint_{os.getpid()}_{domain}', args.rate_hz,
+                               40000 + (os.getpid() + 10 * domain) % 20000)
+        self.procs: Dict[str, subprocess.Popen] = {}
+        self.measured: Dict[str, psutil.Process] = {}
+        self.roles: Dict[str, tuple] = {}
+
+    def _start(self, name: str, argv: List[str]) -> None:
+        log = open(os.path.join(self.folder, f'{name}.out'), 'w')
+        # In the run's folder: ``python -m`` puts the working directory first on the path.
+        self.procs[name] = subprocess.Popen(argv, env=self.env, stdout=log,
+                                            stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                            start_new_session=True, cwd=self.folder)
+
+    def start(self) -> None:
+        args, ros = self.args, ['--ros-args', '--params-file', self.path]
+        self._start('baseline', [sys.executable, '-c', BASELINE, str(args.baseline_hz)])
+        agent = [sys.executable, '-m', 'anyscale_manager.nodes.agent']
+        decider = [sys.executable, '-m', 'anyscale_manager.nodes.decider']
+        for scale in SCALES:
+            if self.shared_home and scale == 'home':
+                self._start('agent_home', [sys.executable, '-c', SHARED, self.path])
+            else:
+                self._start(f'agent_{scale}', [*agent, *ros, '-p', f'scale:={scale}'])
+        if not self.shared_home:
+            self._start('decider', [*decider, *ros])
+        if args.standby_decider:
+            time.sleep(2.0)          # it starts after the leader, and stands by
+            self._start('decider_standby', [*decider, *ros])
+
+    def ready(self) -> bool:
+        return sum(len(v) for v in placement(self.folder).values()) >= 3
+
+    def find(self) -> None:
+        """Who is measured: the manager's processes, the wardens and nodes (the agents'
+        children), and the baseline."""
+        for name, proc in self.procs.items():
+            if proc.poll() is not None:
+                raise RuntimeError(f'{self.label}: {name} exited with {proc.returncode} (log '
+                                   f'in {self.folder})')
+            self.measured[name] = psutil.Process(proc.pid)
+        for scale in SCALES:
+            for child in self.measured[f'agent_{scale}'].children():
+                cmd = ' '.join(child.cmdline())
+                if 'anyscale_manager.agent.warden' in cmd:
+                    self.measured[f'warden_{scale}'] = child
+                else:
+                    node = re.search(r'--name (\S+)', cmd)
+                    self.measured[f'node_{node.group(1) if node else child.pid}@{scale}'] = child
+        for name in self.measured:
+            if name.startswith(('agent_', 'warden_')):
+                self.roles[name] = (name.split('_', 1)[1], name.split('_', 1)[0])
+            elif name.startswith('decider'):
+                self.roles[name] = ('home', name)
+            elif name.startswith('node_'):
+                self.roles[name] = (name.split('@')[1], name.split('@')[0])
+            else:
+                self.roles[name] = ('-', name)
+
+    def snapshot(self) -> Dict[str, Dict[str, float]]:
+        return {n: cpu_snapshot(p) for n, p in self.measured.items()}
+
+    def result(self, before, after, elapsed, rss_max, shares, placed_before) -> dict:
+        rows = {}
+        for n, proc in self.measured.items():
+            cpu = {k: 100.0 * (after[n].get(k, 0.0) - before[n].get(k, 0.0)) / elapsed
+                   for k in ('total', 'main', 'python', 'dds')}
+            rows[n] = dict(scale=self.roles[n][0], role=self.roles[n][1], pid=proc.pid,
+                           cpu_percent=cpu['total'], main_thread=cpu['main'],
+                           python_threads=cpu['python'], dds_threads=cpu['dds'],
+                           rss_max_mib=rss_max[n], **memory(proc))
+            if n in shares:
+                rows[n]['main_thread_by_component'] = {
+                    k: v * cpu['main'] for k, v in shares[n].items()}
+        home = [n for n in rows if n.startswith(('agent_home', 'decider', 'warden_home'))]
+        every = [n for n in rows if n.startswith(('agent_', 'decider', 'warden_'))]
+        return {
+            'label': self.label, 'source': self.source, 'commit': commit(self.source),
+            'domain_id': self.domain, 'shared_home': self.shared_home,
+            'standby_decider': self.args.standby_decider, 'placed': placed_before,
+            'moved_during_window': placed_before != placement(self.folder), 'processes': rows,
+            'home_manager_cpu_percent': sum(rows[n]['cpu_percent'] for n in home),
+            'manager_rss_mib': sum(rows[n]['rss_mib'] for n in every),
+            'manager_pss_mib': sum(rows[n]['pss_mib'] for n in every),
+        }
+
+    def stop(self) -> None:
+        """The agents stop their nodes and their wardens leave; the deciders and the baseline
+        stop on SIGINT. Past the deadline, each process started here is killed by its pid."""
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 20.0
+        for proc in self.procs.values():
+            try:
+                proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(5.0)
+        for data in state_files(self.folder).values():
+            for rec in (data.get('nodes') or {}).values():
+                pid = rec.get('pid', 0)
+                if pid and psutil.pid_exists(pid):
+                    os.kill(pid, signal.SIGKILL)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--window', type=float, default=60.0, help='seconds measured')
@@ -306,188 +434,104 @@ def main() -> int:
                     help='sample each manager process with py-spy over the window into DIR')
     ap.add_argument('--source', metavar='DIR',
                     help='run the package from this source tree (default: the installed one)')
+    ap.add_argument('--against', metavar='DIR',
+                    help='also run the deployment from this source tree (an earlier commit), '
+                         'in the next domain, measured in the same window')
     ap.add_argument('--shared-home', action='store_true',
-                    help='the home agent and the decider in one process (a measurement)')
+                    help='the home agent and the decider in one process (a measurement; not '
+                         'the run of --against)')
     args = ap.parse_args()
     if args.window <= 0 or args.settle < 0:
         ap.error('--window must be positive and --settle not negative')
     if args.profile and shutil.which('py-spy', path=BIN + os.pathsep + os.environ.get(
             'PATH', '')) is None:
         ap.error('--profile needs py-spy (.venv/bin/pip install py-spy)')
+    trees = [('this', os.path.abspath(args.source or REPO))]
+    if args.against:
+        trees.insert(0, ('against', os.path.abspath(args.against)))
+    for _, tree in trees:
+        if not os.path.isdir(os.path.join(tree, 'anyscale_manager')):
+            ap.error(f'{tree}: no anyscale_manager package there')
     others = busy_others()
     if others:
         print('note: heavy runs of others on this machine:\n  ' + '\n  '.join(others),
               flush=True)
-
     sys.path.insert(0, REPO)
-    from anyscale_manager import config_files
-    env = config_files.with_discovery_profile(dict(
-        os.environ, ROS_DOMAIN_ID=str(args.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-        PYTHONUNBUFFERED='1'))
-    source = os.path.abspath(args.source or REPO)
-    if args.source:
-        if not os.path.isdir(os.path.join(source, 'anyscale_manager')):
-            ap.error(f'--source {args.source}: no anyscale_manager package there')
-        # Ahead of the editable install's finder: the agent's children (the warden, the
-        # workload nodes) inherit it.
-        env['PYTHONPATH'] = os.pathsep.join(filter(None, [source, env.get('PYTHONPATH')]))
-    folder = args.keep or tempfile.mkdtemp(prefix='bench_footprint_')
-    os.makedirs(folder, exist_ok=True)
-    path = deployment(folder, f'/bench_footprint_{os.getpid()}', args.rate_hz)
-    procs: Dict[str, subprocess.Popen] = {}
-
-    def start(name: str, argv: List[str]) -> subprocess.Popen:
-        log = open(os.path.join(folder, f'{name}.out'), 'w')
-        # In the run's folder: ``python -m`` puts the working directory first on the path.
-        procs[name] = subprocess.Popen(argv, env=env, stdout=log, stderr=subprocess.STDOUT,
-                                       stdin=subprocess.DEVNULL, start_new_session=True,
-                                       cwd=folder)
-        return procs[name]
-
-    ros = ['--ros-args', '--params-file', path]
-    result: dict = {}
+    top = args.keep or tempfile.mkdtemp(prefix='bench_footprint_')
+    runs = [Run(args, label, tree, args.domain_id + k, os.path.join(top, label))
+            for k, (label, tree) in enumerate(reversed(trees))]
     try:
-        start('baseline', [sys.executable, '-c', BASELINE, str(args.baseline_hz)])
-        agent = [sys.executable, '-m', 'anyscale_manager.nodes.agent']
-        decider = [sys.executable, '-m', 'anyscale_manager.nodes.decider']
-        for scale in SCALES:
-            if args.shared_home and scale == 'home':
-                start('agent_home', [sys.executable, '-c', SHARED, path])
-            else:
-                start(f'agent_{scale}', [*agent, *ros, '-p', f'scale:={scale}'])
-        if not args.shared_home:
-            start('decider', [*decider, *ros])
-        if args.standby_decider:
-            time.sleep(2.0)          # it starts after the leader, and stands by
-            start('decider_standby', [*decider, *ros])
-        wait_for(lambda: sum(len(v) for v in placement(folder).values()) >= 3, 120.0,
-                 'the three nodes running')
-        print(f'ROS_DOMAIN_ID={args.domain_id}; nodes at {args.rate_hz:g} Hz; running: '
-              f'{placement(folder)}; settling {args.settle:g} s', flush=True)
+        for run in runs:
+            run.start()
+        wait_for(lambda: all(run.ready() for run in runs), 120.0, 'the three nodes running')
+        print(f'nodes at {args.rate_hz:g} Hz; running: '
+              + '; '.join(f'{run.label} (domain {run.domain}) {placement(run.folder)}'
+                          for run in runs) + f'; settling {args.settle:g} s', flush=True)
         time.sleep(args.settle)
-        for name, proc in procs.items():
-            if proc.poll() is not None:
-                raise RuntimeError(f'{name} exited with {proc.returncode} (log in {folder})')
-
-        # Who is measured: the manager's processes, the wardens and nodes (the agents'
-        # children), and the baseline.
-        measured: Dict[str, psutil.Process] = {}
-        roles: Dict[str, tuple] = {}
-        for name, proc in procs.items():
-            measured[name] = psutil.Process(proc.pid)
-        for scale in SCALES:
-            agent = measured[f'agent_{scale}']
-            for child in agent.children():
-                cmd = ' '.join(child.cmdline())
-                if 'anyscale_manager.agent.warden' in cmd:
-                    measured[f'warden_{scale}'] = child
-                else:
-                    node = re.search(r'--name (\S+)', cmd)
-                    measured[f'node_{node.group(1) if node else child.pid}@{scale}'] = child
-        for name in measured:
-            if name.startswith(('agent_', 'warden_')):
-                roles[name] = (name.split('_', 1)[1], name.split('_', 1)[0])
-            elif name.startswith('decider'):
-                roles[name] = ('home', name)
-            elif name.startswith('node_'):
-                roles[name] = (name.split('@')[1], name.split('@')[0])
-            else:
-                roles[name] = ('-', name)
-        placed_before = placement(folder)
+        for run in runs:
+            run.find()
+        placed = [placement(run.folder) for run in runs]
         spies = {}
         if args.profile:
             os.makedirs(args.profile, exist_ok=True)
-            for name in measured:
+            for name, proc in runs[0].measured.items():
                 if name.startswith(('agent_', 'decider')):
                     out = os.path.join(args.profile, f'{name}.txt')
                     spies[name] = (subprocess.Popen(
                         [os.path.join(BIN, 'py-spy'), 'record', '--nonblocking', '--threads',
                          '--full-filenames', '--rate', '200', '--format', 'raw', '--duration',
-                         str(int(args.window)), '--output', out, '--pid',
-                         str(measured[name].pid)], stdout=subprocess.DEVNULL,
-                        stderr=subprocess.DEVNULL), out)
-
+                         str(int(args.window)), '--output', out, '--pid', str(proc.pid)],
+                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL), out)
         load_before = os.getloadavg()
         t0 = time.monotonic()
-        before = {n: cpu_snapshot(p) for n, p in measured.items()}
-        rss_max: Dict[str, float] = collections.defaultdict(float)
+        before = [run.snapshot() for run in runs]
+        rss_max: List[Dict[str, float]] = [collections.defaultdict(float) for _ in runs]
         while time.monotonic() - t0 < args.window:
             time.sleep(min(5.0, max(0.0, args.window - (time.monotonic() - t0))))
-            for n, p in measured.items():
-                try:
-                    rss_max[n] = max(rss_max[n], p.memory_info().rss / MIB)
-                except psutil.Error:
-                    pass
-        after = {n: cpu_snapshot(p) for n, p in measured.items()}
+            for run, peak in zip(runs, rss_max):
+                for n, proc in run.measured.items():
+                    try:
+                        peak[n] = max(peak[n], proc.memory_info().rss / MIB)
+                    except psutil.Error:
+                        pass
+        after = [run.snapshot() for run in runs]
         elapsed = time.monotonic() - t0
-        mem = {n: memory(p) for n, p in measured.items()}
         load_after = os.getloadavg()
-        placed_after = placement(folder)
         shares = {}
         for name, (spy, out) in spies.items():
             try:
                 spy.wait(30.0)
             except subprocess.TimeoutExpired:
                 spy.kill()
-            shares[name] = attribute(out, measured[name].pid)
-
-        rows = {}
-        for n in measured:
-            cpu = {k: 100.0 * (after[n].get(k, 0.0) - before[n].get(k, 0.0)) / elapsed
-                   for k in ('total', 'main', 'python', 'dds')}
-            rows[n] = dict(scale=roles[n][0], role=roles[n][1], pid=measured[n].pid,
-                           cpu_percent=cpu['total'], main_thread=cpu['main'],
-                           python_threads=cpu['python'], dds_threads=cpu['dds'],
-                           rss_max_mib=rss_max[n], **mem[n])
-            if n in shares:
-                rows[n]['main_thread_by_component'] = {
-                    k: v * cpu['main'] for k, v in shares[n].items()}
-        manager_home = [n for n in rows if n.startswith(('agent_home', 'decider', 'warden_home'))]
-        manager_all = [n for n in rows if n.startswith(('agent_', 'decider', 'warden_'))]
-        result = {
-            'command': ' '.join(sys.argv), 'date': time.strftime('%Y-%m-%d %H:%M:%S'),
-            'commit': commit(source),
-            'window_s': elapsed, 'settle_s': args.settle, 'rate_hz': args.rate_hz,
-            'shared_home': args.shared_home, 'standby_decider': args.standby_decider,
-            'cpus': psutil.cpu_count(logical=True), 'load_before': load_before,
-            'load_after': load_after, 'others_busy': others, 'placed': placed_before,
-            'moved_during_window': placed_before != placed_after, 'processes': rows,
-            'home_manager_cpu_percent': sum(rows[n]['cpu_percent'] for n in manager_home),
-            'manager_rss_mib': sum(rows[n]['rss_mib'] for n in manager_all),
-            'manager_pss_mib': sum(rows[n]['pss_mib'] for n in manager_all),
-        }
-        report(result)
+            shares[name] = attribute(out, runs[0].measured[name].pid)
+        results = [run.result(b, a, elapsed, peak, shares if k == 0 else {}, where)
+                   for k, (run, b, a, peak, where)
+                   in enumerate(zip(runs, before, after, rss_max, placed))]
+        common = {'command': ' '.join(sys.argv), 'date': time.strftime('%Y-%m-%d %H:%M:%S'),
+                  'window_s': elapsed, 'settle_s': args.settle, 'rate_hz': args.rate_hz,
+                  'cpus': psutil.cpu_count(logical=True), 'load_before': load_before,
+                  'load_after': load_after, 'others_busy': others}
+        for r in reversed(results):
+            r.update(common)
+            report(r)
+        result = dict(results[0], against=results[1] if len(results) > 1 else None)
         if args.out:
             with open(args.out, 'w') as f:
                 json.dump(result, f, indent=1, sort_keys=True)
             print(f'written: {args.out}')
     finally:
-        # The agents stop their nodes and their wardens leave; the deciders and the baseline
-        # stop on SIGINT. Past the deadline, each process started here is killed by its pid.
-        for name, proc in procs.items():
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + 20.0
-        for name, proc in procs.items():
-            try:
-                proc.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5.0)
-        for data in state_files(folder).values():
-            for rec in (data.get('nodes') or {}).values():
-                pid = rec.get('pid', 0)
-                if pid and psutil.pid_exists(pid):
-                    os.kill(pid, signal.SIGKILL)
+        for run in runs:
+            run.stop()
         if not args.keep:
             time.sleep(1.0)        # the wardens see the state folder go, and leave
-            shutil.rmtree(folder, ignore_errors=True)
+            shutil.rmtree(top, ignore_errors=True)
     return 0
 
 
 def report(r: dict) -> None:
     rows = r['processes']
-    print(f'\n{r["date"]} at {r["commit"]}: {r["window_s"]:.0f} s window after '
+    print(f'\n{r["label"]}: {r["source"]}, {r["date"]} at {r["commit"]}: {r["window_s"]:.0f} s '
+          f'window after '
           f'{r["settle_s"]:g} s, {r["cpus"]} CPUs, load {r["load_before"][0]:.1f} -> '
           f'{r["load_after"][0]:.1f}; nodes: {r["placed"]}'
           + (' (a node moved during the window)' if r['moved_during_window'] else ''))
