@@ -629,6 +629,32 @@ def test_process_table_and_trees_in_one_pass():
                      'leaf': {12: 0.5}, 'gone': {}}
 
 
+def test_the_table_of_a_few_trees_reads_only_them():
+    """tree_table: the processes of the given trees (a child started by another thread and a
+    grandchild included) as process_table has them, and nothing else of the machine."""
+    me = os.getpid()
+    started = []
+    thread = threading.Thread(target=lambda: started.append(subprocess.Popen(
+        ['sh', '-c', 'sleep 30 & wait'], start_new_session=True)))
+    thread.start()
+    thread.join()
+    child = started[0]
+    try:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and not psutil.Process(child.pid).children():
+            time.sleep(0.02)
+        grandchild = psutil.Process(child.pid).children()[0].pid
+        table = procs.tree_table([me, 999999999])
+        assert {me, child.pid, grandchild} <= set(table) and os.getppid() not in table
+        full = procs.process_table()
+        assert all(table[pid][0] == full[pid][0] for pid in (child.pid, grandchild))
+        assert table[grandchild][0] == child.pid and table[child.pid][0] == me
+        assert procs.tree_table([child.pid]).keys() == {child.pid, grandchild}
+    finally:
+        procs.signal_session(child.pid, signal.SIGKILL)
+        child.wait(5.0)
+
+
 def test_a_remote_scale_cut_off_from_the_master_stops_its_migratable_nodes():
     r = reconciler('b')                       # 'a' is the master
     r.heard_master(0.0)                       # the agent's start counts as word from it
