@@ -167,6 +167,37 @@ def test_probe_places_arrivals_at_their_reception_time(ros, deployment):
         probes.destroy()
 
 
+def test_slow_topics_are_drained_at_the_reports_and_a_fast_one_every_50_ms(ros, deployment):
+    """A graph of topics at a few hertz is taken only when the probes report (the queue holds
+    far more than a report period of them); a topic fast enough to fill a quarter of it in that
+    time makes the probes drain every 50 ms again. The readings are the same either way."""
+    make, executor = ros.node, ros.executor
+    deployment = dataclasses.replace(deployment, monitoring=dataclasses.replace(
+        deployment.monitoring, probe_publish_rate_hz=2.0))
+    listener = Listener(make('drain_listener'), p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus)
+    probes = ProbeManager(make('agent_drain'), deployment, 'laptop')
+    probes.set_connections(['laser_amcl', 'camera_ar'])
+    assert probes.tick_s == 0.05                  # rates not known yet
+    try:
+        laser = Publisher(make('laser_slow'), '/scan', rate_hz=5.0)
+        spin_until(executor, lambda: probes.tick_s == 0.5, 15.0, 'the probes ticking at 2 Hz',
+                   state=lambda: f'tick {probes.tick_s} s')
+        n = len(listener.messages)
+        spin_until(executor, lambda: len(listener.messages) >= n + 4, 5.0, 'four reports')
+        assert reading(listener, 'laser_amcl').rate_hz == pytest.approx(5.0, rel=0.05)
+        assert probes.tick_s == 0.5
+        camera = Publisher(make('camera_fast'), '/image', rate_hz=200.0)
+        spin_until(executor, lambda: probes.tick_s == 0.05, 10.0, 'the probes ticking at 20 Hz')
+        spin_until(executor, lambda: (reading(listener, 'camera_ar') is not None and
+                                      reading(listener, 'camera_ar').rate_hz > 150.0), 10.0,
+                   'the fast topic read', state=lambda: reading(listener, 'camera_ar'))
+        assert reading(listener, 'laser_amcl').rate_hz == pytest.approx(5.0, rel=0.05)
+        camera.stop()
+        laser.stop()
+    finally:
+        probes.destroy()
+
+
 def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deployment):
     """What the agent asks before it lets a moving node's old copy go: has this scale heard the
     copy started elsewhere? Two real writers of /amcl_pose (AMCL is migratable), one long

@@ -23,7 +23,7 @@ EVENTS = _profile(100, reliable=True)
 # Reading monitors: best effort matches reliable and best-effort publishers alike.
 MONITOR_READER = _profile(20, reliable=False)
 # Probes: best effort and volatile reach every publisher; the probes drain their subscriptions
-# every 50 ms, and 100 messages hold a 1 kHz topic for twice that.
+# every 50 ms while a topic is fast, and 100 messages hold a 1 kHz topic for twice that.
 PROBE = _profile(100, reliable=False)
 # Deciders' beats (every decider.beat_s): the newest counts, a lost one is replaced at once.
 BEAT = _profile(10, reliable=False)

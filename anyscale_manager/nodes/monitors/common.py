@@ -104,6 +104,17 @@ class Cadence:
                              f'cadence, {self.tick_s:g} s')
         self._jobs.append([period_s, self._start + period_s, job])
 
+    def due(self, job: Callable[[], None]) -> float:
+        """When ``job`` is next due."""
+        return next(entry[1] for entry in self._jobs if entry[2] == job)
+
+    def retick(self, tick_s: float) -> None:
+        """Tick every ``tick_s`` from now on; no job may be faster. Due times stand."""
+        if not tick_s > 0 or any(period < tick_s for period, _, _ in self._jobs):
+            raise ValueError(f'a cadence cannot tick every {tick_s!r} s with jobs every '
+                             f'{", ".join(f"{j[0]:g}" for j in self._jobs)} s')
+        self.tick_s = tick_s
+
     def run(self, now: float) -> None:
         """Run, in the order they were added, the jobs due at ``now``. Each is rescheduled
         before it runs: one that raises does not run twice, and the rest run at the next tick."""

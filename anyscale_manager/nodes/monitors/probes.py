@@ -2,10 +2,20 @@
 scale, and who wrote (handovers).
 
 The probe subscriptions live on a node of their own that no executor spins, and are drained
-in batches (``take_message``, raw, with the message info) every ``DRAIN_PERIOD_S`` and before
-each report; each arrival is placed at its DDS reception time, not at the time it was taken.
-A callback per message would cost far more than the message: on a 1 kHz image topic the events
-executor's dispatch was 110 us per message against 8 us for a take (bench_probe_cost.py).
+in batches (``take_message``, raw, with the message info) before each report and, while a
+probed topic is fast, every ``DRAIN_PERIOD_S``; each arrival is placed at its DDS reception
+time, not at the time it was taken. A callback per message would cost far more than the
+message: on a 1 kHz image topic the events executor's dispatch was 110 us per message against
+8 us for a take (bench_probe_cost.py).
+
+How often: a subscription holds ``qos.PROBE.depth`` messages (100: a 1 kHz topic's 0.1 s), and
+a drain must come before it fills. Topics whose fastest rate yet fills at most a quarter of it
+in a report period are drained only at the reports (twice a second by default, at most a
+second apart); one fast topic, or one not heard yet whose writer is matched, drains them all
+every 50 ms. A wake-up of
+the executor costs about as much as a drain of a few messages (70 us on the test machine), and
+twenty a second for topics at a few hertz were a tenth of the robot agent's CPU. Since the
+arrivals keep their reception times, a later take changes no reading.
 """
 
 import threading
@@ -16,6 +26,7 @@ from typing import Dict, Iterable, Iterator, Optional, Tuple
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.node import Node
 
+from .. import qos
 from ... import protocol as p
 from ...model.types import Connection, Deployment
 from ...protocol_auth import Sealer
@@ -27,9 +38,13 @@ from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, perio
                      status)
 
 TYPE_RESOLVE_PERIOD_S = 1.0
-# Every 50 ms: the probe QoS holds 100 messages, a 1 kHz topic's 0.1 s, twice the period.
+# Every 50 ms while a topic is fast: the probe QoS holds 100 messages, a 1 kHz topic's 0.1 s,
+# twice the period.
 DRAIN_PERIOD_S = 0.05
 DRAIN_LIMIT = 1000          # messages taken from one subscription per drain, at most
+# A topic may be left to the reports' drains while its fastest rate yet brings at most this many
+# messages between two of them: a quarter of what its subscription holds.
+SLOW_DRAIN_MESSAGES = qos.PROBE.depth // 4
 
 
 @dataclass
@@ -48,6 +63,7 @@ class _TopicProbe:
     problem: str = ''          # why there is no subscription yet
     fatal: bool = False        # the type cannot be used here: no reading at all
     judges: Dict[str, DeltaJudge] = field(default_factory=dict)   # connection -> its Δ judge
+    peak_hz: Optional[float] = None   # its fastest rate between two drains (None: not heard)
 
 
 class ProbeManager:
@@ -82,13 +98,16 @@ class ProbeManager:
         self._reader = Node(f'_{node.get_name()}_probes', namespace=node.get_namespace(),
                             context=node.context, start_parameter_services=False,
                             enable_rosout=False)
-        # One timer drains, resolves types and publishes, each at its own period.
-        tick_s = min(DRAIN_PERIOD_S, period)
-        self._cadence = Cadence(tick_s, time.monotonic())
-        self._cadence.every(tick_s, self.drain)
-        self._cadence.every(max(TYPE_RESOLVE_PERIOD_S, tick_s), self._resolve_pending)
+        # One timer drains, resolves types and publishes, each at its own period; it ticks
+        # every DRAIN_PERIOD_S while a topic is fast, else at the reports' period.
+        self._fast_s = min(DRAIN_PERIOD_S, period)
+        self._slow_s = min(period, TYPE_RESOLVE_PERIOD_S)
+        self._drained_at = time.monotonic()
+        self._published = 0                 # reports sent
+        self._cadence = Cadence(self._fast_s, time.monotonic())
+        self._cadence.every(max(TYPE_RESOLVE_PERIOD_S, self._fast_s), self._resolve_pending)
         self._cadence.every(period, self._publish)
-        self._timer = node.create_timer(tick_s, self._on_tick, callback_group=self._group)
+        self._timer = node.create_timer(self._fast_s, self._on_tick, callback_group=self._group)
 
     @property
     def connections(self) -> Tuple[str, ...]:
@@ -103,6 +122,7 @@ class ProbeManager:
                              f'connection {", ".join(repr(n) for n in unknown)}')
         wanted = {n: self._deployment.connection(n) for n in names}
         with self._lock:
+            topics = set(self._topics)
             for name in [n for n in self._probes if n not in wanted]:
                 conn = self._probes.pop(name)
                 self._release(conn.topic, name)
@@ -111,6 +131,9 @@ class ProbeManager:
                     continue
                 self._probes[name] = conn
                 self._attach(conn)
+            added = set(self._topics) - topics
+        if added:
+            self._retick(self._fast_s)      # a new topic's rate is not known yet
 
     def _resolve(self, topic: str) -> str:
         try:
@@ -175,8 +198,46 @@ class ProbeManager:
         probe.msg_class = cls
         self._ensure_watch(probe)
 
+    @property
+    def tick_s(self) -> float:
+        """The period the probes' timer ticks at now."""
+        return self._cadence.tick_s
+
     def _on_tick(self) -> None:
+        self.drain()
+        published = self._published
         self._cadence.run(time.monotonic())
+        # Slower right after a report (the next tick then falls on the next one), faster at
+        # once.
+        if self._slow_enough():
+            if self._published != published:
+                self._retick(self._slow_s)
+        else:
+            self._retick(self._fast_s)
+
+    def _retick(self, tick_s: float) -> None:
+        if tick_s != self._cadence.tick_s:
+            self._cadence.retick(tick_s)
+            self._timer.timer_period_ns = round(tick_s * 1e9)
+            self._timer.reset()
+
+    def _slow_enough(self) -> bool:
+        """Whether no topic probed was ever faster than SLOW_DRAIN_MESSAGES in a slow tick (see
+        the module). A topic not heard yet counts as fast once a writer is matched: its rate
+        is not known, and its first messages are on their way."""
+        with self._lock:
+            for probe in self._topics.values():
+                if probe.subscription is None:
+                    continue
+                if probe.peak_hz is None:
+                    try:
+                        if probe.subscription.get_publisher_count() > 0:
+                            return False
+                    except Exception:   # destroyed meanwhile
+                        continue
+                elif probe.peak_hz * self._slow_s > SLOW_DRAIN_MESSAGES:
+                    return False
+        return True
 
     def _resolve_pending(self) -> None:
         with self._lock:
@@ -185,35 +246,48 @@ class ProbeManager:
                     self._subscribe(probe)
 
     def drain(self) -> None:
-        """Take every message the probe subscriptions hold into their rate windows."""
+        """Take every message the probe and watch subscriptions hold: arrivals into their rate
+        windows, writers into their streams."""
         with self._lock:
             self._drain_locked()
+        self.poll_writers(time.monotonic())
 
     def _drain_locked(self) -> None:
         # Reception times are on the system clock; the windows run on the monotonic one.
         offset_s = clock_offset_s()
         now = time.monotonic()
+        # Two messages taken a moment apart (a report's drain right after the tick's) are no
+        # burst: a rate is counted over at least a fast tick.
+        elapsed = max(now - self._drained_at, self._fast_s)
+        self._drained_at = now
         for probe in self._topics.values():
             subscription, window = probe.subscription, probe.window
             if subscription is None:
                 continue
+            count = 0
             try:
                 for raw, info in _taken(subscription, DRAIN_LIMIT):
                     at = received_at(info, offset_s, now)
                     window.add(at, len(raw))
                     for judge in probe.judges.values():
                         judge.add(at)
+                    count += 1
             except Exception:   # destroyed meanwhile: its topic is no longer probed
                 continue
+            if count:
+                probe.peak_hz = max(probe.peak_hz or 0.0, count / elapsed)
 
     def poll_writers(self, now: float, limit: int = 200) -> None:
-        """Read what the watch subscriptions hold: who wrote each message (see the class)."""
+        """Read what the watch subscriptions hold: who wrote each message (see the class), at
+        its reception time."""
         with self._lock:
             watched = [(p.watch, p.writers) for p in self._topics.values() if p.watch is not None]
+        offset_s = clock_offset_s()
         for subscription, writers in watched:
             try:
                 for _raw, info in _taken(subscription, limit):
-                    writers.add(now, info.get('publication_sequence_number'))
+                    writers.add(received_at(info, offset_s, now),
+                                info.get('publication_sequence_number'))
             except Exception:   # destroyed meanwhile: its topic is no longer probed
                 continue
 
@@ -269,6 +343,8 @@ class ProbeManager:
 
     def _publish(self) -> None:
         now = time.monotonic()
+        self._published += 1
+        self.poll_writers(now)
         readings = self.readings(now)
         message = p.ConnectionStatus(scale=self._scale.name, stamp=time.time(),
                                      connections={k: r for k, (r, _) in readings.items()})
