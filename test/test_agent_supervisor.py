@@ -291,6 +291,20 @@ def test_a_long_healthy_run_makes_the_next_crash_a_first_one(make_sup):
     os.kill(sup.pids()['n'], signal.SIGKILL)
     assert drive(sup, lambda: any('crashed' in text for _, text in sup.events))
     assert any('restarting in 0 s' in text for _, text in sup.events)
+    sup.events.clear()
+    # The same with no step during the healthy run (an idle agent steps once a second at most):
+    # the crash is judged by how long the node ran, not by a step taken meanwhile.
+    assert drive(sup, lambda: sup.reports()['n'].state == 'running')
+    pid = sup.pids()['n']
+    os.kill(pid, signal.SIGKILL)          # a second crash at once: the next waits 0.2 s
+    assert drive(sup, lambda: sup.reports()['n'].state == 'running'
+                 and sup.pids()['n'] != pid, timeout=5.0)
+    assert any('restarting in 0.2 s' in text for _, text in sup.events)
+    sup.events.clear()
+    time.sleep(1.2)
+    os.kill(sup.pids()['n'], signal.SIGKILL)
+    assert drive(sup, lambda: any('crashed' in text for _, text in sup.events))
+    assert any('restarting in 0 s' in text for _, text in sup.events), sup.events
 
 
 def test_an_exit_wakes_the_watcher_without_polling():

@@ -13,8 +13,10 @@ import pytest
 from anyscale_manager import protocol as p
 from anyscale_manager.agent import lifecycle as lc
 from anyscale_manager.agent import turn as agent_turn
-from anyscale_manager.agent.turn import (AgentInputs, AgentTurn, name_counts, NOT_A_PEER,
-                                         NOT_FOLLOWED_EVERY_S, STOPPING_TICK_S, TICK_S)
+from anyscale_manager.agent.reconcile import SUPERSEDED_QUIET_S
+from anyscale_manager.agent.turn import (AgentInputs, AgentTurn, IDLE_TICK_S, name_counts,
+                                         NOT_A_PEER, NOT_FOLLOWED_EVERY_S, STOPPING_TICK_S,
+                                         TICK_S)
 from anyscale_manager.model.loader import load_mapping
 from supervision import py_entry, SLEEPER
 from test_agent_supervisor import deployment_dict
@@ -49,13 +51,14 @@ def peer_report(scale, generation, **nodes):
 
 
 class Agent:
-    """An AgentTurn of scale 'a' on a hand-written clock. Its lifecycle copies answer each
-    service call at once, as a node would (their states are kept per process)."""
+    """An AgentTurn of scale 'a' (the master; or ``scale``) on a hand-written clock. Its
+    lifecycle copies answer each service call at once, as a node would (their states are kept
+    per process)."""
 
-    def __init__(self, make_sup, entries, turn_class=AgentTurn):
+    def __init__(self, make_sup, entries, turn_class=AgentTurn, scale='a'):
         self.now = 100.0
         self.sup = make_sup(entries)
-        self.turn = turn_class(deployment(), 'a', {e.name: e for e in entries}, self.sup,
+        self.turn = turn_class(deployment(), scale, {e.name: e for e in entries}, self.sup,
                                instance='me', wall_offset=WALL_OFFSET)
         self.labels = {}          # (node, pid) -> its lifecycle state
         self.visible = {}         # what the ROS graph shows: name -> count
@@ -100,7 +103,7 @@ def test_a_layout_placing_a_node_here_starts_it_and_reports_only_what_changed(ma
     agent = Agent(make_sup, [py_entry('plain', SLEEPER)])
     out = agent.step()
     assert out.wanted == set() and out.report is None      # no layout, nothing ran: no news
-    assert out.tick_s == TICK_S
+    assert out.tick_s == IDLE_TICK_S                        # nor anything to do
     out = agent.turn.on_layout(layout(1, plain='a'), agent.now)
     assert out.step
     assert ('info', 'following decider d1 (host h, pid 1) (term 1)') in out.logs
@@ -198,6 +201,59 @@ def test_the_tick_quickens_while_a_node_stops(make_sup, tmp_path):
     agent.until(lambda out: outs.append(out) or agent.turn.finished, 'the node stopped')
     assert all(o.tick_s == STOPPING_TICK_S for o in outs[:-1]) and outs[-1].tick_s == TICK_S
     assert any('sending SIGTERM' in text for o in outs for _, text in o.logs)
+
+
+def test_an_agent_with_nothing_under_way_steps_only_when_something_is_due(make_sup):
+    """A node on its way asks for a step every TICK_S; once it is up and seen, and its DDS
+    ports given up for (a plain process has none; they are looked for every 0.25 s, 30 s at
+    most), the next step is due only IDLE_TICK_S later. A peer's unchanged heartbeat asks for
+    no step, its news does."""
+    agent = Agent(make_sup, [py_entry('plain', SLEEPER)])
+    agent.turn.on_layout(layout(1, plain='a'), agent.now)
+    out = agent.step()
+    assert agent.sup.state('plain') == p.ProcState.STARTING and out.tick_s == TICK_S
+    assert agent.turn.watches_graph                 # looked for in the ROS graph
+    agent.visible = {'plain': 1}
+    out = agent.step()
+    assert agent.sup.state('plain') == p.ProcState.RUNNING and not agent.turn.watches_graph
+    assert STOPPING_TICK_S <= out.tick_s <= 0.25    # its DDS ports, looked for again
+    assert agent.step(dt=31.0).tick_s == IDLE_TICK_S
+    assert agent.turn.on_agent_state(peer_report('b', 1, plain='stopped'), agent.now).step
+    agent.now += 0.5
+    assert not agent.turn.on_agent_state(peer_report('b', 1, plain='stopped'), agent.now).step
+    agent.now += 0.5
+    assert agent.turn.on_agent_state(peer_report('b', 2, plain='stopped'), agent.now).step
+    agent.now += 0.5
+    assert not agent.turn.on_agent_state(peer_report('b', 2, plain='stopped'), agent.now).step
+    agent.now += SUPERSEDED_QUIET_S                  # heard again after a silence: it counts
+    assert agent.turn.on_agent_state(peer_report('b', 2, plain='stopped'), agent.now).step
+    assert agent.step().tick_s == IDLE_TICK_S
+
+
+def test_a_node_backing_off_asks_for_its_step_at_its_restart(make_sup):
+    """A crash loop's second crash waits restart_backoff_s (0.2 s here): with nothing else
+    under way the next step is due then, not every TICK_S meanwhile, nor IDLE_TICK_S later."""
+    agent = Agent(make_sup, [py_entry('plain', 'raise SystemExit(3)')])
+    agent.turn.on_layout(layout(1, plain='a'), agent.now)
+    out = agent.until(lambda out: agent.sup.state('plain') == p.ProcState.BACKOFF,
+                      'the node backing off')
+    assert out.tick_s == pytest.approx(0.2)
+
+
+def test_a_remote_agent_steps_when_the_masters_silence_would_change_what_it_runs(make_sup):
+    """On a remote scale the master's silence stands a copy down after SUPERSEDED_QUIET_S (if a
+    peer serves it under a newer layout) and stops the migratable nodes after agent_timeout_s:
+    with nothing else under way, the next step is due a millisecond past each."""
+    agent = Agent(make_sup, [py_entry('plain', SLEEPER)], scale='b')
+    start = agent.now                                # the agent's start is word from the master
+    out = agent.step()
+    assert out.tick_s == pytest.approx(start + SUPERSEDED_QUIET_S + 1e-3 - agent.now)
+    out = agent.step(dt=out.tick_s)
+    timeout_s = agent.turn.deployment.decider.agent_timeout_s
+    assert out.tick_s == pytest.approx(min(IDLE_TICK_S, start + timeout_s + 1e-3 - agent.now))
+    agent.turn.on_objective(None, agent.now)        # word from the master again
+    word = agent.now
+    assert agent.step().tick_s == pytest.approx(word + SUPERSEDED_QUIET_S + 1e-3 - agent.now)
 
 
 def test_an_activation_held_back_keeps_the_copy_inactive_until_released(make_sup):

@@ -123,6 +123,13 @@ class Driver:
     def known(self) -> bool:
         return self.state != UNKNOWN
 
+    @property
+    def settled(self) -> bool:
+        """Nothing to ask nor wait for: its state known, at its goal (or none set), no call
+        out, no retry due."""
+        return (self.pending is None and not self._check and not self.failed
+                and (self.goal is None or self.state == self.goal))
+
     def next_request(self, now: float, reachable: bool) -> Optional[Request]:
         """The call to make now, if any (the caller makes it at once); None while one is out,
         while the services are not reachable, in a backoff, at the goal, or after giving up."""

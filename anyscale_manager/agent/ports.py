@@ -124,3 +124,7 @@ class PortHold:
 
     def held(self) -> FrozenSet[int]:
         return frozenset(s.getsockname()[1] for _, s in self._held)
+
+    def next_release(self) -> Optional[float]:
+        """When the first held port is due to be released (None: none held)."""
+        return min((until for until, _ in self._held), default=None)

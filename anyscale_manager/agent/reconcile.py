@@ -164,6 +164,30 @@ class Reconciler:
         return (self.scale != self.master and self.contact is not None
                 and now - self.contact > self.agent_timeout_s)
 
+    def next_due(self, now: float) -> Optional[float]:
+        """When the master's silence next changes what this remote scale may run, unless word
+        comes first: SUPERSEDED_QUIET_S after the last word (a copy stands down if a peer
+        serves it under a newer layout), then past agent_timeout_s (its migratable nodes
+        stop). None on the master, once both are past, or before any word."""
+        if self.scale == self.master or self.contact is None:
+            return None
+        # A millisecond past each: both rules compare with the silence strictly.
+        due = (self.contact + SUPERSEDED_QUIET_S + 1e-3,
+               self.contact + self.agent_timeout_s + 1e-3)
+        return min((t for t in due if t > now), default=None)
+
+    def peer_news(self, before: Optional[Peer], now: float) -> bool:
+        """Whether the report just recorded for a peer (``before``: its previous one) can
+        change what runs here: a peer heard for the first time or again after a silence of
+        SUPERSEDED_QUIET_S or more, or one whose layout, nodes or decider changed. Its
+        unchanged heartbeat only keeps it counted."""
+        if before is None:
+            return True
+        after = self.peers.get(before.scale)
+        return after is None or now - before.heard >= SUPERSEDED_QUIET_S or (
+            (after.generation, after.nodes, after.decider, after.term)
+            != (before.generation, before.nodes, before.decider, before.term))
+
     def peer_state(self, state: AgentState, now: float) -> Optional[str]:
         """Record another agent's report; a warning when it cannot be one of our peers."""
         if state.scale == self.scale:

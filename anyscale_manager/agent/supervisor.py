@@ -217,8 +217,43 @@ class Supervisor:
             self.save()
         return changed
 
+    @property
+    def settled(self) -> bool:
+        """Whether no process is on its way but at a time ``next_due`` knows: each is up and
+        seen ready, stopped as wanted, or waits for its restart; none is stopping, and the
+        state file is written. Then only those times and what happens to the processes (an
+        exit, a new set of wanted nodes) give a step work."""
+        if self._ghosts or self._dirty:
+            return False
+        return all((p.state == ProcState.RUNNING and p.ready) or p.state in DOWN
+                   or (p.state == ProcState.STOPPED and not p.wanted)
+                   for p in self._procs.values())
+
+    def next_due(self, now: float) -> Optional[float]:
+        """The earliest time a step has work that no exit nor input brings: a node restarted
+        after its backoff, its DDS ports looked for again (every PORTS_EVERY_S from its start
+        until found, PORTS_LOOK_S at most), held ports released (None: no such work)."""
+        due = [p.ports_next for p in self._procs.values()
+               if p.state in LIVE_STATES and not p.ports and p.ports_next <= p.ports_until
+               and now <= p.ports_until]
+        due += [p.restart_at for p in self._procs.values() if p.state in DOWN and p.wanted]
+        release = self.port_hold.next_release()
+        if release is not None:
+            due.append(release)
+        return min(due, default=None)
+
+    def unseen(self) -> Tuple[str, ...]:
+        """Live processes not seen ready yet: those a step looks for in the ROS graph."""
+        return tuple(n for n, p in self._procs.items() if p.state in LIVE_STATES
+                     and not (p.state == ProcState.RUNNING and p.ready))
+
     def _step_one(self, p: _Proc, now: float, visible: Callable[[Entry], bool]) -> None:
         if p.state in LIVE_STATES:
+            if p.state == ProcState.RUNNING \
+                    and now - p.running_since >= self.settings.restart_backoff_max_s:
+                # A long healthy run: its next crash, this one included, is not part of a loop
+                # (judged here, not left to a step between, which an idle agent may not take).
+                p.backoff_s = 0.0
             code, gone = self._leader_exit(p)
             if gone:
                 self._crashed(p, now, code)
@@ -250,9 +285,6 @@ class Supervisor:
                 if seen and not p.ready:
                     p.ready = True
                     p.exit_reason = ''
-                if now - p.running_since >= self.settings.restart_backoff_max_s:
-                    # A long healthy run: its next crash is not part of a loop.
-                    p.backoff_s = 0.0
         elif p.state == ProcState.STOPPING:
             self._step_stopping(p, now)
         elif p.state in DOWN:

@@ -29,6 +29,13 @@ TICK_S = 0.1
 # While a node is stopping the loop runs this often: a stop_before_start move waits until the
 # old copy is seen gone here (and reported) before the other scale starts the new one.
 STOPPING_TICK_S = 0.02
+# With nothing under way (every process up and seen, or stopped as wanted; every lifecycle copy
+# at its goal; no move, stop or hand-over waiting) a step has work only when an input arrives
+# (a layout, a peer's news, an exit, a signal, an answer of a lifecycle copy: each steps at
+# once) or at a deadline the turn knows (the master's silence on a remote scale, a node's DDS
+# ports): the next step is due then, and at the latest after this. Ten steps a second with
+# nothing to do were a tenth of the robot agent's CPU.
+IDLE_TICK_S = 1.0
 # A layout that names unknown nodes or scales is logged entry by entry up to this many.
 MAX_LAYOUT_WARNINGS = 5
 # The layouts of a decider not followed come as often as it publishes: said once this often.
@@ -169,8 +176,9 @@ class AgentTurn:
     @property
     def watches_graph(self) -> bool:
         """Whether a step needs the ROS graph's node names (``AgentInputs.visible``): a plain
-        node is up once its name shows there, a lifecycle copy once it answers get_state."""
-        return len(self.drivers) < len(self.catalogue)
+        node is up once its name shows there (a lifecycle copy once it answers get_state), and
+        only a copy not seen yet is looked for."""
+        return any(n not in self.drivers for n in self.supervisor.unseen())
 
     @property
     def finished(self) -> bool:
@@ -308,14 +316,16 @@ class AgentTurn:
         return out
 
     def on_agent_state(self, state: protocol.AgentState, now: float) -> AgentOutput:
-        """Another agent's report (not this one's own) that passed the signature check."""
+        """Another agent's report (not this one's own) that passed the signature check: a step
+        at once when it is news (Reconciler.peer_news)."""
         out = AgentOutput()
+        before = self.reconciler.peers.get(state.scale)
         warning = self.reconciler.peer_state(state, now)
         if warning:
             out.notes.append((NOT_A_PEER, 'warn', warning))
         elif state.scale != self.scale:
             self.hosts.heard(state.scale, state.host_id, state.host, now)
-            out.step = True
+            out.step = self.reconciler.peer_news(before, now)
         return out
 
     def on_objective(self, objective: protocol.Objective, now: float) -> AgentOutput:
@@ -409,9 +419,27 @@ class AgentTurn:
             self._probe_names = out.probe_connections = names
         stopping = any(sup.state(n) == ProcState.STOPPING for n in sup.names)
         # A hand-over under way is looked at again soon: the copy's activation waits on it.
-        fast = stopping or bool(self.states.pending())
-        self.tick_s = out.tick_s = STOPPING_TICK_S if fast else TICK_S
+        if stopping or self.states.pending():
+            tick = STOPPING_TICK_S
+        elif self._under_way():
+            tick = TICK_S
+        else:
+            due = [t for t in (self.reconciler.next_due(now), sup.next_due(now)) if t is not None]
+            tick = IDLE_TICK_S if not due else min(IDLE_TICK_S,
+                                                   max(STOPPING_TICK_S, min(due) - now))
+        self.tick_s = out.tick_s = tick
         return out
+
+    def _under_way(self) -> bool:
+        """Whether a step may have work before an input arrives (IDLE_TICK_S): a process on its
+        way (starting, backing off, not seen yet, stopping), a lifecycle copy not at its goal,
+        a move held back, a shutdown, or a node's state kept here (its reader, of depth 1, is
+        taken at each step, and the check for two writers counts what it sees)."""
+        sup = self.supervisor
+        return bool(self.shutdown_requests or self.reconciler.waiting or self._finalize_since
+                    or self.states.specs or not sup.settled
+                    or any(not d.settled for n, d in self.drivers.items()
+                           if sup.state(n) in LIVE_STATES))
 
     def _restore_topic(self, name: str) -> str:
         """The restore topic of ``name``'s live process here ('' when none runs)."""

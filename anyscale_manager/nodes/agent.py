@@ -146,7 +146,9 @@ class AgentNode(Node):
             self.create_subscription(String, protocol.TOPIC_OBJECTIVE, self._signed(
                 'objective', protocol.Objective, protocol.TOPIC_OBJECTIVE,
                 'an objective message', self._check_objective, self.turn.on_objective), 10)
-        # One timer drives the loop, at STOPPING_TICK_S while a node is stopping.
+        # One timer drives the loop at the period each step asks for: TICK_S while something is
+        # under way, STOPPING_TICK_S while a node stops, the next deadline (IDLE_TICK_S at
+        # most) when nothing is; every input that changes what runs steps at once.
         self._tick_s = TICK_S
         self._tick_timer = self.create_timer(TICK_S, self._tick)
         self.create_timer(1.0 / self.settings.heartbeat_rate_hz, self._publish_state)
