@@ -488,6 +488,52 @@ def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment, python, tmp
     master.destroy()
 
 
+def test_a_link_up_and_not_probed_wakes_its_monitor_for_the_beats_only(
+        ros, deployment, python, tmp_path, request):
+    """While the link is up and not probed, the watching monitor's timer wakes at the beats and
+    at the first moment the down rule could be met, not CHECKS_PER_BEAT times a period; a cut
+    is still judged within misses_down periods of the last echo, and a link down is checked
+    every quarter period again."""
+    make, executor = ros.node, ros.executor
+    deployment = dataclasses.replace(deployment, monitoring=dataclasses.replace(
+        deployment.monitoring, bandwidth_probe_interval_s=86400.0))
+    listener = Listener(make('quiet_listener'), p.TOPIC_LINK_STATUS, p.LinkStatus)
+    master = LinkMonitor(make('agent_robot_quiet'), deployment, 'robot')
+    remote = LinkMonitor(make('agent_laptop_quiet'), deployment, 'laptop')
+    echo = subprocess.Popen(
+        [python, '-m', 'anyscale_manager.agent.warden', '--state', str(tmp_path / 'a.json'),
+         '--scale', 'laptop', '--deployment', deployment.name, '--host', '127.0.0.1',
+         '--port', str(warden.warden_port(deployment, 'laptop'))],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    request.addfinalizer(lambda: (echo.kill(), echo.wait()))
+    try:
+        # Up, and probed once (at once, then not for a day).
+        spin_until(executor, lambda: master.quiet and listener.messages
+                   and listener.messages[-1].up
+                   and listener.messages[-1].bandwidth_available_kbps is not None, 20.0,
+                   'the link up and probed, its monitor quiet')
+        wakes = []
+        run = master._cadence.run
+        master._cadence.run = lambda now: (wakes.append(now), run(now))
+        before = len(listener.messages)
+        spin_until(executor, lambda: len(wakes) > 0 and wakes[-1] - wakes[0] >= 2.0, 10.0,
+                   'two seconds of wakes')
+        rate_hz = deployment.monitoring.heartbeat_rate_hz
+        assert (len(wakes) - 1) / (wakes[-1] - wakes[0]) <= 1.25 * rate_hz, len(wakes)
+        assert all(m.up for m in listener.messages[before:])
+        echo.kill()
+        echo.wait()
+        cut = time.monotonic()
+        spin_until(executor, lambda: not listener.messages[-1].up, 5.0, 'the link down')
+        period = 1.0 / rate_hz
+        assert time.monotonic() - cut <= deployment.monitoring.heartbeat_misses_down * period \
+            + 1.0
+        assert not master.quiet
+    finally:
+        remote.destroy()
+        master.destroy()
+
+
 def test_the_probe_reads_when_the_link_last_acknowledged_its_data():
     """The ACK age the link monitor counts as the link heard during its own probe
     (TCP_INFO's tcpi_last_ack_recv): small just after data is acknowledged, growing while the

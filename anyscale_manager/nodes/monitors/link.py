@@ -152,13 +152,17 @@ class LinkMonitor:
             callback_group=self._group))
         # One timer: each tick judges up and down, and beats when a beat is due. Due times, not
         # a count of ticks: rcl skips the ticks a busy executor missed, and counting them would
-        # send every beat after a stall late, and fewer beats than the period says.
-        check_s = self._period / CHECKS_PER_BEAT
+        # send every beat after a stall late, and fewer beats than the period says. While every
+        # link is up and none is probed, the timer wakes only for the beats and for the first
+        # moment a link could be judged down (``_pace``).
+        check_s = self._check_s = self._period / CHECKS_PER_BEAT
         self._cadence = Cadence(check_s, time.monotonic())
         self._cadence.every(check_s, self._check)
         self._cadence.every(self._period, self._beat)
-        self._timers.append(self._node.create_timer(check_s, self._on_tick,
-                                                    callback_group=self._group))
+        self._timer = self._node.create_timer(check_s, self._on_tick,
+                                              callback_group=self._group)
+        self._timers.append(self._timer)
+        self.quiet = False          # whether the timer wakes for the beats and deadlines only
         self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
         self._delivery_stale_s = min(self._readings_max_age,
                                      DELIVERY_SPAN_S + 2.0 / settings.probe_publish_rate_hz)
@@ -257,6 +261,34 @@ class LinkMonitor:
 
     def _on_tick(self) -> None:
         self._cadence.run(time.monotonic())
+        self._pace(time.monotonic())
+
+    def _pace(self, now: float) -> None:
+        """When the timer wakes next. While a link is down, starting or probed, every check
+        period (CHECKS_PER_BEAT a beat): an echo ends a cut at the next check, and a probe's
+        acknowledgements move the verdict. While every link is up and none is probed, the down
+        rule (HeartbeatTracker.up) can first be met at the last echo plus misses_down periods,
+        or at a beat, which checks before and after it is sent: the timer wakes at the next
+        beat or that moment, whichever comes first, and a cut is judged no later than at the
+        next check, as before (a check between two beats would find the link up)."""
+        with self._beats_lock:
+            remotes = list(self._remotes.values())
+            quiet = bool(remotes) and all(
+                r.was_up and not r.probing and now - r.probe_done > self._period
+                and r.beats.last_echo is not None for r in remotes)
+            down_at = min((r.beats.last_echo + r.beats.timeout_s for r in remotes
+                           if r.beats.last_echo is not None), default=math.inf)
+        if quiet:
+            # A millisecond past: the rule compares the silence strictly.
+            wake = min(self._cadence.due(self._beat), down_at + 1e-3)
+            period = max(wake - now, 1e-3)
+        elif not self.quiet:
+            return                  # ticking every check period already
+        else:
+            period = self._check_s
+        self.quiet = quiet
+        self._timer.timer_period_ns = round(period * 1e9)
+        self._timer.reset()
 
     def _beat(self) -> None:
         with self._beats_lock:
