@@ -12,7 +12,7 @@ import json
 import math
 import types
 import typing
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from enum import StrEnum
 from typing import Any, ClassVar, Dict, Optional, Tuple, Type, TypeVar, Union
 
@@ -290,6 +290,10 @@ class Message:
 
     SCHEMA: ClassVar[Dict[str, Any]] = {}
     RULES: ClassVar[Dict[str, Tuple[Rule, ...]]] = {}
+    # Optional fields added after the message's form inside another was fixed: left out when
+    # None there too (an earlier version's strict decoder refuses a field it does not know,
+    # null or not), while the older optional fields keep travelling as null.
+    OMIT_WHEN_NONE: ClassVar[Tuple[str, ...]] = ()
 
     @classmethod
     def from_dict(cls: Type[T], data: Any, where: str = '') -> T:
@@ -321,8 +325,8 @@ class Message:
     def to_dict(self) -> Dict[str, Any]:
         """The JSON object. An optional field that is None is left out: the strict decoder of
         an earlier version, which refuses fields it does not know, still reads it."""
-        return {k: v for k, v in asdict(self).items()
-                if v is not None or not _is_optional(self.SCHEMA[k])}
+        return {f.name: _nested(getattr(self, f.name)) for f in fields(self)
+                if getattr(self, f.name) is not None or not _is_optional(self.SCHEMA[f.name])}
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), separators=(',', ':'), sort_keys=True)
@@ -341,6 +345,20 @@ class Message:
             raise ProtocolError(f'{where}: not valid JSON ({e})') from None
         _depth_ok(data, where)
         return cls.from_dict(data, where)
+
+
+def _nested(value: Any) -> Any:
+    """A field's value as JSON: a message inside another as its fields (its optional ones null,
+    but those of ``OMIT_WHEN_NONE`` left out when None)."""
+    if isinstance(value, Message):
+        out = asdict(value)
+        for key in type(value).OMIT_WHEN_NONE:
+            if out.get(key) is None:
+                out.pop(key, None)
+        return out
+    if isinstance(value, dict):
+        return {k: _nested(v) for k, v in value.items()}
+    return asdict(value) if is_dataclass(value) and not isinstance(value, type) else value
 
 
 def _reject_constant(name: str) -> None:
@@ -442,6 +460,7 @@ class NodeReport(Message):
     # line of printable characters (agent/log_tail.py last_line); absent otherwise.
     exit_code: Optional[int] = _optional(Within(-128, 255))
     log_tail: Optional[str] = _optional(Text(0, LOG_TAIL_CHARS))
+    OMIT_WHEN_NONE: ClassVar[Tuple[str, ...]] = ('exit_code', 'log_tail')
 
 
 @_wire
