@@ -190,3 +190,28 @@ def test_what_others_publish_on_the_restore_topic_reaches_the_serving_copy_only(
     assert agent.channel.sent == [('lc', b'set by a person')]
     assert any('a message on /lc_restore handed to its copy serving here' in t
                for _, t in out.logs)
+
+
+def test_a_new_agent_waits_for_the_first_state_of_a_copy_serving_elsewhere(make_sup):
+    """An agent that just started has heard no state: while another scale's fresh report says
+    a copy serves there, its state is on its way, and the copy here is not activated from its
+    own (a stale pose) in the meantime; past FIRST_STATE_WAIT_S, or with none serving, it is."""
+    from test_agent_turn import peer_report
+    from anyscale_manager import protocol as p
+    from anyscale_manager.agent.turn import FIRST_STATE_WAIT_S
+    agent = Agent(make_sup)
+    agent.channel.subscribed = agent.channel.acked = True
+    agent.turn.on_agent_state(peer_report('b', 0, lc=p.ProcState.RUNNING), agent.now)
+    agent.turn.on_layout(layout(1, lc='a'), agent.now)
+    outs = agent.until(lambda out: agent.label() == lc.INACTIVE, 'the copy configured')
+    start = agent.now
+    for _ in range(5):
+        agent.turn.on_agent_state(peer_report('b', 0, lc=p.ProcState.RUNNING), agent.now)
+        outs.append(agent.step())
+    assert agent.label() == lc.INACTIVE
+    assert any('waiting for the first state of its copy serving on b' in t
+               for t in lines(outs))
+    agent.heard = [('lc', b'from b', 1)]                  # its first state arrives
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
+    assert agent.channel.sent == [('lc', b'from b')]
+    assert agent.now - start < FIRST_STATE_WAIT_S

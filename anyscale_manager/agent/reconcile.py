@@ -222,6 +222,15 @@ class Reconciler:
     def _fresh(self, now: float) -> List[Peer]:
         return [p for p in self.peers.values() if now - p.heard <= self.agent_timeout_s]
 
+    def serving_elsewhere(self, node: str, now: float, within_s: float) -> Optional[str]:
+        """A scale whose agent reported, within ``within_s``, a copy of ``node`` serving there
+        (running and ready: a lifecycle copy only while active), or None."""
+        serving = (ProcState.RUNNING, True)
+        for peer in self.peers.values():
+            if now - peer.heard <= within_s and peer.nodes.get(node) == serving:
+                return peer.scale
+        return None
+
     def copies_elsewhere(self, node: str, now: float) -> int:
         """How many live instances of ``node`` other live agents account for in the ROS graph
         (a plain node's readiness counts the instances of its name)."""

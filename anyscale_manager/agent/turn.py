@@ -36,6 +36,11 @@ STOPPING_TICK_S = 0.02
 # ports): the next step is due then, and at the latest after this. Ten steps a second with
 # nothing to do were a tenth of the robot agent's CPU.
 IDLE_TICK_S = 1.0
+# A copy to be handed a state when this agent has heard none yet (it just started) waits this
+# long at most for the first one while another scale's report, at most PEER_FRESH_BEATS
+# heartbeats old, says a copy serves there (one that is cut off or dead sends nothing).
+FIRST_STATE_WAIT_S = 3.0
+PEER_FRESH_BEATS = 3.0
 # A layout that names unknown nodes or scales is logged entry by entry up to this many.
 MAX_LAYOUT_WARNINGS = 5
 # The layouts of a decider not followed come as often as it publishes: said once this often.
@@ -250,7 +255,14 @@ class AgentTurn:
         if not pending.sent:
             handover, lines = states.handover(name, pid, now)
             if handover.data is None:
-                self._logs.extend(lines)            # nothing heard yet: it starts from its own
+                # Nothing heard yet (this agent just started): while a copy serves elsewhere,
+                # its state is on its way (its writer found within a discovery round).
+                elsewhere = self.reconciler.serving_elsewhere(
+                    name, now, PEER_FRESH_BEATS / self.deployment.agent.heartbeat_rate_hz)
+                if elsewhere and now - pending.since < FIRST_STATE_WAIT_S:
+                    return f'its state is handed to the copy first: waiting for the first ' \
+                           f'state of its copy serving on {elsewhere}'
+                self._logs.extend(lines)            # none to be had: it starts from its own
                 states.handed(name, pid)
                 return ''
             if channel is None or not topic:        # no ROS side to hand it with (a test)
