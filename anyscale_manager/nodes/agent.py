@@ -30,6 +30,7 @@ from . import qos
 from .agent_monitors import AgentMonitors
 from .executor import make_executor
 from .lifecycle_client import CopyClients
+from .log_lines import log_at
 from .state_relay import StateRelay
 from .throttled_log import ThrottledLog
 from .. import protocol
@@ -262,14 +263,7 @@ class AgentNode(Node):
             self._tick()
 
     def _log(self, level: str, text: str) -> None:
-        # rclpy refuses one call site with changing severities: one call per level.
-        log = self.get_logger()
-        if level == 'error':
-            log.error(text)
-        elif level == 'warn':
-            log.warn(text)
-        else:
-            log.info(text)
+        log_at(self.get_logger(), level, text)
 
     def _note(self, level: str, kind: str, text: str) -> None:
         (self._bad.error if level == 'error' else self._bad.warn)(kind, text)

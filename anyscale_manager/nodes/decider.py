@@ -33,6 +33,7 @@ from std_msgs.msg import String
 from . import qos
 from .decider_beat import BeatThread
 from .executor import make_executor
+from .log_lines import log_at
 from .throttled_log import ThrottledLog
 from .. import protocol as p
 from .. import protocol_auth as auth
@@ -481,13 +482,7 @@ class DeciderNode(Node):
             self._event(*event)
         log = self.get_logger()
         for level, text in out.logs:
-            # rclpy refuses one call site with changing severities: one call per level.
-            if level == 'error':
-                log.error(text)
-            elif level == 'warn':
-                log.warning(text)
-            else:
-                log.info(text)
+            log_at(log, level, text)
         if out.objective is not None:
             perf, integral, elapsed = out.objective
             self.objective_seq += 1
