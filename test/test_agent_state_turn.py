@@ -6,6 +6,7 @@ import dataclasses
 
 import pytest
 
+from anyscale_manager import protocol as p
 from anyscale_manager.agent import lifecycle as lc
 from anyscale_manager.agent.turn import AgentInputs, AgentTurn, STOPPING_TICK_S
 from anyscale_manager.model.loader import load_mapping
@@ -192,26 +193,32 @@ def test_what_others_publish_on_the_restore_topic_reaches_the_serving_copy_only(
                for _, t in out.logs)
 
 
-def test_a_new_agent_waits_for_the_first_state_of_a_copy_serving_elsewhere(make_sup):
-    """An agent that just started has heard no state: while another scale's fresh report says
-    a copy serves there, its state is on its way, and the copy here is not activated from its
-    own (a stale pose) in the meantime; past FIRST_STATE_WAIT_S, or with none serving, it is."""
+@pytest.mark.parametrize('there, waits', [
+    (p.ProcState.RUNNING, True), (p.ProcState.BACKOFF, False)])
+def test_with_no_state_heard_yet_a_move_waits_for_the_first_state_of_the_copy_it_replaces(
+        make_sup, there, waits):
+    """This agent has heard no state yet (it just started, or its link just came up, as at the
+    test-bed's first move out): the copy the layout moves the node from serves on meanwhile and
+    its state is on its way, so the copy here waits for it instead of serving from its own (a
+    stale pose beside the right one); a copy its agent reports crashed sends nothing, and the
+    copy here serves at once."""
     from test_agent_turn import peer_report
-    from anyscale_manager import protocol as p
-    from anyscale_manager.agent.turn import FIRST_STATE_WAIT_S
     agent = Agent(make_sup)
     agent.channel.subscribed = agent.channel.acked = True
-    agent.turn.on_agent_state(peer_report('b', 0, lc=p.ProcState.RUNNING), agent.now)
-    agent.turn.on_layout(layout(1, lc='a'), agent.now)
-    outs = agent.until(lambda out: agent.label() == lc.INACTIVE, 'the copy configured')
-    start = agent.now
+    agent.turn.on_layout(layout(1, lc='b'), agent.now)            # a standby copy here
+    agent.until(lambda out: agent.label() == lc.INACTIVE, 'the standby copy configured')
+    agent.turn.on_agent_state(peer_report('b', 1, lc=there), agent.now)
+    agent.turn.on_layout(layout(2, lc='a'), agent.now)            # moved here from b
+    outs = []
     for _ in range(5):
-        agent.turn.on_agent_state(peer_report('b', 0, lc=p.ProcState.RUNNING), agent.now)
+        agent.turn.on_agent_state(peer_report('b', 1, lc=there), agent.now)
         outs.append(agent.step())
+    if not waits:
+        assert agent.label() == lc.ACTIVE and agent.channel.sent == []
+        assert any('no state heard yet' in t for t in lines(outs))
+        return
     assert agent.label() == lc.INACTIVE
-    assert any('waiting for the first state of its copy serving on b' in t
-               for t in lines(outs))
-    agent.heard = [('lc', b'from b', 1)]                  # its first state arrives
+    assert any('waiting for the first state of its copy on b' in t for t in lines(outs))
+    agent.heard = [('lc', b'from b', 1)]                          # its first state arrives
     agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
     assert agent.channel.sent == [('lc', b'from b')]
-    assert agent.now - start < FIRST_STATE_WAIT_S

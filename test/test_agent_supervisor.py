@@ -129,7 +129,8 @@ def test_start_ready_and_stop(make_sup):
     assert r.state == 'starting' and r.pid > 0 and not r.ready
     pid = r.pid
     assert os.getpgid(pid) == pid and os.getsid(pid) == pid   # its own session and group
-    assert procs.environ_value(pid, ENV_INSTANCE)
+    # Just started: its exec may still be setting up the environment the kernel shows.
+    assert procs.environ_value(pid, ENV_INSTANCE, exec_wait_s=5.0)
     assert drive(sup, lambda: sup.reports()['n'].ready, visible=lambda e: e.name == 'n')
     assert sup.reports()['n'].state == 'running'
     assert sup.pids() == {'n': pid}

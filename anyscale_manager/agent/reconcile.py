@@ -82,6 +82,8 @@ class Reconciler:
             n for n in self.catalogue if scale in deployment.standby_scales(n))
         self.generation = NO_GENERATION
         self.assignments: Dict[str, str] = {}
+        # node -> the scale the layout placed it on before its last move ('' for none).
+        self.moved_from: Dict[str, str] = {}
         self._moved_at: Dict[str, float] = {}
         self._moved_gen: Dict[str, int] = {}
         self._ready_at: Dict[str, float] = {}   # moving away: when the new copy was first ready
@@ -143,6 +145,7 @@ class Reconciler:
                             f'{", ".join(missing)}; keeping them as they are')
         for node, scale in accepted.items():
             if self.assignments.get(node) != scale:
+                self.moved_from[node] = self.assignments.get(node, '')
                 self._moved_at[node] = now
                 self._moved_gen[node] = layout.generation
                 self._ready_at.pop(node, None)
@@ -222,14 +225,13 @@ class Reconciler:
     def _fresh(self, now: float) -> List[Peer]:
         return [p for p in self.peers.values() if now - p.heard <= self.agent_timeout_s]
 
-    def serving_elsewhere(self, node: str, now: float, within_s: float) -> Optional[str]:
-        """A scale whose agent reported, within ``within_s``, a copy of ``node`` serving there
-        (running and ready: a lifecycle copy only while active), or None."""
-        serving = (ProcState.RUNNING, True)
-        for peer in self.peers.values():
-            if now - peer.heard <= within_s and peer.nodes.get(node) == serving:
-                return peer.scale
-        return None
+    def reported_not_serving(self, node: str, scale: str, now: float, within_s: float) -> bool:
+        """Whether ``scale``'s agent reported, within ``within_s``, its copy of ``node`` not
+        serving (crashed, backing off, stopped, or a standby); False when not heard lately."""
+        peer = self.peers.get(scale)
+        if peer is None or now - peer.heard > within_s:
+            return False
+        return peer.nodes.get(node, (ProcState.STOPPED, False)) != (ProcState.RUNNING, True)
 
     def copies_elsewhere(self, node: str, now: float) -> int:
         """How many live instances of ``node`` other live agents account for in the ROS graph

@@ -36,9 +36,9 @@ STOPPING_TICK_S = 0.02
 # ports): the next step is due then, and at the latest after this. Ten steps a second with
 # nothing to do were a tenth of the robot agent's CPU.
 IDLE_TICK_S = 1.0
-# A copy to be handed a state when this agent has heard none yet (it just started) waits this
-# long at most for the first one while another scale's report, at most PEER_FRESH_BEATS
-# heartbeats old, says a copy serves there (one that is cut off or dead sends nothing).
+# A copy to be handed a state when this agent has heard none yet waits this long at most for
+# the first one from the copy the layout moves the node from, unless that copy's agent said,
+# at most PEER_FRESH_BEATS heartbeats ago, that it does not serve.
 FIRST_STATE_WAIT_S = 3.0
 PEER_FRESH_BEATS = 3.0
 # A layout that names unknown nodes or scales is logged entry by entry up to this many.
@@ -255,13 +255,17 @@ class AgentTurn:
         if not pending.sent:
             handover, lines = states.handover(name, pid, now)
             if handover.data is None:
-                # Nothing heard yet (this agent just started): while a copy serves elsewhere,
-                # its state is on its way (its writer found within a discovery round).
-                elsewhere = self.reconciler.serving_elsewhere(
-                    name, now, PEER_FRESH_BEATS / self.deployment.agent.heartbeat_rate_hz)
-                if elsewhere and now - pending.since < FIRST_STATE_WAIT_S:
+                # Nothing heard yet (this agent just started, or its link just came up): the
+                # copy the layout moves the node from serves on until this one is ready, and
+                # its state is on its way (its writer found within a discovery round), unless
+                # its agent said lately that it does not serve (a crash: nothing to wait for).
+                before = self.reconciler.moved_from.get(name, '')
+                fresh_s = PEER_FRESH_BEATS / self.deployment.agent.heartbeat_rate_hz
+                if before and before != self.scale \
+                        and not self.reconciler.reported_not_serving(name, before, now, fresh_s) \
+                        and now - pending.since < FIRST_STATE_WAIT_S:
                     return f'its state is handed to the copy first: waiting for the first ' \
-                           f'state of its copy serving on {elsewhere}'
+                           f'state of its copy on {before}'
                 self._logs.extend(lines)            # none to be had: it starts from its own
                 states.handed(name, pid)
                 return ''
