@@ -193,9 +193,10 @@ def test_the_count_continues_across_a_restart_in_place_a_relocation_and_a_planne
             writer = ros.node('state_setter').create_publisher(Int64, '/restore', 1)
             ros.spin_until(lambda: writer.get_subscription_count() >= 1, 10.0,
                            'an agent reading /restore')
-            writer.publish(Int64(data=100000))
-            spin_until(ex, lambda: any(v > 100000 for _, v in counts.heard), 10.0,
-                       'the count continuing from the one set by hand', procs)
+            # Sent again until taken: the serving agent's reader may be found after another's.
+            spin_until(ex, lambda: any(v > 100000 for _, v in counts.heard), 15.0,
+                       'the count continuing from the one set by hand', procs,
+                       tick=lambda: writer.publish(Int64(data=100000)), tick_every_s=1.0)
         finally:
             ros.close()
     finally:
