@@ -45,18 +45,11 @@ from anyscale_manager.testbed import harness, netns
 from anyscale_manager.testbed.poses import pose_jumps, pose_speed
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from bench_failover import stats  # noqa: E402  (one p50/p95/max for the benches)
 CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'icar2015_testbed.yaml')
 HANDED = re.compile(r'\[(\d+\.\d+)\] \[[^]]+\]: amcl: state of (\d+\.\d+) s ago handed')
 NO_STATE = 'amcl: no state heard yet'
-
-
-def stats(values, unit='s'):
-    values = sorted(values)
-    if not values:
-        return 'none'
-    p95 = values[min(len(values) - 1, int(round(0.95 * (len(values) - 1))))]
-    return (f'p50 {statistics.median(values):.3f} {unit}, p95 {p95:.3f} {unit}, '
-            f'max {values[-1]:.3f} {unit} (n = {len(values)})')
 
 
 def without_standby(folder):
@@ -166,7 +159,6 @@ def cost(seconds: float, domain_id: int) -> int:
     import time
 
     import psutil
-    sys.path.insert(0, HERE)
     import bench_failover as bf
     os.environ.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     from anyscale_manager import config_files
