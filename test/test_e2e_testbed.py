@@ -16,8 +16,10 @@ import signal
 
 import pytest
 
+from carried_pose import assert_pose_never_jumped
+
 from anyscale_manager.testbed import netns
-from anyscale_manager.testbed import harness, poses
+from anyscale_manager.testbed import harness
 from anyscale_manager.testbed.known import KNOWN_OPEN
 
 HYSTERESIS_S = 8.0
@@ -640,21 +642,4 @@ def test_11_the_robot_pose_never_jumped_at_any_change_of_serving_copy(bed):
     """AMCL's state is the robot's pose: at every move, failover, relocation and restart of
     the tests above, the copy that took over continued from the last pose (handed over by the
     agents), judged on the poses the harness's own observer heard on /amcl_pose."""
-    bed.wait_heard(bed.now())
-    with bed.lock:
-        changes = [e for _, e in bed.record.moves() if e.node == 'amcl']
-        jumps = poses.record_jumps(bed.record, 0.0, bed.now())
-        heard = len(bed.record.poses.get('/amcl_pose', []))
-    assert heard > 100, f'only {heard} poses heard on /amcl_pose'
-    assert len(changes) >= 4, f'AMCL changed serving copy only {len(changes)} times'
-    found = jumps['/amcl_pose']
-    if found:
-        t = found[0].t
-        with bed.lock:
-            near = [(round(at - t, 2), e.kind, e.from_scale, e.to_scale, e.reason[:100])
-                    for at, e in bed.record.events if e.node == 'amcl' and abs(at - t) < 10.0]
-            marks = [(round(at - t, 2), text) for at, text in bed.record.marks
-                     if abs(at - t) < 10.0]
-        raise AssertionError(f'the pose jumped at a change of serving copy: '
-                             f'{[str(j) for j in found]}; AMCL events around the first '
-                             f'{near}; harness marks {marks}')
+    assert_pose_never_jumped(bed)
