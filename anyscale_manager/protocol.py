@@ -12,7 +12,7 @@ import json
 import math
 import types
 import typing
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import KW_ONLY, asdict, dataclass, field, fields, is_dataclass
 from enum import StrEnum
 from typing import Any, ClassVar, Dict, Optional, Tuple, Type, TypeVar, Union
 
@@ -211,13 +211,31 @@ def _optional(*rules: Rule) -> Any:
 
 # Generations, terms and sequence numbers: counts no sender takes past 2**53.
 _COUNT = Within(0, MAX_GENERATION)
-# The fields every signed status message carries when the deployment has a key: the sending
-# process (a random id drawn at its start), its message count, and the HMAC of the rest (hex;
-# whether it is right is protocol_auth's to say).
-SIGNED_FIELDS = ('sender', 'seq', 'auth')
-_SENDER = Text(1, 128)
 _AUTH = Text(0, 128, printable=False)
 _HOST = Text(0, 256)
+
+
+@dataclass
+class Sealed:
+    """The fields of a message that is signed when the deployment has a key: its sender's
+    message count and the HMAC of the rest (hex; whether it is right is protocol_auth's to say).
+    Keyword-only, so that a message's own fields keep their positions."""
+
+    _: KW_ONLY
+    seq: Optional[int] = _optional(_COUNT)
+    auth: Optional[str] = _optional(_AUTH)
+
+
+@dataclass
+class Signed(Sealed):
+    """A signed status message, which names its sender: the sending process (a random id
+    drawn at its start)."""
+
+    _: KW_ONLY
+    sender: Optional[str] = _optional(Text(1, 128))
+
+
+SIGNED_FIELDS = tuple(f.name for f in fields(Signed))
 
 
 def _check(value: Any, kind: Any, where: str) -> Any:
@@ -423,7 +441,7 @@ class DeciderIdentity(Message):
 
 @_wire
 @dataclass
-class Layout(Message):
+class Layout(Sealed, Message):
     """The desired layout: node -> scale for every managed node, with a generation number.
 
     ``decider`` names the decider that publishes it (absent from older deciders), ``term`` is
@@ -438,8 +456,6 @@ class Layout(Message):
     reason: str
     stamp: float
     decider: Optional[DeciderIdentity] = None
-    seq: Optional[int] = _optional(_COUNT)
-    auth: Optional[str] = _optional(_AUTH)
     term: Optional[int] = _optional(_COUNT)
 
 
@@ -465,7 +481,7 @@ class NodeReport(Message):
 
 @_wire
 @dataclass
-class AgentState(Message):
+class AgentState(Sealed, Message):
     """An agent's report of what actually runs on its scale."""
 
     scale: str
@@ -474,9 +490,8 @@ class AgentState(Message):
     stamp: float
     nodes: Dict[str, NodeReport]
     decider: Optional[str] = None     # the id of the decider whose layouts it follows
-    instance: Optional[str] = None    # the agent process (a random id drawn at its start)
-    seq: Optional[int] = _optional(_COUNT)    # counts this agent process's reports
-    auth: Optional[str] = _optional(_AUTH)    # HMAC of the rest, with a deployment key
+    # The agent process (a random id drawn at its start), whose reports seq counts.
+    instance: Optional[str] = None
     # The machine it runs on: scales with one host_id share it (single-machine mode,
     # runtime/hosts.py); host is its host name, for people.
     host_id: Optional[str] = _optional(_HOST)
@@ -489,7 +504,7 @@ class AgentState(Message):
 
 @_wire
 @dataclass
-class ScaleStatus(Message):
+class ScaleStatus(Signed, Message):
     """CPU (reference-core percent), memory and load of one scale and its managed nodes."""
 
     scale: str
@@ -505,14 +520,11 @@ class ScaleStatus(Message):
     # The CPUs the readings are spread over (runtime/cpu.py effective_cores: the machine's, or
     # its quota's): one of them busy reads capacity_cpu / cores. Absent from older agents.
     cores: Optional[float] = _optional(Within(0.001, 65536))
-    sender: Optional[str] = _optional(_SENDER)
-    seq: Optional[int] = _optional(_COUNT)
-    auth: Optional[str] = _optional(_AUTH)
 
 
 @_wire
 @dataclass
-class LinkStatus(Message):
+class LinkStatus(Signed, Message):
     """One link as the agent that watches it sees it (Deployment.link_monitor): the master's
     view of its link to a remote scale, or a remote scale's view of its link to another."""
 
@@ -532,9 +544,6 @@ class LinkStatus(Message):
     # gone, fenced) and for how long; None while the link is down or before its first echo.
     peer_agent: Optional[str] = None
     peer_agent_for_s: Optional[float] = None
-    sender: Optional[str] = _optional(_SENDER)
-    seq: Optional[int] = _optional(_COUNT)
-    auth: Optional[str] = _optional(_AUTH)
 
     def to_dict(self) -> Dict[str, Any]:
         # A reading not known travels as null, as link monitors have always sent it; only the
@@ -568,20 +577,17 @@ class ConnectionReading(Message):
 
 @_wire
 @dataclass
-class ConnectionStatus(Message):
+class ConnectionStatus(Signed, Message):
     """Readings of every probe on one scale (the scale where each subscriber runs)."""
 
     scale: str
     stamp: float
     connections: Dict[str, ConnectionReading]
-    sender: Optional[str] = _optional(_SENDER)
-    seq: Optional[int] = _optional(_COUNT)
-    auth: Optional[str] = _optional(_AUTH)
 
 
 @_wire
 @dataclass
-class Event(Message):
+class Event(Signed, Message):
     """One decision of the decider, with its reason."""
 
     stamp: float
@@ -591,14 +597,11 @@ class Event(Message):
     to_scale: str
     reason: str
     generation: int
-    sender: Optional[str] = _optional(_SENDER)
-    seq: Optional[int] = _optional(_COUNT)
-    auth: Optional[str] = _optional(_AUTH)
 
 
 @_wire
 @dataclass
-class DeciderBeat(Message):
+class DeciderBeat(Signed, Message):
     """A decider's beat on /anyscale/decider, every ``decider.beat_s``: who it is, whether it
     leads or stands by, its term and the generation it leads at (runtime/leadership.py)."""
 
@@ -608,14 +611,11 @@ class DeciderBeat(Message):
     role: str = field(metadata=_rules(OneOf(DECIDER_ROLES)))
     term: int = field(metadata=_rules(_COUNT))
     generation: int = field(metadata=_rules(_COUNT))
-    sender: Optional[str] = _optional(_SENDER)
-    seq: Optional[int] = _optional(_COUNT)
-    auth: Optional[str] = _optional(_AUTH)
 
 
 @_wire
 @dataclass
-class Objective(Message):
+class Objective(Sealed, Message):
     """The ICAR cost function: Perf_map now, and its integral over the run."""
 
     stamp: float
@@ -623,8 +623,6 @@ class Objective(Message):
     integral: float
     elapsed_s: float
     decider: Optional[str] = None     # the id of the decider that publishes it
-    seq: Optional[int] = _optional(_COUNT)
-    auth: Optional[str] = _optional(_AUTH)
 
 
 @_wire
@@ -639,16 +637,13 @@ class PlanNode(Message):
 
 @_wire
 @dataclass
-class PlanCheck(Message):
+class PlanCheck(Signed, Message):
     """Plan against reality (IROS 2016 Eq. 10) per node and overall."""
 
     stamp: float
     nodes: Dict[str, PlanNode]
     overall_deviation: float
     overloaded: Dict[str, float] = field(default_factory=dict)
-    sender: Optional[str] = _optional(_SENDER)
-    seq: Optional[int] = _optional(_COUNT)
-    auth: Optional[str] = _optional(_AUTH)
 
 
 __all__ = [

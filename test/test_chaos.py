@@ -249,7 +249,7 @@ def test_resources_give_cpu_and_rss_per_window_and_growth_of_one_process():
 
 def _layout(seq, generation=1, key=KEY):
     identity = p.DeciderIdentity('abc', 'robot', 42, 1.0)
-    lay = p.Layout(generation, 'icar2015_testbed', {'amcl': 'laptop'}, 'r', 5.0, identity, seq)
+    lay = p.Layout(generation, 'icar2015_testbed', {'amcl': 'laptop'}, 'r', 5.0, identity, seq=seq)
     return auth.seal(key, lay)
 
 
