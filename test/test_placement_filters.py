@@ -236,7 +236,7 @@ def test_can_host_returns_the_first_that_does_not_pass_or_what_fits(d):
     assert f.can_host(snapshot(d, laptop_cpu=620.0), ar).code is Code.CPU
     assert [x.__name__ for x in f.FILTERS] == [
         'live_agent', 'residence', 'link_up', 'link_observed', 'cpu_observed', 'cpu_headroom',
-        'bandwidth']
+        'shared_room', 'bandwidth']
 
 
 def test_reachable(d):
@@ -279,3 +279,25 @@ def test_hysteresis():
     assert f.hysteresis(back, 30.0, ('amcl',), 'workstation', 15.0) == PASS
     assert f.hysteresis(back, 30.0, ('ar',), 'laptop', 15.0) == PASS
     assert f.hysteresis(back, 30.0, ('amcl',), 'laptop', 40.0) == PASS
+
+
+def test_shared_room_counts_the_claims_this_deployment_may_not_preempt(d):
+    from dataclasses import replace
+    from anyscale_manager.protocol import HostShare, ShareClaim
+    laptop = replace(d.scale('laptop'), shared=True)
+    d = replace(d, scales=tuple(laptop if s.name == 'laptop' else s for s in d.scales),
+                priority=1)
+    share = HostShare(700.0, 0.0, {'robot_b/amcl': ShareClaim(400.0, 0.0, 1, True),
+                                   'robot_c/ar': ShareClaim(150.0, 0.0, 0, True)}, {}, {}, {})
+    # Not reported yet: wait for it.
+    assert f.shared_room(snapshot(d), cand(d=d)).code is Code.SHARE_NOT_HEARD
+    snap = snapshot(d, shares={'laptop': share})
+    # 700 x headroom 0.9 = 630 usable, 400 held by an equal priority; robot_c's (priority 0) may
+    # be preempted.
+    assert f.shared_room(snap, cand(cpu=230.0, d=d)).passed
+    v = f.shared_room(snap, cand(cpu=231.0, d=d))
+    assert v.code is Code.SHARED and v.reason == (
+        'shared laptop: CPU 0 + 231 > 230 left by robot_b/amcl')
+    # The host's measured total is not this deployment's: the CPU filter leaves it to claims.
+    assert f.cpu_headroom(snapshot(d, laptop_cpu=700.0, shares={'laptop': share}),
+                          cand(cpu=100.0, d=d)) == PASS

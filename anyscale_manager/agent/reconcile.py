@@ -32,7 +32,7 @@ the decider is silent the agents keep running what runs (fail-static), and while
 master's agent is silent the decider may place that scale's nodes here.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Dict, FrozenSet, Iterable, List, Mapping, Optional, Set, Tuple
 
 from ..model import types as t
@@ -61,6 +61,9 @@ class Peer:
     nodes: Mapping[str, Tuple[ProcState, bool]]     # node -> (state, ready)
     decider: str = ''                         # the decider whose layouts it follows
     term: int = 0                             # that decider's leadership term
+    # Nodes it may not start or serve for want of room on its shared host (agent/claims.py),
+    # with why: a copy moving there is kept here meanwhile.
+    refused: Mapping[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -188,8 +191,8 @@ class Reconciler:
             return True
         after = self.peers.get(before.scale)
         return after is None or now - before.heard >= SUPERSEDED_QUIET_S or (
-            (after.generation, after.nodes, after.decider, after.term)
-            != (before.generation, before.nodes, before.decider, before.term))
+            (after.generation, after.nodes, after.decider, after.term, after.refused)
+            != (before.generation, before.nodes, before.decider, before.term, before.refused))
 
     def peer_state(self, state: AgentState, now: float) -> Optional[str]:
         """Record another agent's report; a warning when it cannot be one of our peers."""
@@ -202,7 +205,9 @@ class Reconciler:
         self.peers[state.scale] = Peer(
             scale=state.scale, generation=state.generation, heard=now,
             nodes={n: (r.state, r.ready) for n, r in state.nodes.items()},
-            decider=state.decider or '', term=state.term or 0)
+            decider=state.decider or '', term=state.term or 0,
+            refused=({} if state.share is None else
+                     dict(state.share.refused, **state.share.waiting)))
         return None
 
     def superseded_by(self, node: str, now: float) -> Optional[Peer]:
@@ -301,6 +306,13 @@ class Reconciler:
                 self._released.add(node)
             elif here and order == t.START_BEFORE_STOP and node not in self._released:
                 waited = now - self._moved_at.get(node, now)
+                refused = self._refused_on(target, node, now)
+                if refused:
+                    # The host there has no room for it: it serves on here, whatever the
+                    # time, until the decider places it anew.
+                    want.add(node)
+                    self.waiting[node] = f'kept: {target} does not take it ({refused})'
+                    continue
                 ready = self._ready_on(target, node, now)
                 heard = None
                 if ready:
@@ -327,6 +339,15 @@ class Reconciler:
                 return (f'waiting for {p.scale} to apply generation {self.generation} '
                         f'(it has {p.generation})')
         return ''
+
+    def _refused_on(self, scale: str, node: str, now: float) -> str:
+        """Why ``scale``'s agent, heard lately under the generation that moved ``node``,
+        does not take it for want of room ('' when it does not say so)."""
+        peer = self.peers.get(scale)
+        if peer is None or now - peer.heard > self.agent_timeout_s \
+                or peer.generation < self._moved_gen.get(node, self.generation):
+            return ''
+        return peer.refused.get(node, '')
 
     def _ready_on(self, scale: str, node: str, now: float) -> bool:
         peer = self.peers.get(scale)

@@ -21,6 +21,7 @@ from ..runtime.hosts import HostBook
 from . import lifecycle as lc
 from .authority import Follower
 from .catalogue import copy_restore_topic, Entry
+from .claims import HostClaims
 from .reconcile import Reconciler
 from .state import StateBook
 from .supervisor import Supervisor
@@ -176,6 +177,8 @@ class AgentTurn:
         self._last_waiting: Dict[str, str] = {}
         self._probe_names: Optional[Tuple[str, ...]] = None
         self._not_followed_at: Optional[float] = None
+        # A shared scale's claims on its host (agent/claims.py); None on a scale of its own.
+        self.claims: Optional[HostClaims] = None
 
     # --- queries ----------------------------------------------------------------------------
     @property
@@ -228,7 +231,8 @@ class AgentTurn:
             scale=self.scale, generation=self.reconciler.generation, stamp=stamp,
             nodes=node_reports(self.supervisor.reports(), self.drivers, self.wall_offset),
             decider=f.followed_id, term=f.term, instance=self.instance,
-            host_id=self.host_id or None, host=self.host_name or None)
+            host_id=self.host_id or None, host=self.host_name or None,
+            share=None if self.claims is None else self.claims.report())
 
     def activation_held(self, name: str, now: float, inputs: AgentInputs) -> str:
         """Why the copy of lifecycle node ``name``, placed here, may not be activated yet ('':
@@ -294,6 +298,8 @@ class AgentTurn:
                              f'adoption: {note}'))
         if self.scale != self.deployment.master.name:
             self.reconciler.heard_master(now)
+        if self.claims is not None:
+            out.logs.extend(self.claims.begin(now))
         return out
 
     def on_layout(self, layout: protocol.Layout, now: float) -> AgentOutput:
@@ -406,6 +412,11 @@ class AgentTurn:
                     self.states.stood_down(name)     # its next spell is handed the state anew
             self._note_waiting(waiting, out)
         want |= {n for n, g in goals.items() if g == lc.FINALIZED and self._finalizing(n, now)}
+        if self.claims is not None:
+            before = self.claims.report()
+            out.logs.extend(self.claims.gate(now, want, goals,
+                                             lambda n: n in sup.pids()))
+            self._publish_due |= self.claims.report() != before
         sup.set_wanted(want, now)
         self._sync_drivers()
         for name, goal in goals.items():

@@ -36,6 +36,8 @@ class Code(Enum):
     BANDWIDTH = 'bandwidth'                     # a link it loads would need more than usable
     HYSTERESIS = 'hysteresis'                   # it came back from there within T
     HANDOVER = 'handover'                       # the link from the scale it leaves is down
+    SHARE_NOT_HEARD = 'share_not_heard'         # a shared host's claims not reported yet (wait)
+    SHARED = 'shared'                           # a shared host lacks room beside others' claims
 
 
 @dataclass(frozen=True)

@@ -171,6 +171,8 @@ def read_scale(name: str, sec: Section) -> t.Scale:
         gain=sec.number('gain', 1.0, low=0, high=1e6, low_open=True),
         host=sec.string('host', 'localhost'),
         port=sec.integer('port', 0, low=0, high=65535),
+        shared=sec.boolean('shared', False),
+        memory_mb=sec.number('memory_mb', 0.0, low=0, high=1e9, unit='MiB'),
     )
     sec.done()
     return _settled(scale)
@@ -276,6 +278,7 @@ def read_node(name: str, sec: Section) -> t.Node:
         settings=settings,
         nice=sec.integer('nice', 0, low=0, high=19),
         state=state,
+        memory_mb=sec.number('memory_mb', 0.0, low=0, high=1e9, unit='MiB'),
     )
     sec.done()
     return _settled(node)
@@ -345,6 +348,7 @@ def read_deployment(root: Section) -> t.Deployment:
     meta = root.section('deployment', required=False)
     name = meta.string('name', 'deployment')
     description = meta.string('description', '')
+    priority = meta.integer('priority', 0, low=-1000, high=1000)
     meta.done()
     scales = tuple(read_scale(n, s) for n, s in named_sections(root, 'scales'))
     links = tuple(read_link(n, s) for n, s in named_sections(root, 'links', required=False))
@@ -361,4 +365,5 @@ def read_deployment(root: Section) -> t.Deployment:
     root.done()
     return t.Deployment(name=name, source=ctx.source, scales=scales, links=links, nodes=nodes,
                         connections=connections, decider=decider, monitoring=monitoring,
-                        agent=agent, description=description, security=security)
+                        agent=agent, description=description, security=security,
+                        priority=priority)

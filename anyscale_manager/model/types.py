@@ -45,6 +45,10 @@ class Scale:
     gain: float               # the ICAR cost function's alpha_k
     host: str
     port: int = 0             # its warden's UDP and probe TCP port; 0: derived (scale_port)
+    # Used by other deployments too (a fleet's server): its agent starts a copy only under a
+    # claim of the host's ledger (agent/ledger.py).
+    shared: bool = False
+    memory_mb: float = 0.0    # the memory its copies may hold (a shared host's claims); 0: any
 
     @property
     def is_master(self) -> bool:
@@ -147,6 +151,7 @@ class Node:
     settings: Optional[Settings] = None
     nice: int = 0                     # niceness added to agent.node_nice for this node alone
     state: Optional[StateSpec] = None  # how its state is handed to the copy that takes over
+    memory_mb: float = 0.0            # what a copy holds (a shared host's claims count it)
 
     @property
     def configurable(self) -> bool:
@@ -385,6 +390,8 @@ class Deployment:
     agent: AgentSettings = AgentSettings()
     description: str = ''
     security: SecuritySettings = SecuritySettings()
+    # Of a fleet: a claim of a higher priority on a shared scale may preempt a lower one's.
+    priority: int = 0
 
     # --- look-ups (indexes built once: a Deployment never changes) --------------------------
     # cached_property writes straight into the instance dict, which a frozen dataclass allows.

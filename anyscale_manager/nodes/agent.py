@@ -37,7 +37,9 @@ from .. import protocol
 from .. import protocol_auth as auth
 from ..agent.authority import describe
 from ..agent.catalogue import build_catalogue, Entry
+from ..agent.claims import HostClaims, lease_s as claims_lease_s
 from ..agent.exits import ExitWatcher
+from ..agent.ledger import Ledger, LedgerError
 from ..agent.host import this_host
 from ..agent.lock import LockError, release_lock, take_lock
 from ..agent.process import (places, restart_in_place, RESTART, scale_from_args, SCALE_RE,
@@ -117,6 +119,12 @@ class AgentNode(Node):
                               wall_offset=time.time() - time.monotonic(),
                               host_id=host_id, host_name=host_name)
         self.reconciler = self.turn.reconciler
+        if d.scale(scale).shared:
+            try:
+                ledger = Ledger(os.path.dirname(stem), d.name, claims_lease_s(d))
+            except LedgerError as e:
+                raise AgentError(f'scales.{scale}.shared: {e}') from None
+            self.turn.claims = HostClaims(ledger, d, scale)
         self._lifecycle = {
             name: CopyClients(self, self.catalogue[name].services, driver, time.monotonic,
                               self._tick)

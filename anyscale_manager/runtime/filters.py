@@ -132,12 +132,48 @@ def cpu_headroom(snap: Snapshot, cand: Candidate) -> Verdict:
     """What the scale uses (measured, else nominal), what this turn sent there and the unit's
     CPU fit in its usable CPU (capacity x headroom)."""
     d, s = snap.deployment, snap.settings
+    if d.scale(cand.scale).shared:
+        return PASS           # judged by its claims (shared_room): others' load is not its
     used, _ = scale_cpu(d, s, snap.obs, cand.scale)
     used += cand.sent_cpu
     usable = usable_cpu(d.scale(cand.scale).capacity_cpu, s)
     if used + cand.cpu > usable:
         return fails(Code.CPU, f'CPU {used:.0f} + {cand.cpu:.0f} > usable {usable:.0f}')
     return passes(f'CPU {used:.0f} + {cand.cpu:.0f} <= {usable:.0f}')
+
+
+def shared_room(snap: Snapshot, cand: Candidate) -> Verdict:
+    """A shared scale (``scales.<s>.shared``) has room for the unit beside every other
+    deployment's claim on its host that this one may not preempt (one of its priority or
+    higher), as its agent reports them (agent/ledger.py): CPU within the host's usable CPU,
+    memory within the host's memory. This deployment's own nodes there count by their nominal
+    CPU, as their claims do."""
+    d, obs = snap.deployment, snap.obs
+    if not d.scale(cand.scale).shared:
+        return PASS
+    share = obs.shares.get(cand.scale)
+    if share is None:
+        return waits(Code.SHARE_NOT_HEARD, f'no word yet from the agent of {cand.scale} on '
+                                           "its host's claims")
+    mine = [n for n, s in cand.running.items() if s == cand.scale and n not in cand.unit]
+    own = sum(d.node(n).cpu for n in mine) + cand.sent_cpu
+    keep = [c for c in share.claims.values() if c.priority >= d.priority]
+    held = sum(c.cpu for c in keep if c.active)
+    free = usable_cpu(share.capacity_cpu, snap.settings) - held
+    holders = ', '.join(sorted(k for k, c in share.claims.items()
+                               if c.priority >= d.priority)) or 'nobody'
+    if own + cand.cpu > free:
+        return fails(Code.SHARED, f'shared {cand.scale}: CPU {own:.0f} + {cand.cpu:.0f} > '
+                                  f'{free:.0f} left by {holders}')
+    if share.memory_mb > 0:
+        unit_mb = sum(d.node(n).memory_mb for n in cand.unit)
+        own_mb = sum(d.node(n).memory_mb for n, c in obs.copies.items()
+                     if cand.scale in c and n not in cand.unit)
+        left_mb = share.memory_mb - sum(c.memory_mb for c in keep)
+        if own_mb + unit_mb > left_mb:
+            return fails(Code.SHARED, f'shared {cand.scale}: memory {own_mb:.0f} + '
+                                      f'{unit_mb:.0f} MiB > {left_mb:.0f} left by {holders}')
+    return passes(f'shared {cand.scale}: CPU {own:.0f} + {cand.cpu:.0f} <= {free:.0f}')
 
 
 def bandwidth(snap: Snapshot, cand: Candidate) -> Verdict:
@@ -163,7 +199,7 @@ def bandwidth(snap: Snapshot, cand: Candidate) -> Verdict:
 # In this order: a later filter may read what an earlier one vouched for (the link it found
 # up), and a wait (None) is given before a no that a later filter would find.
 FILTERS: Tuple[Filter, ...] = (live_agent, residence, link_up, link_observed, cpu_observed,
-                               cpu_headroom, bandwidth)
+                               cpu_headroom, shared_room, bandwidth)
 
 
 def can_host(snap: Snapshot, cand: Candidate) -> Verdict:
@@ -219,4 +255,4 @@ def hysteresis(last_back: Mapping[Tuple[str, str], float], hysteresis_s: float,
 
 __all__ = ['FILTERS', 'Candidate', 'Filter', 'Snapshot', 'agent_at', 'bandwidth', 'can_host',
            'cpu_headroom', 'cpu_observed', 'handover', 'hysteresis', 'link_observed', 'link_up',
-           'live_agent', 'reachable', 'residence']
+           'live_agent', 'reachable', 'residence', 'shared_room']

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 from typing import Collection, Deque, Dict, FrozenSet, Mapping, Optional, Tuple
 
 from ..model.types import DeciderSettings, Deployment, frozen_map
-from ..protocol import (LINK_MONITOR_START_S, AgentState, ConnectionStatus, LinkStatus,
-                        ProcState, ScaleStatus)
+from ..protocol import (LINK_MONITOR_START_S, AgentState, ConnectionStatus, HostShare,
+                        LinkStatus, ProcState, ScaleStatus)
 from .constraints import link_observation_key
 from .delta import ConnectionVerdict
 from .observations import ConnectionObs, CopyObs, LinkObs, Observations, ScaleObs
@@ -336,6 +336,14 @@ class ObservationBook:
                 out[c.name] = newest
         return out
 
+    def shares(self, now: float) -> Dict[str, HostShare]:
+        """Each shared scale's host as its agent last reported it, while that report is
+        fresh (observation_max_age_s)."""
+        max_age = self.settings.observation_max_age_s
+        return {scale: seen.state.share for scale, seen in self.agents.items()
+                if seen.state.share is not None and now - seen.received <= max_age
+                and self.deployment.scale(scale).shared}
+
     def snapshot(self, now: float, desired: Optional[Mapping[str, str]] = None
                  ) -> Observations:
         running = self.running(now, desired)
@@ -349,4 +357,5 @@ class ObservationBook:
                                                                            desired),
                             copies=frozen_map({n: frozen_map(c)
                                                for n, c in self.copies(now).items()}),
-                            fencing=self.fencing(now))
+                            fencing=self.fencing(now),
+                            shares=frozen_map(self.shares(now)))

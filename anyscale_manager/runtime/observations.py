@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import FrozenSet, Mapping, Optional
 
 from ..model.types import DeciderSettings, frozen_map
+from ..protocol import HostShare
 
 
 def is_fresh(stamp: float, now: float, settings: DeciderSettings) -> bool:
@@ -96,6 +97,10 @@ class Observations:
     # and its warden has not stopped them yet. None of them is placed elsewhere while the
     # agent is silent (never two copies).
     fencing: FrozenSet[str] = frozenset()
+    # Shared scales (scales.<s>.shared): their host's capacity and the other deployments'
+    # claims there, what it refuses this deployment and who asks its nodes to leave, as its
+    # agent last reported (agent/ledger.py).
+    shares: Mapping[str, HostShare] = field(default_factory=frozen_map)
 
 
 MIGRATE = 'migrate'            # master -> remote (Algorithm 1's else branch)

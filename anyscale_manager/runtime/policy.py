@@ -44,6 +44,7 @@ from .moves.failover import failover
 from .moves.out import migrate_out
 from .moves.pending import pending_timeout_s, settle_pending
 from .moves.relocate import relocate_lost
+from .moves.shared import shared_answers
 from .moves.state import Memory, Step
 from .observations import (FAILOVER, MIGRATE, MIGRATE_BACK, MOVE_AWAY, REBALANCE, RELOCATE,
                            Decision, Observations)
@@ -182,6 +183,7 @@ class MigrationPolicy:
             self.reset(layout, now, running)
         step = Step(self.deployment, self.settings, obs, running, self.memory)
         decisions = settle_pending(step)
+        decisions += shared_answers(step)
         decisions += failover(step)
 
         self.below_for = self._delta.update(obs, self.settings)

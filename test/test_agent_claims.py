@@ -1,0 +1,126 @@
+"""Agents of two deployments on one shared host (agent/claims.py over agent/ledger.py): their
+turns with a hand-written clock, real short processes and one real claims database. Only one
+copy fits; the other is refused, said, reported, and kept serving where it was."""
+
+import dataclasses
+import time
+
+from anyscale_manager import protocol as p
+from anyscale_manager.agent.claims import HostClaims, lease_s
+from anyscale_manager.agent.ledger import Ledger
+from anyscale_manager.agent.reconcile import Reconciler
+from anyscale_manager.agent.turn import AgentInputs, AgentTurn
+from anyscale_manager.model.loader import load_mapping
+from supervision import py_entry, SLEEPER
+from test_agent_turn import layout as unit_layout
+
+WALL_OFFSET = 1.7e9
+
+
+def layout(generation, deployment='robot_a', **assignments):
+    return dataclasses.replace(unit_layout(generation, **assignments), deployment=deployment)
+
+
+def fleet_member(name, priority=0):
+    """Robot ``name``'s deployment: its robot (master) and the shared server (capacity 100),
+    one node of CPU 60."""
+    return load_mapping({'/**': {'ros__parameters': {
+        'deployment': {'name': name, 'priority': priority},
+        'scales': {'names': ['robot', 'server'],
+                   'robot': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100.0},
+                   'server': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 100.0,
+                              'shared': True}},
+        'nodes': {'names': ['amcl'], 'amcl': {'launch': {'command': ['sleep', '5']},
+                                              'cpu': 60.0, 'memory_mb': 70.0}},
+    }}})
+
+
+class ServerAgent:
+    """The server's agent of one deployment, on a hand-written clock shared with the others."""
+
+    def __init__(self, make_sup, deployment, state_dir, clock):
+        entry = py_entry('amcl', SLEEPER)
+        self.clock = clock
+        self.sup = make_sup([entry])
+        self.turn = AgentTurn(deployment, 'server', {'amcl': entry}, self.sup,
+                              instance=deployment.name, wall_offset=WALL_OFFSET)
+        self.turn.claims = HostClaims(Ledger(state_dir, deployment.name, lease_s(deployment)),
+                                      deployment, 'server')
+        self.logs = list(self.turn.begin(clock[0]).logs)
+
+    def step(self):
+        self.turn.reconciler.heard_master(self.clock[0])     # the robot is heard throughout
+        out = self.turn.step(self.clock[0], AgentInputs(wall=self.clock[0] + WALL_OFFSET,
+                                                        visible={'amcl': 1}))
+        self.logs += out.logs
+        return out
+
+
+def test_two_deployments_wanting_one_server_get_one_copy_and_the_other_is_told_who_holds_it(
+        make_sup, tmp_path):
+    clock = [100.0]
+    a = ServerAgent(make_sup, fleet_member('robot_a'), str(tmp_path), clock)
+    b = ServerAgent(make_sup, fleet_member('robot_b'), str(tmp_path), clock)
+    assert any('shared scale: claims in' in t for _, t in a.logs)
+    a.turn.on_layout(layout(1, amcl='server'), clock[0])
+    b.turn.on_layout(layout(1, 'robot_b', amcl='server'), clock[0])
+    assert a.step().wanted == {'amcl'}
+    out = b.step()
+    assert out.wanted == set() and 'amcl' not in b.sup.pids()
+    share = out.report.share
+    assert 'robot_a/amcl (60 CPU' in share.refused['amcl']
+    assert share.claims == {'robot_a/amcl': p.ShareClaim(60.0, 70.0, 0, True)}
+    assert any(level == 'warn' and 'amcl: not started or activated here' in text
+               for level, text in b.logs)
+    # Said once, not at every step.
+    before = len(b.logs)
+    b.step()
+    assert len(b.logs) == before
+    # a's copy goes (the layout takes it home): its claim is released once the process is
+    # gone, and b's copy starts.
+    a.turn.on_layout(layout(2, amcl='robot'), clock[0])
+    end = time.monotonic() + 15
+    while 'amcl' not in b.sup.pids():
+        clock[0] += 0.1
+        a.step()
+        b.step()
+        assert time.monotonic() < end, 'b never started its copy'
+        time.sleep(0.02)
+    assert 'amcl' not in a.sup.pids()
+    assert any('its claim released' in t for _, t in a.logs)
+    assert b.turn.report(0.0).share.refused == {}
+
+
+def test_a_killed_agents_claims_expire_with_their_lease(make_sup, tmp_path):
+    clock = [100.0]
+    a = ServerAgent(make_sup, fleet_member('robot_a'), str(tmp_path), clock)
+    b = ServerAgent(make_sup, fleet_member('robot_b'), str(tmp_path), clock)
+    a.turn.on_layout(layout(1, amcl='server'), clock[0])
+    b.turn.on_layout(layout(1, 'robot_b', amcl='server'), clock[0])
+    a.step()
+    assert b.step().wanted == set()
+    # a is not stepped any more (dead): its lease ends, and b may start then, not before.
+    lease = lease_s(fleet_member('robot_a'))
+    clock[0] += lease - 0.5
+    assert b.step().wanted == set()
+    clock[0] += 1.0
+    assert b.step().wanted == {'amcl'}
+
+
+def test_a_losing_scale_keeps_its_copy_while_the_gaining_shared_scale_refuses_it():
+    d = fleet_member('robot_a')
+    robot = Reconciler(d, 'robot', ['amcl'], readiness_timeout_s=2.0, agent_timeout_s=3.0)
+    robot.apply_layout(layout(1, amcl='robot'), 0.0)
+    robot.apply_layout(layout(2, amcl='server'), 1.0)
+    refusal = p.HostShare(100.0, 0.0, {}, {'amcl': 'no room: robot_b/amcl holds 60'}, {}, {})
+    report = dataclasses.replace(
+        p.AgentState(scale='server', generation=2, stamp=0.0, nodes={}), share=refusal)
+    robot.peer_state(report, 1.5)
+    # Long past readiness_timeout_s: still kept, and said why.
+    assert robot.desired(2.5, {'amcl'}) == {'amcl'}
+    robot.peer_state(report, 4.9)
+    assert robot.desired(5.0, {'amcl'}) == {'amcl'}
+    assert robot.waiting['amcl'].startswith('kept: server does not take it (no room')
+    # Without the refusal the timeout lets it go as before.
+    robot.peer_state(dataclasses.replace(report, share=None), 5.1)
+    assert robot.desired(5.2, {'amcl'}) == set()
