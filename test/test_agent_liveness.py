@@ -75,7 +75,7 @@ class Fleet:
     def run(self, until, period=0.5):
         while self.t <= until + 1e-9:
             self.hear()
-            obs = self.book.snapshot(self.t, self.policy.layout if self.policy.desired else None)
+            obs = self.book.snapshot(self.t, self.policy.layout or None)
             for dec in self.policy.step(obs):
                 self.decisions.append((self.t, dec))
                 if dec.to_scale not in self.dead:

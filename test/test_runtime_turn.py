@@ -128,9 +128,9 @@ def test_a_standby_takes_over_from_the_leaders_layout_and_moves_nothing(d):
     out = turn.take_over(10.0, dict(where), 12, 'decider a (term 1) silent for 0.30 s')
     ((generation, layout, why),) = out.layouts
     assert generation == 13 and layout == where and why.startswith('decider a (term 1)')
-    assert turn.policy.last_back[('ar', 'laptop')] == 8.0       # its hysteresis goes on
+    assert turn.policy.memory.last_back[('ar', 'laptop')] == 8.0       # its hysteresis goes on
     # Every node runs where the layout has it: no grace period, no move in the next turns.
-    assert turn.policy.last_move == {}
+    assert turn.policy.memory.last_move == {}
     for now in (10.25, 10.5, 11.0):
         feed(turn, d, now, where, generation=13)
         assert not turn.turn(now).layouts
@@ -143,7 +143,8 @@ def test_a_takeover_gives_a_grace_period_only_to_nodes_not_yet_where_placed(d):
     # The leader had just moved AMCL out; its copy on the laptop does not serve yet.
     placed = dict(master_layout(d), amcl='laptop')
     turn.take_over(10.0, placed, 4, 'takeover')
-    assert set(turn.policy.last_move) == {'amcl'} and set(turn.policy.pending) == {'amcl'}
+    memory = turn.policy.memory
+    assert set(memory.last_move) == {'amcl'} and set(memory.pending) == {'amcl'}
 
 
 # --- which layout a decider that comes to lead starts from ----------------------------------

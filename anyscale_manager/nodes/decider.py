@@ -42,7 +42,6 @@ from ..model.loader import DeploymentError, load_from_parameters
 from ..model.params_file import refuse_bad_params_files
 from ..model.sections import settings_with
 from ..model.types import DeciderSettings, Deployment
-from ..runtime.constraints import ConstraintReport
 from ..runtime.leadership import LEADER, STANDBY, Change, Leadership
 from ..runtime.layout import LayoutError
 from ..runtime.turn import DeciderTurn, TurnOutput
@@ -183,31 +182,6 @@ class DeciderNode(Node):
         self.beat.stop()
         super().destroy_node()
 
-    # What the turn holds, by the names the node and its tests use.
-    @property
-    def book(self):
-        return self.core.book
-
-    @property
-    def policy(self):
-        return self.core.policy
-
-    @property
-    def liveness(self):
-        return self.core.liveness
-
-    @property
-    def layout(self) -> Optional[Dict[str, str]]:
-        return self.core.layout
-
-    @property
-    def generation(self) -> int:
-        return self.core.generation
-
-    @property
-    def last_report(self) -> Optional[ConstraintReport]:
-        return self.core.last_report
-
     # --- parameters ---------------------------------------------------------------------------
     def _declare_descriptors(self) -> None:
         for f in fields(DeciderSettings):
@@ -287,11 +261,12 @@ class DeciderNode(Node):
                                          state.stamp, time.time())
         if why:
             raise p.ProtocolError(f'agent state claiming scale {state.scale!r:.60}: {why}')
-        self.book.agent_state(state, now)
+        book = self.core.book
+        book.agent_state(state, now)
         self.lead.heard_term(state.term)
-        if self.layout is not None and any(
-                self.book.crashes.get((state.scale, node), (None,))[0] == now
-                for node, scale in self.policy.desired.items() if scale == state.scale):
+        if self.core.layout is not None and any(
+                book.crashes.get((state.scale, node), (None,))[0] == now
+                for node, scale in self.core.policy.layout.items() if scale == state.scale):
             self._crash_heard = True
         # An agent that follows another decider (one that just stopped: for one lease; or a
         # forger's anonymous layout) is said once. No re-publication above its generation: two
@@ -401,7 +376,7 @@ class DeciderNode(Node):
         self.core.heard_decision(event.kind, event.node, event.from_scale, self._now())
 
     def _on_scale_status(self, msg: String) -> None:
-        self._intake(msg, p.ScaleStatus, p.TOPIC_SCALE_STATUS, self.book.scale_status)
+        self._intake(msg, p.ScaleStatus, p.TOPIC_SCALE_STATUS, self.core.book.scale_status)
 
     def _on_link_status(self, msg: String) -> None:
         self._intake(msg, p.LinkStatus, p.TOPIC_LINK_STATUS, self._link_status)
@@ -412,12 +387,12 @@ class DeciderNode(Node):
             self._tick()
 
     def _link_status(self, status: p.LinkStatus, now: float) -> None:
-        if self.book.link_status(status, now) and self.layout is not None:
+        if self.core.book.link_status(status, now) and self.core.layout is not None:
             self._link_lost = True
 
     def _on_connection_status(self, msg: String) -> None:
         self._intake(msg, p.ConnectionStatus, p.TOPIC_CONNECTION_STATUS,
-                     self.book.connection_status)
+                     self.core.book.connection_status)
 
     # --- the loop -----------------------------------------------------------------------------
     def check_role(self, now: float) -> None:
@@ -469,7 +444,7 @@ class DeciderNode(Node):
             due = self.lead.due_in(now)
             message = 'standing by: no leader heard' + (
                 f'; leads in {max(due, 0.0):.1f} s' if due is not None else '')
-        self._diagnostics(p.OK, message, {'generation': self.generation})
+        self._diagnostics(p.OK, message, {'generation': self.core.generation})
 
     def _turn(self, now: float) -> None:
         self._emit(self.core.turn(now))
@@ -519,7 +494,7 @@ class DeciderNode(Node):
         """The same layout again, newly stamped and numbered: the agents' lease on us."""
         now = self._now()
         self.check_role(now)
-        if self.layout is not None and self.lead.may_command(now):
+        if self.core.layout is not None and self.lead.may_command(now):
             self._send_layout(self.core.generation, self.core.layout, self.core.reason)
 
     def _event(self, kind: str, node: str, from_scale: str, to_scale: str, reason: str,
@@ -528,7 +503,7 @@ class DeciderNode(Node):
             return
         self._publish(self.pub_events, p.Event(
             stamp=time.time(), kind=kind, node=node, from_scale=from_scale, to_scale=to_scale,
-            reason=reason, generation=self.generation if generation is None else generation))
+            reason=reason, generation=self.core.generation if generation is None else generation))
 
     def _diagnostics(self, level: int, message: str,
                      values: Optional[Dict[str, object]] = None) -> None:

@@ -97,7 +97,7 @@ class BeatThread:
             beats = not (stuck and d.lead.role == LEADER)
             beat = p.DeciderBeat(
                 stamp=time.time(), deployment=d.deployment.name, decider=d.identity,
-                role=d.lead.role, term=d.lead.term, generation=d.generation) \
+                role=d.lead.role, term=d.lead.term, generation=d.core.generation) \
                 if beats and listened else None
             if beats and beat is None:
                 d.lead.beaten(now)      # nobody to tell: the beat counts as given

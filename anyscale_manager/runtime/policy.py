@@ -32,7 +32,7 @@ The policy decides the desired layout; it judges by what actually runs (``obs.ru
 """
 
 from dataclasses import replace
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import List, Mapping, Optional, Tuple
 
 from ..model.placement import allowed
 from ..model.types import DeciderSettings, Deployment, frozen_map
@@ -73,52 +73,15 @@ class MigrationPolicy:
         self._upstream = UpstreamWatch(deployment, self.settings)
         self._seeded = False
 
-    # --- the memory, as the decider's turn, the simulator and the tests read it -------------
-    @property
-    def desired(self) -> Dict[str, str]:
-        return self.memory.desired
-
+    # --- what the turn and the simulator read of any policy (PlannerPolicy has them too) ----
     @property
     def migrated(self) -> List[Tuple[str, str]]:
         """(node, scale) of each node migrated off the master, in migration order."""
         return self.memory.migrated
 
     @property
-    def last_back(self) -> Dict[Tuple[str, str], float]:
-        """(node, scale it came back from) -> time of its last migrate-back (or relocation)."""
-        return self.memory.last_back
-
-    @property
-    def last_move(self) -> Dict[str, float]:
-        """node -> time of its last move (its grace period runs from it)."""
-        return self.memory.last_move
-
-    @property
-    def pending(self) -> Dict[str, Tuple[str, float]]:
-        """node -> (scale, when asked) of each move not yet running."""
-        return self.memory.pending
-
-    @property
-    def arrived(self) -> Dict[str, Tuple[float, str]]:
-        """scale -> (when the last move there settled, the node that moved)."""
-        return self.memory.arrived
-
-    @property
-    def crashed(self) -> Dict[Tuple[str, str], float]:
-        """(node, scale) -> when its copy there crashed and was failed over."""
-        return self.memory.crashed
-
-    @property
     def history(self) -> List[Tuple[float, Decision]]:
         return self.memory.history
-
-    @property
-    def last_move_out(self) -> float:
-        return self.memory.last_move_out
-
-    @property
-    def started(self) -> Optional[float]:
-        return self.memory.started
 
     # --- configuration ----------------------------------------------------------------------
     def update_settings(self, settings: DeciderSettings) -> None:
