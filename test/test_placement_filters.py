@@ -298,6 +298,10 @@ def test_shared_room_counts_the_claims_this_deployment_may_not_preempt(d):
     v = f.shared_room(snap, cand(cpu=231.0, d=d))
     assert v.code is Code.SHARED and v.reason == (
         'shared laptop: CPU 0 + 231 > 230 left by robot_b/amcl')
+    # Measured lower than its nominal CPU, a unit still claims the nominal figure.
+    v = f.shared_room(snap, cand(('amcl', 'ar'), cpu=10.0, d=d))
+    nominal = d.node('amcl').cpu + d.node('ar').cpu
+    assert v.reason.startswith(f'shared laptop: CPU 0 + {nominal:.0f} ')
     # The host's measured total is not this deployment's: the CPU filter leaves it to claims.
     assert f.cpu_headroom(snapshot(d, laptop_cpu=700.0, shares={'laptop': share}),
                           cand(cpu=100.0, d=d)) == PASS

@@ -157,13 +157,15 @@ def shared_room(snap: Snapshot, cand: Candidate) -> Verdict:
                                            "its host's claims")
     mine = [n for n, s in cand.running.items() if s == cand.scale and n not in cand.unit]
     own = sum(d.node(n).cpu for n in mine) + cand.sent_cpu
+    # Its claim will be its nominal CPU, whatever it was measured at here.
+    cpu = max(cand.cpu, sum(d.node(n).cpu for n in cand.unit))
     keep = [c for c in share.claims.values() if c.priority >= d.priority]
     held = sum(c.cpu for c in keep if c.active)
     free = usable_cpu(share.capacity_cpu, snap.settings) - held
     holders = ', '.join(sorted(k for k, c in share.claims.items()
                                if c.priority >= d.priority)) or 'nobody'
-    if own + cand.cpu > free:
-        return fails(Code.SHARED, f'shared {cand.scale}: CPU {own:.0f} + {cand.cpu:.0f} > '
+    if own + cpu > free:
+        return fails(Code.SHARED, f'shared {cand.scale}: CPU {own:.0f} + {cpu:.0f} > '
                                   f'{free:.0f} left by {holders}')
     if share.memory_mb > 0:
         unit_mb = sum(d.node(n).memory_mb for n in cand.unit)
@@ -173,7 +175,7 @@ def shared_room(snap: Snapshot, cand: Candidate) -> Verdict:
         if own_mb + unit_mb > left_mb:
             return fails(Code.SHARED, f'shared {cand.scale}: memory {own_mb:.0f} + '
                                       f'{unit_mb:.0f} MiB > {left_mb:.0f} left by {holders}')
-    return passes(f'shared {cand.scale}: CPU {own:.0f} + {cand.cpu:.0f} <= {free:.0f}')
+    return passes(f'shared {cand.scale}: CPU {own:.0f} + {cpu:.0f} <= {free:.0f}')
 
 
 def bandwidth(snap: Snapshot, cand: Candidate) -> Verdict:
