@@ -95,7 +95,7 @@ def plan(deployment, name):
         if other.name == name or other.launch.executable != 'workload':
             continue
         other_args = [a for a in other.launch.arguments if a != '--lifecycle']
-        if set(parse_spec(other_args).pubs) & set(spec.subs):
+        if {e.topic for e in parse_spec(other_args).outputs} & {e.topic for e in spec.inputs}:
             feeders.append((other.name, other_args))
     return args, spec, feeders
 
@@ -185,8 +185,8 @@ class Harness:
 
 def measure(harness, deployment, name, env, seconds, rounds, log):
     args, spec, feeders = plan(deployment, name)
-    output = spec.pubs[0]
-    driving = spec.subs[0]
+    output = spec.outputs[0].topic
+    driving = spec.driver
     harness.listen(output, spec.outputs[0].msg_type)
     arrivals = harness.arrivals[output]
     log(f'{name}: {" ".join(args)}')

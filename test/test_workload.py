@@ -70,9 +70,9 @@ def test_arguments_of_the_testbed_amcl():
                        '/map:nav_msgs/OccupancyGrid', '--pub',
                        '/amcl_pose:geometry_msgs/msg/PoseWithCovarianceStamped', '--rate-hz',
                        '5.0', '--work-ms', '100', '--reference-core', '0.25'])
-    assert spec.subs == ('/scan', '/map') and spec.pubs == ('/amcl_pose',)
-    assert [e.msg_type for e in spec.inputs] == ['sensor_msgs/msg/LaserScan',
-                                                 'nav_msgs/msg/OccupancyGrid']
+    assert spec.inputs == (Endpoint('/scan', 'sensor_msgs/msg/LaserScan'),
+                           Endpoint('/map', 'nav_msgs/msg/OccupancyGrid'))
+    assert spec.driver == '/scan'
     assert spec.outputs == (Endpoint('/amcl_pose',
                                      'geometry_msgs/msg/PoseWithCovarianceStamped'),)
     assert not spec.is_sensor

@@ -66,16 +66,13 @@ class WorkloadSpec:
     restore: str = ''
 
     @property
-    def pubs(self) -> Tuple[str, ...]:
-        return tuple(e.topic for e in self.outputs)
-
-    @property
-    def subs(self) -> Tuple[str, ...]:
-        return tuple(e.topic for e in self.inputs)
+    def driver(self) -> Optional[str]:
+        """The input topic whose messages drive the outputs (the first); None for a sensor."""
+        return self.inputs[0].topic if self.inputs else None
 
     @property
     def is_sensor(self) -> bool:
-        return not self.subs
+        return not self.inputs
 
     @property
     def cpu_s_per_output(self) -> float:
@@ -299,7 +296,7 @@ class WorkloadBehaviour:
         self._stampers = [stamper(e) for e in spec.outputs]
         self._stamped = any(self._stampers)
         self.outputs = 0
-        self.inputs = {topic: 0 for topic in spec.subs}
+        self.inputs = {e.topic: 0 for e in spec.inputs}
         self.checksum = 0
         self._pubs = []
         self._gate = OutputGate(spec.rate_hz)
@@ -312,7 +309,7 @@ class WorkloadBehaviour:
     def describe(self) -> str:
         spec = self.spec
         return (f'publishing {", ".join(e.describe() for e in spec.outputs) or "nothing"}'
-                + (f', driven by {spec.subs[0]}' if spec.subs else '')
+                + (f', driven by {spec.driver}' if spec.driver else '')
                 + (f', {spec.work_ms:g} ms of reference CPU work per output'
                    if spec.work_ms else ''))
 
@@ -324,7 +321,7 @@ class WorkloadBehaviour:
                 for e in self.spec.inputs]
 
     def _make_callback(self, topic: str):
-        driving = topic == self.spec.subs[0]
+        driving = topic == self.spec.driver
 
         def callback(_raw: bytes) -> None:
             self.inputs[topic] += 1
