@@ -481,6 +481,33 @@ class NodeReport(Message):
 
 @_wire
 @dataclass
+class ShareClaim(Message):
+    """One claim on a shared host (agent/ledger.py): an active copy's CPU, its memory."""
+
+    cpu: float = field(metadata=_rules(Within(0)))
+    memory_mb: float = field(metadata=_rules(Within(0)))
+    priority: int = field(metadata=_rules(Within(-1000, 1000)))
+    active: bool
+
+
+@_wire
+@dataclass
+class HostShare(Message):
+    """A shared scale's host as its agent sees it: the host's capacity, every other
+    deployment's claims ('deployment/node' -> claim), this deployment's nodes it may not start
+    or serve (``refused``: no room; ``waiting``: lower claims were asked to leave), and its
+    nodes asked to leave by a claim of a higher priority (node -> 'deployment/node')."""
+
+    capacity_cpu: float = field(metadata=_rules(Within(0)))
+    memory_mb: float = field(metadata=_rules(Within(0)))
+    claims: Dict[str, ShareClaim] = field(metadata=_rules(Keys(Text(1, 512))))
+    refused: Dict[str, str] = field(metadata=_rules(Keys(Text(1, 256))))
+    waiting: Dict[str, str] = field(metadata=_rules(Keys(Text(1, 256))))
+    asked: Dict[str, str] = field(metadata=_rules(Keys(Text(1, 256))))
+
+
+@_wire
+@dataclass
 class AgentState(Sealed, Message):
     """An agent's report of what actually runs on its scale."""
 
@@ -497,6 +524,7 @@ class AgentState(Sealed, Message):
     host_id: Optional[str] = _optional(_HOST)
     host: Optional[str] = _optional(_HOST)
     term: Optional[int] = _optional(_COUNT)   # the leadership term of the decider it follows
+    share: Optional[HostShare] = None    # a shared scale's host (agent/claims.py)
 
     def running(self) -> Dict[str, NodeReport]:
         return {k: v for k, v in self.nodes.items() if v.state in LIVE_STATES}
