@@ -5,6 +5,7 @@ rebalancing that uses a returning server again. No ROS.
 ``World`` applies each decision one period after it is made (the agents starting the copy) and
 reports every scale's CPU as the nominal sum of its nodes (plus optional noise)."""
 
+import dataclasses
 import os
 import random
 from typing import Callable, Dict, List, Optional, Tuple
@@ -293,3 +294,33 @@ def test_a_down_link_nothing_can_relieve_does_not_hold_back_an_overloaded_one():
                           (MIGRATE, 'ar', 'robot', 'laptop')], moves(out)
     assert 'link wifi: required' in out[0][1].reason
     assert 'the handover from server needs it' in out[0][1].reason
+
+
+def without_gains(d):
+    """The test-bed as a user writes it who sets no ``gain``: each scale's worth comes from its
+    power (cores x GHz over the robot's)."""
+    return dataclasses.replace(d, scales=tuple(dataclasses.replace(s, gain=None)
+                                               for s in d.scales))
+
+
+def test_with_no_gain_a_scale_is_worth_its_power_and_every_move_uses_that_one_rule(d):
+    plain = without_gains(d)
+    worth = {s: plain.worth(s) for s in plain.scale_names}
+    assert worth['robot'] == 1.0 and worth['robot'] < worth['laptop'] < worth['server']
+    assert worth['laptop'] == pytest.approx(3.5) and worth['server'] == pytest.approx(8.5)
+    # A gain given rules over the power.
+    assert d.worth('server') == 6.0
+    settled_on_server(plain)
+
+
+def test_with_no_gain_nodes_return_to_the_server_after_its_agent_came_back(d):
+    """Heavy nodes placed on the server, its agent killed and restarted: they come back to it
+    from the laptop (rebalancing weighs the same worth that placed them)."""
+    w = settled_on_server(without_gains(d))
+    w.agent_alive['server'] = False
+    w.run(w.t + 6.0)
+    assert w.running['amcl'] == w.running['ar'] == 'laptop'
+    w.agent_alive['server'] = True
+    out = w.run(w.t + w.policy.settings.hysteresis_s + 10.0)
+    assert sorted(moves(out)) == [(REBALANCE, 'amcl', 'laptop', 'server'),
+                                  (REBALANCE, 'ar', 'laptop', 'server')]

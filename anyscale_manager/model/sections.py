@@ -168,7 +168,7 @@ def read_scale(name: str, sec: Section) -> t.Scale:
         capacity_cpu=sec.number('capacity_cpu', low=0, unit='reference-core percent'),
         cores=sec.integer('cores', 1, low=1, high=4096),
         clock_ghz=sec.number('clock_ghz', 1.0, low=0, high=100, low_open=True, unit='GHz'),
-        gain=sec.number('gain', 1.0, low=0, high=1e6, low_open=True),
+        gain=sec.number('gain', None, low=0, high=1e6, low_open=True),
         host=sec.string('host', 'localhost'),
         port=sec.integer('port', 0, low=0, high=65535),
         shared=sec.boolean('shared', False),

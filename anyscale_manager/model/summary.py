@@ -8,7 +8,7 @@ import textwrap
 from typing import Optional
 
 from .advice import single_machine
-from .types import Deployment
+from .types import Deployment, Scale
 
 
 def _fmt(x: Optional[float]) -> str:
@@ -26,6 +26,12 @@ def _crosses(d: Deployment, publisher: str, subscriber: str) -> str:
     return f', may cross {", ".join(links)}' if links else ''
 
 
+def _worth(d: Deployment, s: Scale) -> str:
+    if s.gain is not None:
+        return f'worth {s.gain:g} (gain)'
+    return f'worth {d.worth(s.name):.3g} (from its power)'
+
+
 def summary(d: Deployment) -> str:
     """The deployment, one line per scale, link, node and connection."""
     about = f' ({d.description})' if d.description else ''
@@ -33,7 +39,7 @@ def summary(d: Deployment) -> str:
     lines.append(f'  scales ({len(d.scales)}):')
     for s in d.scales:
         lines.append(f'    {s.name:<14} {s.role:<6} {s.kind:<6} capacity {s.capacity_cpu:g} '
-                     f'({s.cores} x {s.clock_ghz:g} GHz, gain {s.gain:g}) host {s.host} '
+                     f'({s.cores} x {s.clock_ghz:g} GHz, {_worth(d, s)}) host {s.host} '
                      f'port {d.scale_port(s.name)}')
     if d.links:
         lines.append(f'  links ({len(d.links)}; each watched by the agent of one end):')

@@ -42,7 +42,9 @@ class Scale:
     capacity_cpu: float       # reference-core percent (a 2-core robot of the reference: 200)
     cores: int
     clock_ghz: float
-    gain: float               # the ICAR cost function's alpha_k
+    # The ICAR cost function's alpha_k as the file gives it; None: derived from its power
+    # (Deployment.worth).
+    gain: Optional[float]
     host: str
     port: int = 0             # its warden's UDP and probe TCP port; 0: derived (scale_port)
     # Used by other deployments too (a fleet's server): its agent starts a copy only under a
@@ -425,6 +427,19 @@ class Deployment:
 
     def node(self, name: str) -> Node:
         return _lookup('node', self._nodes, name)
+
+    def worth(self, name: str) -> float:
+        """A scale's worth, the one rule that placement, the next-best scale, rebalancing, the
+        cost function and a shared host's arbitration use: its ``gain`` (the ICAR cost
+        function's alpha) where the file gives one, else its power (cores x GHz) over the
+        master's, times the master's worth (a robot of 2 x 1.6 GHz is 1, a laptop of
+        4 x 2.8 GHz 3.5)."""
+        scale = self.scale(name)
+        if scale.gain is not None:
+            return scale.gain
+        master = self.master
+        base = master.gain if master.gain is not None else 1.0
+        return base * scale.power / master.power if master.power > 0 else base
 
     def connection(self, name: str) -> Connection:
         return _lookup('connection', self._connections, name)

@@ -310,7 +310,6 @@ def _scales(w: _Writer, host: HostInfo) -> None:
         w.line(8, f'clock_ghz: {scalar(round(host.clock_ghz, 2))}')
     else:
         w.line(8, 'clock_ghz: 1.0', 'TODO: the clock of this host could not be read')
-    w.line(8, 'gain: 1.0')
     w.line(8, f'host: {scalar(host.hostname)}', 'TODO: the address other scales reach it at')
     w.raw_comment(6, 'laptop:     # a remote scale, for example: list it in names too')
     w.raw_comment(6, '  {role: remote, kind: server, capacity_cpu: 400.0, cores: 4, '

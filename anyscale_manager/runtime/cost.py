@@ -13,7 +13,7 @@ def perf_map(deployment: Deployment, running: Mapping[str, str],
     CPU is the measured usage when ``cpu_by_node`` has the node, else its nominal ``cpu``
     (reference-core percent). Names the deployment does not know are ignored.
     """
-    gains = {s.name: s.gain for s in deployment.scales}
+    gains = {s.name: deployment.worth(s.name) for s in deployment.scales}
     nominal = {n.name: n.cpu for n in deployment.nodes}
     total = 0.0
     for node, scale in running.items():

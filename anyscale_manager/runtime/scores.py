@@ -1,6 +1,6 @@
 """The placement scores: how the migration policy ranks the scales and units the filters pass.
 
-Pure functions of the deployment (and the CPU a unit uses): the most powerful scale first,
+Pure functions of the deployment (and the CPU a unit uses): the scale worth most first,
 the most CPU-intensive unit first, and the gain of the cost function (ICAR 2015 Eq. 1) that a
 rebalance must reach.
 """
@@ -10,12 +10,12 @@ from typing import List, Sequence, Tuple
 from ..model.types import Deployment
 
 
-def by_power(deployment: Deployment, names: Sequence[str]) -> List[str]:
-    """``names`` from the most powerful scale (power, then gain alpha, then deployment order)."""
+def by_worth(deployment: Deployment, names: Sequence[str]) -> List[str]:
+    """``names`` from the scale worth most (Deployment.worth: its gain, else its power), then
+    the most powerful, then in deployment order."""
     order = {s.name: i for i, s in enumerate(deployment.scales)}
-    scales = [deployment.scale(n) for n in names]
-    scales.sort(key=lambda s: (-s.power, -s.gain, order[s.name]))
-    return [s.name for s in scales]
+    return sorted(names, key=lambda n: (-deployment.worth(n), -deployment.scale(n).power,
+                                        order[n]))
 
 
 def by_cpu(deployment: Deployment, units: Sequence[Tuple[Tuple[str, ...], float]]
@@ -28,8 +28,8 @@ def by_cpu(deployment: Deployment, units: Sequence[Tuple[Tuple[str, ...], float]
 
 def rebalance_gain(deployment: Deployment, cpu: float, here: str, there: str) -> float:
     """What the cost function gains when a unit of ``cpu`` moves from ``here`` to ``there``:
-    CPU x (alpha there - alpha here)."""
-    return cpu * (deployment.scale(there).gain - deployment.scale(here).gain)
+    CPU x (worth there - worth here)."""
+    return cpu * (deployment.worth(there) - deployment.worth(here))
 
 
-__all__ = ['by_cpu', 'by_power', 'rebalance_gain']
+__all__ = ['by_cpu', 'by_worth', 'rebalance_gain']

@@ -63,15 +63,15 @@ class Assignment:
         self.kbps = {n: sum(c.bandwidth_kbps for c in d.connections_of(n)) for n in self.nodes}
         self.capacity = {s.name: s.capacity_cpu for s in d.scales}
         self.allowed = {n: set(d.allowed_scales(n)) for n in self.nodes}
-        max_gain = max(s.gain for s in d.scales)
+        max_gain = max(d.worth(s.name) for s in d.scales)
         total_cpu = sum(self.cpu.values()) or 1.0
-        master_gain = d.master.gain
+        master_gain = d.worth(d.master.name)
         self.value: Dict[Tuple[str, str], float] = {}
         for n in self.nodes:
             p = profiles[n]
             for s in d.scales:
-                q = quality(p, node_rate(p, s.gain / master_gain))
-                cost = self.cpu[n] * s.gain / (total_cpu * max_gain)
+                q = quality(p, node_rate(p, d.worth(s.name) / master_gain))
+                cost = self.cpu[n] * d.worth(s.name) / (total_cpu * max_gain)
                 self.value[(n, s.name)] = weights.get(n, 0.0) * q + COST_EPSILON * cost
         self._cache: Dict[Tuple, Dict[str, str]] = {}
 

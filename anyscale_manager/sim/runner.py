@@ -110,7 +110,7 @@ def oracle_lap(system: SimSystem, schedules: Mapping[str, LinkSchedule],
     d = system.deployment
     weights = {n: p.speed_weight for n, p in system.profiles.items()}
     assignment = Assignment(d, system.profiles, weights)
-    gain = {s.name: s.gain / d.master.gain for s in d.scales}
+    gain = {s.name: d.worth(s.name) / d.worth(d.master.name) for s in d.scales}
     speed_nodes = system.speed_nodes
     cache: Dict[Tuple, float] = {}
     dt = d.decider.period_s

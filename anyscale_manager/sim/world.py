@@ -65,7 +65,7 @@ class World:
         self.pending: Dict[str, Tuple[str, float]] = {}
         self.migrations = 0
         self.decisions: List[Tuple[float, Decision]] = []
-        self._gain = {s.name: s.gain / d.master.gain for s in d.scales}
+        self._gain = {s.name: d.worth(s.name) / d.worth(d.master.name) for s in d.scales}
         self._capacity = {s.name: s.capacity_cpu for s in d.scales}
         self._cpu = {n.name: n.cpu for n in d.nodes}
         self._inputs: Dict[str, List[str]] = {n: [] for n in d.node_names}

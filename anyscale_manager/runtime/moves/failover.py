@@ -8,7 +8,7 @@ from ...model.types import frozen_map
 from ..constraints import evaluate, node_cpu
 from ..filters import Candidate, Snapshot, agent_at, can_host
 from ..observations import FAILOVER, Decision
-from ..scores import by_power
+from ..scores import by_worth
 from .state import Step
 
 
@@ -55,7 +55,7 @@ def failover(step: Step) -> List[Decision]:
                   if (node, x) in memory.crashed
                   and now - memory.crashed[(node, x)] < s.hysteresis_s}
         # Copies that have not crashed within T first, then by power (a stable sort).
-        for x in sorted(by_power(d, standby), key=lambda x: x in recent):
+        for x in sorted(by_worth(d, standby), key=lambda x: x in recent):
             verdict = copy_may_serve(step, snap, node, cpu, x)
             if verdict.failed:
                 refused.append(f'{x}: {verdict.reason}')

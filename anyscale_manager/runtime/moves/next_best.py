@@ -5,30 +5,29 @@ from typing import Mapping, Optional, Tuple
 
 from ..constraints import node_cpu
 from ..filters import Candidate, Snapshot, can_host, handover, hysteresis
-from ..scores import by_power
+from ..scores import by_worth
 from .state import Step
 
 
 def next_best(step: Step, snap: Snapshot, placed: Mapping[str, str], node: str,
               leaving: Optional[str], sent: Mapping[str, float]) -> Tuple[str, str]:
-    """(scale, why) for a node that must leave ``leaving``: the most powerful remote scale
-    more powerful than the master that can host it now (live agent, its links up and
-    observed, CPU and bandwidth, counting what this step already sent there; not a scale it
-    left within T, nor one the link from ``leaving`` to which is down), else the master
-    (Algorithm 1's migrate-back). With hysteresis scope 'node' (the paper's rule as written)
-    always the master."""
+    """(scale, why) for a node that must leave ``leaving``: the remote scale worth most
+    (Deployment.worth), worth more than the master, that can host it now (live agent, its
+    links up and observed, CPU and bandwidth, counting what this step already sent there; not
+    a scale it left within T, nor one the link from ``leaving`` to which is down), else the
+    master (Algorithm 1's migrate-back). With hysteresis scope 'node' (the paper's rule as
+    written) always the master."""
     d, s, master = step.deployment, step.settings, step.master
     if s.hysteresis_scope == 'node':
         return master, ''
-    power = d.master.power
     others = [x for x in d.allowed_scales(node)
-              if x not in (leaving, master) and d.scale(x).power > power]
+              if x not in (leaving, master) and d.worth(x) > d.worth(master)]
     if not others:
         return master, ''
     cpu = node_cpu(d, s, step.obs, node)
     without = {n: x for n, x in placed.items() if n != node}
     refused = []
-    for scale in by_power(d, others):
+    for scale in by_worth(d, others):
         held = hysteresis(step.memory.last_back, s.hysteresis_s, (node,), scale, step.now)
         if not held.passed:
             refused.append(held.reason)

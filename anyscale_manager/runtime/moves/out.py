@@ -4,18 +4,19 @@ from typing import List
 
 from ..filters import Candidate, Snapshot, can_host, hysteresis
 from ..observations import MIGRATE, Decision
-from ..scores import by_power
+from ..scores import by_worth
 from .rebalance import rebalance
 from .state import Step
 from .units import candidate_units, unit_text
 
 
 def migrate_out(step: Step, snap: Snapshot) -> List[Decision]:
-    """The migratable nodes on the master by CPU, largest first, each to the most powerful
-    remote scale that can host it now and that T does not hold it back from; the first that
-    fits moves. Nothing moves while the master's agent is silent, a move is pending, or the
-    master's CPU has not been reported yet (within the start-up allowance), and a scale that
-    cannot be told yet holds the whole move out. When none moves: ``rebalance``."""
+    """The migratable nodes on the master by CPU, largest first, each to the remote scale
+    worth most (Deployment.worth; by default the most powerful) that can host it now and that
+    T does not hold it back from; the first that fits moves. Nothing moves while the master's
+    agent is silent, a move is pending, or the master's CPU has not been reported yet (within
+    the start-up allowance), and a scale that cannot be told yet holds the whole move out.
+    When none moves: ``rebalance``."""
     d, s, now, master, notes = step.deployment, step.settings, step.now, step.master, step.notes
     if not s.migration:
         return []
@@ -34,7 +35,7 @@ def migrate_out(step: Step, snap: Snapshot) -> List[Decision]:
                      f'by measured CPU)')
         return []
     last_back = step.memory.last_back
-    remotes = by_power(d, [x.name for x in d.remote_scales])
+    remotes = by_worth(d, [x.name for x in d.remote_scales])
     for unit, cpu in candidate_units(step):
         if s.hysteresis_scope == 'node':
             held = hysteresis(last_back, s.hysteresis_s, unit, None, now)
@@ -55,9 +56,8 @@ def migrate_out(step: Step, snap: Snapshot) -> List[Decision]:
             if verdict.failed:
                 notes.append(f'{unit[0]} -> {scale}: {verdict.reason}')
                 continue
-            power = d.scale(scale).power
             reason = (f'{unit_text(unit)}: CPU {cpu:.0f}, the most CPU-intensive '
-                      f'migratable node that fits, to {scale} (power {power:g}): '
+                      f'migratable node that fits, to {scale} (worth {d.worth(scale):g}): '
                       f'{verdict.reason}')
             return [Decision(MIGRATE, n, master, scale, reason) for n in unit]
     return rebalance(step, snap)

@@ -7,7 +7,7 @@ from typing import List
 from ..constraints import node_cpu
 from ..filters import Candidate, Snapshot, can_host, handover, hysteresis
 from ..observations import REBALANCE, Decision
-from ..scores import by_power, rebalance_gain
+from ..scores import by_worth, rebalance_gain
 from .state import Step
 from .units import remote_units, unit_text
 
@@ -22,7 +22,7 @@ def rebalance(step: Step, snap: Snapshot) -> List[Decision]:
     s, d, now, memory = step.settings, step.deployment, step.now, step.memory
     if not s.rebalance:
         return []
-    remotes = by_power(d, [x.name for x in d.remote_scales])
+    remotes = by_worth(d, [x.name for x in d.remote_scales])
     best = None
     for unit, here in remote_units(step):
         since = max(memory.last_move.get(n, -math.inf) for n in unit)
@@ -46,8 +46,8 @@ def rebalance(step: Step, snap: Snapshot) -> List[Decision]:
     if best is None:
         return []
     gain, unit, here, scale, cpu, why = best
-    reason = (f'{unit_text(unit)}: CPU {cpu:.0f} on {here} (alpha '
-              f'{d.scale(here).gain:g}) to {scale} (alpha {d.scale(scale).gain:g}): the cost '
+    reason = (f'{unit_text(unit)}: CPU {cpu:.0f} on {here} (worth '
+              f'{d.worth(here):g}) to {scale} (worth {d.worth(scale):g}): the cost '
               f'function gains {gain:.0f} >= rebalance_min_gain {s.rebalance_min_gain:g}; '
               f'{why}')
     return [Decision(REBALANCE, n, here, scale, reason) for n in unit]

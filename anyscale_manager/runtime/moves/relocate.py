@@ -4,7 +4,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 from ..filters import Candidate, Snapshot, cpu_headroom, reachable
 from ..observations import RELOCATE, Decision
-from ..scores import by_power
+from ..scores import by_worth
 from .next_best import next_best
 from .state import Step
 
@@ -86,9 +86,9 @@ def relocation_target(step: Step, snap: Snapshot, placed: Mapping[str, str], nod
     if master in usable:
         return master, ''
     cpu = d.node(node).cpu
-    for scale in by_power(d, usable):
+    for scale in by_worth(d, usable):
         room = cpu_headroom(snap, Candidate((node,), scale, cpu, placed,
                                             extra_cpu.get(scale, 0.0)))
         if room.passed:
             return scale, ''
-    return by_power(d, usable)[0], ''
+    return by_worth(d, usable)[0], ''
