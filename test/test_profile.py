@@ -48,8 +48,8 @@ def test_topic_meter_reads_a_steady_rate(rate_hz):
     meter = stats.TopicMeter()
     feed(meter, rate_hz, 0.0, 20.0)
     s = meter.summary()
-    assert s.p50_hz == pytest.approx(rate_hz, rel=0.01)
-    assert s.lowest_hz == pytest.approx(rate_hz, rel=0.05)
+    assert s.median == pytest.approx(rate_hz, rel=0.01)
+    assert s.lowest == pytest.approx(rate_hz, rel=0.05)
     assert s.mean_bytes == 100 and s.max_bytes == 100
     assert s.total_bytes == 100 * s.messages
 
@@ -65,8 +65,8 @@ def test_topic_meter_no_reading_before_the_second_arrival_and_gaps_read_low():
         meter.sample(float(t))
     next_read = feed(meter, 10.0, 15.0, 25.0, sample_from=15.0)
     s = meter.summary()
-    assert s.p50_hz == pytest.approx(10.0, rel=0.02)
-    assert s.lowest_hz == 0.0
+    assert s.median == pytest.approx(10.0, rel=0.02)
+    assert s.lowest == 0.0
     assert 3.0 <= s.longest_below_s(5.0) <= 6.0
 
 
@@ -89,8 +89,8 @@ def test_cpu_meter_counts_descendants_primes_and_shares():
     meter.update(2.0, {100: {100: 2.0, 101: 0.5, 102: 9.0}})   # 102 new: only primes
     s = meter.summary(100)
     assert s.readings == pytest.approx((0.75, 0.75))
-    assert s.mean_cores == pytest.approx(0.75) and s.max_cores == pytest.approx(0.75)
-    assert s.share(3).mean_cores == pytest.approx(0.25)
+    assert s.mean == pytest.approx(0.75) and s.highest == pytest.approx(0.75)
+    assert s.share(3).mean == pytest.approx(0.25)
     assert meter.summary(999) is None
 
 

@@ -207,7 +207,7 @@ def _fmt(x: float, digits: int = 3) -> str:
 
 def _cpu_percent(cpu: CpuSummary) -> float:
     """Cores of this host -> percent of one core of this host (the skeleton's unit)."""
-    return round(cpu.mean_cores * 100.0, 1)
+    return round(cpu.mean * 100.0, 1)
 
 
 @dataclass(frozen=True)
@@ -371,7 +371,7 @@ def _node(w: _Writer, node: NodeReport, keys: Mapping[str, str], roles: _Roles,
     if node.cpu is not None:
         w.line(8, f'cpu: {scalar(_cpu_percent(node.cpu))}',
                f'measured: mean over {len(node.cpu.readings)} one-second readings (max '
-               f'{node.cpu.max_cores * 100:.1f}), % of one core of this host')
+               f'{node.cpu.highest * 100:.1f}), % of one core of this host')
     else:
         w.line(8, 'cpu: 0.0', f'TODO: not measured: {node.no_cpu_reason or "no process found"}')
 
@@ -435,8 +435,8 @@ def _connection(w: _Writer, edge: Edge, key: str, keys: Mapping[str, str], profi
                      f'({", ".join(keys[n] for n in writers)}): the rate is all of theirs '
                      "together, as the agents' probes read it.")
     if rate is not None and rate.readings:
-        w.comment(8, f'measured: p50 {_fmt(rate.p50_hz)} Hz, lowest {_fmt(rate.lowest_hz)} '
-                     f'Hz, highest {_fmt(rate.highest_hz)} Hz over {len(rate.readings)} '
+        w.comment(8, f'measured: p50 {_fmt(rate.median)} Hz, lowest {_fmt(rate.lowest)} '
+                     f'Hz, highest {_fmt(rate.highest)} Hz over {len(rate.readings)} '
                      f'readings; {rate.messages} messages of {rate.mean_bytes:.0f} B on '
                      f'average (largest {rate.max_bytes} B)')
     elif rate is not None and rate.messages:

@@ -22,17 +22,29 @@ READING_PERIOD_S = 1.0
 PROBE_WINDOW_S = MonitorSettings().probe_window_s
 
 
-def _or_zero(statistic: Callable[[Sequence[float]], float], values: Sequence[float]) -> float:
-    """A statistic of the readings, 0 when there are none."""
-    return statistic(values) if values else 0.0
+def _statistic(of: Callable[[Sequence[float]], float]) -> property:
+    """A statistic of a series' readings, 0 when there are none."""
+    return property(lambda series: of(series.readings) if series.readings else 0.0)
 
 
 @dataclass(frozen=True)
-class RateSummary:
-    """What one topic did during the watch."""
+class Series:
+    """Readings of one figure, one a period, and their statistics in the readings' unit."""
+
+    readings: Tuple[float, ...]
+
+    lowest = _statistic(min)
+    highest = _statistic(max)
+    median = _statistic(statistics.median)
+    mean = _statistic(statistics.fmean)
+
+
+@dataclass(frozen=True)
+class RateSummary(Series):
+    """What one topic did during the watch: its rate readings (Hz), one a period from the
+    second arrival."""
 
     messages: int                      # arrivals counted
-    readings: Tuple[float, ...]        # rate readings (Hz), one a period from the 2nd arrival
     reading_period_s: float
     window_s: float
     total_bytes: int                   # serialized bytes of every arrival
@@ -41,18 +53,6 @@ class RateSummary:
     @property
     def mean_bytes(self) -> float:
         return self.total_bytes / self.messages if self.messages else 0.0
-
-    @property
-    def p50_hz(self) -> float:
-        return _or_zero(statistics.median, self.readings)
-
-    @property
-    def lowest_hz(self) -> float:
-        return _or_zero(min, self.readings)
-
-    @property
-    def highest_hz(self) -> float:
-        return _or_zero(max, self.readings)
 
     def longest_below_s(self, threshold_hz: float) -> float:
         """The longest stretch of consecutive readings below ``threshold_hz``, in seconds."""
@@ -109,18 +109,8 @@ class TopicMeter:
 
 
 @dataclass(frozen=True)
-class CpuSummary:
+class CpuSummary(Series):
     """CPU of one process (with its descendants) in cores of this host: 1.0 = one core busy."""
-
-    readings: Tuple[float, ...]
-
-    @property
-    def mean_cores(self) -> float:
-        return _or_zero(statistics.fmean, self.readings)
-
-    @property
-    def max_cores(self) -> float:
-        return _or_zero(max, self.readings)
 
     def share(self, parts: int) -> 'CpuSummary':
         """This process's CPU split evenly over ``parts`` nodes that share it."""

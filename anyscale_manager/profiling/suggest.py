@@ -70,12 +70,12 @@ def suggest(rate: Optional[RateSummary]) -> Suggestion:
     """The thresholds the rule gives for one measured topic (None: it was not measured)."""
     if rate is None:
         return Suggestion(None, None, None, 0.0, unmonitored='not measured')
-    if len(rate.readings) < MIN_READINGS or rate.p50_hz <= 0:
+    if len(rate.readings) < MIN_READINGS or rate.median <= 0:
         return Suggestion(None, None, None, 0.0, unmonitored=(
             f'{rate.messages} message(s) and {len(rate.readings)} rate reading(s) in the watch '
             f'(a latched or one-shot topic, or one that was quiet): too few to suggest '
             f'thresholds; it stays unmonitored'))
-    p50 = rate.p50_hz
+    p50 = rate.median
     opt = round_sig(p50, 2)
     if abs(opt - p50) > OPT_ROUNDING * p50:
         opt = round_sig(p50, 3)
@@ -92,7 +92,7 @@ def suggest(rate: Optional[RateSummary]) -> Suggestion:
     why = (f'freq_opt_hz: the p50 reading; freq_min_hz: half of it; tolerance_s: {tol_why}',)
     if below_s > 0:
         why += (f'this run fell below freq_min for {below_s:g} s at most (lowest reading '
-                f'{rate.lowest_hz:.3g} Hz)',)
+                f'{rate.lowest:.3g} Hz)',)
     return Suggestion(freq_min_hz=fmin, freq_opt_hz=opt, tolerance_s=tolerance,
                       bandwidth_kbps=bandwidth_kbps(p50, rate.mean_bytes), why=why)
 
