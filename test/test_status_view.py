@@ -729,3 +729,23 @@ def test_status_once_takes_a_late_layouts_age_from_the_leading_deciders_diagnost
     assert proc.returncode == 0, err
     line = out.splitlines()[1]
     assert re.fullmatch(r'layout generation 3, made 1[5-9]\.\d s ago', line), out
+
+
+def test_a_shared_scale_shows_its_hosts_claims_by_deployment_and_what_it_refuses(d):
+    book = StatusBook(d)
+    share = p.HostShare(700.0, 4096.0, {'robot_b/amcl': p.ShareClaim(400.0, 70.0, 1, True),
+                                        'robot_c/ar': p.ShareClaim(0.0, 70.0, 0, False)},
+                        {'worker': 'robot_b/amcl (400 CPU, priority 1) holds it'}, {},
+                        {'sensor': 'robot_b/amcl'})
+    laptop = agent('laptop', 3, 'sensor')
+    laptop.share = share
+    take(book, 0.0, layout(3), agent('robot', 3, 'worker'), laptop)
+    text = render(book, 1.0)
+    assert 'SHARED laptop: host capacity 700 CPU, 4096 MiB' in text
+    assert row(text, f'  {NAME}').split()[-2:] == ['sensor', 'running']
+    assert row(text, '  robot_b').endswith('amcl 400 CPU 70 MiB (priority 1)')
+    assert row(text, '  robot_c').endswith('ar standby 70 MiB (priority 0)')
+    assert '  refused here: worker: robot_b/amcl (400 CPU, priority 1) holds it' in text
+    assert '  asked to leave: sensor, by robot_b/amcl' in text
+    # A scale of its own shows no such block.
+    assert 'SHARED robot' not in text

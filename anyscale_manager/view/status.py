@@ -36,6 +36,7 @@ from ..runtime.liveness import exit_text
 from ..runtime.observations import CopyObs
 from ..runtime.rates import two_senders_past
 from ..runtime.turn import LAYOUT_AGE
+from .shared import share_lines
 
 # A measured bandwidth older than this many probe intervals: probes fail or cannot run.
 BANDWIDTH_STALE_INTERVALS = 2.0
@@ -555,6 +556,8 @@ def render(book: StatusBook, now: float) -> str:
     lines += _connection_rows(book, now, running) + ['']
     lines += _node_rows(book, now, running, standby)
     lines += exit_lines(book)
+    shares = share_lines(book.agents, book.deployment.scale_names, book.deployment.name)
+    lines += [''] + shares if shares else []
     if book.events:
         lines += ['', 'RECENT EVENTS']
         lines += [f'  {e.kind} {e.node} {e.from_scale}->{e.to_scale}: {e.reason}'[:160]
