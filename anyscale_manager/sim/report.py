@@ -39,10 +39,10 @@ def table(exp: Experiment, other: Optional[Experiment] = None) -> str:
                           _f(s.best_case_improvement_pct), _f(s.oracle_improvement_pct),
                           _f(s.gap_to_oracle_pct), f'{moves:.1f}',
                           *([_f(others[s.label].improvement_pct)] if other else [])))
-    lines.append(_row('average', _f(exp.average_improvement_pct), '',
-                      _f(exp.best_case_improvement_pct), _f(exp.average_oracle_improvement_pct),
-                      _f(exp.average_gap_to_oracle_pct), '',
-                      *([_f(other.average_improvement_pct)] if other else [])))
+    lines.append(_row('average', _f(exp.mean('improvement_pct')), '',
+                      _f(exp.mean('best_case_improvement_pct')),
+                      _f(exp.mean('oracle_improvement_pct')), _f(exp.mean('gap_to_oracle_pct')),
+                      '', *([_f(other.mean('improvement_pct'))] if other else [])))
     lines.append(f'paper: 6N x 2M x 2K {PAPER_TESTBED_PCT:g} %, average {PAPER_AVERAGE_PCT:g} %, '
                  f'best case {PAPER_BEST_CASE_PCT:g} %; heuristic estimated 10-15 % from the '
                  'optimum')
@@ -130,11 +130,13 @@ def write_figure(exp: Experiment, directory: str, other: Optional[Experiment] = 
     ax.set_xticklabels(labels, fontsize=8)
     ax.set_ylabel('path time saved vs no migration (%)')
     ax.set_ylim(0, 60)
+    average, best = exp.mean('improvement_pct'), exp.mean('best_case_improvement_pct')
     title = (f'Fig. 7 reproduced: {exp.runs} run(s) per system, seed {exp.seed}; {exp.policy} '
-             f'average {exp.average_improvement_pct:.1f} %')
+             f'average {average:.1f} %')
     if other is not None:
-        title += f', {other.policy} average {other.average_improvement_pct:.1f} %'
-    title += f'; best case {exp.best_case_improvement_pct:.1f} %'
+        theirs = other.mean('improvement_pct')
+        title += f', {other.policy} average {theirs:.1f} %'
+    title += f'; best case {best:.1f} %'
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=7, loc='upper center', bbox_to_anchor=(0.5, -0.16), ncol=4)
     ax.grid(axis='y', alpha=0.3)

@@ -181,25 +181,9 @@ class Experiment:
     simulated_s: float = 0.0
     overrides: Tuple[Tuple[str, object], ...] = ()
 
-    def _mean(self, figure: str) -> float:
-        """A figure of every system, averaged over the systems."""
+    def mean(self, figure: str) -> float:
+        """A figure of every system (a SystemResult field), averaged over the systems."""
         return float(np.mean([getattr(s, figure) for s in self.systems]))
-
-    @property
-    def average_improvement_pct(self) -> float:
-        return self._mean('improvement_pct')
-
-    @property
-    def best_case_improvement_pct(self) -> float:
-        return self._mean('best_case_improvement_pct')
-
-    @property
-    def average_oracle_improvement_pct(self) -> float:
-        return self._mean('oracle_improvement_pct')
-
-    @property
-    def average_gap_to_oracle_pct(self) -> float:
-        return self._mean('gap_to_oracle_pct')
 
     def to_dict(self) -> dict:
         return {
@@ -207,10 +191,10 @@ class Experiment:
             'runs': self.runs,
             'seed': self.seed,
             'systems': [s.to_dict() for s in self.systems],
-            'average_improvement_pct': self.average_improvement_pct,
-            'best_case_improvement_pct': self.best_case_improvement_pct,
-            'average_oracle_improvement_pct': self.average_oracle_improvement_pct,
-            'average_gap_to_oracle_pct': self.average_gap_to_oracle_pct,
+            'average_improvement_pct': self.mean('improvement_pct'),
+            'best_case_improvement_pct': self.mean('best_case_improvement_pct'),
+            'average_oracle_improvement_pct': self.mean('oracle_improvement_pct'),
+            'average_gap_to_oracle_pct': self.mean('gap_to_oracle_pct'),
             'model': asdict(self.path),
             'decider_overrides': dict(self.overrides),
             'simulated_s': self.simulated_s,
