@@ -6,10 +6,11 @@ import dataclasses
 import time
 
 from anyscale_manager import protocol as p
-from anyscale_manager.agent.claims import HostClaims, lease_s
+from anyscale_manager.agent.claims import HostClaims
 from anyscale_manager.agent.ledger import Ledger
 from anyscale_manager.agent.reconcile import Reconciler
 from anyscale_manager.agent.turn import AgentInputs, AgentTurn
+from anyscale_manager.model.capacity import claim_lease_s as lease_s
 from anyscale_manager.model.loader import load_mapping
 from supervision import py_entry, SLEEPER
 from test_agent_turn import layout as unit_layout

@@ -19,14 +19,6 @@ from .ledger import Claim, HostFigure, Ledger, LedgerError, Share
 LogLine = Tuple[str, str]
 
 
-def lease_s(deployment: Deployment) -> float:
-    """How long a claim outlives its agent's last renewal: past the time a dead agent's warden
-    takes to stop its copies (or a restarted agent to adopt them), so that capacity is never
-    handed on while they may still run."""
-    a = deployment.agent
-    return max(a.adopt_grace_s, a.restart_grace_s) + a.fence_grace_s + 2.0
-
-
 class HostClaims:
     """One agent's claims on its shared host."""
 

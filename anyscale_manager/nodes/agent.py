@@ -37,7 +37,7 @@ from .. import protocol
 from .. import protocol_auth as auth
 from ..agent.authority import describe
 from ..agent.catalogue import build_catalogue, Entry
-from ..agent.claims import HostClaims, lease_s as claims_lease_s
+from ..agent.claims import HostClaims
 from ..agent.exits import ExitWatcher
 from ..agent.ledger import Ledger, LedgerError
 from ..agent.host import this_host
@@ -46,6 +46,7 @@ from ..agent.process import (places, restart_in_place, RESTART, scale_from_args,
                              Signals, start_warden, stop_offline)
 from ..agent.supervisor import Supervisor
 from ..agent.turn import AgentInputs, AgentOutput, AgentTurn, name_counts, TICK_S
+from ..model.capacity import claim_lease_s
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.params_file import refuse_bad_params_files
 from ..interrupt import restore_ctrl_c
@@ -121,7 +122,7 @@ class AgentNode(Node):
         self.reconciler = self.turn.reconciler
         if d.scale(scale).shared:
             try:
-                ledger = Ledger(os.path.dirname(stem), d.name, claims_lease_s(d))
+                ledger = Ledger(os.path.dirname(stem), d.name, claim_lease_s(d))
             except LedgerError as e:
                 raise AgentError(f'scales.{scale}.shared: {e}') from None
             self.turn.claims = HostClaims(ledger, d, scale)

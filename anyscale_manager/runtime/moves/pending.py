@@ -3,6 +3,7 @@ apply them in time."""
 
 from typing import List
 
+from ...model.capacity import claim_lease_s
 from ...model.types import DeciderSettings, Deployment
 from ..observations import MIGRATE_BACK, Decision
 from .state import Step
@@ -11,6 +12,16 @@ from .state import Step
 def pending_timeout_s(deployment: Deployment, settings: DeciderSettings) -> float:
     """How long the agents get to apply a move before it is undone."""
     return deployment.agent.readiness_timeout_s + settings.agent_timeout_s
+
+
+def _preemption_s(step: Step, node: str, scale: str) -> float:
+    """The longer a move may take while a shared host has asked lower-priority claims to make
+    room for it: their robots take their nodes home first, and a dead one's claim ends with its
+    lease (model/capacity.py claim_lease_s)."""
+    share = step.obs.shares.get(scale)
+    if share is None or node not in share.waiting:
+        return 0.0
+    return claim_lease_s(step.deployment)
 
 
 def settle_pending(step: Step) -> List[Decision]:
@@ -26,7 +37,7 @@ def settle_pending(step: Step) -> List[Decision]:
             del memory.pending[node]
             # From now on a CPU reading of that scale can include the node's load.
             memory.arrived[scale] = (now, node)
-        elif now - asked > timeout:
+        elif now - asked > timeout + _preemption_s(step, node, scale):
             if scale != master and memory.in_migrated(node) and step.hold_for_master(node):
                 continue
             del memory.pending[node]
