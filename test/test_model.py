@@ -490,3 +490,13 @@ def test_importing_the_whole_core_loads_neither_ros_nor_the_agent():
                        cwd=os.path.dirname(PACKAGE))
     assert r.returncode == 0, r.stderr
     assert not [m for m in r.stdout.split() if _forbidden(m)]
+
+
+def test_a_remote_robot_is_said_with_the_fleet_that_keeps_each_robot_its_own_master():
+    from anyscale_manager.model.advice import warnings
+    d = load_deployment(os.path.join(CONFIG, 'iros2016', 'instance_5.yaml'))
+    said = [w for w in warnings(d) if 'a remote robot' in w]
+    assert len(said) == 1 and 'scales c2: a remote robot: the decider on c1' in said[0]
+    assert 'shared: true' in said[0]
+    one_robot = load_deployment(TESTBED)
+    assert not [w for w in warnings(one_robot) if 'a remote robot' in w]

@@ -76,4 +76,19 @@ def warnings(d: t.Deployment) -> List[str]:
             f'start). Make it a lifecycle node with standby: true (lifecycle: true; see '
             f'docs/lifecycle.md), so a move is an activation, or give each of them a '
             f'tolerance_s of at least {budget:.1f} s')
+    out += [f'{d.source}: {line}' for line in other_robots(d)]
     return out
+
+
+def other_robots(d: t.Deployment) -> List[str]:
+    """What the file says when a remote scale is a robot: its master decides for that robot
+    too, and a cut of the master's link leaves it undecided. A fleet gives each robot its own
+    deployment and shares the servers (scales.<s>.shared)."""
+    robots = [s.name for s in d.remote_scales if s.kind == t.ROBOT]
+    if not robots:
+        return []
+    return [f'scales {", ".join(robots)}: a remote robot: the decider on {d.master.name} '
+            f"decides where its nodes run, and a cut of {d.master.name}'s link leaves it "
+            'undecided. For a fleet, give each robot a deployment of its own (its own master, '
+            'decider, ROS domain) naming the servers it uses with shared: true; their agents '
+            "then share each server's capacity by claims (docs/agent.md, a shared scale)"]
