@@ -8,7 +8,7 @@ from anyscale_manager.model.loader import load_mapping
 from anyscale_manager.runtime.moves.pending import pending_timeout_s, settle_pending
 from anyscale_manager.runtime.moves.shared import shared_answers
 from anyscale_manager.runtime.moves.state import Memory, Step
-from anyscale_manager.runtime.observations import MIGRATE_BACK, Observations
+from anyscale_manager.runtime.observations import MIGRATE_BACK, Observations, YIELD
 
 
 def deployment():
@@ -40,7 +40,7 @@ def test_a_refused_move_is_undone_at_once_to_where_the_node_still_serves():
              {'amcl': ('server', 9.5)})
     decisions = shared_answers(s)
     assert [(x.kind, x.node, x.from_scale, x.to_scale) for x in decisions] == [
-        (MIGRATE_BACK, 'amcl', 'server', 'robot')]
+        (YIELD, 'amcl', 'server', 'robot')]
     assert decisions[0].reason == 'server has no room for amcl: robot_b/amcl holds 60 of 100'
     assert 'amcl' not in s.memory.pending
 
@@ -51,7 +51,7 @@ def test_a_node_asked_to_leave_comes_home_once_and_only_from_where_it_runs():
     s = step(d, 10.0, {'amcl': 'server', 'ar': 'robot'}, shares, {})
     decisions = shared_answers(s)
     assert [(x.kind, x.node, x.to_scale) for x in decisions] == [
-        (MIGRATE_BACK, 'amcl', 'robot')]
+        (YIELD, 'amcl', 'robot')]
     assert 'robot_b/amcl of a higher priority asks server' in decisions[0].reason
     # Already on its way home (pending): not asked for again.
     s = step(d, 10.5, {'amcl': 'server', 'ar': 'robot'}, shares, {'amcl': ('robot', 10.0)})
@@ -70,3 +70,16 @@ def test_a_move_waiting_for_a_preemption_is_given_the_claims_lease_before_it_is_
     assert [(x.kind, x.node) for x in undone] == [(MIGRATE_BACK, 'amcl')]
     # Without a preemption under way, the usual timeout.
     assert settle_pending(step(d, late, running, {}, {'amcl': ('server', 1.0)}))
+
+
+def test_a_yield_holds_nothing_back_from_the_host_once_it_has_room():
+    """A refused move is a race for room, not a flapping link: no hysteresis after it."""
+    from anyscale_manager.runtime.policy import MigrationPolicy
+    d = deployment()
+    policy = MigrationPolicy(d)
+    policy.reset({'amcl': 'server', 'ar': 'robot'}, 0.0, {'amcl': 'robot', 'ar': 'robot'})
+    refused = share(refused={'amcl': 'no room'})
+    obs = Observations(now=1.0, running={'amcl': 'robot', 'ar': 'robot'},
+                       shares={'server': refused})
+    assert [x.kind for x in policy.step(obs)] == [YIELD]
+    assert ('amcl', 'server') not in policy.memory.last_back

@@ -109,6 +109,9 @@ MOVE_AWAY = 'move_away'        # remote -> a better remote than the master: it m
 REBALANCE = 'rebalance'        # remote -> a more powerful remote (beyond the paper)
 RELOCATE = 'relocate'          # a node of a lost scale placed elsewhere
 FAILOVER = 'failover'          # a crashed serving copy replaced by a standby copy elsewhere
+# A node leaves a shared host that refused it or whose room a higher priority asks for: room
+# decides its return, not the hysteresis T.
+YIELD = 'yield'
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,7 @@ from .moves.relocate import relocate_lost
 from .moves.shared import shared_answers
 from .moves.state import Memory, Step
 from .observations import (FAILOVER, MIGRATE, MIGRATE_BACK, MOVE_AWAY, REBALANCE, RELOCATE,
-                           Decision, Observations)
+                           YIELD, Decision, Observations)
 from .upstream import UpstreamWatch
 
 
@@ -187,7 +187,7 @@ class MigrationPolicy:
             m.migrated.append((d.node, d.to_scale))
         if d.kind in (MIGRATE, REBALANCE):
             m.last_move_out = now
-        else:
+        elif d.kind != YIELD:
             m.last_back[(d.node, d.from_scale)] = now
         m.last_move[d.node] = now
         m.pending[d.node] = (d.to_scale, now)

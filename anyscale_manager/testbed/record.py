@@ -18,7 +18,7 @@ from ..protocol_auth import check_signature
 from ..runtime.delta import below_spans, past_delta, rate_below, stretch_start, time_below
 from ..runtime.rates import RateWindow
 
-MIGRATION_KINDS = ('migrate', 'migrate_back', 'move_away', 'rebalance')
+MIGRATION_KINDS = ('migrate', 'migrate_back', 'move_away', 'rebalance', 'yield')
 # How far behind its latest line the observer's arrivals may still be incomplete: it writes
 # them every 0.2 s (observer.FLUSH_S), and a message received just before a flush may have its
 # callback run after it. Judged any later, the observer's own lag would read as silence.

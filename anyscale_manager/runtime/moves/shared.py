@@ -1,10 +1,12 @@
 """A shared scale's answers (scales.<s>.shared, agent/ledger.py): a move there that its host
 refuses for want of room is undone at once, and a node asked to leave by a claim of a higher
-priority goes home, so that the capacity can be handed over."""
+priority goes home, so that the capacity can be handed over. Both are ``yield`` decisions: no
+hysteresis holds the node back from that host afterwards (room decides, through the decider's
+shared_room filter)."""
 
 from typing import List
 
-from ..observations import MIGRATE_BACK, Decision
+from ..observations import YIELD, Decision
 from .state import Step
 
 
@@ -22,14 +24,14 @@ def shared_answers(step: Step) -> List[Decision]:
         home = running.get(node, master)
         if home == scale:
             home = master
-        out.append(Decision(MIGRATE_BACK, node, scale, home,
+        out.append(Decision(YIELD, node, scale, home,
                             f'{scale} has no room for {node}: {why}'))
     moving = {d.node for d in out} | set(memory.pending)
     for scale, share in sorted(step.obs.shares.items()):
         for node, by in sorted(share.asked.items()):
             if running.get(node) != scale or node in moving or scale == master:
                 continue
-            out.append(Decision(MIGRATE_BACK, node, scale, master,
+            out.append(Decision(YIELD, node, scale, master,
                                 f'{by} of a higher priority asks {scale} for the room '
                                 f'{node} holds there'))
     return out
