@@ -243,6 +243,8 @@ def test_resources_give_cpu_and_rss_per_window_and_growth_of_one_process():
     g = r.growth('decider', min_life_s=100.0)
     assert g['growth_mib'] == pytest.approx((39 - 12) / 16, abs=0.01)
     assert r.growth('agent_robot', min_life_s=100.0) is None
+    # A soak shorter than the start-up skipped (bench/soak.py --minutes 0.4): no growth.
+    assert r.growth('decider', min_life_s=12.0, skip_s=300.0) is None
 
 
 # --- the observer's record checks signatures ----------------------------------------------------

@@ -481,7 +481,10 @@ class Resources:
         best = max(by_pid.values(), key=lambda rs: rs[-1][0] - rs[0][0], default=None)
         if not best or best[-1][0] - best[0][0] < min_life_s:
             return None
-        first = next(r for r in best if r[0] >= best[0][0] + skip_s)
+        # A soak shorter than its start-up has nothing after it to compare.
+        first = next((r for r in best if r[0] >= best[0][0] + skip_s), None)
+        if first is None:
+            return None
         last = best[-1]
         return {'pid': last[2], 'from_s': round(first[0] - best[0][0], 1),
                 'over_s': round(last[0] - first[0], 1),
