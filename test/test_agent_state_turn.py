@@ -194,14 +194,18 @@ def test_what_others_publish_on_the_restore_topic_reaches_the_serving_copy_only(
 
 
 @pytest.mark.parametrize('there, waits', [
-    (p.ProcState.RUNNING, True), (p.ProcState.BACKOFF, False)])
+    (p.ProcState.RUNNING, True), (p.ProcState.STARTING, True), (p.ProcState.BACKOFF, False),
+    (p.ProcState.STANDBY, False)])
 def test_with_no_state_heard_yet_a_move_waits_for_the_first_state_of_the_copy_it_replaces(
         make_sup, there, waits):
     """This agent has heard no state yet (it just started, or its link just came up, as at the
     test-bed's first move out): the copy the layout moves the node from serves on meanwhile and
     its state is on its way, so the copy here waits for it instead of serving from its own (a
-    stale pose beside the right one); a copy its agent reports crashed sends nothing, and the
-    copy here serves at once."""
+    stale pose beside the right one). So does a copy still starting there (a layout that moved
+    the node away while that copy was being activated, as at a boot with the link up): its agent
+    activates it and keeps it serving until this copy is heard there, so serving from its own
+    here would leave two copies serving two states. A copy its agent reports crashed, or kept
+    as a standby, sends nothing, and the copy here serves at once."""
     from test_agent_turn import peer_report
     agent = Agent(make_sup)
     agent.channel.subscribed = agent.channel.acked = True

@@ -231,12 +231,15 @@ class Reconciler:
         return [p for p in self.peers.values() if now - p.heard <= self.agent_timeout_s]
 
     def reported_not_serving(self, node: str, scale: str, now: float, within_s: float) -> bool:
-        """Whether ``scale``'s agent reported, within ``within_s``, its copy of ``node`` not
-        serving (crashed, backing off, stopped, or a standby); False when not heard lately."""
+        """Whether ``scale``'s agent reported, within ``within_s``, its copy of ``node``
+        neither serving nor starting (crashed, backing off, stopped, stopping, or a standby);
+        False when not heard lately. A starting copy (a lifecycle copy being activated) serves
+        soon: its agent counts it as serving and keeps it so while a move away waits."""
         peer = self.peers.get(scale)
         if peer is None or now - peer.heard > within_s:
             return False
-        return peer.nodes.get(node, (ProcState.STOPPED, False)) != (ProcState.RUNNING, True)
+        state = peer.nodes.get(node, (ProcState.STOPPED, False))[0]
+        return state not in (ProcState.RUNNING, ProcState.STARTING)
 
     def copies_elsewhere(self, node: str, now: float) -> int:
         """How many live instances of ``node`` other live agents account for in the ROS graph

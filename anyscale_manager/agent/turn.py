@@ -39,7 +39,7 @@ STOPPING_TICK_S = 0.02
 IDLE_TICK_S = 1.0
 # A copy to be handed a state when this agent has heard none yet waits this long at most for
 # the first one from the copy the layout moves the node from, unless that copy's agent said,
-# at most PEER_FRESH_BEATS heartbeats ago, that it does not serve.
+# at most PEER_FRESH_BEATS heartbeats ago, that it neither serves nor starts.
 FIRST_STATE_WAIT_S = 3.0
 PEER_FRESH_BEATS = 3.0
 # A layout that names unknown nodes or scales is logged entry by entry up to this many.
@@ -260,9 +260,10 @@ class AgentTurn:
             handover, lines = states.handover(name, pid, now)
             if handover.data is None:
                 # Nothing heard yet (this agent just started, or its link just came up): the
-                # copy the layout moves the node from serves on until this one is ready, and
-                # its state is on its way (its writer found within a discovery round), unless
-                # its agent said lately that it does not serve (a crash: nothing to wait for).
+                # copy the layout moves the node from serves on until this one is ready (one
+                # being activated there too), and its state is on its way (its writer found
+                # within a discovery round), unless its agent said lately that it neither
+                # serves nor starts (a crash, a standby: nothing to wait for).
                 before = self.reconciler.moved_from.get(name, '')
                 fresh_s = PEER_FRESH_BEATS / self.deployment.agent.heartbeat_rate_hz
                 if before and before != self.scale \
