@@ -66,6 +66,7 @@ class Lap:
     migrations: int = 0
     perf_map_mean: float = 0.0       # the paper's cost function, time-averaged over the lap
     steps: int = 0
+    delta_violations: int = 0        # stretches below freq_min past Δ (World.delta_violations)
 
 
 def peak_kbps(system: SimSystem, path: PathModel) -> Dict[str, float]:
@@ -101,7 +102,8 @@ def drive(system: SimSystem, schedules: Mapping[str, LinkSchedule], path: PathMo
     # The integral closes at the lap's end, with the layout that held until then.
     turn.cost.update(end, dict(world.placement))
     return Lap(time_s=end if world.finished else math.inf, finished=world.finished,
-               migrations=world.migrations, perf_map_mean=turn.cost.mean, steps=steps)
+               migrations=world.migrations, perf_map_mean=turn.cost.mean, steps=steps,
+               delta_violations=len(world.delta_violations))
 
 
 def oracle_lap(system: SimSystem, schedules: Mapping[str, LinkSchedule],

@@ -62,17 +62,27 @@ def _add_scales(params: Dict[str, Any], k: int) -> None:
         raise ValueError(f'K must be in 2..{len(REMOTE_LADDER) + 1}, got {k}')
     scales = params['scales']
     master = next(scales[n] for n in scales['names'] if scales[n]['role'] == 'master')
-    master_name = next(n for n in scales['names'] if scales[n]['role'] == 'master')
     master_power = master['cores'] * master['clock_ghz']
-    names = [master_name]
+    remotes = []
     for name, cores, clock in REMOTE_LADDER[:k - 1]:
-        names.append(name)
-        scales[name] = {
+        remotes.append((name, {
             'role': 'remote', 'kind': 'server',
             'capacity_cpu': round(cores * clock / master['clock_ghz'] * 100.0, 3),
             'cores': cores, 'clock_ghz': clock,
             'gain': round(cores * clock / master_power, 4), 'host': name,
-        }
+        }))
+    set_remote_scales(params, remotes)
+
+
+def set_remote_scales(params: Dict[str, Any], remotes: List[Tuple[str, Dict[str, Any]]]) -> None:
+    """Make ``remotes`` (name, scale section) the deployment's only remote scales, each reached
+    from the master over its own 802.11g link; links to the scales dropped go with them."""
+    scales = params['scales']
+    master_name = next(n for n in scales['names'] if scales[n]['role'] == 'master')
+    names = [master_name]
+    for name, section in remotes:
+        names.append(name)
+        scales[name] = dict(section)
     for extra in [n for n in scales['names'] if n not in names]:
         scales.pop(extra, None)
     scales['names'] = names
@@ -168,27 +178,38 @@ def generated_parameters(n: int, m: int, rng: np.random.Generator,
     return params, speed
 
 
-def build_system(n: int, m: int, k: int, seed: int = 0,
-                 testbed_path: Optional[str] = None) -> SimSystem:
-    """One system of Fig. 7; 6N x 2M is the test-bed file itself."""
+def system_parameters(n: int, m: int, seed: int = 0, testbed_path: Optional[str] = None
+                      ) -> Tuple[Dict[str, Any], Dict[str, float], str]:
+    """The parameters of an N x M application (its scales still the test-bed's), its speed
+    weights and the test-bed file it comes from; 6N x 2M is the test-bed file itself."""
     path = testbed_path or find_testbed()
     base = _read_yaml(path)
     if (n, m) == (6, 2):
-        params = copy.deepcopy(base)
-        speed = dict(TESTBED_SPEED_WEIGHTS)
-    else:
-        rng = np.random.default_rng([seed, n, m, 20150901])
-        params, speed = generated_parameters(n, m, rng, base)
-    _add_scales(params, k)
-    label = f'{n}N x {m}M x {k}K'
-    deployment = load_mapping({'/**': {'ros__parameters': params}}, source=f'{path} ({label})')
+        return copy.deepcopy(base), dict(TESTBED_SPEED_WEIGHTS), path
+    rng = np.random.default_rng([seed, n, m, 20150901])
+    params, speed = generated_parameters(n, m, rng, base)
+    return params, speed, path
+
+
+def system_from_parameters(params: Dict[str, Any], speed: Dict[str, float], label: str,
+                           n: int, m: int, source: str) -> SimSystem:
+    """A system from its parameters, checked to have N processing and M migratable nodes."""
+    deployment = load_mapping({'/**': {'ros__parameters': params}}, source=f'{source} ({label})')
     processing = [x for x in deployment.node_names if x not in deployment.data_providers
                   and x not in ('user', 'map_server')]
     if len(processing) != n or len(deployment.migratable_nodes) != m:
         raise ValueError(f'{label}: built {len(processing)} processing nodes and '
                          f'{len(deployment.migratable_nodes)} migratable, expected {n} and {m}')
-    return SimSystem(label=label, n=n, m=m, k=k, deployment=deployment,
+    return SimSystem(label=label, n=n, m=m, k=len(deployment.scales), deployment=deployment,
                      profiles=profiles_from_deployment(deployment, speed))
+
+
+def build_system(n: int, m: int, k: int, seed: int = 0,
+                 testbed_path: Optional[str] = None) -> SimSystem:
+    """One system of Fig. 7; 6N x 2M is the test-bed file itself."""
+    params, speed, path = system_parameters(n, m, seed, testbed_path)
+    _add_scales(params, k)
+    return system_from_parameters(params, speed, f'{n}N x {m}M x {k}K', n, m, path)
 
 
 def fig7_systems(seed: int = 0, testbed_path: Optional[str] = None) -> List[SimSystem]:

@@ -17,13 +17,18 @@ applied with a start-up delay. The semantics follow the real monitors:
   gaining scale keeps a standby copy of it: that copy is activated); with ``start_before_stop``
   the old instance serves until then (if it can still be reached), with ``stop_before_start``
   nothing does; ``running`` reports the serving instance, as the agents would.
+
+A stretch of a monitored connection below its freq_min that outlasts its Δ is a Δ violation
+(``runtime.delta.past_delta``), recorded once per stretch in ``delta_violations``. A world made
+with ``loop=True`` drives lap after lap (the same coverage every lap, as a robot circling one
+floor) and never finishes; ``lap_times`` holds when each lap ended.
 """
 
 from typing import Dict, Iterable, List, Mapping, Optional, Tuple
 
 from ..model.types import STOP_BEFORE_START, Deployment, frozen_map
 from ..runtime.constraints import link_observation_key, required_kbps
-from ..runtime.delta import rate_below, stretch_start, time_below
+from ..runtime.delta import past_delta, rate_below, stretch_start, time_below
 from ..runtime.observations import ConnectionObs, Decision, LinkObs, Observations, ScaleObs
 from .model import PathModel, SimSystem, node_rate, robot_speed
 from .path import LinkSchedule
@@ -39,7 +44,8 @@ class World:
     """Mutable state of one simulated lap; time and position advance only in ``advance``."""
 
     def __init__(self, system: SimSystem, schedules: Mapping[str, LinkSchedule],
-                 path: PathModel, layout: Optional[Mapping[str, str]] = None):
+                 path: PathModel, layout: Optional[Mapping[str, str]] = None,
+                 loop: bool = False):
         d: Deployment = system.deployment
         self.system = system
         self.deployment = d
@@ -53,6 +59,8 @@ class World:
         self.profiles = system.profiles
         self.t = 0.0
         self.s = 0.0
+        self.loop = loop
+        self.lap_times: List[float] = []
         self.finish_time_s: Optional[float] = None
         self.placement: Dict[str, str] = {n: self.master for n in d.node_names}
         if layout:
@@ -76,6 +84,9 @@ class World:
         for c in d.connections:
             self._link_kbps[c.name] = c.bandwidth_kbps
         self._below_since: Dict[str, Optional[float]] = {c.name: None for c in self._monitored}
+        self._tolerance = {c.name: c.tolerance_s for c in self._monitored}
+        self.delta_violations: List[Tuple[float, str]] = []    # (when past Δ, connection)
+        self._violated: Dict[str, float] = {}                  # connection -> stretch counted
         self._starved_since: Dict[str, Optional[float]] = {n: None for n in system.speed_nodes}
         self._last_seen: Dict[str, Optional[float]] = {s: None for s in self.remotes}
         self._refresh()
@@ -110,8 +121,13 @@ class World:
             ok = self.connected(self.placement[c.publisher], self.placement[c.subscriber])
             rate = out[c.publisher] if ok else 0.0
             self.connection_hz[c.name] = rate
-            self._below_since[c.name] = stretch_start(
-                self._below_since[c.name], self.t, rate_below(c.freq_min_hz, rate, EPS))
+            since = stretch_start(self._below_since[c.name], self.t,
+                                  rate_below(c.freq_min_hz, rate, EPS))
+            self._below_since[c.name] = since
+            if since is not None and self._violated.get(c.name) != since and \
+                    past_delta(time_below(since, self.t), self._tolerance[c.name]):
+                self._violated[c.name] = since
+                self.delta_violations.append((self.t, c.name))
         self.delivered_hz = {}
         for n in self._starved_since:
             rate = out[n] if self.connected(self.placement[n], self.master) else 0.0
@@ -215,7 +231,10 @@ class World:
             return
         v = self.speed_mps()
         remaining = self.path.length_m - self.s
-        if v > 0 and v * dt >= remaining:
+        if v > 0 and v * dt >= remaining and self.loop:
+            self.lap_times.append(self.t + remaining / v)
+            self.s = min(self.s + v * dt - self.path.length_m, self.path.length_m)
+        elif v > 0 and v * dt >= remaining:
             self.finish_time_s = self.t + remaining / v
             self.s = self.path.length_m
         else:
@@ -227,6 +246,11 @@ class World:
                 self.serving[node] = True
                 del self.pending[node]
         self._refresh()
+
+    @property
+    def driven_m(self) -> float:
+        """The distance driven so far, over every lap."""
+        return len(self.lap_times) * self.path.length_m + self.s
 
     @property
     def finished(self) -> bool:
