@@ -144,3 +144,29 @@ def test_agents_in_separate_processes_claiming_at_once_never_over_commit(tmp_pat
         w.join(timeout=30)
     assert totals and max(totals) <= 100
     assert sum(granted for _, granted in done) == len(totals)
+
+
+def test_the_room_a_waiting_claim_waits_for_is_not_taken_by_a_lower_one_meanwhile(tmp_path):
+    """robot_a (priority 0) is asked to leave for robot_b (1); once robot_a has gone, robot_a's
+    next claim (its node coming straight back, say) does not take the room robot_b waits for."""
+    low, high = ledger(tmp_path, 'robot_a'), ledger(tmp_path, 'robot_b', priority=1)
+    assert low.claim(Claim('robot_a', 'amcl', 60, 0), 1.0).granted
+    assert high.claim(Claim('robot_b', 'amcl', 60, 0, priority=1), 2.0).waiting
+    # robot_a's decider sees the room reserved.
+    assert [c.deployment for c in low.share(2.0).reserved] == ['robot_b']
+    low.release('amcl', 3.0)
+    answer = low.claim(Claim('robot_a', 'amcl', 60, 0), 3.1)
+    assert not answer.granted and not answer.waiting and 'robot_b/amcl' in answer.reason
+    assert high.claim(Claim('robot_b', 'amcl', 60, 0, priority=1), 3.2).granted
+    # Granted, it waits no more: nothing is reserved twice.
+    assert [c.node for c in low.share(3.2).others] == ['amcl'] and low.share(3.2).reserved == ()
+
+
+def test_a_waiting_claim_given_up_reserves_nothing_more(tmp_path):
+    low, high = ledger(tmp_path, 'robot_a'), ledger(tmp_path, 'robot_b', priority=1)
+    assert low.claim(Claim('robot_a', 'amcl', 60, 0), 1.0).granted
+    assert high.claim(Claim('robot_b', 'amcl', 60, 0, priority=1), 2.0).waiting
+    assert not low.claim(Claim('robot_a', 'ar', 40, 0), 2.1).granted   # 60 + 60 reserved
+    high.release('amcl', 2.2)              # robot_b placed its node elsewhere
+    assert low.share(2.2).asked == {} and low.share(2.2).reserved == ()
+    assert low.claim(Claim('robot_a', 'ar', 40, 0), 2.3).granted

@@ -302,6 +302,11 @@ def test_shared_room_counts_the_claims_this_deployment_may_not_preempt(d):
     v = f.shared_room(snap, cand(('amcl', 'ar'), cpu=10.0, d=d))
     nominal = d.node('amcl').cpu + d.node('ar').cpu
     assert v.reason.startswith(f'shared laptop: CPU 0 + {nominal:.0f} ')
+    # A unit that must leave where it is may not count on a preemption (the lower robots go
+    # home first): every claim counts.
+    urgent = f.shared_room(snap, f.Candidate(('amcl',), 'laptop', 100.0,
+                                             {n: 'robot' for n in d.node_names}, urgent=True))
+    assert urgent.reason == 'shared laptop: CPU 0 + 100 > 80 left by robot_b/amcl, robot_c/ar'
     # The host's measured total is not this deployment's: the CPU filter leaves it to claims.
     assert f.cpu_headroom(snapshot(d, laptop_cpu=700.0, shares={'laptop': share}),
                           cand(cpu=100.0, d=d)) == PASS

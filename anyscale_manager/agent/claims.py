@@ -119,8 +119,10 @@ class HostClaims:
             return None
         return HostShare(
             capacity_cpu=share.capacity_cpu, memory_mb=share.memory_mb,
+            # What others wait for is theirs too, for this deployment's decider.
             claims={f'{c.deployment}/{c.node}': ShareClaim(c.cpu, c.memory_mb, c.priority,
-                                                           c.active) for c in share.others},
+                                                           c.active)
+                    for c in share.others + share.reserved},
             refused=dict(self.refused), waiting=dict(self.waiting), asked=dict(share.asked))
 
     def _say(self, name: str, level: str, text: str, logs: List[LogLine]) -> None:

@@ -36,6 +36,11 @@ _SCHEMA = (
     'CREATE TABLE IF NOT EXISTS claims (deployment TEXT NOT NULL, node TEXT NOT NULL, '
     'cpu REAL NOT NULL, memory_mb REAL NOT NULL, active INTEGER NOT NULL, '
     'priority INTEGER NOT NULL, lease_until REAL NOT NULL, PRIMARY KEY (deployment, node))',
+    # Claims waiting for lower ones to leave: the room they wait for is theirs (a claim of a
+    # lower priority than a waiting one does not take it meanwhile).
+    'CREATE TABLE IF NOT EXISTS waits (deployment TEXT NOT NULL, node TEXT NOT NULL, '
+    'cpu REAL NOT NULL, memory_mb REAL NOT NULL, active INTEGER NOT NULL, '
+    'priority INTEGER NOT NULL, lease_until REAL NOT NULL, PRIMARY KEY (deployment, node))',
     'CREATE TABLE IF NOT EXISTS asks (deployment TEXT NOT NULL, node TEXT NOT NULL, '
     'by_deployment TEXT NOT NULL, by_node TEXT NOT NULL, since REAL NOT NULL, '
     'PRIMARY KEY (deployment, node))',
@@ -85,12 +90,15 @@ class Answer:
 @dataclass(frozen=True)
 class Share:
     """What one deployment sees of the host: its capacity and every other deployment's claims;
-    ``asked``: its own nodes asked to leave, node -> by whom."""
+    ``asked``: its own nodes asked to leave, node -> by whom; ``reserved``: the others' claims
+    that wait for lower ones to leave."""
 
     capacity_cpu: float
     memory_mb: float
     others: Tuple[Claim, ...]
     asked: Dict[str, str]
+    # Other deployments' claims waiting for lower ones to leave: the room they reserve.
+    reserved: Tuple[Claim, ...] = ()
 
     def others_cpu(self, below_priority: Optional[int] = None) -> float:
         """The CPU other deployments hold (only the claims of ``below_priority`` or more when
@@ -154,7 +162,7 @@ class Ledger:
         """Extend this deployment's membership and claims by a lease from ``now``."""
         with self._write():
             self._expire(now)
-            for table in ('members', 'claims'):
+            for table in ('members', 'claims', 'waits'):
                 self._db.execute(f'UPDATE {table} SET lease_until = ? WHERE deployment = ?',
                                  (now + self.lease_s, self.deployment))
 
@@ -165,33 +173,39 @@ class Ledger:
         with self._write():
             self._expire(now)
             host = self._host()
-            held = [c for c in self._claims() if (c.deployment, c.node) !=
-                    (claim.deployment, claim.node)]
-            over = _over(host, held, claim)
+            key = (claim.deployment, claim.node)
+            held = [c for c in self._claims() if (c.deployment, c.node) != key]
+            reserved = [w for w in self._claims(table='waits') if w.deployment != claim.deployment
+                        and w.priority > claim.priority]
+            over = _over(host, held + reserved, claim)
+            row = (claim.deployment, claim.node, claim.cpu, claim.memory_mb, int(claim.active),
+                   claim.priority, now + self.lease_s)
             if not over:
-                self._db.execute('INSERT OR REPLACE INTO claims VALUES (?, ?, ?, ?, ?, ?, ?)',
-                                 (claim.deployment, claim.node, claim.cpu, claim.memory_mb,
-                                  int(claim.active), claim.priority, now + self.lease_s))
-                self._db.execute('DELETE FROM asks WHERE by_deployment = ? AND by_node = ?',
-                                 (claim.deployment, claim.node))
+                self._db.execute('INSERT OR REPLACE INTO claims VALUES (?, ?, ?, ?, ?, ?, ?)', row)
+                self._db.execute('DELETE FROM asks WHERE by_deployment = ? AND by_node = ?', key)
+                self._db.execute('DELETE FROM waits WHERE deployment = ? AND node = ?', key)
                 return Answer(True, f'granted: {claim.describe()} fits {_describe(host, held)}')
-            victims = _victims(host, held, claim)
+            # Only claims of a lower priority can make room; those waiting above it keep theirs.
+            victims = _victims(host, held + reserved, claim)
             if victims:
+                self._db.execute('INSERT OR REPLACE INTO waits VALUES (?, ?, ?, ?, ?, ?, ?)', row)
                 for v in victims:
                     self._db.execute('INSERT OR IGNORE INTO asks VALUES (?, ?, ?, ?, ?)',
                                      (v.deployment, v.node, claim.deployment, claim.node, now))
                 names = ', '.join(v.describe() for v in victims)
                 return Answer(False, f'{claim.describe()} waits for {names} to leave (asked: '
                                      f'priority {claim.priority} is higher)', waiting=True)
+            self._db.execute('DELETE FROM waits WHERE deployment = ? AND node = ?', key)
             return Answer(False, f'{claim.describe()} does not fit: {over}; '
-                                 f'{_describe(host, held)}')
+                                 f'{_describe(host, held + reserved)}')
 
     def release(self, node: str, now: float) -> None:
         """Drop this deployment's claim on ``node`` (its copy is gone) and any ask of it."""
         with self._write():
             self._expire(now)
-            self._db.execute('DELETE FROM claims WHERE deployment = ? AND node = ?',
-                             (self.deployment, node))
+            for table in ('claims', 'waits'):
+                self._db.execute(f'DELETE FROM {table} WHERE deployment = ? AND node = ?',
+                                 (self.deployment, node))
             self._db.execute('DELETE FROM asks WHERE (deployment = ? AND node = ?) OR '
                              '(by_deployment = ? AND by_node = ?)',
                              (self.deployment, node, self.deployment, node))
@@ -201,17 +215,19 @@ class Ledger:
         with self._write():
             for sql in ('DELETE FROM members WHERE deployment = ?',
                         'DELETE FROM claims WHERE deployment = ?',
+                        'DELETE FROM waits WHERE deployment = ?',
                         'DELETE FROM asks WHERE deployment = ? OR by_deployment = ?'):
                 self._db.execute(sql, (self.deployment,) * sql.count('?'))
 
     def share(self, now: float) -> Share:
         """The host as this deployment sees it (read only: no lock is taken)."""
         held = [c for c in self._claims(now) if c.deployment != self.deployment]
+        reserved = [c for c in self._claims(now, 'waits') if c.deployment != self.deployment]
         host = self._host()
         asked = {node: f'{by}/{by_node}' for node, by, by_node in self._db.execute(
             'SELECT node, by_deployment, by_node FROM asks WHERE deployment = ?',
             (self.deployment,))}
-        return Share(host[0], host[1], tuple(held), asked)
+        return Share(host[0], host[1], tuple(held), asked, tuple(reserved))
 
     def own(self, now: float) -> Dict[str, Claim]:
         """This deployment's live claims by node."""
@@ -223,7 +239,7 @@ class Ledger:
         return _Transaction(self._db, self.path)
 
     def _expire(self, now: float) -> None:
-        for table in ('members', 'claims'):
+        for table in ('members', 'claims', 'waits'):
             self._db.execute(f'DELETE FROM {table} WHERE lease_until < ?', (now,))
         self._db.execute('DELETE FROM asks WHERE NOT EXISTS (SELECT 1 FROM claims c WHERE '
                          'c.deployment = asks.deployment AND c.node = asks.node)')
@@ -232,8 +248,8 @@ class Ledger:
         row = self._db.execute('SELECT capacity_cpu, memory_mb FROM host').fetchone()
         return (0.0, 0.0) if row is None else (row[0], row[1])
 
-    def _claims(self, now: Optional[float] = None) -> List[Claim]:
-        sql = 'SELECT deployment, node, cpu, memory_mb, priority, active FROM claims'
+    def _claims(self, now: Optional[float] = None, table: str = 'claims') -> List[Claim]:
+        sql = f'SELECT deployment, node, cpu, memory_mb, priority, active FROM {table}'
         rows = (self._db.execute(sql + ' WHERE lease_until >= ?', (now,)) if now is not None
                 else self._db.execute(sql))
         return [Claim(d, n, cpu, mem, prio, bool(active))

@@ -11,6 +11,7 @@ A pass says the CPU and bandwidth it found. The migration policy ranks the scale
 (runtime/scores.py) and takes the first.
 """
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable, Mapping, Optional, Tuple
 
@@ -54,13 +55,16 @@ class Snapshot:
 class Candidate:
     """``unit`` (its nodes, the first named in notes) on ``scale``: its CPU, where every node
     runs meanwhile (``running``, the unit's own nodes left out or not), and the CPU this turn
-    already sent to ``scale``."""
+    already sent to ``scale``. ``urgent``: the unit must leave where it is (a link down, a
+    lost scale, a Δ): it may not count on room a preemption would make on a shared scale, which
+    takes the lower robots' moves home first."""
 
     unit: Tuple[str, ...]
     scale: str
     cpu: float
     running: Mapping[str, str]
     sent_cpu: float = 0.0
+    urgent: bool = False
 
 
 Filter = Callable[[Snapshot, Candidate], Verdict]
@@ -145,9 +149,9 @@ def cpu_headroom(snap: Snapshot, cand: Candidate) -> Verdict:
 def shared_room(snap: Snapshot, cand: Candidate) -> Verdict:
     """A shared scale (``scales.<s>.shared``) has room for the unit beside every other
     deployment's claim on its host that this one may not preempt (one of its priority or
-    higher), as its agent reports them (agent/ledger.py): CPU within the host's usable CPU,
-    memory within the host's memory. This deployment's own nodes there count by their nominal
-    CPU, as their claims do."""
+    higher; an urgent unit: every claim), as its agent reports them (agent/ledger.py): CPU
+    within the host's usable CPU, memory within the host's memory. This deployment's own nodes
+    there count by their nominal CPU, as their claims do."""
     d, obs = snap.deployment, snap.obs
     if not d.scale(cand.scale).shared:
         return PASS
@@ -159,11 +163,12 @@ def shared_room(snap: Snapshot, cand: Candidate) -> Verdict:
     own = sum(d.node(n).cpu for n in mine) + cand.sent_cpu
     # Its claim will be its nominal CPU, whatever it was measured at here.
     cpu = max(cand.cpu, sum(d.node(n).cpu for n in cand.unit))
-    keep = [c for c in share.claims.values() if c.priority >= d.priority]
+    floor = d.priority if not cand.urgent else -math.inf
+    keep = [c for c in share.claims.values() if c.priority >= floor]
     held = sum(c.cpu for c in keep if c.active)
     free = usable_cpu(share.capacity_cpu, snap.settings) - held
     holders = ', '.join(sorted(k for k, c in share.claims.items()
-                               if c.priority >= d.priority)) or 'nobody'
+                               if c.priority >= floor)) or 'nobody'
     if own + cpu > free:
         return fails(Code.SHARED, f'shared {cand.scale}: CPU {own:.0f} + {cpu:.0f} > '
                                   f'{free:.0f} left by {holders}')

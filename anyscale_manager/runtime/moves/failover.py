@@ -94,4 +94,4 @@ def copy_may_serve(step: Step, snap: Snapshot, node: str, cpu: float, scale: str
     if scale == step.master:
         return agent_at(step.obs, step.settings, scale)
     without = {n: x for n, x in step.running.items() if n != node}
-    return can_host(snap, Candidate((node,), scale, cpu, without))
+    return can_host(snap, Candidate((node,), scale, cpu, without, urgent=True))

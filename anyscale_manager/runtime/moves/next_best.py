@@ -36,7 +36,8 @@ def next_best(step: Step, snap: Snapshot, placed: Mapping[str, str], node: str,
         if not cut.passed:
             refused.append(f'{scale}: {cut.reason}')
             continue
-        verdict = can_host(snap, Candidate((node,), scale, cpu, without, sent.get(scale, 0.0)))
+        verdict = can_host(snap, Candidate((node,), scale, cpu, without, sent.get(scale, 0.0),
+                                           urgent=True))
         if verdict.passed:
             return scale, verdict.reason
         refused.append(f'{scale}: {verdict.reason}')

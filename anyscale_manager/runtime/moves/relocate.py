@@ -88,7 +88,7 @@ def relocation_target(step: Step, snap: Snapshot, placed: Mapping[str, str], nod
     cpu = d.node(node).cpu
     for scale in by_worth(d, usable):
         room = cpu_headroom(snap, Candidate((node,), scale, cpu, placed,
-                                            extra_cpu.get(scale, 0.0)))
+                                            extra_cpu.get(scale, 0.0), urgent=True))
         if room.passed:
             return scale, ''
     return by_worth(d, usable)[0], ''
