@@ -11,13 +11,12 @@ restarted after 1 s as systemd would; SIGSTOP of the leading decider; a hostile 
 (forged, replayed and malformed layouts, states and reports); a third decider started. The
 deployment is signed (a key made for the run). Prints each fault with the system's reaction
 time, p50/p95 per kind, the counts that must all be 0 (two copies publishing at once beyond
-the move overlap, a connection past its Δ at the robot not excused by a kill, a node running
-nowhere longer than a cold move, forged layouts followed, a third decider leading or
-followed, a resumed leader publishing or followed, unexpected exits, missed reactions,
-leftovers after
-the teardown, tracebacks in any log) and the CPU and RSS of the decider and the agents at the
-start and the end. Exit 0 when every count is 0, 1 otherwise, 2 on bad arguments or no
-test-bed. The rules: docs/testbed.md, the chaos soak.
+the move overlap, a connection past its Δ at the robot not excused by a kill, AMCL's pose
+jumping, a node running nowhere longer than a cold move, forged layouts followed, a third
+decider leading or followed, a resumed leader publishing or followed, unexpected exits, missed
+reactions, leftovers after the teardown, tracebacks in any log) and the CPU and RSS of the
+decider and the agents at the start and the end. Exit 0 when every count is 0, 1 otherwise, 2
+on bad arguments or no test-bed. The rules: docs/testbed.md, the chaos soak.
 """
 
 import argparse

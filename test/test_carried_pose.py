@@ -8,9 +8,12 @@ import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.nodes.workload import parse_spec, set_pose
 from anyscale_manager.nodes.workload_pose import parse_motion, PoseTrack, START, yaw_of
-from anyscale_manager.testbed.poses import pose_jumps, pose_speed
+from anyscale_manager.testbed.poses import pose_jumps, pose_motion, pose_speed, record_jumps
+from anyscale_manager.testbed.record import Record
+from conftest import TESTBED
 from test_workload import (_start, _stop, ACTIVATE, CONFIGURE, LifecycleProbe, scale_remaps)
 
 POSE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
@@ -62,6 +65,59 @@ def test_the_judge_finds_a_jump_and_passes_a_continued_pose():
     jumps = pose_jumps(fresh, 0.0, 100.0, 0.2)
     assert len(jumps) == 1 and jumps[0].distance_m > 1.5, jumps
     assert pose_speed(['--x', '--pose-motion', '0.25,0.1']) == 0.25
+
+
+def _heard(start_s, stamps, late_s=0.0, start=START):
+    """(arrival, x, y, stamp, yaw) of the outputs at ``stamps`` of a copy on the track that left
+    ``start`` at ``start_s`` (arrivals ``late_s`` after their stamps, on another clock)."""
+    out = []
+    for stamp in stamps:
+        track = PoseTrack(0.2, 0.05, *start, stamp_s=start_s)
+        x, y, yaw = track.at(stamp)
+        out.append((stamp - 100.0 + late_s, x, y, stamp, yaw))
+    return out
+
+
+def test_a_pose_a_user_set_is_no_jump_but_two_copies_on_two_other_states_are():
+    """A user sets the start pose on /initialpose 1.9 s after AMCL began (the test-bed's user is
+    up after the laser), in a move's overlap: the laptop's copy takes it at once, the robot's
+    0.4 s later, both handed it by their agents. The pose goes back 0.4 m, as asked, and the
+    robot's copy goes on along the old track for a moment: no jump. A copy that serves from its
+    own start pose beside the laptop's, 0.5 s after the pose was set, jumps at each turn."""
+    set_at = 101.9
+    set_pose = (set_at - 100.0, START[0], START[1], set_at, START[2])
+    laptop = _heard(100.0, [100.0 + 0.2 * i for i in range(10)]) \
+        + _heard(set_at, [102.0 + 0.2 * i for i in range(10)])
+    robot = _heard(100.0, [100.1 + 0.2 * i for i in range(12)], 0.01) \
+        + _heard(set_at, [102.5], 0.01)
+    heard = laptop + robot
+    assert len(pose_jumps(heard, 0.0, 100.0, 0.2)) >= 4          # read as jumps without it
+    assert pose_jumps(heard, 0.0, 100.0, 0.2, set_poses=[set_pose], turn_rps=0.05) == []
+    own = laptop + _heard(102.4, [102.5 + 0.2 * i for i in range(4)], 0.01)
+    jumps = pose_jumps(own, 0.0, 100.0, 0.2, set_poses=[set_pose], turn_rps=0.05)
+    assert len(jumps) >= 4, jumps
+    # ... as does one from its own start pose seconds later, handed nothing.
+    late = laptop + _heard(104.5, [104.5])
+    assert len(pose_jumps(late, 0.0, 100.0, 0.2, set_poses=[set_pose], turn_rps=0.05)) == 1
+    assert pose_motion(['--pose-motion', '-0.2,0.05']) == (-0.2, 0.05)
+
+
+def test_the_record_keeps_the_poses_a_user_set_and_the_judge_reads_them():
+    """The observer's lines as the record takes them: AMCL's poses (with their yaw, or without
+    from an older observer) and the poses set on its restore topic, /initialpose."""
+    record = Record(load_deployment(TESTBED))
+    set_pose = (1.9, START[0], START[1], 101.9, START[2])
+    record.ingest({'t': 2.0, 'set_poses': {'/initialpose': [list(set_pose), [1.0, 2.0]]}})
+    heard = _heard(100.0, [100.0 + 0.2 * i for i in range(10)]) \
+        + _heard(101.9, [102.0 + 0.2 * i for i in range(10)])
+    record.ingest({'t': 5.0, 'poses': {'/amcl_pose': [list(p) for p in heard]}})
+    assert record.set_poses == {'/initialpose': [set_pose]}
+    assert len(record.poses['/amcl_pose']) == 20
+    assert record_jumps(record, 0.0, 100.0) == {'/amcl_pose': []}
+    record.set_poses.clear()
+    assert len(record_jumps(record, 0.0, 100.0)['/amcl_pose']) == 1
+    record.ingest({'t': 6.0, 'poses': {'/amcl_pose': [[5.5, 1.0, 1.0, 105.5]]}})
+    assert record.poses['/amcl_pose'][-1] == (5.5, 1.0, 1.0, 105.5)
 
 
 def test_a_lifecycle_stand_in_continues_from_a_pose_handed_while_inactive(python, ros_env):

@@ -389,13 +389,13 @@ def test_the_verdict_tells_forged_rival_and_real_leaders_apart_and_counts_moves_
         (20.0, 'amcl', 'laptop')]
 
 
-def _report(**changes):
+def _report(jumps=(), **changes):
     tally = verdict.Tally(**changes)
     found = {'duplicates': [], 'duplicates_reported': [], 'delta_violations': [], 'nowhere': [],
              'unneeded_moves_back': [],
              'forged_applied': [], 'forged_applied_count': 0, 'rival_followed': [],
              'rival_followed_count': 0, 'delta_excused': [], 'delta_known_open': [],
-             'state_jumps': []}
+             'state_jumps': list(jumps)}
     teardown = {'leftovers': [], 'tracebacks': [], 'resources_end': {'decider': None}}
     bounds = {'overlap_s': 3.0, 'nowhere_s': 7.0, 'restart_s': 1.0, 'duplicate_process_s': 3.0}
     return soak_report.build(
@@ -416,6 +416,11 @@ def test_the_report_passes_only_when_every_count_is_0():
     assert failed['counts']['missed_reactions'] == 1 == failed['counts']['unexpected_exits']
     text = soak_report.format_report(failed)
     assert 'unexpected exits:' in text and text.endswith('FAIL: see the counts above')
+    # A pose that jumped fails the soak as it fails the e2e modules.
+    jumped = _report(jumps=[{'topic': '/amcl_pose', 'at_s': 0.3,
+                             'jump': '0.21 m in 0.20 s at t=100.30 (at most 0.09 m)'}])
+    assert not jumped['ok'] and jumped['counts']['state_jumps'] == 1
+    assert '/amcl_pose: 0.21 m in 0.20 s' in soak_report.format_report(jumped)
 
 
 def test_a_span_a_kill_excuses_is_excused_even_on_a_known_open_defect():

@@ -234,6 +234,13 @@ class Testbed:
         return sorted({n.state.topic for n in d.nodes if n.state is not None
                        and d.state_msg_type(n.name) == POSE_TYPE})
 
+    def set_pose_topics(self) -> List[str]:
+        """The restore topics of those nodes, on which a user may set a pose (RViz's initial
+        pose, the test-bed's user): the judge takes the jump to it for one asked for."""
+        d = self.deployment
+        return sorted({n.state.restore for n in d.nodes if n.state is not None
+                       and d.state_msg_type(n.name) == POSE_TYPE})
+
     def master_links(self) -> List[str]:
         """The links that touch the master scale."""
         master = self.deployment.master.name
@@ -346,6 +353,8 @@ class Testbed:
         if project is None:
             for topic in self.pose_topics():
                 argv += ['--pose', topic]
+            for topic in self.set_pose_topics():
+                argv += ['--set-pose', topic]
         record.topics = frozenset(topic.partition(':')[0] for topic in topics)
         name = f'observer_{scale}'
         observer = self._spawn(name, scale, argv, quota=False, stdout=subprocess.PIPE)

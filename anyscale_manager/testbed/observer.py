@@ -11,8 +11,10 @@ JSON object per line: ``{"t": <monotonic>, "topic": ..., "data": <the String's J
 project messages and ``{"t": ..., "arrivals": {topic: [monotonic, ...]}, "seqs": {topic: [n,
 ...]}}`` every 0.2 s for the data topics (``seqs``: each message's publication sequence number,
 -1 where the middleware gives none; every DDS writer counts its own from 1, so two copies of a
-node publishing at once show as two interleaved series), and ``{"t": ..., "poses": {topic:
-[[monotonic, x, y, stamp], ...]}}`` for the ``--pose`` topics (a node's state, a pose).
+node publishing at once show as two interleaved series), ``{"t": ..., "poses": {topic:
+[[monotonic, x, y, stamp, yaw], ...]}}`` for the ``--pose`` topics (a node's state, a pose)
+and ``{"t": ..., "set_poses": {topic: [[monotonic, x, y, stamp, yaw], ...]}}`` for the
+``--set-pose`` topics (a pose someone sets on a node's restore topic: a user's initial pose).
 CLOCK_MONOTONIC is the same in every network namespace, so the harness can put these times next
 to its own (link cuts, kills). It parses nothing but those poses: judging is the harness's job.
 """
@@ -33,6 +35,7 @@ from .. import protocol as p
 from ..nodes import qos
 from ..nodes.monitors.probes import clock_offset_s, received_at
 from ..nodes.workload_messages import DEFAULT_TYPE, message_class
+from ..nodes.workload_pose import yaw_of
 from ..interrupt import restore_ctrl_c
 
 LATCHED = qos.LATCHED_READER
@@ -48,11 +51,14 @@ FLUSH_S = 0.2
 
 class Observer(Node):
     def __init__(self, data_topics: List[str], out=sys.stdout,
-                 project_topics: Optional[List[str]] = None, pose_topics: List[str] = ()):
+                 project_topics: Optional[List[str]] = None, pose_topics: List[str] = (),
+                 set_pose_topics: List[str] = ()):
         """``data_topics``: ``TOPIC[:TYPE]`` each (the type a raw subscription needs to match
         its writers; std_msgs/msg/UInt8MultiArray when left out). ``pose_topics``: topics of
         geometry_msgs/msg/PoseWithCovarianceStamped whose poses are written too (a node's
-        state: the end-to-end tests judge that it does not jump)."""
+        state: the end-to-end tests judge that it does not jump). ``set_pose_topics``: the
+        restore topics on which someone may set such a pose (a user's initial pose, which the
+        agents hand to the serving copy: a jump asked for)."""
         super().__init__('anyscale_testbed_observer')
         self._out = out
         types = dict((t.split(':', 1) + [DEFAULT_TYPE])[:2] for t in data_topics)
@@ -67,11 +73,17 @@ class Observer(Node):
             self.create_subscription(message_class(types[topic]), topic, self._data(topic),
                                      BEST_EFFORT, raw=True)
         self._poses: Dict[str, List[list]] = {t: [] for t in pose_topics}
-        if pose_topics:
+        self._set_poses: Dict[str, List[list]] = {t: [] for t in set_pose_topics}
+        if pose_topics or set_pose_topics:
             from geometry_msgs.msg import PoseWithCovarianceStamped
             for topic in pose_topics:
-                self.create_subscription(PoseWithCovarianceStamped, topic, self._pose(topic),
-                                         BEST_EFFORT)
+                self.create_subscription(PoseWithCovarianceStamped, topic,
+                                         self._pose(topic, self._poses), BEST_EFFORT)
+            for topic in set_pose_topics:
+                # Reliable and transient-local: a pose set once (latched) when this reader
+                # was not matched yet is still heard; each keeps its own stamp.
+                self.create_subscription(PoseWithCovarianceStamped, topic,
+                                         self._pose(topic, self._set_poses), LATCHED)
         self.create_timer(FLUSH_S, self._flush)
         self._write({'t': time.monotonic(), 'ready': True})
 
@@ -94,20 +106,22 @@ class Observer(Node):
             self._seqs[topic].append(seq if isinstance(seq, int) else -1)
         return callback
 
-    def _pose(self, topic: str):
+    def _pose(self, topic: str, kept: Dict[str, List[list]]):
         def callback(msg) -> None:
             stamp = msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9
-            position = msg.pose.pose.position
-            self._poses[topic].append([time.monotonic(), position.x, position.y, stamp])
+            p, o = msg.pose.pose.position, msg.pose.pose.orientation
+            yaw = yaw_of(o.z, o.w) if abs(o.z) + abs(o.w) > 0.0 else 0.0
+            kept[topic].append([time.monotonic(), p.x, p.y, stamp, yaw])
         return callback
 
     def _flush(self) -> None:
         self._offset_s = clock_offset_s()
-        poses = {t: v for t, v in self._poses.items() if v}
-        if poses:
-            self._write({'t': time.monotonic(), 'poses': poses})
-            for topic in poses:
-                self._poses[topic] = []
+        for key, kept in (('poses', self._poses), ('set_poses', self._set_poses)):
+            batch = {t: v for t, v in kept.items() if v}
+            if batch:
+                self._write({'t': time.monotonic(), key: batch})
+                for topic in batch:
+                    kept[topic] = []
         batch = {t: a for t, a in self._arrivals.items() if a}
         if batch:
             # In reception order (DDS threads may hand over two messages out of order).
@@ -129,11 +143,14 @@ def main(args: Optional[List[str]] = None) -> int:
                         help='listen to only these project topics (default: all of them)')
     parser.add_argument('--pose', action='append', default=[], metavar='TOPIC',
                         help='also write the poses of this PoseWithCovarianceStamped topic')
+    parser.add_argument('--set-pose', action='append', default=[], metavar='TOPIC',
+                        help='also write the poses set on this restore topic, with their yaw')
     a = parser.parse_args(remove_ros_args(argv)[1:])
     rclpy.init(args=argv)
     node = None
     try:
-        node = Observer(a.topic, project_topics=a.project, pose_topics=a.pose)
+        node = Observer(a.topic, project_topics=a.project, pose_topics=a.pose,
+                        set_pose_topics=a.set_pose)
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException, BrokenPipeError):
         pass

@@ -63,8 +63,11 @@ class Record:
     arrivals: Dict[str, List[float]] = field(default_factory=dict)
     # Each arrival's publication sequence number (-1: not given), when the observer sends them.
     arrival_seqs: Dict[str, List[int]] = field(default_factory=dict)
-    # topic -> (arrival, x, y, stamp) of each pose a ``--pose`` observer wrote (testbed/poses.py)
-    poses: Dict[str, List[Tuple[float, float, float, float]]] = field(default_factory=dict)
+    # topic -> (arrival, x, y, stamp, yaw) of each pose a ``--pose`` observer wrote
+    # (testbed/poses.py; an older observer's rows have no yaw)
+    poses: Dict[str, List[Tuple[float, ...]]] = field(default_factory=dict)
+    # restore topic -> (arrival, x, y, stamp, yaw) of each pose someone set there (``--set-pose``)
+    set_poses: Dict[str, List[Tuple[float, ...]]] = field(default_factory=dict)
     # link -> (time, up, rate kbit/s) of each change the harness made
     link_truth: Dict[str, List[Tuple[float, bool, float]]] = field(default_factory=dict)
     marks: List[Tuple[float, str]] = field(default_factory=list)
@@ -102,12 +105,14 @@ class Record:
         if obj.get('ready'):
             self.observer_ready = t
             return
-        if 'poses' in obj:
-            for topic, rows in obj['poses'].items():
-                self.poses.setdefault(topic, []).extend(
-                    (float(r[0]), float(r[1]), float(r[2]), float(r[3])) for r in rows
-                    if isinstance(r, list) and len(r) == 4)
-            return
+        for key, kept, sizes in (('poses', self.poses, (4, 5)),
+                                 ('set_poses', self.set_poses, (5,))):
+            if key in obj:
+                for topic, rows in obj[key].items():
+                    kept.setdefault(topic, []).extend(
+                        tuple(float(x) for x in r) for r in rows
+                        if isinstance(r, list) and len(r) in sizes)
+                return
         if 'arrivals' in obj:
             seqs = obj.get('seqs') or {}
             for topic, times in obj['arrivals'].items():
