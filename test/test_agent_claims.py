@@ -125,3 +125,21 @@ def test_a_losing_scale_keeps_its_copy_while_the_gaining_shared_scale_refuses_it
     # Without the refusal the timeout lets it go as before.
     robot.peer_state(dataclasses.replace(report, share=None), 5.1)
     assert robot.desired(5.2, {'amcl'}) == set()
+
+
+def test_an_agent_shutting_down_gives_its_room_back_before_it_exits(make_sup, tmp_path):
+    clock = [100.0]
+    a = ServerAgent(make_sup, fleet_member('robot_a'), str(tmp_path), clock)
+    b = ServerAgent(make_sup, fleet_member('robot_b'), str(tmp_path), clock)
+    a.turn.on_layout(layout(1, amcl='server'), clock[0])
+    b.turn.on_layout(layout(1, 'robot_b', amcl='server'), clock[0])
+    assert a.step().wanted == {'amcl'}
+    a.turn.request_shutdown(clock[0])
+    end = time.monotonic() + 15
+    while not a.turn.finished:
+        clock[0] += 0.05
+        a.step()
+        assert time.monotonic() < end, 'the agent never finished'
+        time.sleep(0.02)
+    # Finished (it would exit now): its claim is gone already, not after a lease.
+    assert b.step().wanted == {'amcl'}

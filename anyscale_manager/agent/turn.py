@@ -428,6 +428,10 @@ class AgentTurn:
             out.goals[name] = driver.goal
         out.wanted = set(want)
         changed = sup.step(now, lambda entry: self._visible(entry, now, inputs.visible))
+        if self.claims is not None and self.shutdown_requests:
+            # Shutting down: a copy gone in this step gives its room back now, before the
+            # agent exits (its claim would otherwise hold the room for a lease).
+            out.logs.extend(self.claims.gate(now, set(), {}, lambda n: n in sup.pids()))
         self._sync_drivers()
         self._hand_plain_states(now, inputs)
         self._follow_restore_topics(inputs)
