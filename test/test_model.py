@@ -500,3 +500,17 @@ def test_a_remote_robot_is_said_with_the_fleet_that_keeps_each_robot_its_own_mas
     assert 'shared: true' in said[0]
     one_robot = load_deployment(TESTBED)
     assert not [w for w in warnings(one_robot) if 'a remote robot' in w]
+
+
+def test_a_shared_master_is_refused_naming_the_key():
+    data = {'/**': {'ros__parameters': {
+        'scales': {'names': ['robot', 'server'],
+                   'robot': {'role': 'master', 'kind': 'robot', 'capacity_cpu': 100.0,
+                             'shared': True},
+                   'server': {'role': 'remote', 'kind': 'server', 'capacity_cpu': 400.0,
+                              'shared': True}},
+        'nodes': {'names': ['n'], 'n': {'cpu': 1.0}}}}}
+    with pytest.raises(DeploymentError) as info:
+        load_mapping(data)
+    assert "scales.robot.shared: the master scale 'robot' cannot be shared" in str(info.value)
+    assert 'scales.server.shared' not in str(info.value)

@@ -43,6 +43,15 @@ def one_master(d: t.Deployment, read: Context) -> List[Problem]:
                     + (f' ({", ".join(masters)})' if masters else ''))]
 
 
+def shared_scales(d: t.Deployment, read: Context) -> List[Problem]:
+    """A shared scale is another machine this deployment uses beside others: never its master,
+    which is the robot's own and runs its decider."""
+    return [Problem(d.source, f'scales.{s.name}.shared',
+                    f"the master scale {s.name!r} cannot be shared: it runs this deployment's "
+                    'decider; share the servers, each robot keeps its own master')
+            for s in d.scales if s.shared and s.is_master]
+
+
 def ports(d: t.Deployment, read: Context) -> List[Problem]:
     """Each scale's warden and probe server take one port on its host: two scales of one host
     must not share it."""
@@ -285,5 +294,5 @@ def layout_allowed(d: t.Deployment, read: Context) -> List[Problem]:
 
 
 # In this order: a check may stay quiet about what an earlier one reported.
-CHECKS: Tuple[Check, ...] = (one_master, ports, links, node_fields, node_state, connection_ends,
-                             first_layout, beats, placement, layout_allowed)
+CHECKS: Tuple[Check, ...] = (one_master, shared_scales, ports, links, node_fields, node_state,
+                             connection_ends, first_layout, beats, placement, layout_allowed)
