@@ -23,6 +23,7 @@ import psutil
 import yaml
 
 from ..agent.ledger import FILE_NAME
+from ..runtime.delta import DeltaJudge, past_delta
 
 BIN = os.path.dirname(sys.executable)
 SERVER = 'away'
@@ -197,6 +198,22 @@ class Fleet:
                 proc.kill()
         for log in self._logs:
             log.close()
+
+
+def stretches_past_delta(arrivals: List[float], start: float, end: float,
+                         shape: FleetShape) -> Tuple[int, float]:
+    """(how many stretches below freq_min went past Δ, the longest stretch below) of the worker's
+    output heard at ``arrivals`` within [start, end], judged by the Δ rule (runtime/delta.py)."""
+    judge = DeltaJudge(shape.freq_min_hz, shape.tolerance_s, started=start)
+    for t in arrivals:
+        if start <= t <= end:
+            judge.add(t)
+    stretches = [b - a for a, b in judge.take_ended()]
+    open_since = judge.below_since(end)
+    if open_since is not None:
+        stretches.append(end - open_since)
+    return (sum(past_delta(x, shape.tolerance_s) for x in stretches),
+            max(stretches, default=0.0))
 
 
 def workers_under(pid: int) -> int:
