@@ -63,13 +63,13 @@ class ServerResult:
 @dataclass(frozen=True)
 class FleetRun:
     spec: 'FleetSpec'
-    run: int
-    duration_s: float
+    run: int                            # its index: with the seed, each robot's coverage
+    duration_s: float                   # simulated
     robots: Tuple[RobotResult, ...]
     servers: Tuple[ServerResult, ...]
-    granted: int
+    granted: int                        # claim decisions of the servers' ledgers, by answer
     refused: int
-    waiting: int
+    waiting: int                        # refused for now: lower claims were asked to leave
     asks: Tuple[Tuple[float, str, str, str], ...]   # (t, server, 'robot/node' asked, by whom)
     claim_s: Tuple[float, ...]  # every claim decision's wall time
     wall_s: float
