@@ -171,26 +171,49 @@ def test_the_state_kept_is_bounded(make_sup, size, kept):
     assert any('state_max_bytes' in t for _, t in out.logs) != kept
 
 
-def test_what_others_publish_on_the_restore_topic_reaches_the_serving_copy_only(make_sup):
-    """A pose set in RViz on /initialpose: the copies' inputs are remapped, so the agent of the
-    serving copy hands it over; a standby copy gets nothing."""
+def test_what_others_publish_on_the_restore_topic_is_the_state_from_then_on(make_sup):
+    """A pose set in RViz on /initialpose: the copies' inputs are remapped, so the agent hands it
+    over. A standby copy gets nothing at once; it is the node's latest state, so the copy that
+    takes over is handed it; once serving, the copy gets what is set at once."""
     agent = Agent(make_sup)
     agent.channel.subscribed = agent.channel.acked = True
     agent.turn.on_layout(layout(1, lc='b'), agent.now)         # standby here
     agent.until(lambda out: agent.label() == lc.INACTIVE, 'the standby copy configured')
-    agent.heard, requests = [], [('lc', b'set by a person')]
+    agent.heard = []
     agent.now += 0.1
-    agent.turn.step(agent.now, AgentInputs(wall=0.0, poll=agent.poll, requests=requests,
+    agent.turn.step(agent.now, AgentInputs(wall=0.0, poll=agent.poll,
+                                           requests=[('lc', b'set by a person')],
                                            restore=agent.channel))
     assert agent.channel.sent == []
+    assert agent.turn.states.latest('lc').data == b'set by a person'
     agent.turn.on_layout(layout(2, lc='a'), agent.now)         # serving here
     agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
+    assert agent.channel.sent == [('lc', b'set by a person')]   # its hand-over
     agent.now += 0.1
-    out = agent.turn.step(agent.now, AgentInputs(wall=0.0, poll=agent.poll, requests=requests,
+    out = agent.turn.step(agent.now, AgentInputs(wall=0.0, poll=agent.poll,
+                                                 requests=[('lc', b'set again')],
                                                  restore=agent.channel))
-    assert agent.channel.sent == [('lc', b'set by a person')]
-    assert any('a message on /lc_restore handed to its copy serving here' in t
-               for _, t in out.logs)
+    assert agent.channel.sent[-1] == ('lc', b'set again')
+    assert any('a message on /lc_restore handed to its copy here' in t for _, t in out.logs)
+
+
+def test_a_pose_set_while_a_copy_waits_for_its_hand_over_reaches_that_copy(make_sup):
+    """Set after the copy was sent the last state, before it took it and was activated: it is
+    sent the set pose too (it would otherwise serve on the old track beside the copy that took
+    the set pose)."""
+    agent = Agent(make_sup)
+    agent.channel.subscribed = True
+    agent.channel.acked = False                                 # the hand-over waits
+    agent.heard = [('lc', b'pose 1', 1)]
+    agent.turn.on_layout(layout(1, lc='a'), agent.now)
+    agent.until(lambda out: agent.channel.sent == [('lc', b'pose 1')], 'the state sent')
+    assert agent.label() == lc.INACTIVE
+    agent.heard = []
+    agent.now += 0.1
+    agent.turn.step(agent.now, AgentInputs(wall=0.0, poll=agent.poll,
+                                           requests=[('lc', b'set by a person')],
+                                           restore=agent.channel))
+    assert agent.channel.sent == [('lc', b'pose 1'), ('lc', b'set by a person')]
 
 
 @pytest.mark.parametrize('there, waits', [

@@ -391,7 +391,7 @@ class AgentTurn:
         sup = self.supervisor
         for node, data, seq in inputs.heard:
             out.logs.extend(self.states.heard(node, data, now, seq))
-        self._forward_requests(inputs, out)
+        self._forward_requests(inputs, out, now)
         if self.shutdown_requests:
             want: Set[str] = set()
             goals: Dict[str, Optional[LifecycleState]] = {n: lc.FINALIZED for n in self.drivers}
@@ -488,19 +488,25 @@ class AgentTurn:
             if topic:
                 inputs.restore.ready(name, topic)
 
-    def _forward_requests(self, inputs: AgentInputs, out: AgentOutput) -> None:
-        """What others publish on a node's restore topic goes to the copy serving here."""
+    def _forward_requests(self, inputs: AgentInputs, out: AgentOutput, now: float) -> None:
+        """What others publish on a node's restore topic (a pose set in RViz) is the node's
+        state from now on: kept as its latest here (a copy taking over is handed it), and sent
+        to the copy serving here, or to one being handed its state here once that was sent (a
+        copy still waiting for its hand-over gets it as the latest state)."""
         if not inputs.requests or inputs.restore is None:
             return
         serving = self.serving()
         for node, data in inputs.requests:
+            out.logs.extend(self.states.heard(node, data, now))
             topic = self._restore_topic(node)
-            if node in serving and topic and self.states.pending_for(node) is None \
+            pending = self.states.pending_for(node)
+            taking = pending is not None and pending.sent
+            if (node in serving and pending is None or taking) and topic \
                     and inputs.restore.ready(node, topic):
                 inputs.restore.send(node, topic, data)
                 out.logs.append(('info', f'{node}: a message on '
                                          f'{self.states.specs[node].restore} handed to its '
-                                         'copy serving here'))
+                                         'copy here'))
 
     def _hand_plain_states(self, now: float, inputs: AgentInputs) -> None:
         """A plain copy (no lifecycle to hold it back) of a stateful node serving here is
