@@ -57,14 +57,21 @@ class ServerAgent:
         return out
 
 
-def test_two_deployments_wanting_one_server_get_one_copy_and_the_other_is_told_who_holds_it(
-        make_sup, tmp_path):
+def both_want_the_server(make_sup, tmp_path):
+    """robot_a's and robot_b's server agents on one host, each given a layout placing its
+    AMCL there; (the shared clock, a, b)."""
     clock = [100.0]
     a = ServerAgent(make_sup, fleet_member('robot_a'), str(tmp_path), clock)
     b = ServerAgent(make_sup, fleet_member('robot_b'), str(tmp_path), clock)
-    assert any('shared scale: claims in' in t for _, t in a.logs)
     a.turn.on_layout(layout(1, amcl='server'), clock[0])
     b.turn.on_layout(layout(1, 'robot_b', amcl='server'), clock[0])
+    return clock, a, b
+
+
+def test_two_deployments_wanting_one_server_get_one_copy_and_the_other_is_told_who_holds_it(
+        make_sup, tmp_path):
+    clock, a, b = both_want_the_server(make_sup, tmp_path)
+    assert any('shared scale: claims in' in t for _, t in a.logs)
     assert a.step().wanted == {'amcl'}
     out = b.step()
     assert out.wanted == set() and 'amcl' not in b.sup.pids()
@@ -93,11 +100,7 @@ def test_two_deployments_wanting_one_server_get_one_copy_and_the_other_is_told_w
 
 
 def test_a_killed_agents_claims_expire_with_their_lease(make_sup, tmp_path):
-    clock = [100.0]
-    a = ServerAgent(make_sup, fleet_member('robot_a'), str(tmp_path), clock)
-    b = ServerAgent(make_sup, fleet_member('robot_b'), str(tmp_path), clock)
-    a.turn.on_layout(layout(1, amcl='server'), clock[0])
-    b.turn.on_layout(layout(1, 'robot_b', amcl='server'), clock[0])
+    clock, a, b = both_want_the_server(make_sup, tmp_path)
     a.step()
     assert b.step().wanted == set()
     # a is not stepped any more (dead): its lease ends, and b may start then, not before.
@@ -128,11 +131,7 @@ def test_a_losing_scale_keeps_its_copy_while_the_gaining_shared_scale_refuses_it
 
 
 def test_an_agent_shutting_down_gives_its_room_back_before_it_exits(make_sup, tmp_path):
-    clock = [100.0]
-    a = ServerAgent(make_sup, fleet_member('robot_a'), str(tmp_path), clock)
-    b = ServerAgent(make_sup, fleet_member('robot_b'), str(tmp_path), clock)
-    a.turn.on_layout(layout(1, amcl='server'), clock[0])
-    b.turn.on_layout(layout(1, 'robot_b', amcl='server'), clock[0])
+    clock, a, b = both_want_the_server(make_sup, tmp_path)
     assert a.step().wanted == {'amcl'}
     a.turn.request_shutdown(clock[0])
     end = time.monotonic() + 15
