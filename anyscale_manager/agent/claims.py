@@ -33,6 +33,8 @@ class HostClaims:
         self.share: Optional[Share] = None
         self._renewed = -math.inf
         self._said: Dict[str, str] = {}
+        self._report: Optional[HostShare] = None
+        self.report_changed = False             # by the last gate: the agent publishes anew
 
     def begin(self, now: float) -> List[LogLine]:
         """Join the host; a copy this agent adopts keeps the claim it had."""
@@ -42,6 +44,7 @@ class HostClaims:
         self.held = self.ledger.own(now)
         self._renewed = now
         self.share = self.ledger.share(now)
+        self._report = self._build_report()
         logs = [('info', f'shared scale: claims in {self.ledger.path}; host capacity '
                          f'{self.figure.capacity_cpu:g} CPU'
                          + (f', {self.figure.memory_mb:g} MiB' if self.figure.memory_mb else '')
@@ -75,6 +78,9 @@ class HostClaims:
                     want.discard(name)
                     self.refused[name] = f'the claims ledger fails: {e}'
             logs.append(('error', str(e)))
+        report = self._build_report()
+        self.report_changed = report != self._report
+        self._report = report
         return logs
 
     def _gate_one(self, name: str, now: float, want: Set[str],
@@ -113,7 +119,11 @@ class HostClaims:
                 goals[name] = lc.FINALIZED
 
     def report(self) -> Optional[HostShare]:
-        """The host as this agent sees it, for its report (None before it joined)."""
+        """The host as this agent sees it, for its report (None before it joined), as of the
+        last gate."""
+        return self._report
+
+    def _build_report(self) -> Optional[HostShare]:
         share = self.share
         if share is None:
             return None

@@ -414,10 +414,9 @@ class AgentTurn:
             self._note_waiting(waiting, out)
         want |= {n for n, g in goals.items() if g == lc.FINALIZED and self._finalizing(n, now)}
         if self.claims is not None:
-            before = self.claims.report()
             out.logs.extend(self.claims.gate(now, want, goals,
                                              lambda n: n in sup.pids()))
-            self._publish_due |= self.claims.report() != before
+            self._publish_due |= self.claims.report_changed
         sup.set_wanted(want, now)
         self._sync_drivers()
         for name, goal in goals.items():
@@ -432,6 +431,7 @@ class AgentTurn:
             # Shutting down: a copy gone in this step gives its room back now, before the
             # agent exits (its claim would otherwise hold the room for a lease).
             out.logs.extend(self.claims.gate(now, set(), {}, lambda n: n in sup.pids()))
+            self._publish_due |= self.claims.report_changed
         self._sync_drivers()
         self._hand_plain_states(now, inputs)
         self._follow_restore_topics(inputs)
