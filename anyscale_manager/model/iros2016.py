@@ -1,6 +1,8 @@
 """The IROS 2016 case-study instances (people-tracking cameras and youBots) as deployments."""
 
-from typing import Any, Dict, List, Tuple
+import copy
+from dataclasses import dataclass
+from typing import Any, Dict, List, Mapping, Tuple
 
 # instance -> (computers, robots, cameras)
 INSTANCES: Dict[int, Tuple[int, int, int]] = {
@@ -121,3 +123,106 @@ def build_instance(number: int) -> Dict[str, Any]:
         # planned with every CPU usable, not with the decider's default headroom.
         'decider': {'cpu_headroom': 1.0},
     }}}
+
+
+# The nodes each robot r brings to the case study, named <role>_<r> by build_instance.
+ROBOT_NODE_ROLES = ('environment', 'model', 'planner', 'amcl', 'navigation', 'youbot_core')
+# A robot's deployment takes this base (monitoring.bandwidth_probe_port) plus 10 per robot, so
+# the agents of the robots' deployments on the shared server each have a port of their own.
+PROBE_PORT_BASE = 47800
+PROBE_PORT_STEP = 10
+
+
+@dataclass(frozen=True)
+class FleetSplit:
+    """An instance as a fleet: one deployment file (as a mapping) per robot, and the
+    connections no single file can hold (between two robots' nodes)."""
+
+    members: Tuple[Tuple[str, Dict[str, Any]], ...]   # (robot scale, its deployment mapping)
+    crossing: Tuple[str, ...]                         # connection names in no member
+    owner: Mapping[str, str]                          # node -> the robot scale whose file has it
+
+
+def split_fleet(data: Mapping[str, Any]) -> FleetSplit:
+    """Split an instance's deployment mapping into one deployment per robot.
+
+    Robot r (the r-th robot scale) gets its nodes (<role>_<r>, ``ROBOT_NODE_ROLES``), its own
+    scale as master, every server as ``shared: true`` with the links among them, and the
+    connections among its own nodes. The nodes that serve every robot from the server (the
+    experiment and the camera trackers) go to robot 1. A connection between two robots' nodes
+    (the experiment to robot 2's environment, one robot's environment to another's) is in no
+    file: each robot is its own ROS domain; ``crossing`` names them. Raises ValueError on a
+    mapping that is not an instance of this shape.
+    """
+    params = data['/**']['ros__parameters']
+    scales = params['scales']
+    robots = [s for s in scales['names'] if scales[s].get('kind') == 'robot']
+    servers = [s for s in scales['names'] if s not in robots]
+    if not robots:
+        raise ValueError('no robot scale (scales.<s>.kind: robot) to split by')
+    owner: Dict[str, str] = {}
+    for name in params['nodes']['names']:
+        role, _, index = name.rpartition('_')
+        if role in ROBOT_NODE_ROLES and index.isdigit():
+            r = int(index)
+            if not 1 <= r <= len(robots):
+                raise ValueError(f'nodes.{name}: robot {r}, but the instance has '
+                                 f'{len(robots)} robot scale(s)')
+            owner[name] = robots[r - 1]
+        else:
+            owner[name] = robots[0]
+    for r, robot in enumerate(robots, start=1):
+        if not any(owner[n] == robot and n.endswith(f'_{r}') for n in owner):
+            raise ValueError(f"robot {r} ({robot}) has none of the case study's nodes "
+                             f'({", ".join(f"{role}_{r}" for role in ROBOT_NODE_ROLES)})')
+    base = params['deployment']['name']
+    members = []
+    placed = set()
+    for r, robot in enumerate(robots, start=1):
+        mine = [s for s in scales['names'] if s == robot or s in servers]
+        own_scales: Dict[str, Any] = {'names': mine}
+        for s in mine:
+            body = copy.deepcopy(scales[s])
+            if s == robot:
+                body['role'] = 'master'
+            else:
+                body.update(role='remote', shared=True)
+            own_scales[s] = body
+        links: Dict[str, Any] = {'names': []}
+        for name in params.get('links', {}).get('names', []):
+            if all(e in mine for e in params['links'][name]['ends']):
+                links['names'].append(name)
+                links[name] = copy.deepcopy(params['links'][name])
+        node_names = [n for n in params['nodes']['names'] if owner[n] == robot]
+        nodes: Dict[str, Any] = {'names': node_names}
+        nodes.update({n: copy.deepcopy(params['nodes'][n]) for n in node_names})
+        connections: Dict[str, Any] = {'names': []}
+        for name in params['connections']['names']:
+            c = params['connections'][name]
+            if owner[c['publisher']] == robot and owner[c['subscriber']] == robot:
+                connections['names'].append(name)
+                connections[name] = copy.deepcopy(c)
+                placed.add(name)
+        out: Dict[str, Any] = {
+            'deployment': {
+                'name': f'{base}_robot_{r}',
+                'description': f'{params["deployment"].get("description", base)}; robot {r} '
+                               f'({robot}) of the fleet, sharing {", ".join(servers)}',
+            },
+            'scales': own_scales,
+        }
+        if links['names']:
+            out['links'] = links
+        out['nodes'] = nodes
+        if connections['names']:
+            out['connections'] = connections
+        for section, value in params.items():
+            if section not in ('deployment', 'scales', 'links', 'nodes', 'connections'):
+                out[section] = copy.deepcopy(value)
+        monitoring = out.setdefault('monitoring', {})
+        monitoring['bandwidth_probe_port'] = (monitoring.get('bandwidth_probe_port',
+                                                             PROBE_PORT_BASE)
+                                              + PROBE_PORT_STEP * (r - 1))
+        members.append((robot, {'/**': {'ros__parameters': out}}))
+    crossing = tuple(n for n in params['connections']['names'] if n not in placed)
+    return FleetSplit(members=tuple(members), crossing=crossing, owner=owner)
