@@ -692,3 +692,24 @@ def test_sender_overlap_counts_from_the_first_reading_with_two():
     assert o.update(2.0, 2) == 0.5 and o.update(4.5, 3) == 3.0
     assert o.update(5.0, 1) == 0.0
     assert o.update(5.5, 2) == 0.0                # a new overlap starts afresh
+
+
+def test_sender_overlap_ends_when_two_were_last_heard_not_a_live_window_later():
+    """A copy handed over after 5 s of overlap: heard at once 5 s, though the old writer
+    counts as live for the window after its last message (the probe read 6.4 s for a 5 s
+    overlap, past the 6 s bound)."""
+    w, o, window = WriterStreams(forget_s=3.0), SenderOverlap(), 2.0
+    messages = [(0.1 * k, 500 + k) for k in range(101)]          # the old copy until 10 s
+    messages += [(5.05 + 0.1 * k, 1 + k) for k in range(70)]      # the new one from 5.05 s
+    readings, heard = [], sorted(messages)
+    for t in (3.0, 5.5, 7.0, 9.0, 10.5, 11.5):
+        while heard and heard[0][0] <= t:
+            w.add(*heard.pop(0))
+        readings.append(o.update(t, w.live(t, window), w.together_at(t, window)))
+    assert readings[0] == 0.0
+    assert w.live(11.5, window) == 2               # still live: the window's doing
+    assert readings[-1] == pytest.approx(10.0 - 5.45, abs=0.01)   # 6.0 by the readings
+    assert w.together_at(11.5, window) == pytest.approx(10.0)
+    one = WriterStreams()
+    one.add(1.0, 7)
+    assert one.together_at(1.5, window) is None

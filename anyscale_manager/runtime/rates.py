@@ -343,6 +343,12 @@ class WriterStreams:
         """How many writers were heard in the last ``within_s``."""
         return sum(1 for s in self._streams if now - s[1] <= within_s)
 
+    def together_at(self, now: float, within_s: float) -> Optional[float]:
+        """The last time two of the writers heard in the last ``within_s`` had both been heard
+        (the second latest of their last messages), None with fewer than two."""
+        heard = sorted((s[1] for s in self._streams if now - s[1] <= within_s), reverse=True)
+        return heard[1] if len(heard) >= 2 else None
+
     def joined_since(self, since: float) -> bool:
         """Whether a writer that started later than the others was first heard at or after
         ``since``."""
@@ -364,16 +370,21 @@ def two_senders_past(senders_for_s: Optional[float], bound_s: float) -> bool:
 
 
 class SenderOverlap:
-    """How long two or more writers of one topic have been heard at once, from the count of
-    live writers read at each reading (``WriterStreams.live``)."""
+    """How long two or more writers of one topic have been heard at once, from the live
+    writers read at each reading (``WriterStreams.live`` and ``WriterStreams.together_at``).
+
+    The overlap runs from the first reading with two live writers to the last time two were
+    both heard (``together_at``), not to the reading: a writer counts as live for a window
+    after its last message (``live_window_s``), and that window is not time heard at once."""
 
     def __init__(self) -> None:
         self._since: Optional[float] = None
 
-    def update(self, now: float, live: int) -> float:
+    def update(self, now: float, live: int, together_at: Optional[float] = None) -> float:
         if live < 2:
             self._since = None
             return 0.0
+        last = now if together_at is None else min(now, together_at)
         if self._since is None:
-            self._since = now
-        return now - self._since
+            self._since = last
+        return max(0.0, last - self._since)

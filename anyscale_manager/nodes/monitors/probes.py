@@ -337,8 +337,10 @@ class ProbeManager:
             slowest = min((c.freq_min_hz for c in self._probes.values()
                            if c.freq_min_hz and self._resolve(c.topic) == probe.topic),
                           default=None)
-            live = probe.writers.live(now, live_window_s(slowest, probe.writers.forget_s))
-            counted[probe.topic] = (live, probe.overlap.update(now, live))
+            window = live_window_s(slowest, probe.writers.forget_s)
+            live = probe.writers.live(now, window)
+            counted[probe.topic] = (live, probe.overlap.update(
+                now, live, probe.writers.together_at(now, window)))
         return counted[probe.topic]
 
     def _publish(self) -> None:
