@@ -8,7 +8,9 @@ pinned (home), the worker's output watched with a Δ that a cold move meets; the
 room for one worker.
 
 Judged from outside: the worker processes under each server agent (psutil) and the active
-claims in the host's database. Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+claims in the host's database. Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
+unless the fleet is given other places to run them (``Loopback`` is the default; testbed/
+fleet_netns.py runs each robot and the server in network namespaces of their own).
 """
 
 import os
@@ -45,8 +47,9 @@ class FleetShape:
 
 
 def member_params(name: str, priority: int, run_dir: str, port_base: int,
-                  shape: FleetShape) -> dict:
-    """Robot ``name``'s deployment file, as ROS parameters."""
+                  shape: FleetShape, hosts: Optional[Mapping[str, str]] = None) -> dict:
+    """Robot ``name``'s deployment file, as ROS parameters; ``hosts``: scale -> its address
+    (``scales.<s>.host``), left to the default (this machine) when not given."""
     topic = f'/{name}'
     rate = ('--rate-hz', str(shape.rate_hz))
 
@@ -64,14 +67,15 @@ def member_params(name: str, priority: int, run_dir: str, port_base: int,
                    'worker_pinned': dict(flow, topic=topic + '/w', publisher='worker',
                                          subscriber='pinned', freq_min_hz=shape.freq_min_hz,
                                          tolerance_s=shape.tolerance_s)}
+    scales = {HOME: {'role': 'master', 'kind': 'robot', 'capacity_cpu': shape.capacity_cpu,
+                     'cores': 2, 'clock_ghz': 1.0},
+              SERVER: {'role': 'remote', 'kind': 'server', 'capacity_cpu': shape.capacity_cpu,
+                       'cores': 4, 'clock_ghz': 2.0, 'shared': True}}
+    for scale, host in (hosts or {}).items():
+        scales[scale]['host'] = host
     return {
         'deployment': {'name': name, 'priority': priority},
-        'scales': {'names': [HOME, SERVER],
-                   HOME: {'role': 'master', 'kind': 'robot', 'capacity_cpu': shape.capacity_cpu,
-                          'cores': 2, 'clock_ghz': 1.0},
-                   SERVER: {'role': 'remote', 'kind': 'server',
-                            'capacity_cpu': shape.capacity_cpu, 'cores': 4, 'clock_ghz': 2.0,
-                            'shared': True}},
+        'scales': dict(scales, names=[HOME, SERVER]),
         'links': {'names': ['net'], 'net': {'ends': [HOME, SERVER], 'bandwidth_kbps': 100000.0,
                                             'medium': 'wired'}},
         'nodes': dict(nodes, names=list(nodes)),
@@ -91,14 +95,33 @@ def member_params(name: str, priority: int, run_dir: str, port_base: int,
     }
 
 
+class Loopback:
+    """Where a fleet's processes run: all on this machine, DDS on its loopback, each robot in
+    its own ROS domain. Another place (fleet_netns.FleetNetwork) answers the same calls."""
+
+    def __init__(self, environ: Mapping[str, str]):
+        self.environ = dict(environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+                            PYTHONUNBUFFERED='1')
+
+    def hosts(self, name: str) -> Optional[Dict[str, str]]:
+        """Robot ``name``'s scales' addresses for its file (None: this machine's default)."""
+        return None
+
+    def popen(self, name: str, role: str, argv: List[str], domain: int,
+              log) -> subprocess.Popen:
+        """Robot ``name``'s ``role`` process (its agent on a scale, its decider)."""
+        return subprocess.Popen(argv, env=dict(self.environ, ROS_DOMAIN_ID=str(domain)),
+                                stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+
+
 class Fleet:
     """The robots started so far; each robot's processes by role ('decider', 'home', 'away')."""
 
     def __init__(self, run_dir: str, environ: Mapping[str, str], shape: FleetShape = FleetShape(),
-                 port_base: int = 0):
+                 port_base: int = 0, places=None):
+        """``places``: where the processes run (``Loopback(environ)`` when not given)."""
         self.run_dir = run_dir
-        self.environ = dict(environ, ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-                            PYTHONUNBUFFERED='1')
+        self.places = places or Loopback(environ)
         self.shape = shape
         self.port_base = port_base or 40000 + os.getpid() % 20000
         self.paths: Dict[str, str] = {}
@@ -110,27 +133,27 @@ class Fleet:
         """Robot ``name``: its file written, its server agent, robot agent and decider started."""
         if name not in self.paths:
             params = member_params(name, priority, self.run_dir,
-                                   self.port_base + 7 * len(self.paths), self.shape)
+                                   self.port_base + 7 * len(self.paths), self.shape,
+                                   self.places.hosts(name))
             path = os.path.join(self.run_dir, f'{name}.yaml')
             with open(path, 'w') as f:
                 yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
             self.paths[name] = path
         self.domains[name] = str(domain)
-        env = dict(self.environ, ROS_DOMAIN_ID=str(domain))
         path = self.paths[name]
         self.procs[name] = {
             SERVER: self._spawn(name, SERVER, ['agent', '--ros-args', '--params-file', path,
-                                               '-p', f'scale:={SERVER}'], env),
+                                               '-p', f'scale:={SERVER}'], domain),
             HOME: self._spawn(name, HOME, ['agent', '--ros-args', '--params-file', path,
-                                           '-p', f'scale:={HOME}'], env),
+                                           '-p', f'scale:={HOME}'], domain),
             'decider': self._spawn(name, 'decider', ['decider', '--ros-args', '--params-file',
-                                                     path], env)}
+                                                     path], domain)}
 
-    def _spawn(self, name: str, role: str, argv: List[str], env) -> subprocess.Popen:
+    def _spawn(self, name: str, role: str, argv: List[str], domain: int) -> subprocess.Popen:
         log = open(os.path.join(self.run_dir, f'{name}_{role}.out'), 'ab')
         self._logs.append(log)
-        return subprocess.Popen([os.path.join(BIN, argv[0]), *argv[1:]], env=env, stdout=log,
-                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        return self.places.popen(name, role, [os.path.join(BIN, argv[0]), *argv[1:]], domain,
+                                 log)
 
     def text(self, name: str, role: str) -> str:
         with open(os.path.join(self.run_dir, f'{name}_{role}.out'), errors='replace') as f:
@@ -148,15 +171,19 @@ class Fleet:
 
     def claimed_cpu(self) -> float:
         """The host's active claims, summed (0 before the ledger exists)."""
+        return float(sum(self.claims_by_robot().values()))
+
+    def claims_by_robot(self) -> Dict[str, float]:
+        """The CPU of each robot's active claims on the host (empty before the ledger exists)."""
         path = os.path.join(self.run_dir, 'host_state', FILE_NAME)
         if not os.path.exists(path):
-            return 0.0
+            return {}
         con = sqlite3.connect(path)
         try:
-            return float(con.execute('SELECT COALESCE(SUM(cpu), 0) FROM claims WHERE active = 1'
-                                     ).fetchone()[0])
+            return {name: float(cpu) for name, cpu in con.execute(
+                'SELECT deployment, SUM(cpu) FROM claims WHERE active = 1 GROUP BY deployment')}
         except sqlite3.OperationalError:
-            return 0.0
+            return {}
         finally:
             con.close()
 

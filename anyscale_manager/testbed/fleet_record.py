@@ -1,0 +1,134 @@
+"""What a fleet run showed, sample by sample: where each robot's worker ran, each robot's link,
+the server's claims by robot, what each robot's users heard, and the run's own actions.
+
+Pure: fed samples, observer lines (testbed/observer.py) and marks, each stamped with the one
+monotonic clock every namespace of the machine shares; it answers the tests' questions and
+gives a demo its timeline. No rclpy, no processes here (testbed/fleet_netns.py takes the
+samples).
+"""
+
+import json
+import math
+import threading
+from dataclasses import dataclass
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+
+from .fleet import HOME, SERVER
+from .record import HEARD_LAG_S
+
+
+@dataclass(frozen=True)
+class FleetSample:
+    """The fleet at time ``t``."""
+
+    t: float
+    # robot -> role ('home', 'away') -> the live worker processes its agent there supervises
+    workers: Mapping[str, Mapping[str, int]]
+    links_up: Mapping[str, bool]          # robot -> its link to the server is up
+    claims_cpu: Mapping[str, float]       # robot -> the CPU of its active claims on the server
+
+    @property
+    def on_server(self) -> int:
+        """Worker processes on the server, of every robot."""
+        return sum(w.get(SERVER, 0) for w in self.workers.values())
+
+    @property
+    def claimed_cpu(self) -> float:
+        return sum(self.claims_cpu.values())
+
+    def where(self, robot: str) -> str:
+        """Where robot's worker runs: 'home', 'away', 'both' or 'none'."""
+        w = self.workers.get(robot, {})
+        at = [role for role in (HOME, SERVER) if w.get(role, 0)]
+        return at[0] if len(at) == 1 else ('both' if at else 'none')
+
+
+class FleetRecord:
+    """Samples, marks and each robot's heard arrivals of one run (observer lines may arrive
+    from reader threads: every access holds the record's lock)."""
+
+    def __init__(self, t0: float):
+        self.t0 = t0
+        self.samples: List[FleetSample] = []
+        self.marks: List[Tuple[float, str]] = []
+        self._arrivals: Dict[str, List[float]] = {}
+        self._heard_until: Dict[str, float] = {}
+        self._ready: Dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    # --- feeding ----------------------------------------------------------------------------
+    def add(self, sample: FleetSample) -> None:
+        with self._lock:
+            self.samples.append(sample)
+
+    def mark(self, t: float, text: str) -> None:
+        with self._lock:
+            self.marks.append((t, text))
+
+    def ingest_line(self, robot: str, line: str) -> None:
+        """One line of the observer in ``robot``'s namespace: its arrivals on every topic it
+        hears are that robot's (it is started with the robot's worker output only)."""
+        try:
+            obj = json.loads(line)
+        except ValueError:
+            return
+        if not isinstance(obj, dict) or not isinstance(obj.get('t'), (int, float)):
+            return
+        with self._lock:
+            self._heard_until[robot] = max(self._heard_until.get(robot, -math.inf), obj['t'])
+            if obj.get('ready'):
+                self._ready.setdefault(robot, obj['t'])
+            for times in (obj.get('arrivals') or {}).values():
+                self._arrivals.setdefault(robot, []).extend(
+                    float(t) for t in times if isinstance(t, (int, float)))
+
+    # --- questions --------------------------------------------------------------------------
+    def ready(self, robot: str) -> bool:
+        """The observer in ``robot``'s namespace runs."""
+        with self._lock:
+            return robot in self._ready
+
+    def heard(self, robot: str) -> List[float]:
+        """When ``robot``'s users heard its worker's output, in order."""
+        with self._lock:
+            return sorted(self._arrivals.get(robot, []))
+
+    def judged_until(self, robot: str) -> float:
+        """Up to when ``robot``'s heard arrivals are complete (the observer's flush lag)."""
+        with self._lock:
+            return self._heard_until.get(robot, -math.inf) - HEARD_LAG_S
+
+    def between(self, start: float = -math.inf, end: float = math.inf) -> List[FleetSample]:
+        with self._lock:
+            return [s for s in self.samples if start <= s.t <= end]
+
+    def most_on_server(self, start: float = -math.inf, end: float = math.inf) -> int:
+        return max((s.on_server for s in self.between(start, end)), default=0)
+
+    def most_claimed(self, start: float = -math.inf, end: float = math.inf) -> float:
+        return max((s.claimed_cpu for s in self.between(start, end)), default=0.0)
+
+    def first(self, holds: Callable[[FleetSample], bool], since: float = -math.inf
+              ) -> Optional[float]:
+        """The time of the first sample from ``since`` on in which ``holds``."""
+        return next((s.t for s in self.between(since) if holds(s)), None)
+
+    def timeline(self, robots: Sequence[str], every_s: float = 1.0) -> List[str]:
+        """One row per ``every_s`` (and one per mark): seconds from the start, then per robot
+        where its worker runs, its link and its claim on the server; for a demo's figure or a
+        failed test's message."""
+        with self._lock:
+            samples, marks = list(self.samples), list(self.marks)
+        rows = [(t, 1, f'{t - self.t0:7.2f}  -- {text}') for t, text in marks]
+        next_t = -math.inf
+        for sample in samples:
+            if sample.t < next_t:
+                continue
+            next_t = sample.t + every_s
+            rows.append((sample.t, 0, f'{sample.t - self.t0:7.2f}  ' + '  '.join(
+                f'{r}: {sample.where(r):4} link {"up" if sample.links_up.get(r) else "CUT":3} '
+                f'claim {sample.claims_cpu.get(r, 0.0):3.0f}' for r in robots)))
+        return [text for _, _, text in sorted(rows)]
+
+
+__all__ = ['FleetRecord', 'FleetSample']
