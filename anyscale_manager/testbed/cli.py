@@ -6,6 +6,7 @@ schedule modelled on the paper's run while it shows a live status table, then wr
 timeline figure, the event log and a summary, prints where they are, and tears everything down.
 ``--three-scales`` runs the robot, laptop and edge server of config/three_scales_testbed.yaml
 instead (namespaces only), with a schedule that throttles, cuts and restores each link.
+``--fleet`` runs two robots sharing one server instead (testbed/fleet_demo.py).
 """
 
 import argparse
@@ -32,8 +33,9 @@ def default_config(name: str = CONFIG_NAME) -> Optional[str]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument('--duration', type=float, default=60.0, metavar='SECONDS',
-                        help='length of the scheduled run once every node runs (default 60)')
+    parser.add_argument('--duration', type=float, default=None, metavar='SECONDS',
+                        help='length of the scheduled run once every node runs (default 60; '
+                             'with --fleet 85)')
     parser.add_argument('--out', default='', metavar='FOLDER',
                         help='where to write timeline.png, events.jsonl/txt and summary.json '
                              '(default ./anyscale_demo_<time>)')
@@ -43,6 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f'run the packaged {THREE_SCALES_NAME} (robot, laptop on '
                              'Ethernet, edge server on WiFi) with a schedule for each link; '
                              'needs network namespaces')
+    parser.add_argument('--fleet', action='store_true',
+                        help='two robots, each its own deployment, decider and ROS domain, '
+                             'share one server with room for one worker; the schedule starts '
+                             'robots and cuts or restores their links: "0:start@robot_a,'
+                             '25:cut@robot_a,40:restore@robot_a,60:start=1@robot_b" (the '
+                             'default; start=N: priority N); needs network namespaces')
     parser.add_argument('--schedule', default='', metavar='STEPS',
                         help='link schedule instead of the paper-like default, e.g. '
                              '"20:cut,35:restore,40:throttle=4000" (seconds after start); '
@@ -73,9 +81,17 @@ def _fail(message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.fleet:
+        if args.three_scales or args.config or args.no_migration or args.mode == 'loopback':
+            return _fail('--fleet runs its own two robots in namespaces: leave out '
+                         '--three-scales, --config, --no-migration and --mode loopback')
+        from . import fleet_demo
+        return fleet_demo.run(args)
     from .harness import HarnessError, Options, Testbed
     from .report import draw_timeline, status_table, with_own_reports, write_event_log
 
+    if args.duration is None:
+        args.duration = 60.0
     if not args.duration > 0 or args.duration > 24 * 3600:
         return _fail(f'--duration must be between 0 and 86400 s, got {args.duration:g}')
     if not args.refresh > 0:
