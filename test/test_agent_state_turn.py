@@ -8,7 +8,8 @@ import pytest
 
 from anyscale_manager import protocol as p
 from anyscale_manager.agent import lifecycle as lc
-from anyscale_manager.agent.turn import AgentInputs, AgentTurn, STOPPING_TICK_S
+from anyscale_manager.agent.turn import (AgentInputs, AgentTurn, FIRST_STATE_WAIT_S,
+                                         STOPPING_TICK_S)
 from anyscale_manager.model.loader import load_mapping
 from test_agent_supervisor import deployment_dict
 from test_agent_turn import WALL_OFFSET, layout, lifecycle_entry
@@ -249,3 +250,30 @@ def test_with_no_state_heard_yet_a_move_waits_for_the_first_state_of_the_copy_it
     agent.heard = [('lc', b'from b', 1)]                          # its first state arrives
     agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
     assert agent.channel.sent == [('lc', b'from b')]
+
+
+def test_an_agent_whose_first_layout_is_not_the_first_waits_for_the_state_of_the_serving_copy(
+        make_sup):
+    """The laptop's agent whose link came up after the first layouts hears generation 2 first,
+    which places the node here: where it served before is not known here, and a copy serving
+    there (the robot's, with the user's pose) sends its state within a discovery round. The copy
+    here waits for it instead of serving from its own start pose beside it (seen on the
+    three-scale test-bed: the robot's and the laptop's copies served poses 0.2 m apart for
+    2.5 s). Nothing heard within FIRST_STATE_WAIT_S: it serves from its own, and says so."""
+    agent = Agent(make_sup)
+    agent.channel.subscribed = agent.channel.acked = True
+    agent.turn.on_layout(layout(2, lc='a'), agent.now)
+    outs = agent.until(lambda out: agent.label() == lc.INACTIVE, 'the copy configured')
+    outs += [agent.step() for _ in range(5)]
+    assert agent.label() == lc.INACTIVE
+    assert any('waiting for the first state of its copy serving before this agent heard a '
+               'layout' in t for t in lines(outs))
+    agent.heard = [('lc', b'from the robot', 1)]
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
+    assert agent.channel.sent == [('lc', b'from the robot')]
+
+    late = Agent(make_sup)
+    late.turn.on_layout(layout(2, lc='a'), late.now)
+    outs = late.until(lambda out: late.label() == lc.ACTIVE, 'the copy activated', steps=60)
+    assert any('no state heard yet' in t for t in lines(outs))
+    assert late.now - 100.0 >= FIRST_STATE_WAIT_S

@@ -41,6 +41,9 @@ from ..protocol import MAX_GENERATION_STEP, AgentState, Layout, ProcState
 # A copy whose process runs there: it must stop before this scale starts its own.
 LIVE = (ProcState.STARTING, ProcState.RUNNING, ProcState.STOPPING)
 NO_GENERATION = -1
+# moved_from for a node placed by the first layout this agent hears when that layout is not the
+# deployment's first (a later generation): where the node served before is not known here.
+UNKNOWN_SCALE = '?'
 # How long a losing scale keeps its copy past the new copy's ready report while it has not heard
 # the new copy (its inputs may not reach it yet; or the copies' sequence numbers overlap).
 HEAR_PATIENCE_S = 5.0
@@ -146,9 +149,13 @@ class Reconciler:
         if missing:
             warnings.append(f'layout generation {layout.generation} does not place '
                             f'{", ".join(missing)}; keeping them as they are')
+        # This agent's first layout, of a deployment already running (it started late, or its
+        # link came up after the first layouts): a node may have served elsewhere before.
+        joined_late = self.generation == NO_GENERATION and layout.generation > 1
         for node, scale in accepted.items():
             if self.assignments.get(node) != scale:
-                self.moved_from[node] = self.assignments.get(node, '')
+                self.moved_from[node] = self.assignments.get(
+                    node, UNKNOWN_SCALE if joined_late else '')
                 self._moved_at[node] = now
                 self._moved_gen[node] = layout.generation
                 self._ready_at.pop(node, None)

@@ -22,7 +22,7 @@ from . import lifecycle as lc
 from .authority import Follower
 from .catalogue import copy_restore_topic, Entry
 from .claims import HostClaims
-from .reconcile import Reconciler
+from .reconcile import Reconciler, UNKNOWN_SCALE
 from .state import StateBook
 from .supervisor import Supervisor
 
@@ -264,13 +264,18 @@ class AgentTurn:
                 # being activated there too), and its state is on its way (its writer found
                 # within a discovery round), unless its agent said lately that it neither
                 # serves nor starts (a crash, a standby: nothing to wait for).
+                # This agent's first layout came mid-run (it started late, or its link came
+                # up after the first layouts): where the node served before is not known here,
+                # and a copy may serve elsewhere with its state on the way: wait as for one.
                 before = self.reconciler.moved_from.get(name, '')
                 fresh_s = PEER_FRESH_BEATS / self.deployment.agent.heartbeat_rate_hz
                 if before and before != self.scale \
                         and not self.reconciler.reported_not_serving(name, before, now, fresh_s) \
                         and now - pending.since < FIRST_STATE_WAIT_S:
+                    where = 'serving before this agent heard a layout' \
+                        if before == UNKNOWN_SCALE else f'on {before}'
                     return f'its state is handed to the copy first: waiting for the first ' \
-                           f'state of its copy on {before}'
+                           f'state of its copy {where}'
                 self._logs.extend(lines)            # none to be had: it starts from its own
                 states.handed(name, pid)
                 return ''
