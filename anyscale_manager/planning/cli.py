@@ -71,10 +71,9 @@ def _num(x: float) -> str:
     return f'{x:.6g}'
 
 
-def plan_to_dict(d: Deployment, plan: Plan) -> Dict[str, Any]:
-    """The plan as plain JSON-ready data."""
+def _outcome(plan: Plan) -> Dict[str, Any]:
+    """How a solve went, as plain JSON-ready data (a deployment's plan, a fleet's)."""
     return {
-        'deployment': d.name,
         'problem': plan.problem,
         'solver': plan.solver,
         'settings': plan.settings,
@@ -84,13 +83,21 @@ def plan_to_dict(d: Deployment, plan: Plan) -> Dict[str, Any]:
         'gap': plan.gap,
         'status': plan.status,
         'solve_time_s': plan.solve_time_s,
+        'violations': list(plan.violations),
+    }
+
+
+def plan_to_dict(d: Deployment, plan: Plan) -> Dict[str, Any]:
+    """The plan as plain JSON-ready data."""
+    return {
+        'deployment': d.name,
+        **_outcome(plan),
         'layout': {n: {'scale': p.scale, 'cpu': p.cpu, 'performance': p.performance,
                        'parameter': p.parameter or None, 'parameter_value': p.parameter_value}
                    for n, p in plan.layout.items()},
         'server_capacity': dict(plan.server_capacity),
         'scale_load': dict(plan.scale_load),
         'link_load': dict(plan.link_load),
-        'violations': list(plan.violations),
     }
 
 
@@ -281,16 +288,7 @@ def fleet_to_dict(fp: FleetPlan) -> Dict[str, Any]:
     use = fp.shared_use()
     return {
         'fleet': [d.name for d in fp.fleet.members],
-        'problem': plan.problem,
-        'solver': plan.solver,
-        'settings': plan.settings,
-        'feasible': plan.feasible,
-        'objective': None if math.isnan(plan.objective) else plan.objective,
-        'optimal': plan.optimal,
-        'gap': plan.gap,
-        'status': plan.status,
-        'solve_time_s': plan.solve_time_s,
-        'violations': list(plan.violations),
+        **_outcome(plan),
         'deployments': {d.name: dict(plan_to_dict(d, fp.members[d.name]), file=d.source)
                         for d in fp.fleet.members},
         'shared': {name: {'host': s.host, 'capacity_cpu': s.capacity_cpu,
