@@ -108,6 +108,7 @@ def test_the_figure_and_the_event_log_are_written(tmp_path):
     (['--duration', '30'], 'past the run'),
     (['--three-scales'], 'leave out --three-scales'),
     (['--duration', '-4'], 'between 0 and 86400'),
+    (['--domain-id', '240'], 'out of range 0..232'),
 ])
 def test_demo_fleet_refuses_bad_input_with_exit_2(argv, says, capsys, tmp_path):
     assert main(['demo', '--fleet', '--out', str(tmp_path / 'out'), *argv]) == 2

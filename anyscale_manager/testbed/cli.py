@@ -66,6 +66,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help='status table refresh period (default 1)')
 
 
+def domain_of(args: argparse.Namespace) -> int:
+    """The run's ROS domain: --domain-id, else $ROS_DOMAIN_ID, else 0; ValueError saying
+    what is wrong."""
+    domain = args.domain_id
+    if domain is None:
+        try:
+            domain = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
+        except ValueError:
+            raise ValueError(f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]!r} is not a '
+                             'number') from None
+    if not 0 <= domain <= 232:
+        raise ValueError(f'domain id {domain} out of range 0..232')
+    return domain
+
+
 def _say(text: str, file=None) -> None:
     """Print ``text`` wrapped at words to the terminal's width (99 columns when piped), the
     rest of a long line indented."""
@@ -122,14 +137,10 @@ def run(args: argparse.Namespace) -> int:
             steps = sched.paper_schedule(args.duration)
     except ValueError as e:
         return _fail(f'--schedule: {e}')
-    domain = args.domain_id
-    if domain is None:
-        try:
-            domain = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
-        except ValueError:
-            return _fail(f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]!r} is not a number')
-    if not 0 <= domain <= 232:
-        return _fail(f'domain id {domain} out of range 0..232')
+    try:
+        domain = domain_of(args)
+    except ValueError as e:
+        return _fail(str(e))
     out = os.path.abspath(args.out or f'anyscale_demo_{time.strftime("%Y%m%d_%H%M%S")}')
     try:
         os.makedirs(out, exist_ok=True)

@@ -250,6 +250,7 @@ def status_line(sample: FleetSample, robots: Sequence[str], t0: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from . import netns
+    from .cli import domain_of
     from .errors import HarnessError
     from .fleet_netns import FleetBed
 
@@ -267,17 +268,13 @@ def run(args: argparse.Namespace) -> int:
     late = [s for s in steps if s.at_s >= duration]
     if late:
         return fail(f"--schedule: {late[0]} is past the run's {duration:g} s (--duration)")
+    try:
+        domain = domain_of(args)
+    except ValueError as e:
+        return fail(str(e))
     ok, why = netns.available()
     if not ok:
         return fail(f'a fleet runs in network namespaces: {why}')
-    domain = args.domain_id
-    if domain is None:
-        try:
-            domain = int(os.environ.get('ROS_DOMAIN_ID', '0') or 0)
-        except ValueError:
-            return fail(f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]!r} is not a number')
-    if not 0 <= domain <= 232:
-        return fail(f'domain id {domain} out of range 0..232')
     domains = {ROBOTS[0]: domain, ROBOTS[1]: other_domain(domain)}
     out = os.path.abspath(args.out or f'anyscale_fleet_demo_{time.strftime("%Y%m%d_%H%M%S")}')
     run_dir = os.path.join(out, 'run')
