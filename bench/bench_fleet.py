@@ -1,8 +1,10 @@
-"""Two robots sharing one server, live, preemption after preemption: the time from capacity
-freed to the other robot's node there, the lower robot's longest silence, and over-commit.
+"""Two robots sharing one server, live, preemption after preemption (or the holder's link cut
+after cut): the time from capacity freed to the other robot's node there, the longest silence
+of the robot that gave the room up, and over-commit.
 
     python bench/bench_fleet.py [--preemptions 20] [--hysteresis 5] [--domain-id N]
                                 [--keep DIR]
+    python bench/bench_fleet.py --cuts 10 [--hysteresis 6] [--domain-id N] [--keep DIR]
 
 On this machine's loopback (anyscale_manager/testbed/fleet.py): robot_a (priority 0) and
 robot_b (priority 1), each its own deployment, decider, agents and ROS domain, share one server
@@ -19,6 +21,18 @@ goes back to the server once its hysteresis (--hysteresis s) has passed. Measure
   hysteresis counts from its move home);
 - over-commit: samples at 5 Hz of the worker processes on the server (more than one) and of the
   active claims in the host's database (over the capacity), as seconds.
+
+``--cuts N`` (root): the fleet in network namespaces instead (testbed/fleet_netns.py FleetBed,
+as test/test_fleet_netns.py), both robots of priority 0, brought up once. N times: once one
+robot's worker serves from the server and the other's from home, the layout quiet, the
+holder's link is cut. Measured from the bed's samples at 5 Hz: the holder's worker home, its
+server copy gone and its claim released (the room freed: the later of the two), the other
+robot's worker started there and serving there (its home copy let go); the holder's longest
+stretch below freq_min, judged by the Δ rule on what its namespace heard from 2 s before the
+cut. Then the link is restored and the next round waits for the layout to be quiet again: the
+other robot holds the server, the first one's agent judged its link up, past the first one's
+hysteresis since its move home (so room, not T, decides the next hand-over), and nothing moved
+for 5 s; the next round cuts the new holder.
 """
 
 import argparse
@@ -37,8 +51,10 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from std_msgs.msg import UInt8MultiArray  # noqa: E402
 
+from anyscale_manager.testbed import netns  # noqa: E402
 from anyscale_manager.testbed.fleet import (Fleet, FleetShape, HOME, other_domain,  # noqa: E402
-                                            stretches_past_delta)
+                                            SERVER, stretches_past_delta)
+from anyscale_manager.testbed.fleet_netns import FleetBed  # noqa: E402
 
 SAMPLE_S = 0.2
 
@@ -78,17 +94,142 @@ def _pct(values, q):
 
 
 def _line(label, values, unit='s'):
-    return (f'  {label:<44} p50 {statistics.median(values):.2f} {unit}  p95 '
+    return (f'  {label:<46} p50 {statistics.median(values):.2f} {unit}  p95 '
             f'{_pct(values, 0.95):.2f} {unit}  max {max(values):.2f} {unit}  (n={len(values)})')
+
+
+ROBOTS = ('robot_a', 'robot_b')
+# How long the layout must stay as it is before a cut: several turns of both deciders.
+QUIET_S = 5.0
+
+
+def heard_rate(record, robot, now, window_s=1.0):
+    """Messages a second ``robot``'s users heard over the ``window_s`` before ``now``."""
+    return sum(1 for t in record.heard(robot) if now - window_s <= t <= now) / window_s
+
+
+def link_judged_up(bed, robot):
+    """``robot``'s home agent has not said its link to the server is DOWN since it last said
+    it is up."""
+    said = bed.fleet.text(robot, HOME)
+    return said.rfind('link to away is up') >= said.rfind('link to away is DOWN')
+
+
+def over_commit(samples, shape):
+    """(samples with two workers on the server or claims above its capacity, their seconds:
+    each such sample counted until the next one)."""
+    over = [s.on_server > 1 or s.claimed_cpu > shape.capacity_cpu + 1e-9 for s in samples]
+    seconds = sum(b.t - a.t for a, b, o in zip(samples, samples[1:], over) if o)
+    return sum(over), seconds
+
+
+def quiet(bed, shape, not_before, what):
+    """Wait until one robot's worker serves from the server and is heard at freq_min or more,
+    the other's is home, each link up and judged up, at or after ``not_before``, and the layout
+    has not changed for QUIET_S; return (holder, other)."""
+    since = {'t': None, 'layout': None}
+
+    def holds(s):
+        layout = tuple(s.where(r) for r in ROBOTS)
+        if sorted(layout) != [SERVER, HOME] or s.on_server != 1:
+            since['t'] = None
+            return False
+        holder = ROBOTS[layout.index(SERVER)]
+        if not (all(s.links_up.values()) and all(link_judged_up(bed, r) for r in ROBOTS)
+                and {r for r, cpu in s.claims_cpu.items() if cpu} <= {holder}):
+            since['t'] = None
+            return False
+        if since['t'] is None or layout != since['layout']:
+            since['t'], since['layout'] = s.t, layout
+        return (s.t >= not_before and s.t - since['t'] >= QUIET_S
+                and heard_rate(bed.record, holder, s.t - 0.6) >= shape.freq_min_hz)
+    s = bed.until(holds, 120.0, what)
+    holder = next(r for r in ROBOTS if s.where(r) == SERVER)
+    return holder, next(r for r in ROBOTS if r != holder)
+
+
+def cuts(a) -> int:
+    """The holder's link cut, ``a.cuts`` times, in namespaces (the module's docstring)."""
+    ok, why = netns.available()
+    if not ok:
+        print(f'--cuts needs the test-bed: {why}', file=sys.stderr)
+        return 2
+    run_dir = a.keep or tempfile.mkdtemp(prefix='fleet_cuts_')
+    os.makedirs(run_dir, exist_ok=True)
+    shape = FleetShape(hysteresis_s=a.hysteresis)
+    domains = {'robot_a': a.domain_id, 'robot_b': other_domain(a.domain_id)}
+    rows = {k: [] for k in ('home', 'freed', 'serving', 'gap')}
+    violations, early, notes = 0, 0, []
+    bed = FleetBed(run_dir, ROBOTS, shape)
+    try:
+        bed.setup()
+        for robot in ROBOTS:
+            bed.start(robot, domains[robot])
+        not_before = 0.0
+        for i in range(a.cuts):
+            holder, other = quiet(bed, shape, not_before, f'round {i + 1}: the layout quiet')
+            cut = bed.cut(holder)
+            done = bed.until(lambda s: s.where(holder) == HOME and s.where(other) == SERVER
+                             and not s.claims_cpu.get(holder), 60.0,
+                             f"round {i + 1}: {holder}'s worker home, its claim gone, "
+                             f"{other}'s on the server")
+            rec = bed.record
+            home = rec.first(lambda s: s.workers[holder][HOME] >= 1, since=cut)
+            fenced = rec.first(lambda s: s.workers[holder][SERVER] == 0, since=cut)
+            released = rec.first(lambda s: not s.claims_cpu.get(holder), since=cut)
+            started = rec.first(lambda s: s.workers[other][SERVER] >= 1, since=cut)
+            serving = rec.first(lambda s: s.where(other) == SERVER, since=cut)
+            freed = max(fenced, released)
+            bed.until(lambda s: rec.judged_until(holder) >= done.t, 10.0,
+                      f"{holder}'s observer's lines past the move")
+            past, longest = stretches_past_delta(rec.heard(holder), cut - 2.0, done.t, shape)
+            violations += past > 0
+            early += started < freed
+            rows['home'].append(home - cut)
+            rows['freed'].append(freed - cut)
+            rows['serving'].append(serving - freed)
+            rows['gap'].append(longest)
+            bed.restore(holder)
+            not_before = home + shape.hysteresis_s + 1.0
+            print(f'[{i + 1}/{a.cuts}] {holder} cut: home {home - cut:.2f} s, server copy gone '
+                  f'{fenced - cut:.2f} s, claim released {released - cut:.2f} s; {other} '
+                  f'started there {started - cut:.2f} s, serving {serving - cut:.2f} s '
+                  f'(freed -> serving {serving - freed:.2f} s); {holder} below freq_min '
+                  f'{longest:.2f} s at most{", PAST Δ" if past else ""}', flush=True)
+    finally:
+        notes = bed.close()
+    over_n, over_s = over_commit(bed.record.samples, shape)
+    print(f'fleet, link cuts: 2 robots in namespaces, one server (capacity '
+          f'{shape.capacity_cpu:g}, worker {shape.worker_cpu:g}), {len(rows["home"])} cuts, '
+          f'hysteresis {shape.hysteresis_s:g} s, Δ {shape.tolerance_s:g} s; run folder {run_dir}')
+    if rows['home']:
+        print(_line("cut -> the holder's worker home", rows['home']))
+        print(_line('cut -> room freed (copy gone, claim released)', rows['freed']))
+        print(_line("room freed -> the other's worker serving there", rows['serving']))
+        print(_line("the holder's longest stretch below freq_min", rows['gap']))
+    print(f'  Δ violations on the cut robot: {violations} of {len(rows["home"])}; started '
+          f'before the room was freed: {early}; over-commit: {over_n} samples of '
+          f'{len(bed.record.samples)}, {over_s:.1f} s; teardown cleaned: {notes or "nothing"}')
+    return 1 if violations or early or over_n else 0
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--preemptions', type=int, default=20)
-    ap.add_argument('--hysteresis', type=float, default=5.0)
+    ap.add_argument('--cuts', type=int, default=0,
+                    help="instead of preemptions, this many cuts of the holder's link, the "
+                         'fleet in network namespaces (root)')
+    ap.add_argument('--hysteresis', type=float, default=None,
+                    help='seconds (default 5, with --cuts 6)')
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', 57)))
     ap.add_argument('--keep', default='')
     a = ap.parse_args(argv)
+    if a.cuts < 0 or a.preemptions < 0:
+        ap.error('--cuts and --preemptions take a count of 0 or more')
+    if a.hysteresis is None:
+        a.hysteresis = 6.0 if a.cuts else 5.0
+    if a.cuts:
+        return cuts(a)
     run_dir = a.keep or tempfile.mkdtemp(prefix='fleet_bench_')
     os.makedirs(run_dir, exist_ok=True)
     shape = FleetShape(hysteresis_s=a.hysteresis)
