@@ -16,6 +16,7 @@ def restore_ctrl_c() -> None:
 
 
 _rclpy_stops = False
+_stop_asked = False
 
 
 def interrupt_once() -> None:
@@ -28,9 +29,16 @@ def interrupt_once() -> None:
     KeyboardInterrupt; after, rclpy's own handler stops the spin and this one only ignores
     the later ones.
     """
-    global _rclpy_stops
-    _rclpy_stops = False
+    global _rclpy_stops, _stop_asked
+    _rclpy_stops = _stop_asked = False
     signal.signal(signal.SIGINT, _interrupt_then_ignore)
+
+
+def stop_asked() -> bool:
+    """Whether a SIGINT has come since ``interrupt_once``: a spin loop checks it beside
+    ``rclpy.ok()``, so that it ends on its own word, whether or not rclpy's handler managed to
+    shut the context down."""
+    return _stop_asked
 
 
 def rclpy_stops_on_sigint() -> None:
@@ -44,6 +52,8 @@ def rclpy_stops_on_sigint() -> None:
 
 
 def _interrupt_then_ignore(signum, frame) -> None:
+    global _stop_asked
+    _stop_asked = True
     ignore_interrupts()
     if not _rclpy_stops:
         raise KeyboardInterrupt

@@ -85,3 +85,29 @@ def test_once_rclpy_stops_on_sigint_it_is_not_raised_as_well():
     assert done.returncode == 0, done.stdout + done.stderr
     assert done.stdout.split() == ['context', 'shut', 'down', 'cleaned', 'up']
     assert 'Traceback' not in done.stderr
+
+
+STOP_ASKED = '''
+import os, signal, time
+import rclpy
+from anyscale_manager.interrupt import interrupt_once, rclpy_stops_on_sigint, stop_asked
+interrupt_once()
+rclpy.init()
+rclpy_stops_on_sigint()
+print(stop_asked())
+os.kill(os.getpid(), signal.SIGINT)
+end = time.monotonic() + 10.0
+while not stop_asked() and time.monotonic() < end:
+    time.sleep(0.01)
+print(stop_asked())
+rclpy.try_shutdown()
+'''
+
+
+def test_a_sigint_is_seen_by_stop_asked_beside_rclpys_handler():
+    """The decider's spin loop ends on its own word (``stop_asked``) as well as on the context
+    that rclpy's handler shuts down."""
+    done = subprocess.run([sys.executable, '-c', STOP_ASKED], capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.split() == ['False', 'True']

@@ -13,8 +13,10 @@ decisions, publishes only its beat and diagnostics, and takes over within ``take
 leader's silence from the leader's last layout.
 """
 
+import faulthandler
 import os
 import secrets
+import signal
 import socket
 import sys
 import threading
@@ -46,7 +48,7 @@ from ..runtime.leadership import LEADER, STANDBY, Change, Leadership
 from ..runtime.layout import LayoutError
 from ..runtime.turn import DeciderTurn, TurnOutput
 from ..interrupt import ignore_interrupts, interrupt_once, rclpy_stops_on_sigint, \
-    restore_ctrl_c
+    restore_ctrl_c, stop_asked
 
 NODE_NAME = 'anyscale_decider'
 
@@ -538,6 +540,9 @@ def main(args=None) -> int:
     # ("Unable to convert call argument '0' to Python object") while the context was still up,
     # and the decider exited 1 with a traceback instead of stopping cleanly.
     interrupt_once()
+    # SIGUSR1 writes every thread's stack to stderr (the decider's log): what a decider that
+    # does not stop is doing (the test-bed's teardown asks before it kills one).
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         rclpy.init(args=args)
     except Exception as e:  # noqa: B902 - rcl refuses the arguments or the parameters file
@@ -550,7 +555,7 @@ def main(args=None) -> int:
         node = DeciderNode()
         executor = make_executor()
         executor.add_node(node)
-        while rclpy.ok():
+        while rclpy.ok() and not stop_asked():
             executor.spin_once(timeout_sec=1.0)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -275,7 +275,17 @@ class Testbed:
             try:
                 proc.popen.wait(timeout=grace)
             except subprocess.TimeoutExpired:
-                notes.append(f'{name} did not stop within {grace:.0f} s after SIGINT; killed')
+                # What it is doing, in its log, before it is killed (the decider and every
+                # workload node write their threads' stacks on SIGUSR1).
+                said = ''
+                if name.startswith('decider'):
+                    netns.send_signal(proc.popen.pid, signal.SIGUSR1)
+                    try:
+                        proc.popen.wait(timeout=1.0)
+                    except subprocess.TimeoutExpired:
+                        said = f" (its threads' stacks: the end of {proc.log_path})"
+                notes.append(f'{name} did not stop within {grace:.0f} s after SIGINT; '
+                             f'killed{said}')
                 _signal_group(proc.popen.pid, signal.SIGKILL)
                 proc.popen.wait()
         for observer in self._observers:
