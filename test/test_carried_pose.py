@@ -102,6 +102,24 @@ def test_a_pose_a_user_set_is_no_jump_but_two_copies_on_two_other_states_are():
     assert pose_motion(['--pose-motion', '-0.2,0.05']) == (-0.2, 0.05)
 
 
+def test_a_pose_set_at_the_start_of_the_judged_window_is_judged_with_the_track_it_left():
+    """A soak judges from its schedule's start, and the test-bed's user set the start pose
+    just before it, in a move's overlap: the robot's copy went on along the old track for a
+    moment. That track began before the window; the judge reads it as what came before, else
+    each turn between the two copies reads as a jump (a CI soak: 0.09 m at 0.45 s)."""
+    set_at = 101.9
+    set_pose = (set_at - 100.0, START[0], START[1], set_at, START[2])
+    laptop = _heard(100.0, [100.0 + 0.2 * i for i in range(10)]) \
+        + _heard(set_at, [102.0 + 0.2 * i for i in range(10)])
+    robot = _heard(100.0, [100.1 + 0.2 * i for i in range(13)], 0.01)
+    start = set_at - 100.0 + 0.05          # the window opens just after the pose was set
+    assert pose_jumps(laptop + robot, start, 100.0, 0.2, set_poses=[set_pose],
+                      turn_rps=0.05) == []
+    # Poses before the window are context, never judged themselves.
+    assert pose_jumps(_heard(100.0, [100.0]) + _heard(99.0, [101.0]) + robot[-3:], 1.5,
+                      100.0, 0.2, turn_rps=0.05) == []
+
+
 def test_the_record_keeps_the_poses_a_user_set_and_the_judge_reads_them():
     """The observer's lines as the record takes them: AMCL's poses (with their yaw, or without
     from an older observer) and the poses set on its restore topic, /initialpose."""

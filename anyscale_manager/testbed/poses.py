@@ -71,9 +71,11 @@ def pose_jumps(poses: Sequence[Pose], start: float, end: float, speed_mps: float
                turn_rps: float = 0.0, settle_s: float = SET_SETTLE_S) -> List[Jump]:
     """Each jump between consecutive poses (arrival, x, y, stamp[, yaw]) arrived within
     [start, end]. ``set_poses``: the poses set on the node's restore topic (arrival, x, y,
-    stamp, yaw); a track is followed at ``speed_mps`` (signed) and ``turn_rps``."""
+    stamp, yaw); a track is followed at ``speed_mps`` (signed) and ``turn_rps``. The poses
+    heard before ``start`` are read too, as what came before (the track a pose set at the
+    window's start left), and not judged themselves."""
     out = []
-    heard = sorted(p for p in poses if start <= p[0] <= end)
+    heard = sorted(p for p in poses if p[0] <= end)
     before = None             # the latest pose of the track the set pose left
     for i, p1 in enumerate(heard):
         recent = [u for u in set_poses if 0.0 <= p1[3] - u[3] <= settle_s]
@@ -81,7 +83,7 @@ def pose_jumps(poses: Sequence[Pose], start: float, end: float, speed_mps: float
         # A copy yet to take the set pose goes on along the track it left, for a moment.
         behind = bool(recent) and not on and before is not None \
             and _same_track(before, p1, speed_mps, turn_rps, slack_m)
-        if i:
+        if i and p1[0] >= start:
             jump = _jump(heard[i - 1], p1, speed_mps, slack_m)
             if jump.too_far and not on and not behind:
                 out.append(jump)
