@@ -51,6 +51,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from std_msgs.msg import UInt8MultiArray  # noqa: E402
 
+from anyscale_manager.runtime.delta import rate_below  # noqa: E402
 from anyscale_manager.testbed import netns  # noqa: E402
 from anyscale_manager.testbed.fleet import (Fleet, FleetShape, HOME, other_domain,  # noqa: E402
                                             SERVER, stretches_past_delta)
@@ -142,7 +143,8 @@ def quiet(bed, shape, not_before, what):
         if since['t'] is None or layout != since['layout']:
             since['t'], since['layout'] = s.t, layout
         return (s.t >= not_before and s.t - since['t'] >= QUIET_S
-                and heard_rate(bed.record, holder, s.t - 0.6) >= shape.freq_min_hz)
+                and not rate_below(shape.freq_min_hz,
+                                   heard_rate(bed.record, holder, s.t - 0.6)))
     s = bed.until(holds, 120.0, what)
     holder = next(r for r in ROBOTS if s.where(r) == SERVER)
     return holder, next(r for r in ROBOTS if r != holder)
