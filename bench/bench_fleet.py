@@ -176,12 +176,9 @@ def cuts(a) -> int:
                              f"round {i + 1}: {holder}'s worker home, its claim gone, "
                              f"{other}'s on the server")
             rec = bed.record
-            home = rec.first(lambda s: s.workers[holder][HOME] >= 1, since=cut)
-            fenced = rec.first(lambda s: s.workers[holder][SERVER] == 0, since=cut)
-            released = rec.first(lambda s: not s.claims_cpu.get(holder), since=cut)
-            started = rec.first(lambda s: s.workers[other][SERVER] >= 1, since=cut)
-            serving = rec.first(lambda s: s.where(other) == SERVER, since=cut)
-            freed = max(fenced, released)
+            h = rec.hand_over(holder, other, cut)
+            home, fenced, released, started, serving, freed = \
+                h.home, h.fenced, h.released, h.started, h.serving, h.freed
             bed.until(lambda s: rec.judged_until(holder) >= done.t, 10.0,
                       f"{holder}'s observer's lines past the move")
             past, longest = stretches_past_delta(rec.heard(holder), cut - 2.0, done.t, shape)

@@ -77,14 +77,11 @@ def test_two_robots_in_namespaces_share_one_server_through_the_holders_link_cut(
                          and not s.claims_cpu.get(holder), 60.0,
                          f"{holder}'s worker home, its claim gone, {other}'s on the server")
         rec = bed.record
-        home = rec.first(lambda s: s.workers[holder][HOME] >= 1, since=cut)
-        fenced = rec.first(lambda s: s.workers[holder][SERVER] == 0, since=cut)
-        released = rec.first(lambda s: not s.claims_cpu.get(holder), since=cut)
-        started = rec.first(lambda s: s.workers[other][SERVER] >= 1, since=cut)
         # Serving there: its home copy let go, which its agent does once the server's copy is
         # ready and heard at home (start_before_stop).
-        serving = rec.first(lambda s: s.where(other) == SERVER, since=cut)
-        freed = max(fenced, released)
+        h = rec.hand_over(holder, other, cut)
+        home, fenced, released, started, serving, freed = \
+            h.home, h.fenced, h.released, h.started, h.serving, h.freed
         bed.until(lambda s: rec.judged_until(holder) >= done.t, 10.0,
                   f"{holder}'s observer's lines past the move")
         past, longest = stretches_past_delta(rec.heard(holder), cut - 2.0, done.t, SHAPE)

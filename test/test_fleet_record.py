@@ -61,3 +61,24 @@ def test_the_timeline_has_a_row_per_period_and_every_mark():
 def test_each_robot_has_its_link_and_output_topic():
     assert link_name('robot_a') == 'link_a' and link_name('scout') == 'link_scout'
     assert output_topic('robot_b') == '/robot_b/w'
+
+
+def test_a_hand_over_after_a_cut_is_read_from_the_samples():
+    """robot_a's link cut at 10 s: home at 11, its server copy gone at 12, its claim released
+    at 13 (the room freed then), robot_b started there at 14 and serving alone at 15."""
+    rec = FleetRecord(0.0)
+    rows = [(9.0, {'away': 1}, {'home': 1}, {'robot_a': 60.0}),
+            (11.0, {'away': 1, 'home': 1}, {'home': 1}, {'robot_a': 60.0}),
+            (12.0, {'home': 1}, {'home': 1}, {'robot_a': 60.0}),
+            (13.0, {'home': 1}, {'home': 1}, {}),
+            (14.0, {'home': 1}, {'home': 1, 'away': 1}, {'robot_b': 60.0}),
+            (15.0, {'home': 1}, {'away': 1}, {'robot_b': 60.0})]
+    for t, a, b, claims in rows:
+        rec.add(FleetSample(t, {'robot_a': {'home': a.get('home', 0), 'away': a.get('away', 0)},
+                                'robot_b': {'home': b.get('home', 0), 'away': b.get('away', 0)}},
+                            {'robot_a': t < 10.0, 'robot_b': True}, claims))
+    h = rec.hand_over('robot_a', 'robot_b', 10.0)
+    assert (h.home, h.fenced, h.released, h.started, h.serving, h.freed) == \
+        (11.0, 12.0, 13.0, 14.0, 15.0, 13.0)
+    with pytest.raises(ValueError, match='not sampled'):
+        rec.hand_over('robot_b', 'robot_a', 10.0)

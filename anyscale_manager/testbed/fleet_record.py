@@ -43,6 +43,25 @@ class FleetSample:
         return at[0] if len(at) == 1 else ('both' if at else 'none')
 
 
+@dataclass(frozen=True)
+class HandOver:
+    """After a holder's link was cut at ``cut``: when its worker was home, its server copy gone
+    (``fenced``) and its claim released, and when the other robot's worker started on the
+    server and served there (its home copy let go)."""
+
+    cut: float
+    home: float
+    fenced: float
+    released: float
+    started: float
+    serving: float
+
+    @property
+    def freed(self) -> float:
+        """The room handed on: the cut-off copy gone and its claim released."""
+        return max(self.fenced, self.released)
+
+
 class FleetRecord:
     """Samples, marks and each robot's heard arrivals of one run (observer lines may arrive
     from reader threads: every access holds the record's lock)."""
@@ -113,6 +132,20 @@ class FleetRecord:
         """The time of the first sample from ``since`` on in which ``holds``."""
         return next((s.t for s in self.between(since) if holds(s)), None)
 
+    def hand_over(self, holder: str, other: str, cut: float) -> HandOver:
+        """The hand-over of the server from ``holder``, whose link was cut at ``cut``, to
+        ``other``, read from the samples (each step must have been sampled)."""
+        def first(holds: Callable[[FleetSample], bool]) -> float:
+            t = self.first(holds, since=cut)
+            if t is None:
+                raise ValueError(f'the hand-over from {holder} to {other}: a step not sampled')
+            return t
+        return HandOver(cut, first(lambda s: s.workers[holder][HOME] >= 1),
+                        first(lambda s: s.workers[holder][SERVER] == 0),
+                        first(lambda s: not s.claims_cpu.get(holder)),
+                        first(lambda s: s.workers[other][SERVER] >= 1),
+                        first(lambda s: s.where(other) == SERVER))
+
     def timeline(self, robots: Sequence[str], every_s: float = 1.0) -> List[str]:
         """One row per ``every_s`` (and one per mark): seconds from the start, then per robot
         where its worker runs, its link and its claim on the server; for a demo's figure or a
@@ -131,4 +164,4 @@ class FleetRecord:
         return [text for _, _, text in sorted(rows)]
 
 
-__all__ = ['FleetRecord', 'FleetSample']
+__all__ = ['FleetRecord', 'FleetSample', 'HandOver']
