@@ -436,3 +436,20 @@ def test_a_span_a_kill_excuses_is_excused_even_on_a_known_open_defect():
         [('ekf_navigation', 10.1, 'fault 2: ekf killed')]
     assert [(x['connection'], x['start_s']) for x in known] == [('ekf_navigation', 40.0)]
     assert [(x['connection'], x['below_s']) for x in counted] == [('laser_amcl', 3.0)]
+
+
+def _resumed(pid: int, stamp: float) -> p.Layout:
+    return p.Layout(generation=3, deployment='d', assignments={'a': 'robot'}, reason='r',
+                    stamp=stamp, decider=p.DeciderIdentity(id='x', host='h', pid=pid,
+                                                           started=0.0), term=1)
+
+
+def test_a_resumed_leaders_layout_counts_by_when_it_was_composed_not_heard():
+    # Resumed at monotonic 100.0 = wall 5000.0: a layout stamped before the stop and heard
+    # after the resume is the stalled leader's last command delivered late, not a new one.
+    layouts = [(99.0, _resumed(7, 4990.0)),          # before the resume: not looked at
+               (100.2, _resumed(7, 4996.6)),         # composed before the stop, heard late
+               (100.5, _resumed(8, 5000.4)),         # another decider
+               (101.0, _resumed(7, 5000.9))]         # composed after the resume
+    assert verdict.resumed_layouts(layouts, 7, 100.0, 5000.0) == (1, 1)
+    assert verdict.resumed_layouts(layouts[:3], 7, 100.0, 5000.0) == (0, 1)

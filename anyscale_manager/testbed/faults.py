@@ -19,7 +19,7 @@ from ..model.types import Deployment
 from ..runtime.constraints import required_kbps
 from . import chaos, harness, netns
 from .record import LIVE_STATES, Record
-from .verdict import COLD_MOVE_S
+from .verdict import COLD_MOVE_S, resumed_layouts
 
 if TYPE_CHECKING:
     from .soak import Soak
@@ -313,23 +313,25 @@ def stop_decider(soak: 'Soak', f: chaos.Fault, row: Row) -> None:
             row['reaction_s'] = t_pub - t_stop
         soak.sleep(t_stop + f.hold_s - time.monotonic())
     finally:
+        wall_cont = time.time()
         os.kill(stopped, signal.SIGCONT)
     t_cont = time.monotonic()
     if t_pub is None:
         soak.miss(row, 'no layout from another decider 20 s after the SIGSTOP')
         return
-    # Resumed, it must stand by: no layout of its own, no agent following it again.
+    # Resumed, it must stand by: no layout composed after the resume, no agent following it
+    # again. Its last layout before the stop may arrive late (a retransmission): listed.
     soak.sleep(2.0)
     with tb.lock:
-        stale = sum(1 for t, lay in tb.record.layouts if t > t_cont and lay.decider
-                    and lay.decider.pid == stopped)
+        stale, late = resumed_layouts(tb.record.layouts, stopped, t_cont, wall_cont)
         followed = sorted({scale for scale, history in tb.record.agent_states.items()
                            for t, st in history if t > t_cont + 1.0 and st.decider in ids})
-    row['outcome'] = (f'resumed after {t_cont - t_stop:.1f} s: {stale} layouts of its own; '
-                      f'agents following it again: {", ".join(followed) or "none"}')
+    row['outcome'] = (f'resumed after {t_cont - t_stop:.1f} s: {stale} layouts of its own'
+                      + (f' ({late} from before the stop heard late)' if late else '')
+                      + f'; agents following it again: {", ".join(followed) or "none"}')
     if stale or followed:
         tally.stale_leader += 1
-        soak.log(f'!! {name} resumed: {stale} layouts published, followed by '
+        soak.log(f'!! {name} resumed: {stale} layouts composed, followed by '
                  f'{followed or "none"}')
 
 

@@ -9,7 +9,7 @@ soak).
 """
 
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Sequence, Set, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, List, Sequence, Set, Tuple
 
 from ..agent.reconcile import HEAR_PATIENCE_S
 from ..model.types import Deployment
@@ -17,6 +17,9 @@ from . import chaos
 from .known import KNOWN_OPEN
 from .poses import record_jumps
 from .record import DeltaBreach, Record
+
+if TYPE_CHECKING:
+    from ..protocol import Layout
 
 # Two copies of a node may publish at once during a start_before_stop handover: the losing copy
 # goes HEAR_PATIENCE_S after the new one is ready at the latest, then takes its deactivation.
@@ -37,6 +40,25 @@ NO_MOVE_BACK = ('kill_agent_robot', 'kill_decider', 'stop_decider', 'hostile',
 NOTED_MOVE_BACK = ('rival_decider',)
 MOVES_BACK = ('migrate_back', 'move_away', 'relocate')
 MOVE_BACK_AFTER_S = 3.0
+
+
+def resumed_layouts(layouts: Sequence[Tuple[float, 'Layout']], pid: int, t_cont: float,
+                    wall_cont: float) -> Tuple[int, int]:
+    """Layouts of decider ``pid`` heard after it was resumed at ``t_cont`` (monotonic, the
+    observer's clock; ``wall_cont``: the same instant on the wall clock its layouts are stamped
+    with): (composed after the resume, composed before the stop and heard late). A layout
+    stamped before the stop is the stalled leader's last command, delivered late (a reliable
+    writer retransmits it once it runs again); the agents' term check is what refuses it. One
+    composed after the resume means the leader did not step down."""
+    after = late = 0
+    for t, lay in layouts:
+        if t <= t_cont or lay.decider is None or lay.decider.pid != pid:
+            continue
+        if lay.stamp >= wall_cont:
+            after += 1
+        else:
+            late += 1
+    return after, late
 
 
 def no_move_back(f: chaos.Fault) -> bool:
@@ -61,7 +83,7 @@ class Tally:
     excuses: List[chaos.Excuse] = field(default_factory=list)        # a killed serving copy
     missed: int = 0                  # a reaction not seen within its fault's limit
     rival_misbehaved: int = 0        # a third decider that published or did not stand by
-    stale_leader: int = 0            # a resumed leader published, or was followed again
+    stale_leader: int = 0            # a resumed leader composed a layout, or was followed
     restart_harm: int = 0            # an agent's restart in place moved or restarted a node
     unfenced: int = 0                # a lost agent's nodes outlived the fencing bound
 
