@@ -1,12 +1,14 @@
 """The workload node: argument checks, message types and shapes, the output gate, CPU work, and
 real processes over DDS."""
 
+import math
 import re
 import subprocess
 import sys
 import time
 
 import pytest
+import rclpy.time
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.lifecycle import TransitionCallbackReturn
@@ -22,6 +24,7 @@ from anyscale_manager.nodes.monitors import ProbeManager
 from anyscale_manager.nodes.workload import (OutputGate, WorkloadNode, burn_cpu, parse_spec,
                                              publisher_qos, subscriber_qos)
 from anyscale_manager.nodes.workload_lifecycle import LifecycleWorkloadNode
+from anyscale_manager.nodes.workload_pose import PoseTrack, yaw_of
 from anyscale_manager.nodes.workload_messages import (KINDS, Endpoint, EndpointError,
                                                       build_message, message_class,
                                                       parse_endpoint, stamper)
@@ -493,6 +496,46 @@ def test_an_input_the_cap_held_back_is_served_when_the_cap_opens(ros):
         assert 0.05 <= waited <= 1.0, waited   # when the 4 Hz cap opened (0.15 s early)
         assert timer.is_canceled() and node._retry is timer
 
+
+
+class _StallingClock:
+    """A clock read by a process that stalls once for 0.4 s (its quota throttled), at the
+    ``stall_at``-th reading; 0.2 s pass between other readings."""
+
+    def __init__(self, start_ns: int, stall_at: int):
+        self.ns, self.reads, self.stall_at = start_ns, 0, stall_at
+
+    def now(self):
+        self.reads += 1
+        self.ns += 400_000_000 if self.reads == self.stall_at else 200_000_000
+        return rclpy.time.Time(nanoseconds=self.ns)
+
+
+@pytest.mark.parametrize('stall_at', [2, 3, 4, 5])
+def test_a_pose_output_is_where_the_robot_is_at_its_own_stamp(ros, stall_at):
+    """A copy handed a pose continues from it at its stamp: every pose the node sends lies on
+    one track at its own stamp, even when the process stalls inside a publish (the clock is
+    read once per output)."""
+    spec = parse_spec(['--name', 'amcl_wl', '--pub',
+                       '/wl_pose_out:geometry_msgs/msg/PoseWithCovarianceStamped',
+                       '--rate-hz', '1', '--pose-motion', '0.2,0.05'])
+    node = ros.add(WorkloadNode(spec, context=ros.context))
+    clock = _StallingClock(10**18, stall_at)
+    node.get_clock = lambda: clock
+    poses = []
+
+    def sent(msg):
+        p = msg.pose.pose
+        poses.append((msg.header.stamp.sec + msg.header.stamp.nanosec / 1e9,
+                      p.position.x, p.position.y, yaw_of(p.orientation.z, p.orientation.w)))
+    node._pubs = [type('Pub', (), {'publish': staticmethod(sent)})()]
+    for _ in range(4):
+        node._publish()
+    stamp0, x0, y0, yaw0 = poses[0]
+    for stamp, x, y, _ in poses[1:]:
+        handed = PoseTrack(0.2, 0.05, x0, y0, yaw0, stamp0)    # a copy handed the first
+        hx, hy, _ = handed.at(stamp)
+        assert math.hypot(x - hx, y - hy) < 1e-6, (stamp - stamp0, x, y, hx, hy)
 
 # --- the lifecycle node -------------------------------------------------------------------------
 

@@ -351,14 +351,18 @@ class WorkloadBehaviour:
         self._maybe_produce()
 
     def _publish(self) -> None:
+        # One reading of the clock: a pose is where the robot is at its message's stamp. Two
+        # readings put the pose ahead of its stamp by whatever stalled the process between
+        # them (a CPU quota's throttling), and a copy handed that pose went on ahead of the
+        # robot.
+        now = self.get_clock().now()
         if self._stamped:
-            now = self.get_clock().now().to_msg()
+            stamp_msg = now.to_msg()
             for msg, stamp in zip(self._msgs, self._stampers):
                 if stamp is not None:
-                    stamp(msg, now)
+                    stamp(msg, stamp_msg)
         if self.pose is not None:
-            stamp_s = self.get_clock().now().nanoseconds / 1e9
-            x, y, yaw = self.pose.at(stamp_s)
+            x, y, yaw = self.pose.at(now.nanoseconds / 1e9)
             for msg, posed in zip(self._msgs, self._posed):
                 if posed:
                     set_pose(msg, x, y, yaw)
