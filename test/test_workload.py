@@ -497,7 +497,6 @@ def test_an_input_the_cap_held_back_is_served_when_the_cap_opens(ros):
         assert timer.is_canceled() and node._retry is timer
 
 
-
 class _StallingClock:
     """A clock read by a process that stalls once for 0.4 s (its quota throttled), at the
     ``stall_at``-th reading; 0.2 s pass between other readings."""
@@ -536,6 +535,7 @@ def test_a_pose_output_is_where_the_robot_is_at_its_own_stamp(ros, stall_at):
         handed = PoseTrack(0.2, 0.05, x0, y0, yaw0, stamp0)    # a copy handed the first
         hx, hy, _ = handed.at(stamp)
         assert math.hypot(x - hx, y - hy) < 1e-6, (stamp - stamp0, x, y, hx, hy)
+
 
 # --- the lifecycle node -------------------------------------------------------------------------
 
