@@ -44,6 +44,7 @@ from ..model.loader import DeploymentError, load_from_parameters
 from ..model.params_file import refuse_bad_params_files
 from ..model.sections import settings_with
 from ..model.types import DeciderSettings, Deployment
+from ..runtime.diagnostics import DiagnosticsGate
 from ..runtime.leadership import LEADER, STANDBY, Change, Leadership
 from ..runtime.layout import LayoutError
 from ..runtime.turn import DeciderTurn, TurnOutput
@@ -152,6 +153,7 @@ class DeciderNode(Node):
         self.pub_objective = self.create_publisher(String, p.TOPIC_OBJECTIVE, 10)
         self.pub_plan = self.create_publisher(String, p.TOPIC_PLAN_CHECK, 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, p.TOPIC_DIAGNOSTICS, 10)
+        self._diag_gate = DiagnosticsGate()
         for topic, callback, profile in (
                 (p.TOPIC_EVENTS, self._on_event, EVENTS_QOS),
                 (p.TOPIC_LAYOUT, self._on_layout, qos.LATCHED_READER),
@@ -511,12 +513,14 @@ class DeciderNode(Node):
                      values: Optional[Dict[str, object]] = None) -> None:
         if self.pub_diag is None:
             return
-        status = DiagnosticStatus(
-            level=bytes([level]), name=(f'{NODE_NAME}: {self.deployment.name}'
-                                        if self.lead.role == LEADER else
-                                        f'{NODE_NAME} (standby {self.identity.id}): '
-                                        f'{self.deployment.name}'),
-            message=message[:500], hardware_id=self.host)
+        name = (f'{NODE_NAME}: {self.deployment.name}' if self.lead.role == LEADER else
+                f'{NODE_NAME} (standby {self.identity.id}): {self.deployment.name}')
+        # Once a second, and at once on a change of level or role (runtime/diagnostics.py):
+        # built only then.
+        if not self._diag_gate.due(name, level, self._now()):
+            return
+        status = DiagnosticStatus(level=bytes([level]), name=name, message=message[:500],
+                                  hardware_id=self.host)
         values = dict(values or self.core.values(self._now()))
         values.update({'messages ignored': self._rejected, 'decider': self.identity.describe(),
                        'messages signed': self.key is not None, 'role': self.lead.role,

@@ -3,6 +3,7 @@
 
 import importlib
 import re
+import time
 from typing import Callable, List, Mapping, Optional
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -12,6 +13,7 @@ from .. import qos
 from ... import protocol as p
 from ...protocol_auth import Sealer
 from ...model.types import Deployment
+from ...runtime.diagnostics import DiagnosticsGate
 
 PROBE_QOS = qos.PROBE
 STATUS_QOS = qos.STATUS
@@ -58,6 +60,7 @@ class Publishers:
 
     def __init__(self, node, topic: str, sealer: Optional[Sealer] = None):
         self.node = node
+        self._gate = DiagnosticsGate()
         self.topic = topic
         self.sealer = sealer or Sealer(None, '')
         self.own = node.create_publisher(String, topic, STATUS_QOS)
@@ -67,7 +70,13 @@ class Publishers:
     def send(self, message: p.Message) -> None:
         self.own.publish(String(data=self.sealer.seal(message)))
 
+    def diagnostics_due(self, name: str, level: int) -> bool:
+        """Whether status ``name`` at ``level`` goes out now (runtime/diagnostics.py): build it
+        only then."""
+        return self._gate.due(name, level, time.monotonic())
+
     def send_diagnostics(self, statuses: List[DiagnosticStatus]) -> None:
+        """Publish ``statuses``, each built after ``diagnostics_due`` said yes."""
         if not statuses:
             return
         array = DiagnosticArray()

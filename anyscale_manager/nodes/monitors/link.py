@@ -491,8 +491,9 @@ class LinkMonitor:
             values['bandwidth_available_from'] = estimate.source
         if estimate is not None and estimate.last_error:
             values['bandwidth_probe_error'] = estimate.last_error
-        self._out.send_diagnostics([status(f'anyscale/link/{remote.link_name}', level, text,
-                                           self._scale.host, values)])
+        name = f'anyscale/link/{remote.link_name}'
+        if self._out.diagnostics_due(name, level):
+            self._out.send_diagnostics([status(name, level, text, self._scale.host, values)])
 
     # remote side ----------------------------------------------------------------------------
     def _start_remote(self, settings) -> None:

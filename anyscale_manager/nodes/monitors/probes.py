@@ -362,8 +362,9 @@ class ProbeManager:
             if name not in readings:
                 probe = self._topics.get(self._resolve(conn.topic))
                 problem = probe.problem if probe else 'no probe'
-                statuses.append(status(f'anyscale/connection/{name}', p.STALE, problem,
-                                       self._scale.host, values))
+                if self._out.diagnostics_due(f'anyscale/connection/{name}', p.STALE):
+                    statuses.append(status(f'anyscale/connection/{name}', p.STALE, problem,
+                                           self._scale.host, values))
                 continue
             reading, note = readings[name]
             values.update({'rate_hz': reading.rate_hz, 'bytes_per_s': reading.bytes_per_s,
@@ -376,8 +377,9 @@ class ProbeManager:
                     level = p.ERROR
                     text = (f'{reading.senders} senders for {reading.senders_for_s:.1f} s '
                             f'(copies of {conn.publisher} on more than one scale?); {text}')
-            statuses.append(status(f'anyscale/connection/{name}', level, text,
-                                   self._scale.host, values))
+            if self._out.diagnostics_due(f'anyscale/connection/{name}', level):
+                statuses.append(status(f'anyscale/connection/{name}', level, text,
+                                       self._scale.host, values))
         self._out.send_diagnostics(statuses)
 
     def destroy(self) -> None:

@@ -251,8 +251,9 @@ class ScaleMonitor:
                   'mem_percent': message.mem_percent, 'load_1m': message.load_1m,
                   'cpu_source': self.source, 'shares_machine_with': ', '.join(self.sharing)}
         values.update({f'cpu.{k}': v for k, v in message.cpu_by_node.items()})
-        self._out.send_diagnostics([status(f'anyscale/scale/{self._scale.name}', level, text,
-                                           self._scale.host, values)])
+        name = f'anyscale/scale/{self._scale.name}'
+        if self._out.diagnostics_due(name, level):
+            self._out.send_diagnostics([status(name, level, text, self._scale.host, values)])
 
     def destroy(self) -> None:
         self._node.destroy_timer(self._timer)
