@@ -418,7 +418,7 @@ def test_decider_and_agents_survive_hostile_messages_on_every_topic(tmp_path, ro
     name = params['deployment']['name'] = f'bad_input_{os.getpid()}'
     # A loaded machine may hold a callback for a while: not this test's subject, so silence is
     # judged over 10 s rather than 3.
-    params['decider'].update(agent_timeout_s=10.0, observation_max_age_s=5.0)
+    params['decider'].update(agent_timeout_s=10.0, observation_max_age_s=5.0, discovery_s=1.5)
     params['monitoring'].update(heartbeat_misses_down=40)
     with open(path, 'w') as f:
         yaml.safe_dump(data, f)

@@ -106,7 +106,9 @@ def leader_and_standby(ex, seen, procs, tmp_path, ros_env):
     first = start(procs, tmp_path, ros_env, path, 'decider_1')
     one = leading(ex, seen, procs, 'decider_1', first)
     settled(ex, seen, procs)
-    second = start(procs, tmp_path, ros_env, path, 'decider_2')
+    # The second listens as long as a deployment's decider does by default: it must hear the
+    # leader before it would lead.
+    second = start(procs, tmp_path, ros_env, path, 'decider_2', '-p', 'decider.discovery_s:=5.0')
     return first, one, second, standing_by(ex, seen, procs, second, one)
 
 
