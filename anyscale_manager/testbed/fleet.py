@@ -81,10 +81,11 @@ def member_params(name: str, priority: int, run_dir: str, port_base: int,
         'nodes': dict(nodes, names=list(nodes)),
         'connections': dict(connections, names=list(connections)),
         # Both scales are this one machine: no headroom kept; a missed echo is an agent not
-        # scheduled on a loaded machine, so the link is judged down only after 3 s.
+        # scheduled on a loaded machine, so the link is judged down only after 3 s. Each robot
+        # runs one decider: it listens 1.5 s for a leader before it leads, not 5 s.
         'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 1.0,
                     'agent_timeout_s': 3.0, 'observation_max_age_s': 3.0,
-                    'hysteresis_s': shape.hysteresis_s},
+                    'hysteresis_s': shape.hysteresis_s, 'discovery_s': 1.5},
         'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
                        'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
                        'bandwidth_probe_port': port_base},
