@@ -57,8 +57,8 @@ setup_env
 case "$cmd" in
   env) echo "ready: $venv (run ./run.sh demo or ./run.sh test)" ;;
   demo) exec "$venv/bin/anyscale-manager" demo "$@" ;;
-  # -rs prints the reason of every skipped test; the whole suite also lists its 30 slowest.
+  # -rs prints the reason of every skipped test; the whole suite also lists its 60 slowest.
   test) if [ $# -gt 0 ]; then exec "$venv/bin/python" -m pytest -q -rs "$@"
-        else exec "$venv/bin/python" -m pytest -q -rs --durations=30 test; fi ;;
+        else exec "$venv/bin/python" -m pytest -q -rs --durations=60 test; fi ;;
   *) echo "usage: ./run.sh demo|test|env [ARGS...]" >&2; exit 2 ;;
 esac
