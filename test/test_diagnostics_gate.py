@@ -1,4 +1,4 @@
-"""/diagnostics at ROS's usual once a second, a change of level at once (runtime/diagnostics.py)."""
+"""/diagnostics at ROS's usual once a second, a change of level at once (runtime/diagnostics)."""
 
 import pytest
 
