@@ -26,7 +26,6 @@ from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import (DELIVERY_SPAN_S, BandwidthEstimate, crossing_connections,
                                   delivered_kbps, used_kbps)
 from ...runtime.rates import HeartbeatTracker
-from ...runtime.report_pace import link_status_due, link_status_period_s
 from .common import (LATCHED_QOS, STATUS_QOS, Cadence, Publishers, period_of, scale_of,
                      status)
 from .echoes import EchoSocket
@@ -113,10 +112,6 @@ class LinkMonitor:
         self._lock = threading.Lock()
         self._beats_lock = threading.RLock()    # the trackers (reentrant: a beat judges too)
         self.last: Dict[str, p.LinkStatus] = {}
-        # The last report sent per remote, and when: an unchanged link is reported once a
-        # period (runtime/report_pace.py), a change at once.
-        self._sent: Dict[str, Tuple[p.LinkStatus, float]] = {}
-        self._report_period = link_status_period_s(deployment.decider.observation_max_age_s)
         if not self._scale.is_master:
             self._start_remote(settings)
         # The master watches its link to every remote scale; a remote scale, its links to the
@@ -473,11 +468,6 @@ class LinkMonitor:
                                peer_agent_for_s=(remote.peer_for_s + now - remote.peer_at)
                                if up and remote.peer_agent is not None else None)
         self.last[remote.scale.name] = message
-        sent = self._sent.get(remote.scale.name)
-        if not link_status_due(sent[0] if sent else None, message,
-                               now - sent[1] if sent else math.inf, self._report_period):
-            return
-        self._sent[remote.scale.name] = (message, now)
         self._out.send(message)
         reference = available if available is not None else (
             estimate.nominal_kbps if estimate is not None else None)
