@@ -76,6 +76,16 @@ def wait_both_on_laptop(tb, timeout_s=60.0):
     tb.wait_for(on(tb, 'ar', LAPTOP), timeout_s, 'ar running on the laptop (only)')
 
 
+def settled_on_laptop(tb, timeout_s=60.0):
+    """The link up at its full rate, then AMCL and AR serving on the laptop (only) with no
+    move for 3 s, judged together: a scenario that starts from there starts from there (a link
+    blip while waiting brings them home, and they go out again after T)."""
+    wait_both_on_laptop(tb, timeout_s)
+    both = (on(tb, 'amcl', LAPTOP), on(tb, 'ar', LAPTOP), quiet(tb))
+    tb.wait_for(lambda r: all(check(r) for check in both), 30.0 + HYSTERESIS_S,
+                'a quiet layout with amcl and ar on the laptop')
+
+
 def wait_both_on_robot(tb, timeout_s=20.0):
     tb.wait_for(lambda r: r.where('amcl') == (ROBOT,) and r.where('ar') == (ROBOT,),
                 timeout_s, 'amcl and ar running on the robot (only)')
@@ -229,8 +239,7 @@ def test_1_link_up_amcl_moves_first_then_ar_and_amcl_ekf_reaches_its_optimal_rat
 
 
 def test_2_throttled_below_ar_need_ar_comes_back_amcl_stays(bed):
-    wait_both_on_laptop(bed)
-    bed.wait_for(quiet(bed), 30.0, 'a quiet layout')
+    settled_on_laptop(bed)
     t_throttle = bed.now()
     bed.throttle(5000.0)          # AR's images need 6 Mbit/s; AMCL's 0.2 Mbit/s still fit
     try:
@@ -277,8 +286,7 @@ def test_2_throttled_below_ar_need_ar_comes_back_amcl_stays(bed):
 def test_3_decider_killed_and_restarted_restarts_or_duplicates_nothing(bed):
     # Both migratable nodes out and a quiet moment (no move for 3 s): nothing is left that the
     # policy would legitimately move while the decider is away.
-    wait_both_on_laptop(bed, timeout_s=90.0)
-    bed.wait_for(quiet(bed), 30.0, 'a quiet layout')
+    settled_on_laptop(bed, timeout_s=90.0)
     with bed.lock:
         before = copies(bed.record)
         generation = bed.record.layout_at().generation
@@ -299,8 +307,7 @@ def test_3_decider_killed_and_restarted_restarts_or_duplicates_nothing(bed):
 
 
 def test_4_laptop_agent_killed_its_nodes_run_on_the_robot_again(bed):
-    wait_both_on_laptop(bed)
-    bed.wait_for(quiet(bed), 30.0, 'a quiet layout')
+    settled_on_laptop(bed)
     with bed.lock:
         orphans = {n: r.pid for n, r in bed.record.copies(LAPTOP).items()}
     assert set(orphans) == set(MOVING), orphans
@@ -461,8 +468,7 @@ def test_6_flapping_link_moves_are_bounded_by_the_hysteresis(bed):
 
 
 def test_7_a_remote_stay_longer_than_two_dds_leases_then_a_cut(bed):
-    wait_both_on_laptop(bed, timeout_s=90.0)
-    bed.wait_for(quiet(bed), 30.0, 'a quiet layout')
+    settled_on_laptop(bed, timeout_s=90.0)
     t_out = bed.now()
     with bed.lock:
         before = copies(bed.record)
@@ -493,8 +499,7 @@ def test_7_a_remote_stay_longer_than_two_dds_leases_then_a_cut(bed):
 
 
 def test_8_b_moves_out_and_back_keep_a_standby_copy_on_both_scales(bed):
-    wait_both_on_laptop(bed, timeout_s=90.0)
-    bed.wait_for(quiet(bed), 30.0, 'a quiet layout')
+    settled_on_laptop(bed, timeout_s=90.0)
     with bed.lock:
         start_copies = copies(bed.record)
         robot = standby_pids(bed.record, ROBOT)
@@ -557,8 +562,7 @@ def test_8_b_moves_out_and_back_keep_a_standby_copy_on_both_scales(bed):
 
 
 def test_9_c_a_standby_copy_killed_comes_back_inactive_and_nothing_else_moves(bed):
-    wait_both_on_laptop(bed, timeout_s=90.0)
-    bed.wait_for(quiet(bed), 30.0, 'a quiet layout')
+    settled_on_laptop(bed, timeout_s=90.0)
     with bed.lock:
         before = copies(bed.record)
         victim = bed.record.copies(ROBOT)['amcl']
@@ -593,8 +597,7 @@ def test_9_c_a_standby_copy_killed_comes_back_inactive_and_nothing_else_moves(be
 
 
 def test_10_d_robot_agent_restarted_while_its_copies_are_inactive_adopts_them(bed):
-    wait_both_on_laptop(bed, timeout_s=90.0)
-    bed.wait_for(quiet(bed), 30.0, 'a quiet layout')
+    settled_on_laptop(bed, timeout_s=90.0)
     with bed.lock:
         before = copies(bed.record)
         inactive = standby_pids(bed.record, ROBOT)
