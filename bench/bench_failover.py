@@ -78,6 +78,8 @@ SPEED_MPS = 0.2
 
 
 def deployment(folder, topic, rate_hz, node_transports=None, state=False):
+    from anyscale_manager.testbed import ports
+
     def workload(name, *args):
         return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args,
                             '--rate-hz', str(rate_hz)]}
@@ -116,7 +118,7 @@ def deployment(folder, topic, rate_hz, node_transports=None, state=False):
                     'hysteresis_s': HYSTERESIS_S},
         'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
                        'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
-                       'bandwidth_probe_port': 40000 + os.getpid() % 20000},
+                       'bandwidth_probe_port': ports.port_base()},
         'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,
                   'restart_backoff_s': 0.5, 'restart_backoff_max_s': HEALTHY_RUN_S,
                   'state_dir': os.path.join(folder, 'state'),

@@ -312,8 +312,9 @@ class Run:
             self.env['PYTHONPATH'] = os.pathsep.join(
                 filter(None, [source, self.env.get('PYTHONPATH')]))
         # Ports of its own: the wardens of both runs listen on this machine.
+        from anyscale_manager.testbed import ports
         self.path = deployment(folder, f'/bench_footprint_{os.getpid()}_{domain}', args.rate_hz,
-                               40000 + (os.getpid() + 10 * domain) % 20000)
+                               ports.port_base(10 * domain))
         self.procs: Dict[str, subprocess.Popen] = {}
         self.measured: Dict[str, psutil.Process] = {}
         self.roles: Dict[str, tuple] = {}

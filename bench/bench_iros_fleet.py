@@ -42,6 +42,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
 from anyscale_manager.protocol import TOPIC_LAYOUT  # noqa: E402
+from anyscale_manager.testbed import ports  # noqa: E402
 from anyscale_manager.testbed.fleet import BIN, HOME, SERVER, Fleet, other_domain  # noqa: E402
 from anyscale_manager.testbed.fleet_netns import SERVER_SCALE, FleetNetwork  # noqa: E402
 from anyscale_manager.testbed.iros_live import (  # noqa: E402
@@ -165,7 +166,7 @@ def main() -> int:
     claims_seen: List[Dict[str, float]] = []
     ledger = Fleet(run_dir, {})
     first = 20 + os.getpid() % 80
-    port_base = 40000 + os.getpid() % 20000
+    port_base = ports.port_base()
     result: dict = {}
     try:
         network.setup()

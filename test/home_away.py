@@ -15,6 +15,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import String
 
+from anyscale_manager.testbed.ports import port_base
 from anyscale_manager import protocol as p
 from anyscale_manager.nodes import qos
 from processes import LoggedProcess
@@ -84,7 +85,7 @@ def write_deployment(tmp_path, name, graph, capacity_cpu=100000.0, link_kbps=100
                          'hysteresis_s': 60.0, 'discovery_s': 1.5}, **(decider or {})),
         'monitoring': dict({'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
                             'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
-                            'bandwidth_probe_port': 40000 + (os.getpid() + port_offset) % 20000},
+                            'bandwidth_probe_port': port_base(port_offset)},
                            **(monitoring or {})),
         'agent': dict({'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0,
                        'readiness_timeout_s': 5.0, 'restart_backoff_s': 0.2,

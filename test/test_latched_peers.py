@@ -18,6 +18,7 @@ import yaml
 from rclpy.duration import Duration
 from std_msgs.msg import String
 
+from anyscale_manager.testbed.ports import port_base
 from anyscale_manager import protocol as p
 from anyscale_manager import protocol_auth as auth
 from anyscale_manager.nodes import qos
@@ -41,7 +42,7 @@ def write_deployment(tmp_path, decider=None):
         'nodes': {'names': ['worker'], 'worker': {'launch': talker, 'cpu': 1.0}},
         'decider': dict({'agent_timeout_s': 60.0}, **(decider or {})),
         'monitoring': {'bandwidth_probe_interval_s': 86400.0,
-                       'bandwidth_probe_port': 40000 + os.getpid() % 20000},
+                       'bandwidth_probe_port': port_base()},
         'agent': {'state_dir': str(tmp_path / 'state'), 'log_dir': str(tmp_path / 'log')},
     }}}
     path = tmp_path / 'deployment.yaml'

@@ -25,6 +25,7 @@ import psutil
 import yaml
 
 from ..agent.ledger import FILE_NAME
+from . import ports
 from ..runtime.delta import DeltaJudge, past_delta
 
 BIN = os.path.dirname(sys.executable)
@@ -124,7 +125,7 @@ class Fleet:
         self.run_dir = run_dir
         self.places = places or Loopback(environ)
         self.shape = shape
-        self.port_base = port_base or 40000 + os.getpid() % 20000
+        self.port_base = port_base or ports.port_base()
         self.paths: Dict[str, str] = {}
         self.domains: Dict[str, str] = {}
         self.procs: Dict[str, Dict[str, subprocess.Popen]] = {}
