@@ -4,8 +4,9 @@ A deployment's wardens and probe servers listen on ``monitoring.bandwidth_probe_
 ports after it (Deployment.scale_port). On one machine those must be ports nothing else takes:
 not Linux's ephemeral range (32768-60999 by default, /proc/sys/net/ipv4/ip_local_port_range),
 from which every socket bound to port 0 gets one at random (a DDS participant's, a link
-monitor's echo socket), nor the DDS ports of the test domains (7400 + 250 x domain + a few
-hundred, below 33000 for the domains 1-101 the tests draw). A warden that found its port taken
+monitor's echo socket), nor the DDS ports of the test domains (7400 + 250 x domain and the 250
+after it: below 58000 for the domains 1-201 the tests use, a fleet's second robot at the test's
+domain + 100). A warden that found its port taken
 said so and exited, and its scale's link never came up (a CI run). ``port_base`` draws from
 61000-64999, past both.
 """
