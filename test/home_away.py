@@ -29,6 +29,11 @@ def workload(name, *args):
     return {'command': [os.path.join(BIN, 'workload'), '--name', name, *args]}
 
 
+# A test starts one decider: it listens this long for a leader before it leads, not the 5 s
+# default (a second decider is given the default on its command line).
+ONE_DECIDER_DISCOVERY_S = 1.5
+
+
 def worker_and_pinned(topic, rate_hz=2.0):
     """worker (migratable) and pinned (home), talking to nobody: the nodes, no connections."""
     rate = ('--rate-hz', str(rate_hz))
@@ -77,12 +82,11 @@ def write_deployment(tmp_path, name, graph, capacity_cpu=100000.0, link_kbps=100
                   'net': {'ends': ['home', 'away'], 'bandwidth_kbps': link_kbps,
                           'medium': 'wired'}},
         'nodes': dict(nodes, names=list(nodes)),
-        # Both scales are this one machine: with the default capacity no headroom is kept. A
-        # test starts one decider: it listens 1.5 s for a leader before it leads, not 5 s (a
-        # second decider is given the default on its command line).
+        # Both scales are this one machine: with the default capacity no headroom is kept.
         'decider': dict({'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 1.0,
                          'agent_timeout_s': 3.0, 'observation_max_age_s': 3.0,
-                         'hysteresis_s': 60.0, 'discovery_s': 1.5}, **(decider or {})),
+                         'hysteresis_s': 60.0, 'discovery_s': ONE_DECIDER_DISCOVERY_S},
+                        **(decider or {})),
         'monitoring': dict({'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
                             'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
                             'bandwidth_probe_port': port_base(port_offset)},

@@ -26,6 +26,7 @@ from anyscale_manager.nodes import qos
 from anyscale_manager.nodes.throttled_log import MAX_KINDS, ThrottledLog
 from anyscale_manager.runtime.intake import MAX_IGNORED_KINDS, ObservationBook
 from conftest import TESTBED
+from home_away import ONE_DECIDER_DISCOVERY_S
 from processes import LoggedProcess
 from supervision import drive, FAST, py_entry, SLEEPER
 from test_decider_agent import write_deployment
@@ -418,7 +419,8 @@ def test_decider_and_agents_survive_hostile_messages_on_every_topic(tmp_path, ro
     name = params['deployment']['name'] = f'bad_input_{os.getpid()}'
     # A loaded machine may hold a callback for a while: not this test's subject, so silence is
     # judged over 10 s rather than 3.
-    params['decider'].update(agent_timeout_s=10.0, observation_max_age_s=5.0, discovery_s=1.5)
+    params['decider'].update(agent_timeout_s=10.0, observation_max_age_s=5.0,
+                             discovery_s=ONE_DECIDER_DISCOVERY_S)
     params['monitoring'].update(heartbeat_misses_down=40)
     with open(path, 'w') as f:
         yaml.safe_dump(data, f)

@@ -23,6 +23,7 @@ from std_msgs.msg import String
 from anyscale_manager import protocol as p
 from anyscale_manager.agent.procs import stop_popen
 from anyscale_manager.model.loader import load_deployment
+from home_away import ONE_DECIDER_DISCOVERY_S
 from spinning import spin_until
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -30,10 +31,9 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 AGENT_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
-# One decider per test: it listens 1.5 s for a leader before it leads, not 5 s.
 FAST = ['-p', 'decider.period_s:=0.2', '-p', 'decider.agent_timeout_s:=3.0',
         '-p', 'decider.grace_s:=1.0', '-p', 'decider.observation_max_age_s:=1.5',
-        '-p', 'decider.discovery_s:=1.5']
+        '-p', f'decider.discovery_s:={ONE_DECIDER_DISCOVERY_S}']
 
 
 def start_decider(params_file, ros_env, *extra):
