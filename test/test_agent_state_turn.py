@@ -175,7 +175,8 @@ def test_the_state_kept_is_bounded(make_sup, size, kept):
 def test_what_others_publish_on_the_restore_topic_is_the_state_from_then_on(make_sup):
     """A pose set in RViz on /initialpose: the copies' inputs are remapped, so the agent hands it
     over. A standby copy gets nothing at once; it is the node's latest state, so the copy that
-    takes over is handed it; once serving, the copy gets what is set at once."""
+    takes over is handed it, not what the serving copy published before it took the set one;
+    once serving, the copy gets what is set at once."""
     agent = Agent(make_sup)
     agent.channel.subscribed = agent.channel.acked = True
     agent.turn.on_layout(layout(1, lc='b'), agent.now)         # standby here
@@ -187,6 +188,8 @@ def test_what_others_publish_on_the_restore_topic_is_the_state_from_then_on(make
                                            restore=agent.channel))
     assert agent.channel.sent == []
     assert agent.turn.states.latest('lc').data == b'set by a person'
+    # The serving copy elsewhere has not taken it yet: what it publishes meanwhile is not kept.
+    agent.heard = [('lc', b'its old track', 7)]
     agent.turn.on_layout(layout(2, lc='a'), agent.now)         # serving here
     agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
     assert agent.channel.sent == [('lc', b'set by a person')]   # its hand-over

@@ -10,8 +10,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.nodes.workload import parse_spec, set_pose
-from anyscale_manager.nodes.workload_pose import parse_motion, PoseTrack, START, yaw_of
-from anyscale_manager.testbed.poses import pose_jumps, pose_motion, pose_speed, record_jumps
+from anyscale_manager.nodes.workload_pose import parse_motion, PoseTrack, SET_POSE, START, yaw_of
+from anyscale_manager.testbed.poses import (pose_jumps, pose_motion, pose_speed, record_jumps,
+                                            SET_SETTLE_S)
 from anyscale_manager.testbed.record import Record
 from conftest import TESTBED
 from test_workload import (_start, _stop, ACTIVATE, CONFIGURE, LifecycleProbe, scale_remaps)
@@ -79,17 +80,17 @@ def _heard(start_s, stamps, late_s=0.0, start=START):
 
 
 def test_a_pose_a_user_set_is_no_jump_but_two_copies_on_two_other_states_are():
-    """A user sets the start pose on /initialpose 1.9 s after AMCL began (the test-bed's user is
-    up after the laser), in a move's overlap: the laptop's copy takes it at once, the robot's
-    0.4 s later, both handed it by their agents. The pose goes back 0.4 m, as asked, and the
-    robot's copy goes on along the old track for a moment: no jump. A copy that serves from its
-    own start pose beside the laptop's, 0.5 s after the pose was set, jumps at each turn."""
+    """A user sets the robot's pose on /initialpose 1.9 s after AMCL began (the test-bed's user
+    is up after the laser), in a move's overlap: the laptop's copy takes it at once, the
+    robot's 0.4 s later, both handed it by their agents. The pose jumps 2.7 m, as asked, and
+    the robot's copy goes on along the old track for a moment: no jump. A copy that serves from
+    its own start pose beside the laptop's, 0.5 s after the pose was set, jumps at each turn."""
     set_at = 101.9
-    set_pose = (set_at - 100.0, START[0], START[1], set_at, START[2])
+    set_pose = (set_at - 100.0, *SET_POSE[:2], set_at, SET_POSE[2])
     laptop = _heard(100.0, [100.0 + 0.2 * i for i in range(10)]) \
-        + _heard(set_at, [102.0 + 0.2 * i for i in range(10)])
+        + _heard(set_at, [102.0 + 0.2 * i for i in range(10)], start=SET_POSE)
     robot = _heard(100.0, [100.1 + 0.2 * i for i in range(12)], 0.01) \
-        + _heard(set_at, [102.5], 0.01)
+        + _heard(set_at, [102.5], 0.01, start=SET_POSE)
     heard = laptop + robot
     assert len(pose_jumps(heard, 0.0, 100.0, 0.2)) >= 4          # read as jumps without it
     assert pose_jumps(heard, 0.0, 100.0, 0.2, set_poses=[set_pose], turn_rps=0.05) == []
@@ -102,15 +103,33 @@ def test_a_pose_a_user_set_is_no_jump_but_two_copies_on_two_other_states_are():
     assert pose_motion(['--pose-motion', '-0.2,0.05']) == (-0.2, 0.05)
 
 
+def test_a_pose_set_that_no_copy_keeps_is_lost_and_said_once_settled():
+    """The serving copy stands down before it takes a pose the user set, and the copy taking
+    over is handed its output from before: the stream goes on along the old track, with no
+    jump. Past SET_SETTLE_S every copy is on the set pose's track, so this one is said (once),
+    and a copy that took it is not."""
+    set_at = 101.9
+    set_pose = (set_at - 100.0, *SET_POSE[:2], set_at, SET_POSE[2])
+    old_track = _heard(100.0, [100.0 + 0.2 * i for i in range(30)])
+    assert pose_jumps(old_track, 0.0, 100.0, 0.2, turn_rps=0.05) == []
+    lost = pose_jumps(old_track, 0.0, 100.0, 0.2, set_poses=[set_pose], turn_rps=0.05)
+    assert len(lost) == 1 and lost[0].off_set and lost[0].distance_m > 2.0, lost
+    assert 'off the track of the pose set' in str(lost[0])
+    assert lost[0].gap_s > SET_SETTLE_S
+    taken = _heard(100.0, [100.0 + 0.2 * i for i in range(10)]) \
+        + _heard(set_at, [102.0 + 0.2 * i for i in range(20)], start=SET_POSE)
+    assert pose_jumps(taken, 0.0, 100.0, 0.2, set_poses=[set_pose], turn_rps=0.05) == []
+
+
 def test_a_pose_set_at_the_start_of_the_judged_window_is_judged_with_the_track_it_left():
     """A soak judges from its schedule's start, and the test-bed's user set the start pose
     just before it, in a move's overlap: the robot's copy went on along the old track for a
     moment. That track began before the window; the judge reads it as what came before, else
     each turn between the two copies reads as a jump (a CI soak: 0.09 m at 0.45 s)."""
     set_at = 101.9
-    set_pose = (set_at - 100.0, START[0], START[1], set_at, START[2])
+    set_pose = (set_at - 100.0, *SET_POSE[:2], set_at, SET_POSE[2])
     laptop = _heard(100.0, [100.0 + 0.2 * i for i in range(10)]) \
-        + _heard(set_at, [102.0 + 0.2 * i for i in range(10)])
+        + _heard(set_at, [102.0 + 0.2 * i for i in range(10)], start=SET_POSE)
     robot = _heard(100.0, [100.1 + 0.2 * i for i in range(13)], 0.01)
     start = set_at - 100.0 + 0.05          # the window opens just after the pose was set
     assert pose_jumps(laptop + robot, start, 100.0, 0.2, set_poses=[set_pose],
@@ -124,10 +143,10 @@ def test_the_record_keeps_the_poses_a_user_set_and_the_judge_reads_them():
     """The observer's lines as the record takes them: AMCL's poses (with their yaw, or without
     from an older observer) and the poses set on its restore topic, /initialpose."""
     record = Record(load_deployment(TESTBED))
-    set_pose = (1.9, START[0], START[1], 101.9, START[2])
+    set_pose = (1.9, *SET_POSE[:2], 101.9, SET_POSE[2])
     record.ingest({'t': 2.0, 'set_poses': {'/initialpose': [list(set_pose), [1.0, 2.0]]}})
     heard = _heard(100.0, [100.0 + 0.2 * i for i in range(10)]) \
-        + _heard(101.9, [102.0 + 0.2 * i for i in range(10)])
+        + _heard(101.9, [102.0 + 0.2 * i for i in range(10)], start=SET_POSE)
     record.ingest({'t': 5.0, 'poses': {'/amcl_pose': [list(p) for p in heard]}})
     assert record.set_poses == {'/initialpose': [set_pose]}
     assert len(record.poses['/amcl_pose']) == 20

@@ -6,7 +6,7 @@ import copy
 import pytest
 import yaml
 
-from anyscale_manager.agent.state import StateBook
+from anyscale_manager.agent.state import SET_HOLD_S, StateBook
 from anyscale_manager.model import DeploymentError, load_mapping
 from anyscale_manager.model.types import StateSpec
 from conftest import TESTBED
@@ -123,3 +123,21 @@ def test_two_writers_are_told_from_a_restart_by_their_sequence_numbers():
     for i, seq in enumerate([4, 50, 5, 51, 6, 52]):          # two writers interleaved
         lines += book.heard('counter', b'y', 1.0 + i * 0.1, seq)
     assert len(lines) == 1 and 'two writers' in lines[0][1], lines
+
+
+def test_a_state_set_by_others_holds_against_the_serving_copys_output_for_a_while():
+    """A pose set in RViz reaches the serving copy through its agent, and the copy takes it when
+    its loop gets to it; until then it publishes from the state it had. What it publishes in
+    that time is not the node's state: a copy taking over is handed the set one."""
+    book = StateBook(SPECS, max_bytes=100, stale_s=5.0)
+    book.heard('counter', b'before', 1.0, 1)
+    assert book.set_by_others('counter', b'set', 2.0) == []
+    assert book.heard('counter', b'old track', 2.0 + SET_HOLD_S - 0.01, 2) == []
+    assert book.latest('counter').data == b'set'
+    handover, _ = book.handover('counter', 42, 2.5)
+    assert handover.data == b'set'
+    book.heard('counter', b'after', 2.0 + SET_HOLD_S, 3)
+    assert book.latest('counter').data == b'after'
+    lines = book.set_by_others('counter', b'far too big for the bound' * 10, 9.0)
+    assert lines[0][0] == 'warn' and 'agent.state_max_bytes' in lines[0][1]
+    assert book.latest('counter').data == b'after'

@@ -2,7 +2,9 @@
 real processes over DDS."""
 
 import math
+import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -277,7 +279,20 @@ def _start(python, env, *args):
 
 
 def _stop(proc, timeout=10.0):
-    return stop_popen(proc, timeout)
+    """SIGINT and wait; a workload that outlives it writes every thread's stack to its log
+    (its SIGUSR1) before it is killed, so a hang at exit says where it hung."""
+    try:
+        os.killpg(proc.pid, signal.SIGINT)
+        return proc.wait(timeout)
+    except ProcessLookupError:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        try:
+            proc.wait(1.0)
+        except subprocess.TimeoutExpired:
+            pass
+    return stop_popen(proc, 0.0)
 
 
 LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,

@@ -20,6 +20,11 @@ Line = Tuple[str, str]
 TWO_WRITERS_WINDOW_S = 2.0
 TWO_WRITERS_STEPS = 2
 TWO_WRITERS_REPEAT_S = 60.0
+# A state set by others on the restore topic (a pose set in RViz) stays the state to hand over
+# for this long against what the serving copy publishes: that copy takes the set state when its
+# own loop gets to it (1 s late on the test-bed's capped robot), and until then it publishes
+# from the state it had. Handing one of those to a copy taking over would drop what was set.
+SET_HOLD_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -63,6 +68,7 @@ class StateBook:
         self._last_seq: Dict[str, int] = {}
         self._backward: Dict[str, List[float]] = {}
         self._two_writers_said: Dict[str, float] = {}
+        self._set_at: Dict[str, float] = {}         # node -> when a state was set by others
 
     def heard(self, node: str, data: bytes, now: float, seq: int = -1) -> List[Line]:
         """A state message of ``node`` received here (``seq``: its writer's sequence number,
@@ -83,8 +89,24 @@ class StateBook:
             return out
         self._too_big[node] = False
         out += self._writers(node, seq, now)
+        set_at = self._set_at.get(node)
+        if set_at is not None and now - set_at < SET_HOLD_S:
+            return out                 # possibly from before the serving copy took the set one
         self._held[node] = Held(data, now)
         return out
+
+    def set_by_others(self, node: str, data: bytes, now: float) -> List[Line]:
+        """A state published on the node's restore topic by someone else (a pose set in RViz):
+        the node's state from now on, kept against the serving copy's output for
+        ``SET_HOLD_S``."""
+        if node not in self.specs:
+            return []
+        if len(data) > self.max_bytes:
+            return [('warn', f'{node}: a message on {self.specs[node].restore} of {len(data)} '
+                             f'bytes is over agent.state_max_bytes = {self.max_bytes}: not kept')]
+        self._held[node] = Held(data, now)
+        self._set_at[node] = now
+        return []
 
     def _writers(self, node: str, seq: int, now: float) -> List[Line]:
         """Sequence numbers that step back more than once in a short window come from two

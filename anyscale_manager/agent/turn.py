@@ -502,7 +502,7 @@ class AgentTurn:
             return
         serving = self.serving()
         for node, data in inputs.requests:
-            out.logs.extend(self.states.heard(node, data, now))
+            out.logs.extend(self.states.set_by_others(node, data, now))
             topic = self._restore_topic(node)
             pending = self.states.pending_for(node)
             taking = pending is not None and pending.sent

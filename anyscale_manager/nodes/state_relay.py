@@ -12,8 +12,9 @@ live process's, so a reader of a process killed a moment ago (DDS counts it unti
 ends, 20 s) never holds up the acknowledgement of the next one.
 
 Messages that others publish on the node's own restore topic (RViz's "2D Pose Estimate" on
-/initialpose) no longer reach a copy, whose input is remapped: one more reader of that topic
-(reliable, as RViz publishes) hands them to the copy that serves here.
+/initialpose) no longer reach a copy, whose input is remapped: two more readers of that topic
+(reliable, as RViz publishes; one volatile, one transient-local for a latched writer's message
+sent before the match) hand them to the copy that serves here.
 
 A hand-over is published once the copy's restore input is matched, and counts as delivered when
 the copy's reader has acknowledged it: the agent activates the copy only then, so the state is
@@ -21,7 +22,8 @@ there before the copy's first output. The type of a state topic the file does no
 learnt from the graph, at most once a second until it is known.
 """
 
-from typing import Any, Callable, List, Mapping, Optional, Tuple
+from collections import deque
+from typing import Any, Callable, Deque, List, Mapping, Optional, Tuple
 
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -36,9 +38,19 @@ READER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 WRITER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                         reliability=ReliabilityPolicy.RELIABLE,
                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# What others publish on a restore topic is read twice: by a volatile reader (it matches every
+# writer, RViz's too) and by a transient-local one (it also gets what a latched writer sent
+# before the two were matched: a one-shot initial pose published as its publisher starts).
 REQUEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
+LATCHED_REQUEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
+                                 reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+# A message of a latched writer delivered this long after it was sent is history replayed on a
+# late match (a link back up, an agent started later), not a state set now: left out, said.
+REQUEST_REPLAY_S = 3.0
+REMEMBERED_REQUESTS = 32
 LEARN_PERIOD_S = 1.0
 # A hand-over's acknowledgement is waited for this long in the step that sends it (on one
 # machine or a LAN it comes within milliseconds), then looked at again at each step.
@@ -58,6 +70,8 @@ class _Relay:
         self.topic = ''                 # the writer's topic: the live process's restore topic
         self.cls: Any = None
         self.requests: Any = None
+        self.latched: Any = None
+        self.recent: Deque[tuple] = deque(maxlen=REMEMBERED_REQUESTS)   # taken, by its key
 
 
 class StateRelay:
@@ -93,6 +107,8 @@ class StateRelay:
         relay.cls = cls
         relay.requests = self._watch.create_subscription(
             cls, relay.entry.restore_input, lambda _m: None, REQUEST_QOS, raw=True)
+        relay.latched = self._watch.create_subscription(
+            cls, relay.entry.restore_input, lambda _m: None, LATCHED_REQUEST_QOS, raw=True)
         self._log('info', f'{relay.entry.name}: keeping its state from '
                           f'{relay.entry.state_topic} ({relay.msg_type}); each copy started here '
                           f'takes it on a topic of its own under {relay.entry.restore_topic}')
@@ -124,13 +140,36 @@ class StateRelay:
                 info = taken[1] if len(taken) > 1 and isinstance(taken[1], dict) else {}
                 heard.append((name, taken[0],
                               int(info.get('publication_sequence_number', -1))))
-            with relay.requests.handle:
-                for _ in range(5):
-                    taken = relay.requests.handle.take_message(relay.requests.msg_type, True)
-                    if taken is None:
-                        break
-                    requests.append((name, taken[0]))
+            for reader in (relay.requests, relay.latched):
+                requests += [(name, data) for data in self._take_requests(relay, reader)]
         return heard, requests
+
+    def _take_requests(self, relay: _Relay, reader: Any) -> List[bytes]:
+        """What others published on the node's restore topic, once each (a latched writer's
+        message comes through both readers), history replayed on a late match left out."""
+        out: List[bytes] = []
+        with reader.handle:
+            for _ in range(5):
+                taken = reader.handle.take_message(reader.msg_type, True)
+                if taken is None:
+                    break
+                data = taken[0]
+                info = taken[1] if len(taken) > 1 and isinstance(taken[1], dict) else {}
+                key = (info.get('source_timestamp'), info.get('publication_sequence_number'),
+                       data)
+                if key in relay.recent:
+                    continue
+                relay.recent.append(key)
+                sent, received = info.get('source_timestamp'), info.get('received_timestamp')
+                if sent and received and (received - sent) / 1e9 > REQUEST_REPLAY_S:
+                    self._log('info', f'{relay.entry.name}: a message on '
+                                      f'{relay.entry.restore_input} sent '
+                                      f'{(received - sent) / 1e9:.1f} s ago reached this agent '
+                                      'only now (a latched writer matched late): not taken as '
+                                      'its state')
+                    continue
+                out.append(data)
+        return out
 
     def _writer(self, name: str, topic: str) -> Any:
         """The node's writer, on ``topic`` (made anew when the live process changed)."""

@@ -324,10 +324,11 @@ def _odometry(shape: tuple):
 def _pose_with_covariance(shape: tuple):
     """A localisation estimate in the map frame, as AMCL (or RViz's initial pose) sends it."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
+    from .workload_pose import SET_POSE
     msg = PoseWithCovarianceStamped()
     msg.header.frame_id = 'map'
-    msg.pose.pose.position.x, msg.pose.pose.position.y = 2.21, 1.58
-    _quaternion(msg.pose.pose.orientation, 0.31)
+    msg.pose.pose.position.x, msg.pose.pose.position.y = SET_POSE[0], SET_POSE[1]
+    _quaternion(msg.pose.pose.orientation, SET_POSE[2])
     msg.pose.covariance = _covariance([0.021, 0.018, 0.0, 0.0, 0.0, 0.0068], xy=0.0012)
     return msg
 

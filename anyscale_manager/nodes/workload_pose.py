@@ -3,15 +3,19 @@
 A ``PoseTrack`` moves a planar pose at a constant speed and turn rate (the robot of the test-bed
 drives a circle: what its odometer reports), advanced to the stamp of each output. A copy that
 is handed a pose on its restore input continues from it, advanced from that pose's own stamp;
-a copy that is not starts from where its own last spell ended (or from the start pose), and the
-pose at the consumer jumps: what the end-to-end tests look for. Pure, no ROS.
+a copy that is not starts from where its own last spell ended (or from the map's origin), and
+the pose at the consumer jumps: what the end-to-end tests look for. Pure, no ROS.
 """
 
 import math
 from dataclasses import dataclass
 from typing import Optional, Tuple
 
-START = (2.21, 1.58, 0.31)       # x, y (m), yaw (rad): the pose RViz's user would give
+# x, y (m), yaw (rad). A copy that was never handed a pose starts at the map's origin, as AMCL
+# does before it is given one; the test-bed's user sets SET_POSE (RViz's initial pose), metres
+# away, so a copy that lost a set pose, or started from its own, is metres off the robot.
+START = (0.0, 0.0, 0.0)
+SET_POSE = (2.21, 1.58, 0.31)
 
 
 def parse_motion(text: str) -> Tuple[float, float]:

@@ -32,12 +32,18 @@ class Jump:
     distance_m: float
     allowed_m: float
     gap_s: float
+    # A pose off the track of the last pose set, past SET_SETTLE_S after it (gap_s: since it
+    # was set): what was set was lost.
+    off_set: bool = False
 
     @property
     def too_far(self) -> bool:
         return self.distance_m > self.allowed_m
 
     def __str__(self) -> str:
+        if self.off_set:
+            return (f'{self.distance_m:.2f} m off the track of the pose set {self.gap_s:.2f} s '
+                    f'before, at t={self.t:.2f}')
         return (f'{self.distance_m:.2f} m in {self.gap_s:.2f} s at t={self.t:.2f} '
                 f'(at most {self.allowed_m:.2f} m)')
 
@@ -60,6 +66,13 @@ def _on_track(p: Pose, anchor: Pose, speed_mps: float, turn_rps: float,
     return math.hypot(p[1] - px, p[2] - py) <= slack_m
 
 
+def _off_track_m(p: Pose, anchor: Pose, speed_mps: float, turn_rps: float) -> float:
+    """How far ``p`` is from where a copy that had ``anchor`` would be at p's stamp."""
+    _, x, y, stamp, yaw = anchor[:5]
+    px, py, _ = PoseTrack(speed_mps, turn_rps, x, y, yaw, stamp).at(p[3])
+    return math.hypot(p[1] - px, p[2] - py)
+
+
 def _same_track(a: Pose, b: Pose, speed_mps: float, turn_rps: float, slack_m: float) -> bool:
     """Whether the later of two poses is where the earlier one's track leads."""
     early, late = sorted((a, b), key=lambda p: p[3])
@@ -76,17 +89,31 @@ def pose_jumps(poses: Sequence[Pose], start: float, end: float, speed_mps: float
     window's start left), and not judged themselves."""
     out = []
     heard = sorted(p for p in poses if p[0] <= end)
+    set_sorted = sorted(set_poses, key=lambda u: u[3])
     before = None             # the latest pose of the track the set pose left
+    was_off = False
     for i, p1 in enumerate(heard):
-        recent = [u for u in set_poses if 0.0 <= p1[3] - u[3] <= settle_s]
+        recent = [u for u in set_sorted if 0.0 <= p1[3] - u[3] <= settle_s]
         on = any(_on_track(p1, u, speed_mps, turn_rps, slack_m) for u in recent)
         # A copy yet to take the set pose goes on along the track it left, for a moment.
         behind = bool(recent) and not on and before is not None \
             and _same_track(before, p1, speed_mps, turn_rps, slack_m)
+        jumped = False
         if i and p1[0] >= start:
             jump = _jump(heard[i - 1], p1, speed_mps, slack_m)
-            if jump.too_far and not on and not behind:
+            jumped = jump.too_far and not on and not behind
+            if jumped:
                 out.append(jump)
+        # Once settled, every copy serves on the track of the last pose set: one off it lost
+        # what was set (said once per stretch off it).
+        last_set = [u for u in set_sorted if u[3] <= p1[3]]
+        off = False
+        if last_set and not recent and len(last_set[-1]) > 4:
+            off_m = _off_track_m(p1, last_set[-1], speed_mps, turn_rps)
+            off = off_m > slack_m
+            if off and not was_off and not jumped and p1[0] >= start:
+                out.append(Jump(p1[0], off_m, slack_m, p1[3] - last_set[-1][3], off_set=True))
+        was_off = off
         if behind or not (on or recent):
             before = p1
     return out
