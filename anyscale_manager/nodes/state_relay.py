@@ -41,12 +41,10 @@ WRITER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
 # What others publish on a restore topic is read twice: by a volatile reader (it matches every
 # writer, RViz's too) and by a transient-local one (it also gets what a latched writer sent
 # before the two were matched: a one-shot initial pose published as its publisher starts).
-REQUEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
-LATCHED_REQUEST_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5,
-                                 reliability=ReliabilityPolicy.RELIABLE,
-                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+REQUEST_QOS, LATCHED_REQUEST_QOS = (
+    QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=5, reliability=ReliabilityPolicy.RELIABLE,
+               durability=durability)
+    for durability in (DurabilityPolicy.VOLATILE, DurabilityPolicy.TRANSIENT_LOCAL))
 # A message of a latched writer delivered this long after it was sent is history replayed on a
 # late match (a link back up, an agent started later), not a state set now: left out, said.
 REQUEST_REPLAY_S = 3.0
