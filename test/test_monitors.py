@@ -534,6 +534,39 @@ def test_a_link_up_and_not_probed_wakes_its_monitor_for_the_beats_only(
         master.destroy()
 
 
+def test_the_status_a_link_monitor_publishes_is_the_verdict_it_judged_and_logged(
+        ros, deployment, python, tmp_path, request):
+    """What goes out on /anyscale/link_status is the verdict the monitor judged with the echoes
+    read (and logged on a change), never one worked out again at the beat: there the beat just
+    sent counted as unanswered against echoes not yet read, and a "down" that the monitor
+    never logged reached the decider, which moved nodes home (an e2e run, 1 in 2)."""
+    make, executor = ros.node, ros.executor
+    listener = Listener(make('verdict_listener'), p.TOPIC_LINK_STATUS, p.LinkStatus)
+    master = LinkMonitor(make('agent_robot_verdict'), deployment, 'robot')
+    remote = LinkMonitor(make('agent_laptop_verdict'), deployment, 'laptop')
+    echo = subprocess.Popen(
+        [python, '-m', 'anyscale_manager.agent.warden', '--state', str(tmp_path / 'a.json'),
+         '--scale', 'laptop', '--deployment', deployment.name, '--host', '127.0.0.1',
+         '--port', str(warden.warden_port(deployment, 'laptop'))],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    request.addfinalizer(lambda: (echo.kill(), echo.wait()))
+    try:
+        spin_until(executor, lambda: listener.messages and listener.messages[-1].up, 20.0,
+                   'the link up')
+        watched = master._remotes['laptop']
+        assert watched.was_up
+        # A judgement at the beat that the checked verdict does not share.
+        master._up = lambda _remote, _now: False
+        before = len(listener.messages)
+        with master._beats_lock:
+            master._publish(watched, time.monotonic(), 0.0)
+        spin_until(executor, lambda: len(listener.messages) > before, 5.0, 'the status')
+        assert listener.messages[-1].up and watched.was_up
+    finally:
+        remote.destroy()
+        master.destroy()
+
+
 def test_the_probe_reads_when_the_link_last_acknowledged_its_data():
     """The ACK age the link monitor counts as the link heard during its own probe
     (TCP_INFO's tcpi_last_ack_recv): small just after data is acknowledged, growing while the

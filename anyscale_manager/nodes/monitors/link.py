@@ -297,9 +297,10 @@ class LinkMonitor:
     def _beat_locked(self) -> None:
         self._check()
         now = time.monotonic()
+        used_by: Dict[str, float] = {}
         for name, remote in self._remotes.items():
             self._collect_probe(remote, now)
-            used = self.used_kbps(name, now)
+            used = used_by[name] = self.used_kbps(name, now)
             self._judge_congestion(remote, now, used)   # on the beats already sent
             if remote.congested and remote.bandwidth is not None and not remote.probing:
                 self._judge_delivery(remote, now)
@@ -313,9 +314,14 @@ class LinkMonitor:
                 remote.quiet_since = math.inf      # the probe fills the queue on purpose
                 threading.Thread(target=self._run_probe, args=(remote, used), daemon=True,
                                  name=f'anyscale-bw-{name}').start()
-            self._publish(remote, now, used)
-        # A late beat can be the one that completes misses_down unanswered (see HeartbeatTracker)
+        # A late beat can be the one that completes misses_down unanswered (see
+        # HeartbeatTracker): judged with the echoes that came meanwhile read, before the status
+        # goes out. What goes out is that verdict: judged before the reading, the beat just sent
+        # counted as unanswered against echoes still unread, and a "down" nobody logged reached
+        # the decider (a node moved home on a link that never went down).
         self._check()
+        for name, remote in self._remotes.items():
+            self._publish(remote, now, used_by[name])
 
     def _send_beat(self, remote: _Remote, seq: int, now: float) -> None:
         name = remote.scale.name
@@ -452,7 +458,7 @@ class LinkMonitor:
         beats, estimate = remote.beats, remote.bandwidth
         if beats.last_echo is None and now - remote.started < p.LINK_MONITOR_START_S:
             return      # not heard yet, and the remote may not have discovered us yet
-        up = self._up(remote, now)
+        up = remote.was_up          # the verdict _check judged, logged and acted on
         rtt = beats.rtt_s()
         available = estimate.available_kbps if estimate is not None else None
         age = estimate.age_s(now) if estimate is not None else None
