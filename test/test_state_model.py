@@ -134,8 +134,14 @@ def test_a_state_set_by_others_holds_against_the_serving_copys_output_for_a_whil
     assert book.set_by_others('counter', b'set', 2.0) == []
     assert book.heard('counter', b'old track', 2.0 + SET_HOLD_S - 0.01, 2) == []
     assert book.latest('counter').data == b'set'
-    handover, _ = book.handover('counter', 42, 2.5)
+    handover, lines = book.handover('counter', 42, 2.5)
     assert handover.data == b'set'
+    assert lines == [('info', 'counter: the state set on /restore 0.50 s ago handed to the copy '
+                              '(pid 42)')]
+    # Half a second old, past a short state_stale_s: it was set, the serving copy did not stop.
+    quick = StateBook(SPECS, max_bytes=100, stale_s=0.2)
+    quick.set_by_others('counter', b'set', 2.0)
+    assert quick.handover('counter', 42, 2.5)[1][0][0] == 'info'
     book.heard('counter', b'after', 2.0 + SET_HOLD_S, 3)
     assert book.latest('counter').data == b'after'
     lines = book.set_by_others('counter', b'far too big for the bound' * 10, 9.0)

@@ -149,6 +149,10 @@ class StateBook:
                 ('info', f'{node}: no state heard yet on {self.specs[node].topic}: the copy '
                          f'(pid {copy}) starts from its own')]
         age = max(0.0, now - held.heard_at)
+        if self._set_at.get(node) == held.heard_at and age < SET_HOLD_S:
+            return Handover(node, copy, held.data, age), [
+                ('info', f'{node}: the state set on {topic} {age:.2f} s ago handed to the copy '
+                         f'(pid {copy})')]
         if age > self.stale_s:
             return Handover(node, copy, held.data, age), [
                 ('warn', f'{node}: its last state is {age:.1f} s old (over agent.state_stale_s '
