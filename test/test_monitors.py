@@ -488,6 +488,22 @@ def test_link_monitor_heartbeats_bandwidth_and_down(ros, deployment, python, tmp
     master.destroy()
 
 
+def watched_link(make, deployment, python, tmp_path, request, tag):
+    """A listener of /anyscale/link_status, the robot's watching LinkMonitor, the laptop's
+    (its probe server) and the laptop's warden answering the beats (a process, killed at the
+    test's end)."""
+    listener = Listener(make(f'{tag}_listener'), p.TOPIC_LINK_STATUS, p.LinkStatus)
+    master = LinkMonitor(make(f'agent_robot_{tag}'), deployment, 'robot')
+    remote = LinkMonitor(make(f'agent_laptop_{tag}'), deployment, 'laptop')
+    echo = subprocess.Popen(
+        [python, '-m', 'anyscale_manager.agent.warden', '--state', str(tmp_path / 'a.json'),
+         '--scale', 'laptop', '--deployment', deployment.name, '--host', '127.0.0.1',
+         '--port', str(warden.warden_port(deployment, 'laptop'))],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    request.addfinalizer(lambda: (echo.kill(), echo.wait()))
+    return listener, master, remote, echo
+
+
 def test_a_link_up_and_not_probed_wakes_its_monitor_for_the_beats_only(
         ros, deployment, python, tmp_path, request):
     """While the link is up and not probed, the watching monitor's timer wakes at the beats and
@@ -497,15 +513,8 @@ def test_a_link_up_and_not_probed_wakes_its_monitor_for_the_beats_only(
     make, executor = ros.node, ros.executor
     deployment = dataclasses.replace(deployment, monitoring=dataclasses.replace(
         deployment.monitoring, bandwidth_probe_interval_s=86400.0))
-    listener = Listener(make('quiet_listener'), p.TOPIC_LINK_STATUS, p.LinkStatus)
-    master = LinkMonitor(make('agent_robot_quiet'), deployment, 'robot')
-    remote = LinkMonitor(make('agent_laptop_quiet'), deployment, 'laptop')
-    echo = subprocess.Popen(
-        [python, '-m', 'anyscale_manager.agent.warden', '--state', str(tmp_path / 'a.json'),
-         '--scale', 'laptop', '--deployment', deployment.name, '--host', '127.0.0.1',
-         '--port', str(warden.warden_port(deployment, 'laptop'))],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    request.addfinalizer(lambda: (echo.kill(), echo.wait()))
+    listener, master, remote, echo = watched_link(make, deployment, python, tmp_path, request,
+                                                  'quiet')
     try:
         # Up, and probed once (at once, then not for a day).
         spin_until(executor, lambda: master.quiet and listener.messages
@@ -541,15 +550,8 @@ def test_the_status_a_link_monitor_publishes_is_the_verdict_it_judged_and_logged
     sent counted as unanswered against echoes not yet read, and a "down" that the monitor
     never logged reached the decider, which moved nodes home (an e2e run, 1 in 2)."""
     make, executor = ros.node, ros.executor
-    listener = Listener(make('verdict_listener'), p.TOPIC_LINK_STATUS, p.LinkStatus)
-    master = LinkMonitor(make('agent_robot_verdict'), deployment, 'robot')
-    remote = LinkMonitor(make('agent_laptop_verdict'), deployment, 'laptop')
-    echo = subprocess.Popen(
-        [python, '-m', 'anyscale_manager.agent.warden', '--state', str(tmp_path / 'a.json'),
-         '--scale', 'laptop', '--deployment', deployment.name, '--host', '127.0.0.1',
-         '--port', str(warden.warden_port(deployment, 'laptop'))],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    request.addfinalizer(lambda: (echo.kill(), echo.wait()))
+    listener, master, remote, _ = watched_link(make, deployment, python, tmp_path, request,
+                                               'verdict')
     try:
         spin_until(executor, lambda: listener.messages and listener.messages[-1].up, 20.0,
                    'the link up')
