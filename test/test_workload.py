@@ -713,7 +713,10 @@ def test_two_copies_of_one_node_answer_only_on_their_own_scale(python, ros_env):
     finally:
         probe.close()
         codes = {scale: _stop(p) for scale, p in procs.items()}
-    assert codes == {'robot': 0, 'laptop': 0}, {s: p.stdout.read() for s, p in procs.items()}
+        logs = {s: p.stdout.read() for s, p in procs.items()}
+        for scale, log in logs.items():
+            print(f'--- {scale}:\n{log}')      # shown when the test fails, stacks included
+    assert codes == {'robot': 0, 'laptop': 0}, logs
 
 
 def _entities(node):
