@@ -201,6 +201,30 @@ def test_what_others_publish_on_the_restore_topic_is_the_state_from_then_on(make
     assert any('a message on /lc_restore handed to its copy here' in t for _, t in out.logs)
 
 
+def test_a_pose_set_before_the_serving_copys_restore_input_is_matched_reaches_it_then(
+        make_sup):
+    """The copy serves (it started from its own: nothing was heard yet), and its restore input
+    is not matched yet when a pose is set (a busy robot at a boot): the pose goes to it as
+    soon as it is, not never."""
+    agent = Agent(make_sup)
+    agent.channel.subscribed = agent.channel.acked = True
+    agent.turn.on_layout(layout(1, lc='a'), agent.now)         # serving here
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated')
+    agent.channel.subscribed = False
+    agent.now += 0.1
+    agent.turn.step(agent.now, AgentInputs(wall=0.0, poll=agent.poll,
+                                           requests=[('lc', b'set by a person')],
+                                           restore=agent.channel))
+    assert agent.channel.sent == []
+    agent.step()
+    assert agent.channel.sent == []
+    agent.channel.subscribed = True
+    agent.step()
+    assert agent.channel.sent == [('lc', b'set by a person')]
+    agent.step()
+    assert agent.channel.sent == [('lc', b'set by a person')]      # once
+
+
 def test_a_pose_set_while_a_copy_waits_for_its_hand_over_reaches_that_copy(make_sup):
     """Set after the copy was sent the last state, before it took it and was activated: it is
     sent the set pose too (it would otherwise serve on the old track beside the copy that took

@@ -175,6 +175,9 @@ class AgentTurn:
         self._published_view: Dict[str, tuple] = {}
         self._publish_due = False                 # a report is news even if nothing changed
         self._last_waiting: Dict[str, str] = {}
+        # A state set by others that the copy it is for could not be sent yet (its restore
+        # input not matched yet): sent as soon as it is, unless a hand-over supersedes it.
+        self._to_forward: Dict[str, bytes] = {}
         self._probe_names: Optional[Tuple[str, ...]] = None
         self._not_followed_at: Optional[float] = None
         # A shared scale's claims on its host (agent/claims.py); None on a scale of its own.
@@ -497,18 +500,27 @@ class AgentTurn:
         """What others publish on a node's restore topic (a pose set in RViz) is the node's
         state from now on: kept as its latest here (a copy taking over is handed it), and sent
         to the copy serving here, or to one being handed its state here once that was sent (a
-        copy still waiting for its hand-over gets it as the latest state)."""
-        if not inputs.requests or inputs.restore is None:
+        copy still waiting for its hand-over gets it as the latest state); to a copy whose
+        restore input is not matched yet, as soon as it is."""
+        if inputs.restore is None:
             return
-        serving = self.serving()
         for node, data in inputs.requests:
             out.logs.extend(self.states.set_by_others(node, data, now))
+            self._to_forward[node] = data
+        if not self._to_forward:
+            return
+        serving = self.serving()
+        for node, data in list(self._to_forward.items()):
             topic = self._restore_topic(node)
             pending = self.states.pending_for(node)
             taking = pending is not None and pending.sent
-            if (node in serving and pending is None or taking) and topic \
-                    and inputs.restore.ready(node, topic):
+            if not (node in serving and pending is None or taking) or not topic:
+                # No copy here to send it to: it is the latest state of the book, handed to
+                # the next copy that serves here.
+                del self._to_forward[node]
+            elif inputs.restore.ready(node, topic):
                 inputs.restore.send(node, topic, data)
+                del self._to_forward[node]
                 out.logs.append(('info', f'{node}: a message on '
                                          f'{self.states.specs[node].restore} handed to its '
                                          'copy here'))
