@@ -6,9 +6,8 @@ not Linux's ephemeral range (32768-60999 by default, /proc/sys/net/ipv4/ip_local
 from which every socket bound to port 0 gets one at random (a DDS participant's, a link
 monitor's echo socket), nor the DDS ports of the test domains (7400 + 250 x domain and the 250
 after it: below 58000 for the domains 1-201 the tests use, a fleet's second robot at the test's
-domain + 100). A warden that found its port taken
-said so and exited, and its scale's link never came up (a CI run). ``port_base`` draws from
-61000-64999, past both.
+domain + 100). A warden that found its port taken said so and exited, and its scale's link
+never came up (a CI run). ``port_base`` draws from 61000-64999, past both.
 """
 
 import os

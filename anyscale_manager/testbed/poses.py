@@ -59,11 +59,7 @@ def _on_track(p: Pose, anchor: Pose, speed_mps: float, turn_rps: float,
               slack_m: float) -> bool:
     """Whether ``p`` is where a copy that had ``anchor`` (with its yaw) would be at p's
     stamp."""
-    _, x, y, stamp, yaw = anchor[:5]
-    if p[3] < stamp:
-        return False
-    px, py, _ = PoseTrack(speed_mps, turn_rps, x, y, yaw, stamp).at(p[3])
-    return math.hypot(p[1] - px, p[2] - py) <= slack_m
+    return p[3] >= anchor[3] and _off_track_m(p, anchor, speed_mps, turn_rps) <= slack_m
 
 
 def _off_track_m(p: Pose, anchor: Pose, speed_mps: float, turn_rps: float) -> float:
