@@ -90,7 +90,8 @@ def test_once_rclpy_stops_on_sigint_it_is_not_raised_as_well():
 STOP_ASKED = '''
 import os, signal, time
 import rclpy
-from anyscale_manager.interrupt import interrupt_once, rclpy_stops_on_sigint, stop_asked
+from anyscale_manager.interrupt import interrupt_once, rclpy_stops_on_sigint, shut_rclpy_down, \
+    stop_asked
 interrupt_once()
 rclpy.init()
 rclpy_stops_on_sigint()
@@ -100,7 +101,7 @@ end = time.monotonic() + 10.0
 while not stop_asked() and time.monotonic() < end:
     time.sleep(0.01)
 print(stop_asked())
-rclpy.try_shutdown()
+shut_rclpy_down()
 '''
 
 
@@ -111,3 +112,50 @@ def test_a_sigint_is_seen_by_stop_asked_beside_rclpys_handler():
                           timeout=60)
     assert done.returncode == 0, done.stdout + done.stderr
     assert done.stdout.split() == ['False', 'True']
+
+
+class _HandlerThreadFirst:
+    """Stand-in for a timing that cannot be forced: rclpy's signal-handler thread shuts the
+    context down between ``try_shutdown``'s ``ok()`` check and its own shutdown."""
+
+    def __init__(self, real):
+        self.real = real
+        self.raced = False
+
+    def __enter__(self):
+        return self.real.__enter__()
+
+    def __exit__(self, *exc):
+        return self.real.__exit__(*exc)
+
+    def ok(self):
+        was_ok = self.real.ok()
+        if was_ok and not self.raced:
+            self.raced = True
+            self.real.shutdown()
+        return was_ok
+
+    def __getattr__(self, name):
+        return getattr(self.real, name)
+
+
+def _raced_context():
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    ctx._Context__context = _HandlerThreadFirst(ctx._Context__context)
+    return ctx
+
+
+def test_a_shutdown_that_finds_the_handler_thread_was_first_is_a_shutdown():
+    """The race that made a stopping node fail at its last line ("rcl_shutdown already called
+    on the given context"): try_shutdown alone raises it, shut_rclpy_down ends shut down."""
+    import rclpy
+    from anyscale_manager.interrupt import shut_rclpy_down
+    bare = _raced_context()
+    with pytest.raises(RuntimeError, match='already called'):
+        rclpy.try_shutdown(context=bare)
+    ctx = _raced_context()
+    shut_rclpy_down(context=ctx)
+    assert not ctx.ok()

@@ -49,7 +49,7 @@ from ..agent.turn import AgentInputs, AgentOutput, AgentTurn, name_counts, TICK_
 from ..model.capacity import claim_lease_s
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.params_file import refuse_bad_params_files
-from ..interrupt import restore_ctrl_c
+from ..interrupt import restore_ctrl_c, shut_rclpy_down
 
 EXIT_WAKE_S = 0.001          # the one-shot wake after a node exits (agent/exits.py)
 UNSIGNED = ('layouts are not signed and anyone on this ROS domain can move or stop the nodes '
@@ -374,7 +374,7 @@ def main(args: Optional[List[str]] = None) -> int:
             node.destroy_node()
         if executor is not None:
             executor.shutdown()
-        rclpy.try_shutdown()
+        shut_rclpy_down()
     if node is not None and node.restarting:
         # The DDS participant is deleted now, not left to exit (exec runs no destructor): the
         # others drop it at once, and its shared-memory ports are closed as they should be. A

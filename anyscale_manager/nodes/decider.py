@@ -49,7 +49,7 @@ from ..runtime.leadership import LEADER, STANDBY, Change, Leadership
 from ..runtime.layout import LayoutError
 from ..runtime.turn import DeciderTurn, TurnOutput
 from ..interrupt import ignore_interrupts, interrupt_once, rclpy_stops_on_sigint, \
-    restore_ctrl_c, stop_asked
+    restore_ctrl_c, shut_rclpy_down, stop_asked
 
 NODE_NAME = 'anyscale_decider'
 
@@ -576,7 +576,7 @@ def main(args=None) -> int:
         ignore_interrupts()          # a repeated SIGINT must not break the cleanup
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shut_rclpy_down()
     return code
 
 

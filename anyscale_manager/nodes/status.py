@@ -16,6 +16,7 @@ import sys
 import time
 
 from .. import protocol as p
+from ..interrupt import shut_rclpy_down
 from .. import protocol_auth as auth
 from ..model.loader import DeploymentError, load_deployment
 from ..view.screen import LiveScreen
@@ -116,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         executor.shutdown()
         node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        shut_rclpy_down(context=ctx)
 
 
 # The pure view, where it lived before it was split out.

@@ -44,7 +44,7 @@ from .workload_messages import (DEFAULT_TYPE, MAX_BYTES, Endpoint, EndpointError
                                 build_message, message_class, parse_endpoint, stamper)
 from .workload_pose import PoseTrack, parse_motion, yaw_of
 from ..interrupt import ignore_interrupts, interrupt_once, restore_ctrl_c, \
-    rclpy_stops_on_sigint
+    rclpy_stops_on_sigint, shut_rclpy_down
 
 REFERENCE_CORE = 0.3      # one reference (robot) core as a fraction of one core of this machine
 POSE_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
@@ -254,7 +254,7 @@ def main(args: Optional[List[str]] = None) -> int:
         ignore_interrupts()
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shut_rclpy_down()
     return 0
 
 

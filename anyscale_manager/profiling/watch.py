@@ -18,6 +18,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from ..interrupt import shut_rclpy_down
 from .graph import Endpoint, GraphSeen, PUB, SUB, TopicPlan, full_name, skipped_topic
 from .processes import ProcessInfo, ProcessMatch, match_node, shared_processes
 from .skeleton import HostInfo, NodeReport, Profile, TopicReport
@@ -307,7 +308,7 @@ def watch(duration_s: float, progress: Callable[[str], None] = lambda line: None
     finally:
         executor.shutdown()
         node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        shut_rclpy_down(context=ctx)
     if w is None:
         raise KeyboardInterrupt
     return WatchResult(graph=w.graph, meters=w.meters, plans=w.plans, problems=w.problems,

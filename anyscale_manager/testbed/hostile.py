@@ -27,7 +27,7 @@ from .. import protocol as p
 from ..model.loader import load_deployment
 from ..model.types import Deployment
 from ..protocol_auth import sign
-from ..interrupt import restore_ctrl_c
+from ..interrupt import restore_ctrl_c, shut_rclpy_down
 
 GARBAGE = (
     'not json', '{', '[]', 'null', '42', '""', '{"generation": NaN}',
@@ -201,7 +201,7 @@ def main(args: Optional[List[str]] = None) -> int:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shut_rclpy_down()
     print(json.dumps({'sent': sent}, sort_keys=True), flush=True)
     return 0
 

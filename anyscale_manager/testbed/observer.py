@@ -36,7 +36,7 @@ from ..nodes import qos
 from ..nodes.monitors.probes import clock_offset_s, received_at
 from ..nodes.workload_messages import DEFAULT_TYPE, message_class
 from ..nodes.workload_pose import yaw_of
-from ..interrupt import restore_ctrl_c
+from ..interrupt import restore_ctrl_c, shut_rclpy_down
 
 LATCHED = qos.LATCHED_READER
 RELIABLE = qos.EVENTS
@@ -157,7 +157,7 @@ def main(args: Optional[List[str]] = None) -> int:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        shut_rclpy_down()
     return 0
 
 
