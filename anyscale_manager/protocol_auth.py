@@ -31,6 +31,21 @@ MIN_KEY_BYTES = 16
 DEFAULT_WINDOW_S = 30.0
 
 
+# What a gate's reason to drop a message begins with: each kind is logged on its own (a forgery
+# and a replay in the same ten seconds are two lines, not one and a count).
+REFUSALS = ('not valid JSON', 'not a JSON object', 'not signed', 'cannot be put in canonical',
+            'bad authenticator', 'signed but names no', 'no sequence number', 'stamped',
+            'sequence')
+
+
+def refusal_kind(why: str) -> str:
+    """The kind of a gate's reason ``why``, one of ``REFUSALS`` (or 'other'): a key from a
+    fixed set, for the throttled log. A reason as wrapped by a caller ('dropped ...: <reason>')
+    is read after its last ': '."""
+    reason = why.rsplit(': ', 1)[-1]
+    return next((kind for kind in REFUSALS if reason.startswith(kind)), 'other')
+
+
 class KeyFileError(ValueError):
     """A key file that cannot be used, said in one line."""
 

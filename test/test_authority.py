@@ -149,6 +149,28 @@ def test_layout_gate_drops_forged_unsigned_and_replayed_layouts():
     assert auth.LayoutGate(None).check('anything', forged, 0.0) == ''       # no key: as today
 
 
+def test_each_reason_a_gate_gives_has_its_own_kind_from_a_fixed_set():
+    """The throttled logs key on it: a forgery and a replay in one interval are two lines."""
+    gate = auth.LayoutGate(KEY, window_s=30.0)
+    good = layout(decider=ident(), seq=4, stamp=1000.0)
+    forged = layout(decider=ident(), seq=9, stamp=1000.0, assignments={'amcl': 'laptop'})
+    late = layout(decider=ident(), seq=7, stamp=1000.0)
+    anonymous = layout(seq=1)
+    gate.check(auth.seal(KEY, good), good, 1001.0)
+    reasons = [gate.check('[1]', good, 1001.0), gate.check('{', good, 1001.0),
+               gate.check(forged.to_json(), forged, 1001.0),
+               gate.check(auth.seal(bytes(32), forged), forged, 1001.0),
+               gate.check(auth.seal(KEY, anonymous), anonymous, 1001.0),
+               gate.check(auth.seal(KEY, late), late, 1100.0),
+               gate.check(auth.seal(KEY, good), good, 1001.0),
+               auth.ReplayGuard().check('a', None, 1000.0, 1000.0)]
+    kinds = [auth.refusal_kind(f'dropped layout generation 3 of decider x: {why}')
+             for why in reasons]
+    assert len(set(kinds)) == len(reasons) and set(kinds) <= set(auth.REFUSALS), kinds
+    # Nothing of a message's own text makes a new kind.
+    assert auth.refusal_kind("scale 'bad: authenticator 1': whatever it says") == 'other'
+
+
 # --- the agents' follow rule ------------------------------------------------------------------
 
 def test_an_agent_follows_one_decider_and_switches_only_after_its_lease():

@@ -203,7 +203,7 @@ class AgentNode(Node):
             if why is None:
                 return
             if why:
-                self._bad.error(f'{kind}: refused', why)
+                self._bad.error(f'{kind}: refused: {auth.refusal_kind(why)}', why)
                 return
             self._act(handle(message, time.monotonic()))
         return take

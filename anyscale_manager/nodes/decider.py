@@ -245,7 +245,8 @@ class DeciderNode(Node):
             handle(decoded, self._now())
         except (p.ProtocolError, ValueError, KeyError, TypeError) as e:
             self._rejected += 1
-            self._bad.warn(topic, f'ignored a message on {topic}: {e}')
+            self._bad.warn(f'{topic}: {auth.refusal_kind(str(e))}',
+                           f'ignored a message on {topic}: {e}')
         except Exception as e:  # noqa: B902 - a message must never stop the decider
             self._rejected += 1
             self._bad.error(topic + ': failed',
@@ -309,7 +310,8 @@ class DeciderNode(Node):
         why = self.gate.check(msg.data, layout, time.time())
         if why:
             self._rejected += 1
-            self._bad.warn('layout: refused', f'ignored a layout claiming to be of this '
+            self._bad.warn(f'layout: refused: {auth.refusal_kind(why)}',
+                           f'ignored a layout claiming to be of this '
                            f'deployment (generation {layout.generation}): {why}')
             return
         if layout.decider is None:
@@ -344,7 +346,8 @@ class DeciderNode(Node):
         why = self.beat_gate.check(text, beat, time.time())
         if why:
             self._rejected += 1
-            self._bad.warn('beat: refused', f'ignored a decider beat claiming to be of this '
+            self._bad.warn(f'beat: refused: {auth.refusal_kind(why)}',
+                           f'ignored a decider beat claiming to be of this '
                            f'deployment: {why}')
             return
         change = self.lead.heard_beat(beat.decider, beat.role, beat.term, beat.generation, now)
