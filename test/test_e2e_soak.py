@@ -3,7 +3,7 @@
 One fault of every kind from a fixed seed (7), one after the other with 3-5 s between them: a
 link cut, a throttle, a flapping link, SIGKILL of the laptop's agent, of the robot's agent, of
 the leading decider (a second one stands by throughout) and of a managed node (each restarted
-after 1 s, as systemd would), the laptop's agent SIGKILLed and kept away for 30 s (its nodes
+after 1 s, as systemd would), the laptop's agent SIGKILLed and kept away for 15 s (its nodes
 must stop by themselves), SIGHUP of each agent (a restart in place: nothing may move or
 restart), a crash loop of one node (its serving copy SIGKILLed three times; no Δ is excused
 where a standby copy could take over), SIGSTOP of the leading decider for a few seconds, a
@@ -22,7 +22,7 @@ from anyscale_manager.testbed import chaos, netns, soak
 from conftest import TESTBED
 
 SEED = 7
-DURATION_S = 200.0
+DURATION_S = 185.0
 OK, WHY = netns.available()
 pytestmark = pytest.mark.skipif(not OK, reason=f'no test-bed here: {WHY}')
 

@@ -25,9 +25,10 @@ EXTRA_S = {'cut': 2.0, 'throttle': 3.0, 'flap': 2.0, 'kill_agent_laptop': 6.0,
            'kill_agent_robot': 6.0, 'kill_decider': 6.0, 'stop_decider': 3.0, 'kill_node': 6.0,
            'hostile': 3.0, 'rival_decider': 10.0, 'lose_agent_laptop': 8.0,
            'hup_agent_laptop': 5.0, 'hup_agent_robot': 5.0, 'crash_loop': 10.0}
-# A laptop agent lost (SIGKILLed, no successor) stays away this long: past the bound within
-# which its nodes must be gone, so that it is fencing that stops them, not a new agent.
-LOSE_AGENT_S = 30.0
+# A laptop agent lost (SIGKILLed, no successor) stays away this long: twice the bound within
+# which its nodes must be gone (the test-bed's adopt_grace_s 5 + fence_grace_s 0.5 + 1.5 s of
+# slack for this machine), so that it is fencing that stops them, not a new agent.
+LOSE_AGENT_S = 15.0
 # A crash loop: the serving copy of one node is SIGKILLed this many times, each time once it
 # serves again.
 CRASH_LOOP_KILLS = 3
