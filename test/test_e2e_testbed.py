@@ -174,8 +174,10 @@ def assert_within_delta(tb, start, end, what):
                              for t, src, x in r.readings.get(name, [])
                              if src == LAPTOP and start <= t <= end][::2]
                       for name in ('laser_amcl', 'camera_ar')}
+            silences = {v.connection: r.silence(v) for v in found}
         raise AssertionError(f'{what}: connections into the robot past their Δ (observer): '
-                             f'{found}; longest below {longest}; moves {moves}; laptop reports '
+                             f'{found}; their longest silences {silences}; longest below '
+                             f'{longest}; moves {moves}; laptop reports '
                              f'{laptop}; laptop probes {inputs}; at the robot {timeline}')
     return longest
 

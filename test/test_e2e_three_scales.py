@@ -97,9 +97,11 @@ def assert_within_delta(tb, start, end, what):
         if v.connection in KNOWN_OPEN:
             print(f'KNOWN OPEN DEFECT ({what}, at the {scale}): {v.connection} below freq_min '
                   f'{v.end - v.start:.2f} s > Δ {v.tolerance_s:g} s')
-    bad = [(s, v.connection, round(v.start - start, 2), round(v.end - v.start, 2))
-           for s, v in found if v.connection not in KNOWN_OPEN]
-    assert not bad, (f'{what}: connections past their Δ (scale, connection, from, length): '
+    with tb.lock:
+        bad = [(s, v.connection, round(v.start - start, 2), round(v.end - v.start, 2),
+                tb.views[s].silence(v)) for s, v in found if v.connection not in KNOWN_OPEN]
+    assert not bad, (f'{what}: connections past their Δ (scale, connection, from, length, its '
+                     'longest silence): '
                      f'{bad}; moves {moves_since(tb, start)}')
 
 

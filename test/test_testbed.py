@@ -957,6 +957,13 @@ def test_a_silence_says_whether_its_sender_stalled_or_its_messages_were_lost(rec
     assert record.silence(v) == 'silent 0.52 s from 2.475, lost 0'
     record.arrival_seqs['/wheel_ticks'] = list(range(1, 101)) + [121]
     assert record.silence(v) == 'silent 0.52 s from 2.475, lost 20'
+    record.arrival_seqs['/wheel_ticks'] = list(range(1, 102))
+    # Its writer's own stamps: it stalled (sent 0.52 s apart), or its messages were held on
+    # the way or read late here (sent 50 ms apart, delivered late).
+    record.arrival_sent['/wheel_ticks'] = list(ticks)
+    assert record.silence(v) == 'silent 0.52 s from 2.475, lost 0, sent 0.52 s apart'
+    record.arrival_sent['/wheel_ticks'] = ticks[:-1] + [2.525]
+    assert record.silence(v) == 'silent 0.52 s from 2.475, lost 0, sent 0.05 s apart'
     record.arrival_seqs['/wheel_ticks'] = [-1] * 101
     assert record.silence(v) is None
 

@@ -63,6 +63,8 @@ class Record:
     arrivals: Dict[str, List[float]] = field(default_factory=dict)
     # Each arrival's publication sequence number (-1: not given), when the observer sends them.
     arrival_seqs: Dict[str, List[int]] = field(default_factory=dict)
+    # When each arrival's writer sent it (its source timestamp; NaN: not given).
+    arrival_sent: Dict[str, List[float]] = field(default_factory=dict)
     # topic -> (arrival, x, y, stamp, yaw) of each pose a ``--pose`` observer wrote
     # (testbed/poses.py; an older observer's rows have no yaw)
     poses: Dict[str, List[Tuple[float, ...]]] = field(default_factory=dict)
@@ -114,7 +116,7 @@ class Record:
                         if isinstance(r, list) and len(r) in sizes)
                 return
         if 'arrivals' in obj:
-            seqs = obj.get('seqs') or {}
+            seqs, sent = obj.get('seqs') or {}, obj.get('sent') or {}
             for topic, times in obj['arrivals'].items():
                 self.arrivals.setdefault(topic, []).extend(float(x) for x in times)
                 numbers = seqs.get(topic)
@@ -122,6 +124,11 @@ class Record:
                     numbers = [-1] * len(times)
                 self.arrival_seqs.setdefault(topic, []).extend(
                     x if isinstance(x, int) else -1 for x in numbers)
+                stamps = sent.get(topic)
+                if not isinstance(stamps, list) or len(stamps) != len(times):
+                    stamps = [math.nan] * len(times)
+                self.arrival_sent.setdefault(topic, []).extend(
+                    float(x) if isinstance(x, (int, float)) else math.nan for x in stamps)
             return
         topic, data = obj.get('topic'), obj.get('data')
         try:
@@ -371,18 +378,27 @@ class Record:
         """Around a violation: the longest silence of its connection's topic heard between
         its start - 2 s and its end + 0.5 s: its length, when it began (the monotonic clock)
         and how many messages its writer numbered in between ('lost': sent, never heard here).
-        Lost 0 means the writer sent nothing (a stalled sender), not a lossy path. None: fewer
-        than two arrivals or no numbers."""
+        Lost 0 means the writer sent nothing in between, not a lossy path; then the time its
+        writer took between those two messages ('sent ... apart', from their source stamps)
+        tells a writer that stalled (about the silence) from one whose messages were held on
+        the way or read late here (much less). None: fewer than two arrivals or no numbers."""
         topic = self.deployment.connection(v.connection).topic
-        pairs = [(t, s) for t, s in zip(self.arrivals.get(topic, []),
-                                        self.arrival_seqs.get(topic, []))
-                 if v.start - 2.0 <= t <= v.end + 0.5]
-        if len(pairs) < 2:
+        arrivals = self.arrivals.get(topic, [])
+        sent = self.arrival_sent.get(topic, [])
+        if len(sent) != len(arrivals):
+            sent = [math.nan] * len(arrivals)
+        rows = [(t, s, u) for t, s, u in zip(arrivals, self.arrival_seqs.get(topic, []), sent)
+                if v.start - 2.0 <= t <= v.end + 0.5]
+        if len(rows) < 2:
             return None
-        (t0, s0), (t1, s1) = max(zip(pairs, pairs[1:]), key=lambda ab: ab[1][0] - ab[0][0])
+        (t0, s0, u0), (t1, s1, u1) = max(zip(rows, rows[1:]),
+                                         key=lambda ab: ab[1][0] - ab[0][0])
         if s0 < 0 or s1 < 0:
             return None
-        return f'silent {t1 - t0:.2f} s from {t0:.3f}, lost {s1 - s0 - 1}'
+        text = f'silent {t1 - t0:.2f} s from {t0:.3f}, lost {s1 - s0 - 1}'
+        if s1 - s0 == 1 and math.isfinite(u0) and math.isfinite(u1):
+            text += f', sent {u1 - u0:.2f} s apart'
+        return text
 
     def longest_below(self, start: float, end: float, scale: str = 'robot'
                       ) -> Dict[str, float]:

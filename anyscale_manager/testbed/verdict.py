@@ -9,7 +9,7 @@ soak).
 """
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable, Dict, List, Sequence, Set, Tuple
+from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Sequence, Set, Tuple
 
 from ..agent.reconcile import HEAR_PATIENCE_S
 from ..model.types import Deployment
@@ -89,12 +89,14 @@ class Tally:
 
 
 def sort_violations(violations: Sequence[DeltaBreach], excuses: Sequence[chaos.Excuse],
-                    rel: Callable[[float], float]
+                    rel: Callable[[float], float],
+                    silence: Callable[[DeltaBreach], Optional[str]] = lambda v: None
                     ) -> Tuple[List[Dict[str, object]], List[Dict[str, object]],
                                List[Dict[str, object]]]:
     """(counted, excused, known open) Δ violations. A kill that excuses a span explains it,
     so it is never put down to a known open defect (testbed/known.py); a known open defect
-    is not counted; everything else is."""
+    is not counted; everything else is. ``silence``: what the topic's longest silence around it
+    says (``Record.silence``: a writer that stalled, or messages lost or held on the way)."""
     counted: List[Dict[str, object]] = []
     forgiven: List[Dict[str, object]] = []
     known: List[Dict[str, object]] = []
@@ -103,6 +105,9 @@ def sort_violations(violations: Sequence[DeltaBreach], excuses: Sequence[chaos.E
         item: Dict[str, object] = {'connection': v.connection, 'start_s': rel(v.start),
                                    'below_s': round(v.end - v.start, 2),
                                    'tolerance_s': v.tolerance_s}
+        said = silence(v)
+        if said:
+            item['silence'] = said
         if excuse is not None:
             forgiven.append(dict(item, excused_by=excuse.why))
         elif v.connection in KNOWN_OPEN:
@@ -160,7 +165,7 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
                   'kind': e.kind, 'node': e.node, 'reason': e.reason[:160]}
                  for t, e in r.events if a <= t <= b and e.kind in MOVES_BACK]
         (unneeded if row['no_move_back'] else noted).extend(found)
-    counted, forgiven, known = sort_violations(violations, tally.excuses, rel)
+    counted, forgiven, known = sort_violations(violations, tally.excuses, rel, r.silence)
     # The system's own account of two senders (the decider's 'duplicate' event, published past
     # monitoring.duplicate_sender_s), beside the observer's count above: each must stay 0, and
     # one without the other says which of the two judges is wrong.
