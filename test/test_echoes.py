@@ -67,3 +67,28 @@ def test_a_payload_longer_than_allowed_is_cut_so_the_parser_refuses_it(echoes, s
     while not got and time.monotonic() < deadline:
         got = echoes.drain()
     assert len(got[0][1]) == 513
+
+
+def test_one_drain_keeps_the_kernels_order_when_the_clock_readings_are_far_apart(sender):
+    """A reader preempted between its monotonic and wall readings (10 ms at every other
+    reading of the wall clock here) must not reorder datagrams that came microseconds apart
+    (loopback delivers them within ``sendto``: all five wait for the first drain)."""
+    calls = []
+
+    def late_wall():
+        calls.append(1)
+        if len(calls) % 2 == 0:
+            time.sleep(0.01)
+        return time.time()
+    echoes = EchoSocket(512, wall=late_wall)
+    try:
+        for i in range(5):
+            sender.sendto(b'%d' % i, _address(echoes))
+        deadline = time.monotonic() + 5.0
+        got = []
+        while len(got) < 5 and time.monotonic() < deadline:
+            got += echoes.drain()
+        stamps = [at for at, _ in got]
+        assert len(got) == 5 and stamps == sorted(stamps), stamps
+    finally:
+        echoes.close()

@@ -90,8 +90,8 @@ def test_once_rclpy_stops_on_sigint_it_is_not_raised_as_well():
 STOP_ASKED = '''
 import os, signal, time
 import rclpy
-from anyscale_manager.interrupt import interrupt_once, rclpy_stops_on_sigint, shut_rclpy_down, \
-    stop_asked
+from anyscale_manager.interrupt import interrupt_once, rclpy_stops_on_sigint, stop_asked
+from anyscale_manager.nodes.shutdown import shut_rclpy_down
 interrupt_once()
 rclpy.init()
 rclpy_stops_on_sigint()
@@ -152,7 +152,7 @@ def test_a_shutdown_that_finds_the_handler_thread_was_first_is_a_shutdown():
     """The race that made a stopping node fail at its last line ("rcl_shutdown already called
     on the given context"): try_shutdown alone raises it, shut_rclpy_down ends shut down."""
     import rclpy
-    from anyscale_manager.interrupt import shut_rclpy_down
+    from anyscale_manager.nodes.shutdown import shut_rclpy_down
     bare = _raced_context()
     with pytest.raises(RuntimeError, match='already called'):
         rclpy.try_shutdown(context=bare)

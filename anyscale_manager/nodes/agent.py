@@ -49,7 +49,8 @@ from ..agent.turn import AgentInputs, AgentOutput, AgentTurn, name_counts, TICK_
 from ..model.capacity import claim_lease_s
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.params_file import refuse_bad_params_files
-from ..interrupt import restore_ctrl_c, shut_rclpy_down
+from ..interrupt import restore_ctrl_c
+from .shutdown import shut_rclpy_down
 
 EXIT_WAKE_S = 0.001          # the one-shot wake after a node exits (agent/exits.py)
 UNSIGNED = ('layouts are not signed and anyone on this ROS domain can move or stop the nodes '

@@ -49,7 +49,8 @@ from ..runtime.leadership import LEADER, STANDBY, Change, Leadership
 from ..runtime.layout import LayoutError
 from ..runtime.turn import DeciderTurn, TurnOutput
 from ..interrupt import ignore_interrupts, interrupt_once, rclpy_stops_on_sigint, \
-    restore_ctrl_c, shut_rclpy_down, stop_asked
+    restore_ctrl_c, stop_asked
+from .shutdown import shut_rclpy_down
 
 NODE_NAME = 'anyscale_decider'
 

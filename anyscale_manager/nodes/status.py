@@ -16,7 +16,6 @@ import sys
 import time
 
 from .. import protocol as p
-from ..interrupt import shut_rclpy_down
 from .. import protocol_auth as auth
 from ..model.loader import DeploymentError, load_deployment
 from ..view.screen import LiveScreen
@@ -54,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
     from diagnostic_msgs.msg import DiagnosticArray
     from std_msgs.msg import String
+
+    from .shutdown import shut_rclpy_down
 
     from .decider import NODE_NAME as DECIDER
     from .qos import BEAT as beat, LATCHED_READER as latched, MONITOR_READER as sensor

@@ -44,7 +44,8 @@ from .workload_messages import (DEFAULT_TYPE, MAX_BYTES, Endpoint, EndpointError
                                 build_message, message_class, parse_endpoint, stamper)
 from .workload_pose import PoseTrack, parse_motion, yaw_of
 from ..interrupt import ignore_interrupts, interrupt_once, restore_ctrl_c, \
-    rclpy_stops_on_sigint, shut_rclpy_down
+    rclpy_stops_on_sigint
+from .shutdown import shut_rclpy_down
 
 REFERENCE_CORE = 0.3      # one reference (robot) core as a fraction of one core of this machine
 POSE_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'

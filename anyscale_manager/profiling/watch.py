@@ -18,7 +18,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..interrupt import shut_rclpy_down
+from ..nodes.shutdown import shut_rclpy_down
 from .graph import Endpoint, GraphSeen, PUB, SUB, TopicPlan, full_name, skipped_topic
 from .processes import ProcessInfo, ProcessMatch, match_node, shared_processes
 from .skeleton import HostInfo, NodeReport, Profile, TopicReport

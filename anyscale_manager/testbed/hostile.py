@@ -27,7 +27,8 @@ from .. import protocol as p
 from ..model.loader import load_deployment
 from ..model.types import Deployment
 from ..protocol_auth import sign
-from ..interrupt import restore_ctrl_c, shut_rclpy_down
+from ..interrupt import restore_ctrl_c
+from ..nodes.shutdown import shut_rclpy_down
 
 GARBAGE = (
     'not json', '{', '[]', 'null', '42', '""', '{"generation": NaN}',

@@ -189,6 +189,17 @@ class CpuGroup:
             self._write('cpu.max', f'{"max" if quota < 0 else quota} {CFS_PERIOD_US}')
         self.cores = cores
 
+    def set_weight(self, factor: float) -> None:
+        """The group's CPU weight against its siblings (every other process of this machine
+        and the other scales' groups), ``factor`` times the default: cgroup v1 ``cpu.shares``
+        (default 1024), v2 ``cpu.weight`` (default 100)."""
+        if not factor > 0:
+            raise ValueError(f'CPU weight factor must be > 0, got {factor!r}')
+        if self.mode == 'v1':
+            self._write('cpu.shares', str(max(2, min(262144, round(1024 * factor)))))
+        else:
+            self._write('cpu.weight', str(max(1, min(10000, round(100 * factor)))))
+
     @property
     def procs_files(self) -> Tuple[str, ...]:
         files = [os.path.join(self.path, 'cgroup.procs')]

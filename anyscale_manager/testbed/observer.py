@@ -39,7 +39,8 @@ from ..nodes import qos
 from ..nodes.monitors.probes import clock_offset_s, received_at
 from ..nodes.workload_messages import DEFAULT_TYPE, message_class
 from ..nodes.workload_pose import yaw_of
-from ..interrupt import restore_ctrl_c, shut_rclpy_down
+from ..interrupt import restore_ctrl_c
+from ..nodes.shutdown import shut_rclpy_down
 
 LATCHED = qos.LATCHED_READER
 RELIABLE = qos.EVENTS

@@ -47,8 +47,12 @@ class EchoSocket:
         self._sock.sendto(data, address)
 
     def drain(self, limit: int = DRAIN_LIMIT) -> List[Tuple[float, bytes]]:
-        """Every datagram waiting (up to ``limit``), oldest first, as (arrival, payload)."""
+        """Every datagram waiting (up to ``limit``), oldest first, as (arrival, payload). The
+        kernel's wall-clock stamps are put on the monotonic clock with one offset per drain:
+        one read per datagram would shift each by the time between its two clock readings, and
+        two datagrams microseconds apart could come out in the wrong order."""
         got: List[Tuple[float, bytes]] = []
+        offset: Optional[float] = None
         while len(got) < limit:
             try:
                 data, ancillary, _flags, _peer = self._sock.recvmsg(self._max + 1,
@@ -57,19 +61,24 @@ class EchoSocket:
                 break
             except OSError:
                 break       # e.g. an ICMP error queued by a send to an unreachable peer
-            got.append((self._arrival(ancillary), data))
+            if offset is None:
+                offset = self._wall_minus_monotonic()
+            got.append((self._arrival(ancillary, offset), data))
         return got
 
-    def _arrival(self, ancillary) -> float:
+    def _wall_minus_monotonic(self) -> float:
+        before = self._monotonic()
+        wall = self._wall()
+        after = self._monotonic()
+        return wall - (before + after) / 2.0
+
+    def _arrival(self, ancillary, offset: float) -> float:
         now = self._monotonic()
         stamp = _kernel_stamp(ancillary)
-        if stamp is None:
+        if stamp is None or not math.isfinite(stamp):
             return now
-        # The kernel stamps on the wall clock; what it says is how long ago the datagram came.
-        ago = self._wall() - stamp
-        if not math.isfinite(ago) or ago < 0.0:
-            return now
-        return now - ago
+        # The kernel stamps on the wall clock; never later than now (a clock stepped back).
+        return min(stamp - offset, now)
 
     def close(self) -> None:
         self._sock.close()
