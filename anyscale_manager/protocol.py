@@ -52,6 +52,22 @@ class ProtocolError(ValueError):
     """A message that does not match its topic's schema."""
 
 
+# What the decoder's errors say, most specific first: each is a kind of malformed message that
+# a throttled log says on its own (``error_kind``).
+DECODE_ERRORS = ('is not allowed', 'not valid JSON', 'expected JSON text', 'is over the',
+                 'nested deeper than', 'expected a JSON object', 'unknown field',
+                 'missing field', 'expected a finite number', 'is beyond the bound', 'must be',
+                 'expected one of', 'expected an integer', 'expected true or false',
+                 'expected a string', 'expected a map', 'characters', 'bad decider identity')
+
+
+def error_kind(text: str) -> str:
+    """The kind of a ProtocolError's text: the first of ``DECODE_ERRORS`` in it, else
+    'malformed'. A key from a fixed set: a message's own words can at most choose among
+    them."""
+    return next((kind for kind in DECODE_ERRORS if kind in text), 'malformed')
+
+
 class _Vocabulary(StrEnum):
     """A closed set of words read from the wire: a member is its word (it compares equal to
     it and serialises as it), and a word outside the set is refused with the set named."""

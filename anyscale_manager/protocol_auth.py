@@ -24,7 +24,7 @@ import stat
 from collections import OrderedDict
 from typing import Any, Mapping, Optional
 
-from .protocol import Message
+from .protocol import Message, error_kind
 
 KEY_BYTES = 32
 MIN_KEY_BYTES = 16
@@ -39,11 +39,12 @@ REFUSALS = ('not valid JSON', 'not a JSON object', 'not signed', 'cannot be put 
 
 
 def refusal_kind(why: str) -> str:
-    """The kind of a gate's reason ``why``, one of ``REFUSALS`` (or 'other'): a key from a
-    fixed set, for the throttled log. A reason as wrapped by a caller ('dropped ...: <reason>')
-    is read after its last ': '."""
+    """The kind of a reason to drop a message, a key from a fixed set for the throttled log:
+    a gate's (one of ``REFUSALS``; as wrapped by a caller, 'dropped ...: <reason>', it is read
+    after the last ': '), else the decoder's (``protocol.error_kind``)."""
     reason = why.rsplit(': ', 1)[-1]
-    return next((kind for kind in REFUSALS if reason.startswith(kind)), 'other')
+    return next((kind for kind in REFUSALS if reason.startswith(kind)), None) \
+        or error_kind(why)
 
 
 class KeyFileError(ValueError):

@@ -168,7 +168,7 @@ def test_each_reason_a_gate_gives_has_its_own_kind_from_a_fixed_set():
              for why in reasons]
     assert len(set(kinds)) == len(reasons) and set(kinds) <= set(auth.REFUSALS), kinds
     # Nothing of a message's own text makes a new kind.
-    assert auth.refusal_kind("scale 'bad: authenticator 1': whatever it says") == 'other'
+    assert auth.refusal_kind("scale 'bad: authenticator 1': whatever it says") == 'malformed'
 
 
 # --- the agents' follow rule ------------------------------------------------------------------

@@ -56,6 +56,25 @@ def test_hostile_layouts_are_refused_with_a_reason(text, words):
     assert words in str(info.value)
 
 
+def test_each_kind_of_malformed_layout_has_its_own_kind_from_a_fixed_set():
+    """The throttled logs key on it: bad JSON, an unknown field and a NaN within 10 s are three
+    lines, not one and a count."""
+    base = {'generation': 1, 'deployment': 'd', 'assignments': {}, 'reason': '', 'stamp': 0}
+    texts = ['not json', '[1, 2]', '{"generation": 1}',
+             json.dumps(dict(base, generation='1')), json.dumps(dict(base, generation=-1)),
+             json.dumps(dict(base, assignments={'a': 3})),
+             json.dumps(base).replace('"stamp": 0', '"stamp": NaN'),
+             json.dumps(dict(base, command='rm -rf /')),
+             json.dumps({'x': 'a' * (p.MAX_PAYLOAD_BYTES + 1)})]
+    kinds = []
+    for text in texts:
+        with pytest.raises(p.ProtocolError) as info:
+            p.Layout.from_json(text, p.TOPIC_LAYOUT)
+        kinds.append(p.error_kind(str(info.value)))
+    assert len(set(kinds)) == len(texts) and set(kinds) <= set(p.DECODE_ERRORS), kinds
+    assert p.error_kind('something else went wrong') == 'malformed'
+
+
 def test_oversized_payload_is_refused_before_parsing():
     text = json.dumps({'x': 'a' * (p.MAX_PAYLOAD_BYTES + 1)})
     with pytest.raises(p.ProtocolError, match='over the'):

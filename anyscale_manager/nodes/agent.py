@@ -198,7 +198,8 @@ class AgentNode(Node):
             try:
                 message = cls.from_json(msg.data, topic)
             except protocol.ProtocolError as e:
-                self._note(malformed, f'{kind}: malformed', f'ignored {what}: {e}')
+                self._note(malformed, f'{kind}: malformed: {protocol.error_kind(str(e))}',
+                           f'ignored {what}: {e}')
                 return
             why = check(msg.data, message, time.time())
             if why is None:

@@ -297,7 +297,8 @@ class DeciderNode(Node):
             layout = p.Layout.from_json(msg.data, p.TOPIC_LAYOUT)
         except p.ProtocolError as e:
             self._rejected += 1
-            self._bad.warn('layout: malformed', f'ignored a malformed layout: {e}')
+            self._bad.warn(f'layout: malformed: {p.error_kind(str(e))}',
+                           f'ignored a malformed layout: {e}')
             return
         if layout.decider is not None and layout.decider.id == self.identity.id:
             return                                  # our own
@@ -340,7 +341,8 @@ class DeciderNode(Node):
             beat = p.DeciderBeat.from_json(text, p.TOPIC_DECIDER)
         except p.ProtocolError as e:
             self._rejected += 1
-            self._bad.warn('beat: malformed', f'ignored a malformed decider beat: {e}')
+            self._bad.warn(f'beat: malformed: {p.error_kind(str(e))}',
+                           f'ignored a malformed decider beat: {e}')
             return
         if beat.decider.id == self.identity.id or beat.deployment != self.deployment.name:
             return
