@@ -248,95 +248,76 @@ def status_line(sample: FleetSample, robots: Sequence[str], t0: float) -> str:
     return f'{sample.t - t0:6.1f} s  ' + ' | '.join(parts)
 
 
-def run(args: argparse.Namespace) -> int:
+def _fail(message: str) -> int:
+    print(f'anyscale-manager demo --fleet: {message}', file=sys.stderr)
+    return 2
+
+
+def _arguments(args: argparse.Namespace) -> Tuple[float, List[FleetStep], Dict[str, int], str]:
+    """The run's length, schedule, each robot's ROS domain and output folder, from the
+    command line; ValueError saying what is wrong."""
     from . import netns
     from .cli import domain_of
-    from .errors import HarnessError
-    from .fleet_netns import FleetBed
-
-    def fail(message: str) -> int:
-        print(f'anyscale-manager demo --fleet: {message}', file=sys.stderr)
-        return 2
-
     duration = FLEET_DURATION_S if args.duration is None else args.duration
     if not 0 < duration <= 24 * 3600:
-        return fail(f'--duration must be between 0 and 86400 s, got {duration:g}')
+        raise ValueError(f'--duration must be between 0 and 86400 s, got {duration:g}')
     try:
         steps = parse_fleet_schedule(args.schedule or FLEET_SCHEDULE)
     except ValueError as e:
-        return fail(f'--schedule: {e}')
+        raise ValueError(f'--schedule: {e}') from None
     late = [s for s in steps if s.at_s >= duration]
     if late:
-        return fail(f"--schedule: {late[0]} is past the run's {duration:g} s (--duration)")
-    try:
-        domain = domain_of(args)
-    except ValueError as e:
-        return fail(str(e))
+        raise ValueError(f"--schedule: {late[0]} is past the run's {duration:g} s (--duration)")
+    domain = domain_of(args)
     ok, why = netns.available()
     if not ok:
-        return fail(f'a fleet runs in network namespaces: {why}')
-    domains = {ROBOTS[0]: domain, ROBOTS[1]: other_domain(domain)}
+        raise ValueError(f'a fleet runs in network namespaces: {why}')
     out = os.path.abspath(args.out or f'anyscale_fleet_demo_{time.strftime("%Y%m%d_%H%M%S")}')
-    run_dir = os.path.join(out, 'run')
-    try:
-        os.makedirs(run_dir, exist_ok=True)
-    except OSError as e:
-        return fail(f'cannot create {out}: {e.strerror}')
-    shape = FleetShape(hysteresis_s=HYSTERESIS_S)
-    print('anyscale-manager demo --fleet: robot_a and robot_b (one deployment and ROS domain '
-          f'each: {domains[ROBOTS[0]]}, {domains[ROBOTS[1]]}) share a server of capacity '
-          f'{shape.capacity_cpu:g}; each worker needs {shape.worker_cpu:g} CPU')
-    print('schedule: ' + ', '.join(str(s) for s in steps) + f'; {duration:g} s', flush=True)
-    code = 0
-    bed = FleetBed(run_dir, ROBOTS, shape)
-    t0 = t1 = time.monotonic()
-    notes: List[str] = []
-    try:
-        bed.setup()
-        t0 = time.monotonic()
-        bed.record.t0 = t0
-        pending = list(steps)
-        next_show = t0
-        while True:
-            now = time.monotonic()
-            while pending and now - t0 >= pending[0].at_s:
-                step = pending.pop(0)
-                if step.action == 'start':
-                    bed.start(step.robot, domains[step.robot], step.priority)
-                elif step.action == 'cut':
-                    bed.cut(step.robot)
-                else:
-                    bed.restore(step.robot)
-            if now - t0 >= duration:
-                break
-            sample = bed.sample()
-            dead = bed.dead()
-            if dead is not None:
-                raise HarnessError(dead)
-            if now >= next_show:
-                print(status_line(sample, ROBOTS, t0), flush=True)
-                next_show = now + args.refresh
-            time.sleep(SAMPLE_S)
-        t1 = time.monotonic()
-        bed.mark('schedule ended')
-        wait_end = time.monotonic() + 5.0
-        while time.monotonic() < wait_end and any(
-                bed.record.judged_until(r) < t1 for r in bed.fleet.procs):
-            time.sleep(0.1)
-    except HarnessError as e:
-        print(f'anyscale-manager demo --fleet: {e}', file=sys.stderr)
-        code = 1
-        t1 = time.monotonic()
-    except KeyboardInterrupt:
-        print('\ninterrupted: tearing down', file=sys.stderr)
-        code = 130
-        t1 = time.monotonic()
-    finally:
-        print('stopping both robots and tearing the namespaces down ...', flush=True)
-        notes = bed.close()
-    for note in notes:
-        print(f'teardown: {note}', file=sys.stderr)
-    record = bed.record
+    return duration, steps, {ROBOTS[0]: domain, ROBOTS[1]: other_domain(domain)}, out
+
+
+def _play(bed, steps: Sequence[FleetStep], domains: Dict[str, int], duration: float,
+          refresh_s: float) -> Tuple[float, float]:
+    """Set the fleet up and play the schedule, a status line every ``refresh_s``; (start,
+    end) of the schedule on the monotonic clock. HarnessError when a process died."""
+    from .errors import HarnessError
+    bed.setup()
+    t0 = time.monotonic()
+    bed.record.t0 = t0
+    pending = list(steps)
+    next_show = t0
+    while True:
+        now = time.monotonic()
+        while pending and now - t0 >= pending[0].at_s:
+            step = pending.pop(0)
+            if step.action == 'start':
+                bed.start(step.robot, domains[step.robot], step.priority)
+            elif step.action == 'cut':
+                bed.cut(step.robot)
+            else:
+                bed.restore(step.robot)
+        if now - t0 >= duration:
+            break
+        sample = bed.sample()
+        dead = bed.dead()
+        if dead is not None:
+            raise HarnessError(dead)
+        if now >= next_show:
+            print(status_line(sample, ROBOTS, t0), flush=True)
+            next_show = now + refresh_s
+        time.sleep(SAMPLE_S)
+    t1 = time.monotonic()
+    bed.mark('schedule ended')
+    wait_end = time.monotonic() + 5.0
+    while time.monotonic() < wait_end and any(
+            bed.record.judged_until(r) < t1 for r in bed.fleet.procs):
+        time.sleep(0.1)
+    return t0, t1
+
+
+def _write(record: FleetRecord, shape: FleetShape, steps: Sequence[FleetStep], out: str,
+           t0: float, t1: float, notes: List[str]) -> Tuple[Dict[str, Any], List[str]]:
+    """summary.json, events.txt and the timeline in ``out``: (the summary, the files)."""
     summary: Dict[str, Any] = {
         'schedule': [str(s) for s in steps], 'duration_s': round(t1 - t0, 2),
         'server_capacity_cpu': shape.capacity_cpu, 'worker_cpu': shape.worker_cpu,
@@ -358,6 +339,11 @@ def run(args: argparse.Namespace) -> int:
     with open(path, 'w') as f:
         json.dump(summary, f, indent=2, sort_keys=True)
     files.append(path)
+    return summary, files
+
+
+def _say_result(summary: Dict[str, Any], shape: FleetShape) -> bool:
+    """Print the server's and each robot's outcome; whether the run failed."""
     print('')
     print(f'server: over-committed {summary["over_commit_s"]:g} s; at most '
           f'{summary["most_workers_on_server"]} worker(s) there, '
@@ -372,6 +358,47 @@ def run(args: argparse.Namespace) -> int:
         failed |= bool(row['delta_violations'])
         print(f'{robot}: moves {moved}; below freq_min at most {row["longest_below_s"]:g} s, '
               f'{row["delta_violations"]} past its Δ of {shape.tolerance_s:g} s')
+    return failed
+
+
+def run(args: argparse.Namespace) -> int:
+    from .errors import HarnessError
+    from .fleet_netns import FleetBed
+    try:
+        duration, steps, domains, out = _arguments(args)
+    except ValueError as e:
+        return _fail(str(e))
+    run_dir = os.path.join(out, 'run')
+    try:
+        os.makedirs(run_dir, exist_ok=True)
+    except OSError as e:
+        return _fail(f'cannot create {out}: {e.strerror}')
+    shape = FleetShape(hysteresis_s=HYSTERESIS_S)
+    print('anyscale-manager demo --fleet: robot_a and robot_b (one deployment and ROS domain '
+          f'each: {domains[ROBOTS[0]]}, {domains[ROBOTS[1]]}) share a server of capacity '
+          f'{shape.capacity_cpu:g}; each worker needs {shape.worker_cpu:g} CPU')
+    print('schedule: ' + ', '.join(str(s) for s in steps) + f'; {duration:g} s', flush=True)
+    code = 0
+    bed = FleetBed(run_dir, ROBOTS, shape)
+    t0 = t1 = time.monotonic()
+    notes: List[str] = []
+    try:
+        t0, t1 = _play(bed, steps, domains, duration, args.refresh)
+    except HarnessError as e:
+        print(f'anyscale-manager demo --fleet: {e}', file=sys.stderr)
+        code = 1
+        t1 = time.monotonic()
+    except KeyboardInterrupt:
+        print('\ninterrupted: tearing down', file=sys.stderr)
+        code = 130
+        t1 = time.monotonic()
+    finally:
+        print('stopping both robots and tearing the namespaces down ...', flush=True)
+        notes = bed.close()
+    for note in notes:
+        print(f'teardown: {note}', file=sys.stderr)
+    summary, files = _write(bed.record, shape, steps, out, t0, t1, notes)
+    failed = _say_result(summary, shape)
     print('written:')
     for f_path in files:
         print(f'  {f_path}')
