@@ -41,7 +41,6 @@ import time
 
 from anyscale_manager.testbed import harness, netns
 from anyscale_manager.testbed import schedule as sched
-from anyscale_manager.testbed.known import KNOWN_OPEN
 from anyscale_manager.testbed.report import placement_shares
 
 import bench_link_traffic as link_traffic     # this folder's capture of the link
@@ -156,7 +155,6 @@ def reaction(args):
             'throttles_amcl_moved': sum(1 for r in throttles if r['amcl_moves']),
             'throttles_wrong': sum(1 for r in throttles if not r['right']),
             'throttle_violations': sum(len(r['violations']) for r in throttles),
-            'throttle_known_open': sum(len(r['known_open']) for r in throttles),
             'false_congestion_onsets': false_onsets,
             'bandwidth_moves_back_outside_throttles': false_backs,
             'cuts': results, 'p50_s': percentile(backs, 0.5), 'p95_s': percentile(backs, 0.95),
@@ -244,8 +242,7 @@ def throttle_reaction(args, tb):
             throttled.append((t0, end + 5.0))
             seen = sorted({(v.connection, round(v.end - v.start, 2))
                            for v in list(observed) + list(reported)})
-            violations = [v for v in seen if v[0] not in KNOWN_OPEN]
-            known = [v for v in seen if v[0] in KNOWN_OPEN]
+            violations = list(seen)
             amcl_back = any(e.kind != 'migrate' for _, e in amcl_moves)
             right = amcl_back == amcl_back_expected and bool(ar_moves) == back_expected
             row = {'level_kbps': level, 'throttle': i + 1,
@@ -254,10 +251,10 @@ def throttle_reaction(args, tb):
                    'amcl_moves': len(amcl_moves), 'amcl_back_expected': amcl_back_expected,
                    'ar_moves': len(ar_moves),
                    'ar_reason': reasons[0] if reasons else '', 'right': right,
-                   'violations': violations, 'known_open': known}
+                   'violations': violations}
             print(f'throttle {level:.0f} kbit/s #{i + 1}: congested after {row["congested_s"]} s, '
                   f'ar back after {row["ar_back_s"]} s, ar moves {row["ar_moves"]}, amcl moves '
-                  f'{row["amcl_moves"]}, Δ violations {violations}, known open defects {known} '
+                  f'{row["amcl_moves"]}, Δ violations {violations} '
                   f'({row["ar_reason"]})',
                   flush=True)
             if back_expected or not right or violations:
@@ -385,8 +382,7 @@ def main():
                   f'back p50 {fmt(r["throttle_ar_back_p50_s"])} s, p95 '
                   f'{fmt(r["throttle_ar_back_p95_s"])} s (max {fmt(r["throttle_ar_back_max_s"])} '
                   f's); AMCL moved in {r["throttles_amcl_moved"]}; other than expected in '
-                  f'{r["throttles_wrong"]}; Δ violations {r["throttle_violations"]} (and '
-                  f'{r["throttle_known_open"]} on known open defects)', flush=True)
+                  f'{r["throttles_wrong"]}; Δ violations {r["throttle_violations"]}', flush=True)
         worst = max((h['below_s'] for h in r['handovers']), default=0.0)
         print(f'moves out of the robot: {len(r["handovers"])} outputs judged; below freq_min at '
               f'the robot in {r["handovers_below_freq_min"]} (longest {worst:.2f} s); least rate '

@@ -28,7 +28,6 @@ import os
 import sys
 
 from anyscale_manager.testbed import harness, netns
-from anyscale_manager.testbed.known import KNOWN_OPEN
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'three_scales_testbed.yaml')
@@ -74,8 +73,8 @@ def out_to_server(tb):
 
 
 def violations(tb, start, end):
-    """(scale, connection, seconds below, what the sequence numbers say) past Δ at every
-    observer, and the known open ones."""
+    """(scale, connection, seconds below, what its longest silence says) past Δ at every
+    observer."""
     tb.wait_heard(end)
     found = []
     with tb.lock:
@@ -84,8 +83,7 @@ def violations(tb, start, end):
             found += [(scale, v.connection, round(v.end - v.start, 2),
                        view.silence(v))
                       for v in view.delta_violations(start, end, scale)]
-    return ([f for f in found if f[1] not in KNOWN_OPEN],
-            [f for f in found if f[1] in KNOWN_OPEN])
+    return found
 
 
 def moves(tb, since, until=float('inf')):
@@ -107,7 +105,7 @@ def server_cuts(tb, args):
             t_serving = tb.views['laptop'].serving_since('laptop', MOVING, t_cut) or tb.now()
         tb.sleep(3.0)
         t_restore = tb.now()
-        bad, known = violations(tb, t_cut, t_restore)
+        bad = violations(tb, t_cut, t_restore)
         cut_moves = moves(tb, t_cut, t_restore)
         left_at = max((t_cut + m[0] for m in cut_moves if m[3] == 'server'), default=t_cut)
         tb.restore('wifi')
@@ -125,14 +123,14 @@ def server_cuts(tb, args):
         row = {'cut': i + 1, 'serving_s': round(t_serving - t_cut, 3),
                'server_stood_down_s': None if t_down is None else round(t_down - t_cut, 2),
                'home_first': [m for m in cut_moves if m[4] == 'robot'],
-               'violations': bad, 'known_open': known,
+               'violations': bad,
                'return_s': round(t_back - t_restore, 2),
                'return_after_hysteresis_s': round(
                    t_back - max(t_restore, left_at + args.hysteresis), 2),
                'moves': cut_moves}
         print(f'server cut {i + 1}: serving on the laptop after {row["serving_s"]:.2f} s, the '
               f'server stood down after {row["server_stood_down_s"]} s; home first '
-              f'{row["home_first"]}; Δ violations {bad} (known open {known}); back on '
+              f'{row["home_first"]}; Δ violations {bad}; back on '
               f'the server {row["return_s"]:.1f} s after the restore, '
               f'{row["return_after_hysteresis_s"]:.1f} s after T', flush=True)
         rows.append(row)
@@ -167,10 +165,10 @@ def backhaul_cuts(tb, args):
                           if t >= t_cut and not s.up)
         tb.sleep(4.0)
         caused = moves(tb, t_cut)
-        bad, known = violations(tb, t_cut, tb.now())
+        bad = violations(tb, t_cut, tb.now())
         tb.restore('backhaul')
         rows.append({'cut': i + 1, 'seen_s': round(t_seen - t_cut, 3), 'moves': caused,
-                     'violations': bad, 'known_open': known})
+                     'violations': bad})
         print(f'backhaul cut {i + 1}: reported down after {t_seen - t_cut:.2f} s; moves '
               f'{caused}; Δ violations {bad}', flush=True)
     seen_s = [r['seen_s'] for r in rows]
@@ -192,12 +190,12 @@ def quiet_run(tb, args):
     with tb.lock:
         cpu = [s.cpu_total for t, s in tb.record.scale_status.get('server', []) if t0 <= t <= t1]
     found = moves(tb, t0, t1)
-    bad, known = violations(tb, t0, t1)
+    bad = violations(tb, t0, t1)
     print(f'{args.quiet_minutes:g} min with CPU noise on the server (its CPU read '
           f'{min(cpu, default=0):.0f}-{max(cpu, default=0):.0f}): {len(found)} moves {found}; '
           f'Δ violations {bad}', flush=True)
     return {'minutes': args.quiet_minutes, 'moves': found, 'violations': bad,
-            'known_open': known, 'server_cpu_min': min(cpu, default=None),
+            'server_cpu_min': min(cpu, default=None),
             'server_cpu_max': max(cpu, default=None)}
 
 

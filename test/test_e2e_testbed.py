@@ -20,7 +20,6 @@ from carried_pose import assert_pose_never_jumped
 
 from anyscale_manager.testbed import netns
 from anyscale_manager.testbed import harness
-from anyscale_manager.testbed.known import KNOWN_OPEN
 
 HYSTERESIS_S = 8.0
 # Longer than two of Fast DDS's default 20 s leases: a copy idle (inactive) that long on the
@@ -141,29 +140,19 @@ def moves_since(tb, t0):
             for t, e in tb.record.moves(since=t0)]
 
 
-def open_defects(found, what):
-    """The violations not on KNOWN_OPEN; those on it are printed."""
-    for v in found:
-        if v.connection in KNOWN_OPEN:
-            print(f'KNOWN OPEN DEFECT ({what}): {v.connection} below freq_min '
-                  f'{v.end - v.start:.2f} s > Δ {v.tolerance_s:g} s: '
-                  f'{KNOWN_OPEN[v.connection]}')
-    return [v for v in found if v.connection not in KNOWN_OPEN]
-
-
-def delta_check(tb, start, end, what=''):
+def delta_check(tb, start, end):
     """The Δ judgement, on the observer's arrivals: every monitored connection into the robot
-    that stayed below its freq_min for longer than Δ in [start, end] (none, but the known open
-    defects, is the pass), and the longest time each was read below (for the log)."""
+    that stayed below its freq_min for longer than Δ in [start, end] (none is the pass), and
+    the longest time each was read below (for the log)."""
     tb.wait_heard(end)
     with tb.lock:
         found = tb.record.delta_violations(start, end, ROBOT)
         longest = tb.record.longest_below(start, end, ROBOT)
-    return open_defects(found, what), {k: v for k, v in longest.items() if v > 0}
+    return found, {k: v for k, v in longest.items() if v > 0}
 
 
 def assert_within_delta(tb, start, end, what):
-    found, longest = delta_check(tb, start, end, what)
+    found, longest = delta_check(tb, start, end)
     if found:
         with tb.lock:
             r = tb.record
@@ -396,7 +385,7 @@ def cut_and_judge(tb, what):
     window = tb.deployment.monitoring.probe_window_s
     end = t_back + max(c.tolerance_s or 0 for c in tb.deployment.connections) + window + 1
     tb.wait_for(lambda r: r.heard_until >= end, 30.0, 'the tolerance after the return')
-    found, longest = delta_check(tb, t_cut, end, what)
+    found, longest = delta_check(tb, t_cut, end)
     with tb.lock:
         r = tb.record
         names = [c.name for c in tb.deployment.connections if r.into(c, ROBOT, end)]
@@ -404,7 +393,6 @@ def cut_and_judge(tb, what):
         timeline = r.timeline(t_cut, end)
         pids = serving_pids(r, ROBOT)
         serving = r.serving_since(ROBOT, MOVING, t_cut)
-    reported = open_defects(reported, f"{what}, reported by the robot's probes")
     if found or reported:
         timeline['processes'] = {n: _process_state(pid) for n, pid in pids.items()}
         timeline['stacks'] = _stacks(tb, pids)

@@ -20,7 +20,6 @@ import pytest
 from carried_pose import assert_pose_never_jumped
 
 from anyscale_manager.testbed import harness, netns
-from anyscale_manager.testbed.known import KNOWN_OPEN
 
 HYSTERESIS_S = 8.0
 OK, WHY = netns.available()
@@ -86,20 +85,13 @@ def moves_since(tb, t0):
 
 
 def assert_within_delta(tb, start, end, what):
-    """No monitored connection past its Δ in [start, end] at any scale's observer (but the
-    known open defects, printed)."""
+    """No monitored connection past its Δ in [start, end] at any scale's observer."""
     tb.wait_heard(end)
-    found = []
     with tb.lock:
-        for scale in SCALES:
-            found += [(scale, v) for v in tb.views[scale].delta_violations(start, end, scale)]
-    for scale, v in found:
-        if v.connection in KNOWN_OPEN:
-            print(f'KNOWN OPEN DEFECT ({what}, at the {scale}): {v.connection} below freq_min '
-                  f'{v.end - v.start:.2f} s > Δ {v.tolerance_s:g} s')
-    with tb.lock:
+        found = [(scale, v) for scale in SCALES
+                 for v in tb.views[scale].delta_violations(start, end, scale)]
         bad = [(s, v.connection, round(v.start - start, 2), round(v.end - v.start, 2),
-                tb.views[s].silence(v)) for s, v in found if v.connection not in KNOWN_OPEN]
+                tb.views[s].silence(v)) for s, v in found]
     assert not bad, (f'{what}: connections past their Δ (scale, connection, from, length, its '
                      'longest silence): '
                      f'{bad}; moves {moves_since(tb, start)}')

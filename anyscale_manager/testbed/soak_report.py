@@ -115,10 +115,6 @@ def format_report(report: Dict[str, object]) -> str:
         lines += ['', "state_jumps (AMCL's pose jumped: the state judge):"] + [
             f'  {x["topic"]}: {x["jump"]}, {x["at_s"]} s into the soak'
             for x in report['state_jumps']]
-    if report.get('delta_known_open'):
-        lines += ['', 'KNOWN OPEN DEFECTS (testbed/known.py), not counted above:'] + [
-            f'  {x["connection"]} below freq_min {x["below_s"]} s at {x["start_s"]} s: '
-            f'{x["known_open"]}' for x in report['delta_known_open']]
     lines.append('')
     lines.append('PASS: every count is 0' if report['ok'] else 'FAIL: see the counts above')
     return '\n'.join(lines)

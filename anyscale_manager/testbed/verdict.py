@@ -14,7 +14,6 @@ from typing import TYPE_CHECKING, Callable, Dict, List, Optional, Sequence, Set,
 from ..agent.reconcile import HEAR_PATIENCE_S
 from ..model.types import Deployment
 from . import chaos
-from .known import KNOWN_OPEN
 from .poses import record_jumps
 from .record import DeltaBreach, Record
 
@@ -91,15 +90,12 @@ class Tally:
 def sort_violations(violations: Sequence[DeltaBreach], excuses: Sequence[chaos.Excuse],
                     rel: Callable[[float], float],
                     silence: Callable[[DeltaBreach], Optional[str]] = lambda v: None
-                    ) -> Tuple[List[Dict[str, object]], List[Dict[str, object]],
-                               List[Dict[str, object]]]:
-    """(counted, excused, known open) Δ violations. A kill that excuses a span explains it,
-    so it is never put down to a known open defect (testbed/known.py); a known open defect
-    is not counted; everything else is. ``silence``: what the topic's longest silence around it
+                    ) -> Tuple[List[Dict[str, object]], List[Dict[str, object]]]:
+    """(counted, excused) Δ violations: a kill that excuses a span explains it; every other
+    one is counted. ``silence``: what the topic's longest silence around it
     says (``Record.silence``: a writer that stalled, or messages lost or held on the way)."""
     counted: List[Dict[str, object]] = []
     forgiven: List[Dict[str, object]] = []
-    known: List[Dict[str, object]] = []
     for v in violations:
         excuse = chaos.excused(v.connection, v.start + v.tolerance_s, excuses)
         item: Dict[str, object] = {'connection': v.connection, 'start_s': rel(v.start),
@@ -110,11 +106,9 @@ def sort_violations(violations: Sequence[DeltaBreach], excuses: Sequence[chaos.E
             item['silence'] = said
         if excuse is not None:
             forgiven.append(dict(item, excused_by=excuse.why))
-        elif v.connection in KNOWN_OPEN:
-            known.append(dict(item, known_open=KNOWN_OPEN[v.connection]))
         else:
             counted.append(item)
-    return counted, forgiven, known
+    return counted, forgiven
 
 
 def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
@@ -165,7 +159,7 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
                   'kind': e.kind, 'node': e.node, 'reason': e.reason[:160]}
                  for t, e in r.events if a <= t <= b and e.kind in MOVES_BACK]
         (unneeded if row['no_move_back'] else noted).extend(found)
-    counted, forgiven, known = sort_violations(violations, tally.excuses, rel, r.silence)
+    counted, forgiven = sort_violations(violations, tally.excuses, rel, r.silence)
     # The system's own account of two senders (the decider's 'duplicate' event, published past
     # monitoring.duplicate_sender_s), beside the observer's count above: each must stay 0, and
     # one without the other says which of the two judges is wrong.
@@ -179,7 +173,7 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
                         'length_s': round(x.length_s, 2)} for x in dups],
         'longest_overlap_s': overlap,
         'duplicates_reported': reported,
-        'delta_violations': counted, 'delta_excused': forgiven, 'delta_known_open': known,
+        'delta_violations': counted, 'delta_excused': forgiven,
         'nowhere': [{'node': x.node, 'start_s': rel(x.start), 'length_s': round(x.length_s, 2),
                      'backoff_s': round(x.backoff_s, 2)} for x in missing],
         'unneeded_moves_back': unneeded, 'moves_back_noted': noted,
