@@ -13,7 +13,10 @@ from dataclasses import dataclass
 from typing import Callable, Dict, Optional
 
 DEFAULT_INTERVAL_S = 10.0
-MAX_KINDS = 64
+# Above what a node's keys can number (its topics times the kinds of bad input,
+# protocol.DECODE_ERRORS and protocol_auth.REFUSALS): a kind is forgotten only past it, and
+# what it held back is said first.
+MAX_KINDS = 512
 
 
 @dataclass
@@ -50,7 +53,10 @@ class ThrottledLog:
             return
         if kind is None:
             if len(self._kinds) >= MAX_KINDS:
-                del self._kinds[min(self._kinds, key=lambda k: self._kinds[k].logged_at)]
+                oldest = min(self._kinds, key=lambda k: self._kinds[k].logged_at)
+                gone = self._kinds.pop(oldest)
+                if gone.held:
+                    self._emit(gone.level, gone.last + self._held_note(gone, now))
             kind = self._kinds[key] = _Kind(now, interval_s or self.interval_s, level)
         line = text + self._held_note(kind, now)
         kind.logged_at, kind.held, kind.level = now, 0, level

@@ -387,11 +387,11 @@ def run(args: argparse.Namespace) -> int:
     except HarnessError as e:
         print(f'anyscale-manager demo --fleet: {e}', file=sys.stderr)
         code = 1
-        t1 = time.monotonic()
+        t0, t1 = bed.record.t0, time.monotonic()
     except KeyboardInterrupt:
         print('\ninterrupted: tearing down', file=sys.stderr)
         code = 130
-        t1 = time.monotonic()
+        t0, t1 = bed.record.t0, time.monotonic()
     finally:
         print('stopping both robots and tearing the namespaces down ...', flush=True)
         notes = bed.close()

@@ -28,7 +28,6 @@ from ..model.loader import load_deployment
 from ..model.types import Deployment
 from ..protocol_auth import sign
 from ..interrupt import restore_ctrl_c
-from ..nodes.shutdown import shut_rclpy_down
 
 GARBAGE = (
     'not json', '{', '[]', 'null', '42', '""', '{"generation": NaN}',
@@ -163,6 +162,7 @@ def main(args: Optional[List[str]] = None) -> int:
     from std_msgs.msg import String
 
     from ..nodes import qos
+    from ..nodes.shutdown import shut_rclpy_down
 
     argv = sys.argv if args is None else args
     parser = argparse.ArgumentParser(prog='hostile')

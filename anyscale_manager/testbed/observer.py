@@ -12,9 +12,9 @@ project messages and ``{"t": ..., "arrivals": {topic: [monotonic, ...]}, "seqs":
 ...]}, "sent": {topic: [monotonic, ...]}}`` every 0.2 s for the data topics (``seqs``: each
 message's publication sequence number, -1 where the middleware gives none; every DDS writer
 counts its own from 1, so two copies of a node publishing at once show as two interleaved
-series; ``sent``: when its writer sent it, from the source timestamp, the reception time where
-the middleware gives none: a writer that stalled shows there, a path that held its messages
-back does not), ``{"t": ..., "poses": {topic:
+series; ``sent``: when its writer sent it, from the source timestamp, null where the
+middleware gives none: a writer that stalled shows there, a path that held its messages back
+does not), ``{"t": ..., "poses": {topic:
 [[monotonic, x, y, stamp, yaw], ...]}}`` for the ``--pose`` topics (a node's state, a pose)
 and ``{"t": ..., "set_poses": {topic: [[monotonic, x, y, stamp, yaw], ...]}}`` for the
 ``--set-pose`` topics (a pose someone sets on a node's restore topic: a user's initial pose).
@@ -70,7 +70,7 @@ class Observer(Node):
         self._arrivals: Dict[str, List[float]] = {t: [] for t in data_topics}
         self._offset_s = clock_offset_s()     # system clock minus monotonic, renewed each flush
         self._seqs: Dict[str, List[int]] = {t: [] for t in data_topics}
-        self._sent: Dict[str, List[float]] = {t: [] for t in data_topics}
+        self._sent: Dict[str, List[Optional[float]]] = {t: [] for t in data_topics}
         for topic, profile in PROJECT_TOPICS.items():
             if project_topics is None or topic in project_topics:
                 self.create_subscription(String, topic, self._project(topic), profile)
@@ -106,12 +106,11 @@ class Observer(Node):
             # Each message at its DDS reception time, as the probes place it: this process
             # runs its callbacks late and in bursts when the machine is busy, and a burst
             # stamped at callback time would show gaps no subscriber lived through.
-            arrived = received_at(info, self._offset_s, time.monotonic())
-            self._arrivals[topic].append(arrived)
+            self._arrivals[topic].append(received_at(info, self._offset_s, time.monotonic()))
             seq = info.get('publication_sequence_number') if isinstance(info, dict) else None
             self._seqs[topic].append(seq if isinstance(seq, int) else -1)
             sent_ns = info.get('source_timestamp', 0) if isinstance(info, dict) else 0
-            self._sent[topic].append(sent_ns / 1e9 - self._offset_s if sent_ns else arrived)
+            self._sent[topic].append(sent_ns / 1e9 - self._offset_s if sent_ns else None)
         return callback
 
     def _pose(self, topic: str, kept: Dict[str, List[list]]):
@@ -137,7 +136,8 @@ class Observer(Node):
             self._write({'t': time.monotonic(),
                          'arrivals': {t: [batch[t][i] for i in order[t]] for t in batch},
                          'seqs': {t: [self._seqs[t][i] for i in order[t]] for t in batch},
-                         'sent': {t: [round(self._sent[t][i], 6) for i in order[t]]
+                         'sent': {t: [None if self._sent[t][i] is None
+                                      else round(self._sent[t][i], 6) for i in order[t]]
                                   for t in batch}})
             for topic in batch:
                 self._arrivals[topic] = []
