@@ -2,7 +2,7 @@
 """Whether a scale's CPU quota is what its processes get on a busy machine (needs root).
 
     sudo python bench/bench_quota_share.py [--cores 0.6] [--seconds 8] [--loads 0,2,4]
-                                           [--weights 1,8]
+                                           [--weights 1,8] [--busy 1] [--one-cpu]
 
 The test-bed caps the robot's cgroup at ``--cores`` (its quota) on a machine it shares with the
 laptop's cgroup, the observers and the harness. A cgroup is one entity against every other
@@ -10,10 +10,11 @@ process of the machine: with CFS's default weights, when those want more than th
 the group gets its fair share of what is left, which can be less than its quota; a real robot's
 computer is its own. For each number of busy processes outside the group (``--loads``) and each
 weight of the group (``--weights``, times the default), the group runs what saturates it (a busy
-process at nice 5, as ``agent.node_nice`` starts the heavy nodes) beside a 40 Hz ticker at nice
-0 (the robot's odometer: a Δ 0 connection), and the bench prints the cores the group got and the
-ticker's longest interval (its Δ 0 connection at 10 Hz plus the judge's allowance reads below
-after 0.19 s).
+processes at nice 5, ``--busy`` of them, as ``agent.node_nice`` starts the heavy nodes) beside a
+40 Hz ticker at nice 0 (the robot's odometer: a Δ 0 connection), and the bench prints the cores
+the group got and the ticker's longest interval (its Δ 0 connection at 10 Hz plus the judge's
+allowance reads below after 0.19 s). ``--one-cpu``: the group's processes run on CPU 0 only
+(its quota then comes from one runqueue).
 """
 
 import argparse
@@ -41,7 +42,8 @@ print(json.dumps({'max': gaps[-1], 'p99': gaps[int(len(gaps) * 0.99)], 'n': len(
 '''
 
 
-def one_case(cores: float, weight: float, load: int, seconds: float) -> dict:
+def one_case(cores: float, weight: float, load: int, seconds: float, busy: int = 1,
+             one_cpu: bool = False) -> dict:
     group = netns.CpuGroup(f'{netns.NAME_PREFIX}-share-{os.getpid()}')
     procs = []
     try:
@@ -50,13 +52,19 @@ def one_case(cores: float, weight: float, load: int, seconds: float) -> dict:
             group.set_weight(weight)
         outside = [subprocess.Popen([sys.executable, '-c', BUSY]) for _ in range(load)]
         procs += outside
-        heavy = subprocess.Popen(['nice', '-n', '5', sys.executable, '-c', BUSY])
-        procs.append(heavy)
-        group.add(heavy.pid)
+        inside = []
+        for _ in range(busy):
+            heavy = subprocess.Popen(['nice', '-n', '5', sys.executable, '-c', BUSY])
+            procs.append(heavy)
+            inside.append(heavy.pid)
         ticker = subprocess.Popen([sys.executable, '-c', TICKER, str(seconds + 1.0)],
                                   stdout=subprocess.PIPE, text=True)
         procs.append(ticker)
-        group.add(ticker.pid)
+        inside.append(ticker.pid)
+        for pid in inside:
+            group.add(pid)
+            if one_cpu:
+                os.sched_setaffinity(pid, {0})
         time.sleep(1.0)                     # the ticker's start-up is not measured
         used0, t0 = group.usage_s(), time.monotonic()
         out, _ = ticker.communicate(timeout=seconds + 30.0)
@@ -79,6 +87,8 @@ def main() -> int:
     parser.add_argument('--seconds', type=float, default=8.0)
     parser.add_argument('--loads', default='0,2,4')
     parser.add_argument('--weights', default='1,8')
+    parser.add_argument('--busy', type=int, default=1, help='busy processes inside the group')
+    parser.add_argument('--one-cpu', action='store_true', help='the group on CPU 0 only')
     args = parser.parse_args()
     ok, why = netns.available()
     if not ok:
@@ -86,12 +96,13 @@ def main() -> int:
         return 2
     loads = [int(x) for x in args.loads.split(',')]
     weights = [float(x) for x in args.weights.split(',')]
-    print(f'group quota {args.cores:g} cores, {os.cpu_count()} CPUs, {args.seconds:g} s a case')
+    print(f'group quota {args.cores:g} cores{" on CPU 0" if args.one_cpu else ""}, '
+          f'{args.busy} busy inside, {os.cpu_count()} CPUs, {args.seconds:g} s a case')
     print(f'{"busy outside":>12} {"weight":>7} {"cores got":>10} {"ticker max":>11} '
           f'{"ticker p99":>11}')
     for load in loads:
         for weight in weights:
-            r = one_case(args.cores, weight, load, args.seconds)
+            r = one_case(args.cores, weight, load, args.seconds, args.busy, args.one_cpu)
             got = '-' if r['cores_got'] is None else f'{r["cores_got"]:.2f}'
             print(f'{load:>12} {weight:>7g} {got:>10} {r["ticker_max_s"]:>10.3f}s '
                   f'{r["ticker_p99_s"]:>10.3f}s', flush=True)
