@@ -235,7 +235,8 @@ def main() -> int:
     from anyscale_manager import protocol as p
     from anyscale_manager.nodes import qos
     from anyscale_manager.agent.procs import stop_popen
-    from anyscale_manager.nodes.monitors.probes import clock_offset_s, received_at
+    from anyscale_manager.nodes.monitors.clocks import clock_offset_s
+    from anyscale_manager.nodes.monitors.probes import received_at
 
     topic = f'/bench_failover_{os.getpid()}'
     rclpy.init()

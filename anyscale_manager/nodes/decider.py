@@ -309,12 +309,8 @@ class DeciderNode(Node):
                            f'{self.deployment.name!r} (deployments should not share a ROS '
                            'domain)', interval_s=60.0)
             return
-        why = self.gate.check(msg.data, layout, time.time())
-        if why:
-            self._rejected += 1
-            self._bad.warn(f'layout: refused: {auth.refusal_kind(why)}',
-                           f'ignored a layout claiming to be of this '
-                           f'deployment (generation {layout.generation}): {why}')
+        if self._refused_by(self.gate, msg.data, layout, 'layout', 'a layout claiming to be of '
+                            f'this deployment (generation {layout.generation})'):
             return
         if layout.decider is None:
             self._rejected += 1
@@ -334,6 +330,15 @@ class DeciderNode(Node):
             self._role_changed(change)
         self._say_standing_by()
 
+    def _refused_by(self, gate, text: str, message, kind: str, described: str) -> bool:
+        """Whether ``gate`` drops ``message``; a drop is said, throttled per reason."""
+        why = gate.check(text, message, time.time())
+        if why:
+            self._rejected += 1
+            self._bad.warn(f'{kind}: refused: {auth.refusal_kind(why)}',
+                           f'ignored {described}: {why}')
+        return bool(why)
+
     def heard_beat_text(self, text: str, now: float) -> None:
         """One beat taken by the beat thread (under the lock): decoded, checked, heard, and a
         change of role it causes acted on."""
@@ -346,12 +351,8 @@ class DeciderNode(Node):
             return
         if beat.decider.id == self.identity.id or beat.deployment != self.deployment.name:
             return
-        why = self.beat_gate.check(text, beat, time.time())
-        if why:
-            self._rejected += 1
-            self._bad.warn(f'beat: refused: {auth.refusal_kind(why)}',
-                           f'ignored a decider beat claiming to be of this '
-                           f'deployment: {why}')
+        if self._refused_by(self.beat_gate, text, beat, 'beat',
+                            'a decider beat claiming to be of this deployment'):
             return
         change = self.lead.heard_beat(beat.decider, beat.role, beat.term, beat.generation, now)
         if change is not None:

@@ -36,7 +36,8 @@ from std_msgs.msg import String
 
 from .. import protocol as p
 from ..nodes import qos
-from ..nodes.monitors.probes import clock_offset_s, received_at
+from ..nodes.monitors.clocks import clock_offset_s
+from ..nodes.monitors.probes import received_at
 from ..nodes.workload_messages import DEFAULT_TYPE, message_class
 from ..nodes.workload_pose import yaw_of
 from ..interrupt import restore_ctrl_c

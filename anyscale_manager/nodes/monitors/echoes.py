@@ -13,6 +13,8 @@ import struct
 import time
 from typing import Callable, List, Optional, Tuple
 
+from .clocks import clock_offset_s
+
 # Linux's SO_TIMESTAMPNS (asm-generic, as on x86_64 and aarch64); the control message that
 # carries the stamp has the same number. Python's socket module does not name it.
 SO_TIMESTAMPNS = 35
@@ -62,22 +64,9 @@ class EchoSocket:
             except OSError:
                 break       # e.g. an ICMP error queued by a send to an unreachable peer
             if offset is None:
-                offset = self._wall_minus_monotonic()
+                offset = clock_offset_s(3, self._monotonic, self._wall)
             got.append((self._arrival(ancillary, offset), data))
         return got
-
-    def _wall_minus_monotonic(self, attempts: int = 3) -> float:
-        """Wall clock minus monotonic clock, from the tightest of a few readings of the wall
-        clock between two of the monotonic one (a thread preempted between two plain reads
-        would shift the whole drain by that much)."""
-        best_width, best = math.inf, math.nan
-        for _ in range(attempts):
-            before = self._monotonic()
-            wall = self._wall()
-            after = self._monotonic()
-            if after - before < best_width:
-                best_width, best = after - before, wall - (before + after) / 2.0
-        return best
 
     def _arrival(self, ancillary, offset: float) -> float:
         now = self._monotonic()

@@ -34,6 +34,7 @@ from ...runtime.bandwidth import DELIVERY_SPAN_S
 from ...runtime.delta import DeltaJudge
 from ...runtime.rates import (RateWindow, SenderOverlap, WriterStreams, live_window_s,
                               two_senders_past)
+from .clocks import clock_offset_s
 from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, scale_of,
                      status)
 
@@ -413,22 +414,6 @@ def received_at(info, offset_s: float, now: float) -> float:
     never later than ``now``; ``now`` when the middleware gave none."""
     received_ns = info.get('received_timestamp', 0) if isinstance(info, dict) else 0
     return min(received_ns / 1e9 - offset_s, now) if received_ns else now
-
-
-def clock_offset_s(attempts: int = 5) -> float:
-    """System clock minus monotonic clock, from the tightest of a few readings of the system
-    clock between two of the monotonic one: a thread preempted between two plain reads (a
-    loaded machine, tens of milliseconds) would shift a whole batch of arrivals by that much."""
-    best_width, best = float('inf'), 0.0
-    for _ in range(attempts):
-        before = time.monotonic()
-        wall = time.time()
-        after = time.monotonic()
-        if after - before < best_width:
-            best_width, best = after - before, wall - (before + after) / 2.0
-        if best_width < 1e-4:
-            break
-    return best
 
 
 def _describe(conn: Connection, reading: p.ConnectionReading, note: str) -> str:
