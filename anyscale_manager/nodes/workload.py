@@ -43,6 +43,7 @@ from rclpy.utilities import remove_ros_args
 from .workload_messages import (DEFAULT_TYPE, MAX_BYTES, Endpoint, EndpointError,
                                 build_message, message_class, parse_endpoint, stamper)
 from .workload_pose import PoseTrack, parse_motion, yaw_of
+from .input_gaps import InputGaps
 from ..interrupt import ignore_interrupts, interrupt_once, restore_ctrl_c, \
     rclpy_stops_on_sigint
 from .shutdown import shut_rclpy_down
@@ -315,7 +316,9 @@ class WorkloadBehaviour:
                    if spec.work_ms else ''))
 
     def _subscribe_inputs(self) -> list:
-        # Raw: a workload's output depends on an input's arrival, not on its content.
+        # Raw: a workload's output depends on an input's arrival, not on its content. Each
+        # input's gaps as this node lives them are said in its log, afresh from here.
+        self._gaps = {e.topic: InputGaps() for e in self.spec.inputs}
         return [self.create_subscription(message_class(e.msg_type), e.topic,
                                          self._make_callback(e.topic), subscriber_qos(),
                                          raw=True)
@@ -326,6 +329,9 @@ class WorkloadBehaviour:
 
         def callback(_raw: bytes) -> None:
             self.inputs[topic] += 1
+            gap = self._gaps[topic].heard(self._now())
+            if gap is not None:
+                self.get_logger().warning(f'input {topic}: {gap}')
             if driving:
                 self._pending = True
                 self._maybe_produce()
