@@ -43,7 +43,7 @@ print(json.dumps({'max': gaps[-1], 'p99': gaps[int(len(gaps) * 0.99)], 'n': len(
 
 
 def one_case(cores: float, weight: float, load: int, seconds: float, busy: int = 1,
-             one_cpu: bool = False) -> dict:
+             one_cpu: bool = False, busy_nice: int = 5) -> dict:
     group = netns.CpuGroup(f'{netns.NAME_PREFIX}-share-{os.getpid()}')
     procs = []
     try:
@@ -54,7 +54,7 @@ def one_case(cores: float, weight: float, load: int, seconds: float, busy: int =
         procs += outside
         inside = []
         for _ in range(busy):
-            heavy = subprocess.Popen(['nice', '-n', '5', sys.executable, '-c', BUSY])
+            heavy = subprocess.Popen(['nice', '-n', str(busy_nice), sys.executable, '-c', BUSY])
             procs.append(heavy)
             inside.append(heavy.pid)
         ticker = subprocess.Popen([sys.executable, '-c', TICKER, str(seconds + 1.0)],
@@ -89,6 +89,7 @@ def main() -> int:
     parser.add_argument('--weights', default='1,8')
     parser.add_argument('--busy', type=int, default=1, help='busy processes inside the group')
     parser.add_argument('--one-cpu', action='store_true', help='the group on CPU 0 only')
+    parser.add_argument('--busy-nice', type=int, default=5, help='niceness of the busy ones')
     args = parser.parse_args()
     ok, why = netns.available()
     if not ok:
@@ -97,12 +98,14 @@ def main() -> int:
     loads = [int(x) for x in args.loads.split(',')]
     weights = [float(x) for x in args.weights.split(',')]
     print(f'group quota {args.cores:g} cores{" on CPU 0" if args.one_cpu else ""}, '
-          f'{args.busy} busy inside, {os.cpu_count()} CPUs, {args.seconds:g} s a case')
+          f'{args.busy} busy inside at nice {args.busy_nice}, {os.cpu_count()} CPUs, '
+          f'{args.seconds:g} s a case')
     print(f'{"busy outside":>12} {"weight":>7} {"cores got":>10} {"ticker max":>11} '
           f'{"ticker p99":>11}')
     for load in loads:
         for weight in weights:
-            r = one_case(args.cores, weight, load, args.seconds, args.busy, args.one_cpu)
+            r = one_case(args.cores, weight, load, args.seconds, args.busy, args.one_cpu,
+                         args.busy_nice)
             got = '-' if r['cores_got'] is None else f'{r["cores_got"]:.2f}'
             print(f'{load:>12} {weight:>7g} {got:>10} {r["ticker_max_s"]:>10.3f}s '
                   f'{r["ticker_p99_s"]:>10.3f}s', flush=True)
