@@ -23,7 +23,7 @@ import uuid
 from dataclasses import dataclass, field
 from typing import Callable, Dict, FrozenSet, Iterable, List, Mapping, Optional, Tuple
 
-from . import ports, procs, shm
+from . import ports, priority, procs, shm
 from .catalogue import ENV_INSTANCE, Entry, restore_remap
 from .log_tail import last_line
 from ..model.types import AgentSettings
@@ -103,6 +103,7 @@ class Supervisor:
         # elsewhere (on the master scale none: the decider keeps its layout while the master's
         # agent is silent, and a node only this scale may run has no other copy to meet).
         self.fenceable: frozenset = frozenset()
+        self.launch = priority.Launch(settings.critical_priority)
 
     # --- queries --------------------------------------------------------------------------
     @property
@@ -388,11 +389,17 @@ class Supervisor:
             # connection: it may never be below its minimum) is not niced by node_nice: on a
             # saturated scale it runs beside the agent, ahead of the heavy nodes that may move.
             # A node's own nice adds to the rest. nice(1) execs the node: same pid.
+            # critical_priority: a critical node runs at real-time priority (agent/priority.py).
             # A node with a state gets a restore input of this process's own (catalogue.py).
             argv = list(entry.argv) + list(restore_remap(entry, p.instance))
             niceness = min(19, (0 if entry.critical else self.settings.node_nice) + entry.nice)
             if niceness:
                 argv = ['nice', '-n', str(niceness)] + argv
+            if entry.critical:
+                prefix, said = self.launch.critical_prefix()
+                argv = prefix + argv
+                if said:
+                    self._event('info' if prefix else 'warn', said)
             p.popen = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL,
                                        stdout=subprocess.DEVNULL if log is None else log,
                                        stderr=subprocess.STDOUT,

@@ -341,6 +341,11 @@ class AgentSettings:
                                        low_open=True, unit='Hz')
     node_nice: int = setting(0, 'niceness added to every node the agent starts (not to '
                                 'critical ones)', low=0, high=19)
+    # A CPU quota stops every normal-priority thread of its group once the group has spent it;
+    # a real-time thread runs ahead of them (agent/priority.py).
+    critical_priority: int = setting(0, 'real-time (SCHED_RR) priority the critical nodes (in '
+                                        'a tolerance-0 connection) run at (needs '
+                                        'CAP_SYS_NICE; 0: normal priority)', low=0, high=99)
     # Fast DDS's shared-memory transport stalls the writers of a computer for about 0.35 s,
     # 1-2 s after a participant they write to was SIGKILLed (docs/agent.md, supervision):
     # the nodes an agent starts are the ones that crash and fail over.

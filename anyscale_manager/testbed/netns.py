@@ -38,8 +38,10 @@ DEFAULT_RATE_KBPS = 54000.0
 DEFAULT_SUBNET = '10.77.0.'        # .1 = the first scale (robot), .2 the second, ...
 CFS_PERIOD_US = 10000      # a short period: a throttled scale stalls for ms, not 100 ms
 # Real-time budget of each scale's group per rt period (1 s) where the kernel schedules real-time
-# threads by group: 5 % of a core, plenty for a warden answering heartbeats.
-RT_RUNTIME_US = 50000
+# threads by group: 20 % of each core, for the warden answering heartbeats and the critical
+# nodes (agent.critical_priority), which use about half of it on the ICAR robot. A group that
+# spends it has its real-time threads stopped for the rest of the second.
+RT_RUNTIME_US = 200000
 NETNS_RUN_DIR = '/var/run/netns'
 _NAME_RE = re.compile(r'^%s-(\d+)-(\d+)-(\w+)$' % NAME_PREFIX)
 _counter = itertools.count(1)
@@ -154,7 +156,8 @@ class CpuGroup:
         if mode == 'v1' and os.path.exists(os.path.join(self.path, 'cpu.rt_runtime_us')):
             # With real-time group scheduling a new group may run no real-time thread at all;
             # give it a small budget, as a machine without it would, so that an agent's warden
-            # can answer the heartbeats at the priority it asks for (agent.warden_priority).
+            # can answer the heartbeats at the priority it asks for (agent.warden_priority), and
+            # the critical nodes run at theirs (agent.critical_priority).
             try:
                 self._write('cpu.rt_runtime_us', str(RT_RUNTIME_US))
             except TestbedError:
