@@ -1,15 +1,20 @@
-"""agent.critical_priority: the critical nodes run at real-time priority (agent/priority.py)."""
+"""agent.critical_priority: a critical node runs at real-time priority once it is ready
+(agent/priority.py)."""
 
 import dataclasses
 import os
+import time
 
 import psutil
 import pytest
 
 from anyscale_manager.agent import priority
-from supervision import FAST, py_entry, wait_for
+from supervision import drive, FAST, py_entry, wait_for
 
+# A node whose second thread starts after the node is seen ready: it inherits the policy.
 THREADED = ('import threading, time\n'
+            'threading.Thread(target=time.sleep, args=(60,)).start()\n'
+            'time.sleep(1.0)\n'
             'threading.Thread(target=time.sleep, args=(60,)).start()\n'
             'time.sleep(60)')
 
@@ -18,10 +23,10 @@ def critical(name):
     return dataclasses.replace(py_entry(name, THREADED), critical=True)
 
 
-def started(sup, name):
-    pid = sup.reports()[name].pid
-    proc = psutil.Process(pid)
-    assert wait_for(lambda: 'python' in ' '.join(proc.cmdline()) and proc.num_threads() >= 2)
+def threads_up(sup, name, count):
+    proc = psutil.Process(sup.reports()[name].pid)
+    assert wait_for(lambda: 'python' in ' '.join(proc.cmdline())
+                    and proc.num_threads() >= count)
     return proc
 
 
@@ -30,49 +35,79 @@ def policies(proc):
             for t in proc.threads()}
 
 
-def test_a_critical_node_and_every_thread_it_starts_run_at_real_time_priority(make_sup):
-    ok, why = priority.try_realtime(3)
-    if not ok:
-        pytest.skip(f'this machine refuses real-time priority to its processes: {why}')
+def said(sup):
+    return [(level, text) for level, text in sup.events if 'critical nodes' in text]
+
+
+def can_raise():
+    """Why this process may not raise a thread to real-time round robin (None: it may). A
+    thread of its own is raised and ends."""
+    import threading
+    why = [None]
+
+    def probe():
+        try:
+            os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(1))
+        except OSError as e:
+            why[0] = e.strerror
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    return why[0]
+
+
+def test_a_critical_node_runs_at_normal_priority_until_ready_then_every_thread_real_time(
+        make_sup):
+    refused = can_raise()
+    if refused:
+        pytest.skip(f'this machine refuses real-time priority to its processes: {refused}')
     sup = make_sup([critical('odometer'), py_entry('amcl', THREADED)],
                    settings=dataclasses.replace(FAST, critical_priority=3, node_nice=4,
                                                 readiness_timeout_s=30.0))
-    now = 0.0
-    sup.start('odometer', now)
-    sup.start('amcl', now)
-    assert policies(started(sup, 'odometer')) == {(os.SCHED_RR, 3)}
-    heavy = started(sup, 'amcl')
-    assert policies(heavy) == {(os.SCHED_OTHER, 0)}
-    assert heavy.nice() == os.nice(0) + 4                # node_nice, as before
-    said = [(level, text) for level, text in sup.events if 'critical nodes' in text]
-    assert said == [('info', 'critical nodes run at real-time priority 3 (SCHED_RR)')]
+    sup.start('odometer', time.monotonic())
+    sup.start('amcl', time.monotonic())
+    odometer = threads_up(sup, 'odometer', 2)
+    sup.step(time.monotonic())                         # not seen in the graph yet
+    assert policies(odometer) == {(os.SCHED_OTHER, 0)}
+    assert drive(sup, lambda: sup.reports()['odometer'].ready, visible=lambda e: True)
+    assert policies(odometer) == {(os.SCHED_RR, 3)}
+    threads_up(sup, 'odometer', 3)                     # started after the raise
+    assert policies(odometer) == {(os.SCHED_RR, 3)}
+    heavy = threads_up(sup, 'amcl', 3)
+    assert policies(heavy) == {(os.SCHED_OTHER, 0)}    # not critical: node_nice, as before
+    assert heavy.nice() == os.nice(0) + 4
+    assert said(sup) == [('info', 'critical nodes run at real-time priority 3 (SCHED_RR) '
+                                  'once ready: odometer is the first')]
 
 
-def test_refused_it_is_said_once_and_the_critical_nodes_run_at_normal_priority(make_sup):
+def test_refused_it_is_said_once_and_the_critical_nodes_keep_serving(make_sup, monkeypatch):
     sup = make_sup([critical('odometer'), critical('odometry')],
                    settings=dataclasses.replace(FAST, critical_priority=3,
                                                 readiness_timeout_s=30.0))
-    # Stand-in for a machine that refuses the priority (no CAP_SYS_NICE): no chrt to run.
-    sup.launch = priority.Launch(3, chrt='/nonexistent/chrt')
-    sup.start('odometer', 0.0)
-    sup.start('odometry', 0.0)
+    tried = []
+
+    def refuse(tid, policy, param):                    # stand-in: no CAP_SYS_NICE here
+        tried.append(tid)
+        raise PermissionError(1, 'Operation not permitted')
+    monkeypatch.setattr(priority.os, 'sched_setscheduler', refuse)
     for name in ('odometer', 'odometry'):
-        assert policies(started(sup, name)) == {(os.SCHED_OTHER, 0)}
-        assert sup.reports()[name].state in ('starting', 'running')
-    said = [(level, text) for level, text in sup.events if 'critical nodes' in text]
-    assert len(said) == 1 and said[0][0] == 'warn'
-    assert 'real-time priority 3 refused (/nonexistent/chrt' in said[0][1]
-    assert 'agent.critical_priority to 0' in said[0][1]
+        sup.start(name, time.monotonic())
+        threads_up(sup, name, 2)
+    assert drive(sup, lambda: all(r.ready for r in sup.reports().values()),
+                 visible=lambda e: True)
+    for name in ('odometer', 'odometry'):
+        assert sup.reports()[name].state == 'running'
+    assert len(tried) == 1                             # refused once, not tried again
+    [(level, text)] = said(sup)
+    assert level == 'warn' and 'real-time priority 3 refused for odometer' in text
+    assert 'Operation not permitted' in text and 'agent.critical_priority to 0' in text
 
 
-def test_zero_asks_nothing_of_the_machine():
-    launch = priority.Launch(0, chrt='/nonexistent/chrt')
-    assert launch.critical_prefix() == ([], '')
-    assert launch._prefix is None                       # chrt was never tried
+def test_zero_raises_nothing(monkeypatch):
+    monkeypatch.setattr(priority.os, 'sched_setscheduler',
+                        lambda *a: pytest.fail('asked the kernel with critical_priority 0'))
+    assert priority.Realtime(0).raise_node('odometer', os.getpid()) == ''
 
 
-def test_the_first_answer_holds():
-    launch = priority.Launch(2)
-    prefix, said = launch.critical_prefix()
-    again = launch.critical_prefix()
-    assert said and again == (prefix, '')
+def test_a_process_gone_is_nothing_to_raise():
+    assert priority.raise_threads(2 ** 22 + 12345, 3) is None

@@ -5,59 +5,68 @@ scale whose CPU is full, a node at normal priority waits for a core behind the o
 low their niceness: a CPU quota (a systemd ``CPUQuota``, a cgroup's ``cpu.max``) stops every
 normal-priority thread of the group once the group has spent its share, and the heavy nodes
 spend it. Real-time round robin (``SCHED_RR``) runs the node ahead of every normal-priority
-thread as soon as it wakes, and a quota does not stop it. ``chrt -r`` sets the policy and execs
-the node (same pid; every thread it starts inherits the policy), as ``nice -n`` does for
-``agent.node_nice``.
+thread as soon as it wakes, and a quota does not stop it.
 
-Setting a real-time policy needs CAP_SYS_NICE (or an ``RLIMIT_RTPRIO``) and, where the kernel
-schedules real-time threads by cgroup, a real-time budget in the node's group. ``Launch`` tries
-it once with a process of no consequence and says what it found: without it the critical nodes
-run at normal priority, each as before.
+The node starts at normal priority and is raised once it is ready (seen in the ROS graph): its
+start-up (the interpreter, the middleware, the first discovery) is the heaviest work it does,
+and at real-time priority it would take the scale's cores from everything else, and spend the
+real-time budget of a group where the kernel keeps one (cgroup v1 ``cpu.rt_runtime_us``) so
+that the node itself stops for the rest of the second. Every thread of the node is raised; a
+thread it starts later inherits the policy of the thread that starts it.
+
+Raising needs CAP_SYS_NICE (or an ``RLIMIT_RTPRIO``) and, where the kernel schedules real-time
+threads by cgroup, a real-time budget in the node's group. Refused once, it is said once and
+not tried again: the critical nodes then run at normal priority, as before.
 """
 
-import subprocess
-from typing import List, Optional, Tuple
-
-CHRT = 'chrt'
+import os
+from typing import Optional
 
 
-def try_realtime(priority: int, chrt: str = CHRT) -> Tuple[bool, str]:
-    """Whether a process started here may run at real-time round robin ``priority``: ``chrt``
-    runs ``true`` at it. (ok, what the refusal said)."""
-    try:
-        out = subprocess.run([chrt, '-r', str(priority), 'true'], stdin=subprocess.DEVNULL,
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                             timeout=10.0)
-    except (OSError, subprocess.TimeoutExpired) as e:
-        return False, f'{chrt}: {getattr(e, "strerror", None) or e}'
-    if out.returncode != 0:
-        return False, (out.stdout.strip().splitlines() or [f'exit {out.returncode}'])[-1]
-    return True, ''
+def raise_threads(pid: int, priority: int, rounds: int = 5) -> Optional[str]:
+    """Every thread of ``pid`` to real-time round robin ``priority``, until no new thread
+    appears. None when done (or the process is gone: nothing left to raise), else why not."""
+    done = set()
+    for _ in range(rounds):
+        try:
+            tids = {int(t) for t in os.listdir(f'/proc/{pid}/task')}
+        except OSError:
+            return None
+        fresh = tids - done
+        if not fresh:
+            return None
+        for tid in sorted(fresh):
+            try:
+                os.sched_setscheduler(tid, os.SCHED_RR, os.sched_param(priority))
+            except ProcessLookupError:
+                pass                            # that thread has ended
+            except OSError as e:
+                return e.strerror or str(e)
+        done |= fresh
+    return None
 
 
-class Launch:
-    """The command prefix of a critical node, decided at the first critical start."""
+class Realtime:
+    """Raises the critical nodes as they become ready; says the outcome once."""
 
-    def __init__(self, priority: int, chrt: str = CHRT):
+    def __init__(self, priority: int):
         self.priority = priority
-        self.chrt = chrt
-        self._prefix: Optional[List[str]] = None
+        self.refused = False
+        self._said = False
 
-    def critical_prefix(self) -> Tuple[List[str], str]:
-        """(prefix, what to say once: '' after the first call or when there is nothing to
-        say). The prefix is empty with ``critical_priority`` 0 or when the kernel refuses."""
-        if self.priority <= 0:
-            return [], ''
-        if self._prefix is not None:
-            return self._prefix, ''
-        ok, why = try_realtime(self.priority, self.chrt)
-        if ok:
-            self._prefix = [self.chrt, '-r', str(self.priority)]
-            return self._prefix, (f'critical nodes run at real-time priority {self.priority} '
-                                  '(SCHED_RR)')
-        self._prefix = []
-        return self._prefix, (
-            f'critical nodes run at normal priority: real-time priority {self.priority} '
-            f'refused ({why}); on a full CPU they can then wait behind the other nodes. '
-            'Grant CAP_SYS_NICE to the agent (systemd: AmbientCapabilities=CAP_SYS_NICE) or '
-            'set agent.critical_priority to 0')
+    def raise_node(self, name: str, pid: int) -> str:
+        """Raise ``pid``; what to say ('' when nothing is new)."""
+        if self.priority <= 0 or self.refused:
+            return ''
+        why = raise_threads(pid, self.priority)
+        if why is not None:
+            self.refused = True
+            return (f'critical nodes run at normal priority: real-time priority '
+                    f'{self.priority} refused for {name} ({why}); on a full CPU they can then '
+                    'wait behind the other nodes. Grant CAP_SYS_NICE to the agent (systemd: '
+                    'AmbientCapabilities=CAP_SYS_NICE) or set agent.critical_priority to 0')
+        if self._said:
+            return ''
+        self._said = True
+        return (f'critical nodes run at real-time priority {self.priority} (SCHED_RR) once '
+                f'ready: {name} is the first')

@@ -65,6 +65,7 @@ class _Proc:
     strays: Tuple[int, ...] = ()  # descendants that may have left the session
     log_path: str = ''
     adopted: bool = False
+    raised: bool = False          # a critical node, raised to real-time once ready (priority.py)
     failed_spawns: int = 0
     history: List[str] = field(default_factory=list)
     ports: FrozenSet[int] = frozenset()  # its participants' unicast ports (agent/ports.py)
@@ -103,7 +104,7 @@ class Supervisor:
         # elsewhere (on the master scale none: the decider keeps its layout while the master's
         # agent is silent, and a node only this scale may run has no other copy to meet).
         self.fenceable: frozenset = frozenset()
-        self.launch = priority.Launch(settings.critical_priority)
+        self.realtime = priority.Realtime(settings.critical_priority)
 
     # --- queries --------------------------------------------------------------------------
     @property
@@ -286,11 +287,20 @@ class Supervisor:
                 if seen and not p.ready:
                     p.ready = True
                     p.exit_reason = ''
+            if p.ready and p.entry.critical and not p.raised:
+                self._raise(p)
         elif p.state == ProcState.STOPPING:
             self._step_stopping(p, now)
         elif p.state in DOWN:
             if p.wanted and now >= p.restart_at:
                 self._restart_now(p, now)
+
+    def _raise(self, p: _Proc) -> None:
+        """critical_priority: a critical node, once ready, runs at real-time priority."""
+        p.raised = True
+        said = self.realtime.raise_node(p.entry.name, p.pid)
+        if said:
+            self._event('warn' if self.realtime.refused else 'info', said)
 
     def _step_stopping(self, p: _Proc, now: float) -> None:
         code, gone = self._leader_exit(p)
@@ -389,17 +399,11 @@ class Supervisor:
             # connection: it may never be below its minimum) is not niced by node_nice: on a
             # saturated scale it runs beside the agent, ahead of the heavy nodes that may move.
             # A node's own nice adds to the rest. nice(1) execs the node: same pid.
-            # critical_priority: a critical node runs at real-time priority (agent/priority.py).
             # A node with a state gets a restore input of this process's own (catalogue.py).
             argv = list(entry.argv) + list(restore_remap(entry, p.instance))
             niceness = min(19, (0 if entry.critical else self.settings.node_nice) + entry.nice)
             if niceness:
                 argv = ['nice', '-n', str(niceness)] + argv
-            if entry.critical:
-                prefix, said = self.launch.critical_prefix()
-                argv = prefix + argv
-                if said:
-                    self._event('info' if prefix else 'warn', said)
             p.popen = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL,
                                        stdout=subprocess.DEVNULL if log is None else log,
                                        stderr=subprocess.STDOUT,
@@ -415,6 +419,7 @@ class Supervisor:
         p.start_ticks = procs.start_ticks(p.pid) or 0
         p.started_wall = procs.create_time(p.pid) or 0.0
         p.adopted = False
+        p.raised = False
         p.strays = ()
         p.ports, p.ports_next, p.ports_until = frozenset(), now, now + PORTS_LOOK_S
         p.failed_spawns = 0
@@ -665,6 +670,7 @@ class Supervisor:
         p.instance = instance
         p.popen = None
         p.adopted = True
+        p.raised = False
         p.ports, p.ports_next, p.ports_until = frozenset(), now, now + PORTS_LOOK_S
         self.watch_exit(pid)
         if rec.get('standby'):

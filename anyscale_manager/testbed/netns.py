@@ -39,8 +39,8 @@ DEFAULT_SUBNET = '10.77.0.'        # .1 = the first scale (robot), .2 the second
 CFS_PERIOD_US = 10000      # a short period: a throttled scale stalls for ms, not 100 ms
 # Real-time budget of each scale's group per rt period (1 s) where the kernel schedules real-time
 # threads by group: 20 % of each core, for the warden answering heartbeats and the critical
-# nodes (agent.critical_priority), which use about half of it on the ICAR robot. A group that
-# spends it has its real-time threads stopped for the rest of the second.
+# nodes (agent.critical_priority): the ICAR robot's five use about 15 % of one core together.
+# A group that spends it has its real-time threads stopped for the rest of the second.
 RT_RUNTIME_US = 200000
 NETNS_RUN_DIR = '/var/run/netns'
 _NAME_RE = re.compile(r'^%s-(\d+)-(\d+)-(\w+)$' % NAME_PREFIX)
