@@ -11,10 +11,10 @@ import pytest
 from anyscale_manager.agent import priority
 from supervision import drive, FAST, py_entry, wait_for
 
-# A node whose second thread starts after the node is seen ready: it inherits the policy.
+# A node whose third thread starts after the node is raised: it inherits the policy.
 THREADED = ('import threading, time\n'
             'threading.Thread(target=time.sleep, args=(60,)).start()\n'
-            'time.sleep(1.0)\n'
+            'time.sleep(4.0)\n'
             'threading.Thread(target=time.sleep, args=(60,)).start()\n'
             'time.sleep(60)')
 
@@ -56,7 +56,7 @@ def can_raise():
     return why[0]
 
 
-def test_a_critical_node_runs_at_normal_priority_until_ready_then_every_thread_real_time(
+def test_a_critical_node_runs_at_normal_priority_until_settled_then_every_thread_real_time(
         make_sup):
     refused = can_raise()
     if refused:
@@ -70,7 +70,14 @@ def test_a_critical_node_runs_at_normal_priority_until_ready_then_every_thread_r
     sup.step(time.monotonic())                         # not seen in the graph yet
     assert policies(odometer) == {(os.SCHED_OTHER, 0)}
     assert drive(sup, lambda: sup.reports()['odometer'].ready, visible=lambda e: True)
-    assert policies(odometer) == {(os.SCHED_RR, 3)}
+    ready = time.monotonic()
+    sup.step(ready, lambda e: True)                    # ready, not settled yet
+    assert policies(odometer) == {(os.SCHED_OTHER, 0)}
+    due = sup.next_due(ready)
+    assert due is not None and due <= ready + priority.SETTLE_S
+    assert drive(sup, lambda: policies(odometer) == {(os.SCHED_RR, 3)},
+                 timeout=priority.SETTLE_S + 5.0, visible=lambda e: True)
+    assert time.monotonic() - ready >= priority.SETTLE_S - 0.3
     threads_up(sup, 'odometer', 3)                     # started after the raise
     assert policies(odometer) == {(os.SCHED_RR, 3)}
     heavy = threads_up(sup, 'amcl', 3)
@@ -95,6 +102,9 @@ def test_refused_it_is_said_once_and_the_critical_nodes_keep_serving(make_sup, m
         threads_up(sup, name, 2)
     assert drive(sup, lambda: all(r.ready for r in sup.reports().values()),
                  visible=lambda e: True)
+    assert drive(sup, lambda: len(tried) == 1, timeout=priority.SETTLE_S + 5.0,
+                 visible=lambda e: True)
+    drive(sup, lambda: False, timeout=priority.SETTLE_S + 0.5, visible=lambda e: True)
     for name in ('odometer', 'odometry'):
         assert sup.reports()[name].state == 'running'
     assert len(tried) == 1                             # refused once, not tried again

@@ -22,7 +22,7 @@ from anyscale_manager.testbed import chaos, netns, soak
 from conftest import TESTBED
 
 SEED = 7
-DURATION_S = 185.0
+DURATION_S = 180.0     # seed 7: the same 14 faults as with more, the last one over at 179.6 s
 OK, WHY = netns.available()
 pytestmark = pytest.mark.skipif(not OK, reason=f'no test-bed here: {WHY}')
 

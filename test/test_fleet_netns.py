@@ -17,20 +17,27 @@ namespace hears it (its consumer is pinned there). One fleet, brought up once:
     3.1-4.3 s after it;
 (c) the link restored: the first robot does not take the server back (same priority), watched
     past its own T after the move home and with its link judged up again;
+(d) the server agent of the robot now holding the server is SIGKILLed: its warden stops its
+    worker, its claim runs out with its lease, and only then does the first robot move in;
+    the robot whose agent died takes its worker home within its Δ;
 never two workers on the server nor claims above its capacity, at any sample.
 
-About 30 s of wall time (boot 1 s, the first worker on the server 6 s later). Part of the
+About 45 s of wall time (boot 1 s, the first worker on the server 6 s later). Part of the
 default suite; skipped, with the reason printed, without namespaces (not root).
 """
 
 import os
+import signal
 import time
 
+import psutil
 import pytest
 
+from anyscale_manager.model.capacity import claim_lease_s
+from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.runtime.delta import rate_below
 from anyscale_manager.testbed import netns
-from anyscale_manager.testbed.fleet import (FleetShape, HOME, other_domain, SERVER,
+from anyscale_manager.testbed.fleet import (FleetShape, HOME, is_worker, other_domain, SERVER,
                                             stretches_past_delta)
 from anyscale_manager.testbed.fleet_netns import FleetBed
 
@@ -43,6 +50,13 @@ ROBOTS = ('robot_a', 'robot_b')
 # Long enough for both deciders to judge the server several times (4 turns a second) once one
 # worker is there.
 WATCH_S = 5.0
+
+
+def worker_alive(pid):
+    try:
+        return is_worker(psutil.Process(pid))
+    except psutil.NoSuchProcess:
+        return False
 
 
 def heard_rate(bed, robot, now, window_s=1.0):
@@ -108,6 +122,38 @@ def test_two_robots_in_namespaces_share_one_server_through_the_holders_link_cut(
         after = rec.between(restored)
         assert all(s.where(holder) == HOME and s.where(other) == SERVER for s in after), \
             bed.describe()
+
+        # (d) The server agent of the robot now holding the server is SIGKILLed.
+        agent = bed.fleet.procs[other][SERVER]
+        orphans = [k.pid for k in psutil.Process(agent.pid).children(recursive=True)
+                   if is_worker(k)]
+        assert orphans, f"{other}'s worker not found under its server agent"
+        lease = claim_lease_s(load_deployment(bed.fleet.paths[other]))
+        agent.send_signal(signal.SIGKILL)
+        agent.wait(10)
+        killed = time.monotonic()
+        bed.mark(f"{other}'s server agent SIGKILLed")
+        overlap = []
+
+        def moved_in(s):
+            alive = [pid for pid in orphans if worker_alive(pid)]
+            if alive and s.workers[holder][SERVER]:
+                overlap.append((round(s.t - killed, 2), alive))
+            return s.where(holder) == SERVER and s.where(other) == HOME and not alive
+        moved = bed.until(moved_in, lease + 30.0, f"{holder}'s worker on the server after "
+                          f"{other}'s server agent died", but=((other, SERVER),))
+        # Never beside the orphan: its warden stops it, and the room is handed on only once
+        # the dead agent's claim ran out with its lease (renewed every quarter of one).
+        assert overlap == [], f'{holder} started beside the orphan: {overlap}\n{bed.describe()}'
+        assert moved.t - killed >= 0.75 * lease - 0.5, (moved.t - killed, lease)
+        bed.until(lambda s: rec.judged_until(other) >= moved.t, 10.0,
+                  f"{other}'s observer's lines past the move")
+        past, longest = stretches_past_delta(rec.heard(other), killed - 2.0, moved.t, SHAPE)
+        assert past == 0, f'{other} below freq_min {longest:.2f} s, past its Δ ' \
+                          f'{SHAPE.tolerance_s:g} s, its server agent dead\n{bed.describe()}'
+        print(f"[fleet netns] {other}'s server agent killed: {holder} serving there "
+              f"{moved.t - killed:.2f} s later (lease {lease:g} s), {other}'s output below "
+              f'freq_min {longest:.2f} s at most')
         assert rec.most_on_server() <= 1, bed.describe()
         assert rec.most_claimed() <= SHAPE.capacity_cpu, bed.describe()
         print(f'[fleet netns] boot {booted - began:.1f} s, first worker on the server '

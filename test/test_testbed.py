@@ -954,16 +954,18 @@ def test_a_silence_says_whether_its_sender_stalled_or_its_messages_were_lost(rec
     record.arrivals['/wheel_ticks'] = ticks
     v = DeltaBreach('odometer_odometry', 2.67, 3.0, 0.0, 'observer')
     record.arrival_seqs['/wheel_ticks'] = list(range(1, 102))
-    assert record.silence(v) == 'silent 0.52 s from 2.475, lost 0'
+    assert record.silence(v) == 'silent 0.52 s from 2.475 s, lost 0'
     record.arrival_seqs['/wheel_ticks'] = list(range(1, 101)) + [121]
-    assert record.silence(v) == 'silent 0.52 s from 2.475, lost 20'
+    assert record.silence(v) == 'silent 0.52 s from 2.475 s, lost 20'
     record.arrival_seqs['/wheel_ticks'] = list(range(1, 102))
     # Its writer's own stamps: it stalled (sent 0.52 s apart), or its messages were held on
     # the way or read late here (sent 50 ms apart, delivered late).
     record.arrival_sent['/wheel_ticks'] = list(ticks)
-    assert record.silence(v) == 'silent 0.52 s from 2.475, lost 0, sent 0.52 s apart'
+    assert record.silence(v) == 'silent 0.52 s from 2.475 s, lost 0, sent 0.52 s apart'
     record.arrival_sent['/wheel_ticks'] = ticks[:-1] + [2.525]
-    assert record.silence(v) == 'silent 0.52 s from 2.475, lost 0, sent 0.05 s apart'
+    assert record.silence(v) == 'silent 0.52 s from 2.475 s, lost 0, sent 0.05 s apart'
+    assert record.silence(v, lambda t: t - 2.0) == \
+        'silent 0.52 s from 0.475 s, lost 0, sent 0.05 s apart'      # the run's own seconds
     record.arrival_seqs['/wheel_ticks'] = [-1] * 101
     assert record.silence(v) is None
 

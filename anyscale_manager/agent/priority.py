@@ -7,12 +7,14 @@ normal-priority thread of the group once the group has spent its share, and the 
 spend it. Real-time round robin (``SCHED_RR``) runs the node ahead of every normal-priority
 thread as soon as it wakes, and a quota does not stop it.
 
-The node starts at normal priority and is raised once it is ready (seen in the ROS graph): its
-start-up (the interpreter, the middleware, the first discovery) is the heaviest work it does,
-and at real-time priority it would take the scale's cores from everything else, and spend the
-real-time budget of a group where the kernel keeps one (cgroup v1 ``cpu.rt_runtime_us``) so
-that the node itself stops for the rest of the second. Every thread of the node is raised; a
-thread it starts later inherits the policy of the thread that starts it.
+The node starts at normal priority and is raised ``SETTLE_S`` after it is ready (seen in the
+ROS graph): its start-up (the interpreter, the middleware, the discovery of its peers, which
+goes on after it is seen) is the heaviest work it does, and at real-time priority it would take
+the scale's cores from everything else and spend the real-time budget of a group where the
+kernel keeps one (cgroup v1 ``cpu.rt_runtime_us``), stopping every critical node of the group
+for the rest of the second (0.42 s on the test-bed's robot, a critical node raised as soon as
+seen in a crash loop). Every thread of the node is raised; a thread it starts later inherits
+the policy of the thread that starts it.
 
 Raising needs CAP_SYS_NICE (or an ``RLIMIT_RTPRIO``) and, where the kernel schedules real-time
 threads by cgroup, a real-time budget in the node's group. Refused once, it is said once and
@@ -21,6 +23,8 @@ not tried again: the critical nodes then run at normal priority, as before.
 
 import os
 from typing import Optional
+
+SETTLE_S = 2.0
 
 
 def raise_threads(pid: int, priority: int, rounds: int = 5) -> Optional[str]:

@@ -234,11 +234,14 @@ class Supervisor:
     def next_due(self, now: float) -> Optional[float]:
         """The earliest time a step has work that no exit nor input brings: a node restarted
         after its backoff, its DDS ports looked for again (every PORTS_EVERY_S from its start
-        until found, PORTS_LOOK_S at most), held ports released (None: no such work)."""
+        until found, PORTS_LOOK_S at most), held ports released, a critical node raised to
+        real-time priority once settled (None: no such work)."""
         due = [p.ports_next for p in self._procs.values()
                if p.state in LIVE_STATES and not p.ports and p.ports_next <= p.ports_until
                and now <= p.ports_until]
         due += [p.restart_at for p in self._procs.values() if p.state in DOWN and p.wanted]
+        due += [p.running_since + priority.SETTLE_S for p in self._procs.values()
+                if self._to_raise(p)]
         release = self.port_hold.next_release()
         if release is not None:
             due.append(release)
@@ -287,13 +290,17 @@ class Supervisor:
                 if seen and not p.ready:
                     p.ready = True
                     p.exit_reason = ''
-            if p.ready and p.entry.critical and not p.raised:
+            if self._to_raise(p) and now - p.running_since >= priority.SETTLE_S:
                 self._raise(p)
         elif p.state == ProcState.STOPPING:
             self._step_stopping(p, now)
         elif p.state in DOWN:
             if p.wanted and now >= p.restart_at:
                 self._restart_now(p, now)
+
+    def _to_raise(self, p: _Proc) -> bool:
+        return (p.entry.critical and p.state == ProcState.RUNNING and p.ready and not p.raised
+                and self.realtime.priority > 0 and not self.realtime.refused)
 
     def _raise(self, p: _Proc) -> None:
         """critical_priority: a critical node, once ready, runs at real-time priority."""

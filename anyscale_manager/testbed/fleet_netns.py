@@ -257,16 +257,16 @@ class FleetBed:
         return self.fleet.dead(but)
 
     def until(self, holds: Callable[[FleetSample], bool], timeout_s: float, what: str,
-              every_s: float = 0.2) -> FleetSample:
+              every_s: float = 0.2, but: Tuple[Tuple[str, str], ...] = ()) -> FleetSample:
         """Sample every ``every_s`` until ``holds(sample)``; return that sample. Fails (with
         the timeline and every process's output: HarnessError) past ``timeout_s`` or when a
-        process exits."""
+        process exits, but those of ``but`` ((robot, role): ended on purpose)."""
         end = time.monotonic() + timeout_s
         while True:
             sample = self.sample()
             if holds(sample):
                 return sample
-            dead = self.dead()
+            dead = self.dead(but)
             if dead is not None:
                 raise HarnessError(f'{what}: {dead}\n{self.describe()}')
             if time.monotonic() > end:

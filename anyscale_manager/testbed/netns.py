@@ -37,11 +37,14 @@ NAME_PREFIX = 'asm'
 DEFAULT_RATE_KBPS = 54000.0
 DEFAULT_SUBNET = '10.77.0.'        # .1 = the first scale (robot), .2 the second, ...
 CFS_PERIOD_US = 10000      # a short period: a throttled scale stalls for ms, not 100 ms
-# Real-time budget of each scale's group per rt period (1 s) where the kernel schedules real-time
-# threads by group: 20 % of each core, for the warden answering heartbeats and the critical
-# nodes (agent.critical_priority): the ICAR robot's five use about 15 % of one core together.
-# A group that spends it has its real-time threads stopped for the rest of the second.
-RT_RUNTIME_US = 200000
+# Real-time budget of the scales' groups per rt period (1 s), where the kernel schedules
+# real-time threads by group (cgroup v1 cpu.rt_runtime_us): for the warden answering heartbeats
+# and the critical nodes (agent.critical_priority; the ICAR robot's five use about 15 % of one
+# core together). A group that spends its budget has every real-time thread stopped for the
+# rest of the second, which a real robot's computer does not do: the scales share 90 % of each
+# core (the machine's root keeps 95 %), at most 45 % each.
+RT_RUNTIME_TOTAL_US = 900000
+RT_RUNTIME_MAX_US = 450000
 NETNS_RUN_DIR = '/var/run/netns'
 _NAME_RE = re.compile(r'^%s-(\d+)-(\d+)-(\w+)$' % NAME_PREFIX)
 _counter = itertools.count(1)
@@ -129,7 +132,7 @@ def available() -> Tuple[bool, str]:
 class CpuGroup:
     """One cgroup with a CPU quota (in machine cores), v1 or v2, plus CPU accounting."""
 
-    def __init__(self, name: str):
+    def __init__(self, name: str, rt_runtime_us: int = 50000):
         mode, root = cgroup_mode()
         if mode is None:
             raise TestbedError(root)
@@ -155,11 +158,11 @@ class CpuGroup:
             raise TestbedError(f'{self.path}: {e}') from None
         if mode == 'v1' and os.path.exists(os.path.join(self.path, 'cpu.rt_runtime_us')):
             # With real-time group scheduling a new group may run no real-time thread at all;
-            # give it a small budget, as a machine without it would, so that an agent's warden
+            # give it a budget (``rt_runtime_us`` per second), so that an agent's warden
             # can answer the heartbeats at the priority it asks for (agent.warden_priority), and
             # the critical nodes run at theirs (agent.critical_priority).
             try:
-                self._write('cpu.rt_runtime_us', str(RT_RUNTIME_US))
+                self._write('cpu.rt_runtime_us', str(rt_runtime_us))
             except TestbedError:
                 pass
         if mode == 'v1':
@@ -393,10 +396,12 @@ class Network:
                         _run(['ip', '-n', ns, 'route', 'add', '224.0.0.0/4', 'dev', dev])
                         multicast_set.add(scale)
                     self._shape(wire.name, scale)
+            rt_runtime_us = min(RT_RUNTIME_MAX_US,
+                                RT_RUNTIME_TOTAL_US // max(1, len(self.cpu_cores)))
             for scale, cores in self.cpu_cores.items():
                 if scale not in self.scales:
                     raise ValueError(f'unknown scale {scale!r} for a CPU quota')
-                group = CpuGroup(f'{self.tag}-{scale}')
+                group = CpuGroup(f'{self.tag}-{scale}', rt_runtime_us)
                 self.groups[scale] = group
                 group.set_cores(cores)
         except BaseException:

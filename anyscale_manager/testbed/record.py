@@ -10,7 +10,7 @@ import math
 import time
 from bisect import bisect_right
 from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Optional, Sequence, Set, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Set, Tuple
 
 from .. import protocol as p
 from ..model.types import Connection, Deployment
@@ -374,9 +374,11 @@ class Record:
                     out.append(v)
         return sorted(out, key=lambda v: v.start)
 
-    def silence(self, v: DeltaBreach) -> Optional[str]:
+    def silence(self, v: DeltaBreach, rel: Callable[[float], float] = lambda t: t
+                ) -> Optional[str]:
         """Around a violation: the longest silence of its connection's topic heard between
-        its start - 2 s and its end + 0.5 s: its length, when it began (the monotonic clock)
+        its start - 2 s and its end + 0.5 s: its length, when it began (``rel`` of the
+        monotonic clock: the run's own seconds)
         and how many messages its writer numbered in between ('lost': sent, never heard here).
         Lost 0 means the writer sent nothing in between, not a lossy path; then the time its
         writer took between those two messages ('sent ... apart', from their source stamps)
@@ -395,7 +397,7 @@ class Record:
                                          key=lambda ab: ab[1][0] - ab[0][0])
         if s0 < 0 or s1 < 0:
             return None
-        text = f'silent {t1 - t0:.2f} s from {t0:.3f}, lost {s1 - s0 - 1}'
+        text = f'silent {t1 - t0:.2f} s from {rel(t0):.3f} s, lost {s1 - s0 - 1}'
         if s1 - s0 == 1 and math.isfinite(u0) and math.isfinite(u1):
             text += f', sent {u1 - u0:.2f} s apart'
         return text

@@ -159,7 +159,8 @@ def judge(d: Deployment, record: Record, laptop: Record, tally: Tally,
                   'kind': e.kind, 'node': e.node, 'reason': e.reason[:160]}
                  for t, e in r.events if a <= t <= b and e.kind in MOVES_BACK]
         (unneeded if row['no_move_back'] else noted).extend(found)
-    counted, forgiven = sort_violations(violations, tally.excuses, rel, r.silence)
+    counted, forgiven = sort_violations(violations, tally.excuses, rel,
+                                        lambda v: r.silence(v, rel))
     # The system's own account of two senders (the decider's 'duplicate' event, published past
     # monitoring.duplicate_sender_s), beside the observer's count above: each must stay 0, and
     # one without the other says which of the two judges is wrong.
