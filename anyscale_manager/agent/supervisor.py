@@ -65,7 +65,7 @@ class _Proc:
     strays: Tuple[int, ...] = ()  # descendants that may have left the session
     log_path: str = ''
     adopted: bool = False
-    raised: bool = False          # a critical node, raised to real-time once ready (priority.py)
+    raised: bool = False          # a critical node, raised to real-time once settled (priority.py)
     failed_spawns: int = 0
     history: List[str] = field(default_factory=list)
     ports: FrozenSet[int] = frozenset()  # its participants' unicast ports (agent/ports.py)
@@ -303,7 +303,7 @@ class Supervisor:
                 and self.realtime.priority > 0 and not self.realtime.refused)
 
     def _raise(self, p: _Proc) -> None:
-        """critical_priority: a critical node, once ready, runs at real-time priority."""
+        """critical_priority: a critical node, once settled, runs at real-time priority."""
         p.raised = True
         said = self.realtime.raise_node(p.entry.name, p.pid)
         if said:
