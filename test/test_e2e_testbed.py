@@ -224,8 +224,7 @@ def test_1_link_up_amcl_moves_first_then_ar_and_amcl_ekf_reaches_its_optimal_rat
     assert all(h['below_s'] < tolerance[h['connection']] for h in handovers), handovers
     # CPU-bound on the weak robot, below the laptop's rate: the reason to move it (the paper:
     # about 2 Hz on the robot). How far below depends on what else the robot's quota runs:
-    # 2.4-3.5 Hz in most runs, 4.55 Hz against the laptop's 5.05 Hz once (docs/testbed.md, open
-    # defects: the test-bed's calibration).
+    # 3.5-3.8 Hz (docs/measurements.md, AMCL's calibration).
     assert 1.5 <= robot_rate < rate, (robot_rate, rate)
 
 
