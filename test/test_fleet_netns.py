@@ -20,9 +20,11 @@ namespace hears it (its consumer is pinned there). One fleet, brought up once:
 (d) the server agent of the robot now holding the server is SIGKILLed: its warden stops its
     worker, its claim runs out with its lease, and only then does the first robot move in;
     the robot whose agent died takes its worker home within its Δ;
+(e) that robot is stopped and started anew with a higher priority: the holder is told first
+    and takes its worker home within its Δ, only then does the higher one's start there;
 never two workers on the server nor claims above its capacity, at any sample.
 
-About 45 s of wall time (boot 1 s, the first worker on the server 6 s later). Part of the
+About 60 s of wall time (boot 1 s, the first worker on the server 6 s later). Part of the
 default suite; skipped, with the reason printed, without namespaces (not root).
 """
 
@@ -154,6 +156,28 @@ def test_two_robots_in_namespaces_share_one_server_through_the_holders_link_cut(
         print(f"[fleet netns] {other}'s server agent killed: {holder} serving there "
               f"{moved.t - killed:.2f} s later (lease {lease:g} s), {other}'s output below "
               f'freq_min {longest:.2f} s at most')
+
+        # (e) A robot of a higher priority arrives: the one whose server agent died is stopped
+        # and started anew with priority 1, and asks for the room the holder has.
+        bed.stop(other)
+        arrived = time.monotonic()
+        bed.start(other, domains[other], priority=1)
+        took = bed.until(lambda s: s.where(other) == SERVER and s.where(holder) == HOME,
+                         60.0, f'{other} (priority 1) on the server, {holder} home')
+        left = rec.first(lambda s: s.workers[holder][SERVER] == 0, since=arrived)
+        started = rec.first(lambda s: s.workers[other][SERVER] >= 1, since=arrived)
+        assert left is not None and started is not None and started >= left, bed.describe()
+        bed.until(lambda s: s.t >= took.t + 3.0 and rec.judged_until(holder) >= s.t - 0.5,
+                  20.0, f"{holder}'s observer's lines past the preemption")
+        past, longest = stretches_past_delta(rec.heard(holder), arrived - 2.0, took.t + 3.0,
+                                             SHAPE)
+        print(f'[fleet netns] {other} back with priority 1: {holder} home '
+              f'{left - arrived:.2f} s after, its output below freq_min {longest:.2f} s '
+              f'at most; {other} started there {started - arrived:.2f} s after')
+        assert past == 0, f'{holder} below freq_min {longest:.2f} s, past its Δ ' \
+                          f'{SHAPE.tolerance_s:g} s, preempted\n{bed.describe()}'
+        assert 'of a higher priority asks away for the room' in \
+            bed.fleet.text(holder, 'decider'), bed.describe()
         assert rec.most_on_server() <= 1, bed.describe()
         assert rec.most_claimed() <= SHAPE.capacity_cpu, bed.describe()
         print(f'[fleet netns] boot {booted - began:.1f} s, first worker on the server '

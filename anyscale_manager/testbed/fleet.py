@@ -127,20 +127,23 @@ class Fleet:
         self.shape = shape
         self.port_base = port_base or ports.port_base()
         self.paths: Dict[str, str] = {}
+        self._index: Dict[str, int] = {}     # a robot's place in the fleet: its ports
         self.domains: Dict[str, str] = {}
         self.procs: Dict[str, Dict[str, subprocess.Popen]] = {}
         self._logs: List = []
 
     def start(self, name: str, domain: int, priority: int = 0) -> None:
-        """Robot ``name``: its file written, its server agent, robot agent and decider started."""
-        if name not in self.paths:
-            params = member_params(name, priority, self.run_dir,
-                                   self.port_base + 7 * len(self.paths), self.shape,
-                                   self.places.hosts(name))
-            path = os.path.join(self.run_dir, f'{name}.yaml')
-            with open(path, 'w') as f:
-                yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
-            self.paths[name] = path
+        """Robot ``name``: its file written (again, with ``priority``, for a robot stopped
+        and started anew), its server agent, robot agent and decider started."""
+        if name in self.procs:
+            raise ValueError(f'{name} is running; stop it before starting it again')
+        index = self._index.setdefault(name, len(self._index))
+        params = member_params(name, priority, self.run_dir, self.port_base + 7 * index,
+                               self.shape, self.places.hosts(name))
+        path = os.path.join(self.run_dir, f'{name}.yaml')
+        with open(path, 'w') as f:
+            yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
+        self.paths[name] = path
         self.domains[name] = str(domain)
         path = self.paths[name]
         self.procs[name] = {

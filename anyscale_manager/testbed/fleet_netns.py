@@ -172,9 +172,24 @@ class FleetBed:
     def start(self, robot: str, domain: int, priority: int = 0,
               observer_timeout_s: float = 30.0) -> None:
         """Robot ``robot``: its observer (ready before anything of the robot runs, so that its
-        users' first message is heard), then its server agent, home agent and decider."""
+        users' first message is heard; kept when the robot is started again), then its
+        server agent, home agent and decider."""
         if robot not in self.robots:
             raise ValueError(f'unknown robot {robot!r}; this bed has {", ".join(self.robots)}')
+        if robot not in self._observers:
+            self._start_observer(robot, domain, observer_timeout_s)
+        self.fleet.start(robot, domain, priority)
+        self.mark(f'{robot} started (priority {priority}, ROS domain {domain})')
+
+    def stop(self, robot: str) -> float:
+        """Stop ``robot``'s processes as a user would (SIGINT; its observer listens on);
+        return when they had ended."""
+        self.fleet.stop(robot)
+        t = time.monotonic()
+        self.record.mark(t, f'{robot} stopped')
+        return t
+
+    def _start_observer(self, robot: str, domain: int, timeout_s: float) -> None:
         err = open(os.path.join(self.run_dir, f'{robot}_observer.err'), 'ab')
         self._logs.append(err)
         proc = self.network.observer(robot, domain, subprocess.PIPE, err)
@@ -189,10 +204,8 @@ class FleetBed:
         reader = threading.Thread(target=read, name=f'{robot}-observer', daemon=True)
         reader.start()
         self._readers.append(reader)
-        self.until(lambda _s: self.record.ready(robot), observer_timeout_s,
+        self.until(lambda _s: self.record.ready(robot), timeout_s,
                    f"{robot}'s observer ready")
-        self.fleet.start(robot, domain, priority)
-        self.mark(f'{robot} started (priority {priority}, ROS domain {domain})')
 
     def close(self) -> List[str]:
         """Every robot stopped (SIGINT), the observers, then the namespaces removed; return
