@@ -1,38 +1,38 @@
-"""Two robots sharing one server, live, preemption after preemption (or the holder's link cut
-after cut): the time from capacity freed to the other robot's node there, the longest silence
-of the robot that gave the room up, and over-commit.
+"""Two robots sharing one server in network namespaces (testbed/fleet_netns.py FleetBed, as
+test/test_fleet_netns.py; root), preemption after preemption, or the holder's link cut after
+cut: the time from capacity freed to the other robot's node there, the longest stretch below
+freq_min of the robot that gave the room up, and over-commit.
 
-    python bench/bench_fleet.py [--preemptions 20] [--hysteresis 5] [--domain-id N]
-                                [--keep DIR]
-    python bench/bench_fleet.py --cuts 10 [--hysteresis 6] [--domain-id N] [--keep DIR]
+    sudo python bench/bench_fleet.py [--preemptions 20] [--hysteresis 5] [--domain-id N]
+                                     [--keep DIR]
+    sudo python bench/bench_fleet.py --cuts 10 [--hysteresis 6] [--domain-id N] [--keep DIR]
 
-On this machine's loopback (anyscale_manager/testbed/fleet.py): robot_a (priority 0) and
-robot_b (priority 1), each its own deployment, decider, agents and ROS domain, share one server
-(capacity 100) with room for one worker (CPU 60), a plain node, moved cold. robot_a's worker
-runs on the server; then, --preemptions times: robot_b starts and preempts it (robot_a takes
-its worker home, then robot_b's starts there), and robot_b stops, after which robot_a's worker
-goes back to the server once its hysteresis (--hysteresis s) has passed. Measured each cycle:
+robot_a and robot_b, each its own deployment, decider, agents, ROS domain and namespace, share
+one server (capacity 100) with room for one worker (CPU 60), a plain node, moved cold, Δ 5 s.
+Each robot's users are an observer in its own namespace; the bed samples at 5 Hz the worker
+processes under each agent and the active claims in the host's database.
 
-- preemption: from robot_a's worker process gone from the server (capacity freed) to robot_b's
-  worker process started there; and the longest gap this bench's own subscriber heard on
-  robot_a's worker output and on its pinned node's output across the preemption, each judged
-  by the Δ rule (runtime/delta.py) against the connection's Δ of 5 s, which a cold move meets;
-- return: from robot_b's worker gone from the server to robot_a's started there (robot_a's
-  hysteresis counts from its move home);
-- over-commit: samples at 5 Hz of the worker processes on the server (more than one) and of the
-  active claims in the host's database (over the capacity), as seconds.
+Preemptions: robot_a (priority 0) starts and its worker goes to the server; then,
+--preemptions times: robot_b starts with priority 1 and preempts it (robot_a takes its worker
+home, then robot_b's starts there), and robot_b stops, after which robot_a's worker goes back
+once its hysteresis (--hysteresis s) has passed. Measured each cycle: from the room freed
+(robot_a's server copy gone and its claim released, the later) to robot_b's worker started
+there; robot_a's longest stretch below freq_min from 2 s before robot_b's start until 2 s after
+the hand-over, judged by the Δ rule (runtime/delta.py); from robot_b stopped to robot_a's
+worker back there.
 
-``--cuts N`` (root): the fleet in network namespaces instead (testbed/fleet_netns.py FleetBed,
-as test/test_fleet_netns.py), both robots of priority 0, brought up once. N times: once one
-robot's worker serves from the server and the other's from home, the layout quiet, the
-holder's link is cut. Measured from the bed's samples at 5 Hz: the holder's worker home, its
-server copy gone and its claim released (the room freed: the later of the two), the other
-robot's worker started there and serving there (its home copy let go); the holder's longest
-stretch below freq_min, judged by the Δ rule on what its namespace heard from 2 s before the
-cut. Then the link is restored and the next round waits for the layout to be quiet again: the
-other robot holds the server, the first one's agent judged its link up, past the first one's
-hysteresis since its move home (so room, not T, decides the next hand-over), and nothing moved
-for 5 s; the next round cuts the new holder.
+``--cuts N``: both robots of priority 0, brought up once. N times: once one robot's worker
+serves from the server and the other's from home, the layout quiet, the holder's link is cut.
+Measured from the bed's samples: the holder's worker home, its server copy gone and its claim
+released (the room freed: the later of the two), the other robot's worker started there and
+serving there (its home copy let go); the holder's longest stretch below freq_min, judged by
+the Δ rule on what its namespace heard from 2 s before the cut. Then the link is restored and
+the next round waits for the layout to be quiet again: the other robot holds the server, the
+first one's agent judged its link up, past the first one's hysteresis since its move home (so
+room, not T, decides the next hand-over), and nothing moved for 5 s; the next round cuts the
+new holder.
+
+Over-commit, in both: samples with two workers on the server or claims above its capacity.
 """
 
 import argparse
@@ -44,49 +44,11 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
 
-os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-
-import rclpy  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.qos import qos_profile_sensor_data  # noqa: E402
-from std_msgs.msg import UInt8MultiArray  # noqa: E402
-
 from anyscale_manager.runtime.delta import rate_below  # noqa: E402
 from anyscale_manager.testbed import netns  # noqa: E402
-from anyscale_manager.testbed.fleet import (Fleet, FleetShape, HOME, other_domain,  # noqa: E402
+from anyscale_manager.testbed.fleet import (FleetShape, HOME, other_domain,  # noqa: E402
                                             SERVER, stretches_past_delta)
 from anyscale_manager.testbed.fleet_netns import FleetBed  # noqa: E402
-
-SAMPLE_S = 0.2
-
-
-class Bench:
-    def __init__(self, fleet, executor):
-        self.fleet, self.executor = fleet, executor
-        self.over_s = 0.0
-        self.heard = {'/robot_a/w': [], '/robot_a/p': []}
-
-    def until(self, cond, timeout_s, what):
-        end = time.monotonic() + timeout_s
-        while not cond():
-            on = self.fleet.on_server()
-            if sum(on.values()) > 1 or self.fleet.claimed_cpu() > \
-                    self.fleet.shape.capacity_cpu + 1e-9:
-                self.over_s += SAMPLE_S
-            dead = self.fleet.dead()
-            if dead:
-                raise SystemExit(f'{what}: {dead}')
-            if time.monotonic() > end:
-                raise SystemExit(f'{what}: not within {timeout_s} s\n{self.fleet.outputs()}')
-            stop = time.monotonic() + SAMPLE_S
-            while time.monotonic() < stop:
-                self.executor.spin_once(timeout_sec=0.05)
-        return time.monotonic()
-
-    def longest_gap(self, topic, start, end):
-        times = [t for t in self.heard[topic] if start <= t <= end]
-        times = [start] + times + [end]
-        return max(b - a for a, b in zip(times, times[1:]))
 
 
 def _pct(values, q):
@@ -152,10 +114,6 @@ def quiet(bed, shape, not_before, what):
 
 def cuts(a) -> int:
     """The holder's link cut, ``a.cuts`` times, in namespaces (the module's docstring)."""
-    ok, why = netns.available()
-    if not ok:
-        print(f'--cuts needs the test-bed: {why}', file=sys.stderr)
-        return 2
     run_dir = a.keep or tempfile.mkdtemp(prefix='fleet_cuts_')
     os.makedirs(run_dir, exist_ok=True)
     shape = FleetShape(hysteresis_s=a.hysteresis)
@@ -212,12 +170,70 @@ def cuts(a) -> int:
     return 1 if violations or early or over_n else 0
 
 
+def preemptions(a) -> int:
+    """robot_b (priority 1) preempts robot_a ``a.preemptions`` times (the module's docstring)."""
+    run_dir = a.keep or tempfile.mkdtemp(prefix='fleet_preemptions_')
+    os.makedirs(run_dir, exist_ok=True)
+    shape = FleetShape(hysteresis_s=a.hysteresis)
+    low, high = ROBOTS
+    domains = {low: a.domain_id, high: other_domain(a.domain_id)}
+    rows = {k: [] for k in ('there', 'gap', 'back')}
+    violations, early, notes = 0, 0, []
+    bed = FleetBed(run_dir, ROBOTS, shape)
+    rec = bed.record
+    try:
+        bed.setup()
+        bed.start(low, domains[low], priority=0)
+        for i in range(a.preemptions):
+            bed.until(lambda s: s.where(low) == SERVER
+                      and not rate_below(shape.freq_min_hz, heard_rate(rec, low, s.t - 0.6)),
+                      shape.hysteresis_s + 120.0,
+                      f"round {i + 1}: {low}'s worker serving from the server")
+            start = time.monotonic()
+            bed.start(high, domains[high], priority=1)
+            took = bed.until(lambda s: s.where(high) == SERVER and s.where(low) == HOME, 60.0,
+                             f'round {i + 1}: {high} on the server, {low} home')
+            freed = rec.first(lambda s: s.workers[low][SERVER] == 0
+                              and not s.claims_cpu.get(low), since=start)
+            there = rec.first(lambda s: s.workers.get(high, {}).get(SERVER, 0) >= 1,
+                              since=start)
+            bed.until(lambda s: s.t >= took.t + 2.0 and rec.judged_until(low) >= s.t - 0.5,
+                      20.0, f"round {i + 1}: {low}'s observer's lines past the hand-over")
+            past, longest = stretches_past_delta(rec.heard(low), start - 2.0, took.t + 2.0,
+                                                 shape)
+            violations += past > 0
+            early += there < freed
+            gone = bed.stop(high)
+            back = bed.until(lambda s: s.where(low) == SERVER, shape.hysteresis_s + 60.0,
+                             f"round {i + 1}: {low}'s worker back on the server")
+            rows['there'].append(there - freed)
+            rows['gap'].append(longest)
+            rows['back'].append(back.t - gone)
+            print(f'[{i + 1}/{a.preemptions}] freed -> {high} there {there - freed:.2f} s; '
+                  f'{low} below freq_min {longest:.2f} s at most{", PAST Δ" if past else ""}; '
+                  f'{high} gone -> {low} back {back.t - gone:.2f} s', flush=True)
+    finally:
+        notes = bed.close()
+    over_n, over_s = over_commit(rec.samples, shape)
+    print(f'fleet, preemptions: 2 robots in namespaces, one server (capacity '
+          f'{shape.capacity_cpu:g}, worker {shape.worker_cpu:g}), {len(rows["there"])} '
+          f'preemptions, hysteresis {shape.hysteresis_s:g} s, Δ {shape.tolerance_s:g} s; run '
+          f'folder {run_dir}')
+    if rows['there']:
+        print(_line('room freed -> the higher robot there', rows['there']))
+        print(_line("the lower robot's longest stretch below freq_min", rows['gap']))
+        print(_line('the higher robot gone -> the lower one back', rows['back']))
+    print(f'  Δ violations on the preempted robot: {violations} of {len(rows["there"])}; '
+          f'started before the room was freed: {early}; over-commit: {over_n} samples of '
+          f'{len(rec.samples)}, {over_s:.1f} s; teardown cleaned: {notes or "nothing"}')
+    return 1 if violations or early or over_n else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--preemptions', type=int, default=20)
     ap.add_argument('--cuts', type=int, default=0,
-                    help="instead of preemptions, this many cuts of the holder's link, the "
-                         'fleet in network namespaces (root)')
+                    help="instead of preemptions, this many cuts of the holder's link")
     ap.add_argument('--hysteresis', type=float, default=None,
                     help='seconds (default 5, with --cuts 6)')
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', 57)))
@@ -227,75 +243,11 @@ def main(argv=None) -> int:
         ap.error('--cuts and --preemptions take a count of 0 or more')
     if a.hysteresis is None:
         a.hysteresis = 6.0 if a.cuts else 5.0
-    if a.cuts:
-        return cuts(a)
-    run_dir = a.keep or tempfile.mkdtemp(prefix='fleet_bench_')
-    os.makedirs(run_dir, exist_ok=True)
-    shape = FleetShape(hysteresis_s=a.hysteresis)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(a.domain_id))
-    os.environ['ROS_DOMAIN_ID'] = str(a.domain_id)
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('fleet_bench', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    fleet = Fleet(run_dir, env, shape)
-    bench = Bench(fleet, executor)
-    for topic in bench.heard:
-        node.create_subscription(UInt8MultiArray, topic,
-                                 lambda m, t=topic: bench.heard[t].append(time.monotonic()),
-                                 qos_profile_sensor_data)
-    freed_to_b, freed_to_a, gaps_w, gaps_p, violations = [], [], [], [], 0
-    try:
-        fleet.start('robot_a', a.domain_id, priority=0)
-        bench.until(lambda: fleet.on_server().get('robot_a') == 1, 120.0,
-                    "robot_a's worker on the server")
-        for i in range(a.preemptions):
-            bench.until(lambda: len(bench.heard['/robot_a/w']) and
-                        time.monotonic() - bench.heard['/robot_a/w'][-1] < 0.5, 30.0,
-                        "robot_a's worker heard")
-            start = time.monotonic()
-            fleet.start('robot_b', other_domain(a.domain_id), priority=1)
-            freed = bench.until(lambda: fleet.on_server().get('robot_a') == 0, 120.0,
-                                "robot_a's worker leaving the server")
-            b_there = bench.until(lambda: fleet.on_server().get('robot_b') == 1, 60.0,
-                                  "robot_b's worker on the server")
-            bench.until(lambda: fleet.workers('robot_a', HOME) == 1, 30.0,
-                        "robot_a's worker home")
-            bench.until(lambda: time.monotonic() - b_there > 2.0, 5.0, 'settling')
-            end = time.monotonic()
-            gw = bench.longest_gap('/robot_a/w', start, end)
-            gp = bench.longest_gap('/robot_a/p', start, end)
-            past = [stretches_past_delta(bench.heard[t], start, end, shape)[0]
-                    for t in ('/robot_a/w', '/robot_a/p')]
-            violations += any(past)
-            freed_to_b.append(b_there - freed)
-            gaps_w.append(gw)
-            gaps_p.append(gp)
-            fleet.stop('robot_b')
-            gone = time.monotonic()
-            a_there = bench.until(lambda: fleet.on_server().get('robot_a') == 1,
-                                  shape.hysteresis_s + 60.0, "robot_a's worker back")
-            freed_to_a.append(a_there - gone)
-            print(f'[{i + 1}/{a.preemptions}] freed -> robot_b there {b_there - freed:.2f} s; '
-                  f"robot_a's longest gap: worker {gw:.2f} s, pinned {gp:.2f} s; robot_b gone "
-                  f'-> robot_a back {a_there - gone:.2f} s', flush=True)
-    finally:
-        fleet.close()
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
-    print(f'fleet: 2 robots, one server (capacity {shape.capacity_cpu:g}, worker '
-          f'{shape.worker_cpu:g}), {len(freed_to_b)} preemptions, hysteresis '
-          f'{shape.hysteresis_s:g} s; run folder {run_dir}')
-    if freed_to_b:
-        print(_line('capacity freed -> higher robot there', freed_to_b))
-        print(_line("lower robot's longest gap, worker output", gaps_w))
-        print(_line("lower robot's longest gap, pinned output", gaps_p))
-        print(_line('higher robot gone -> lower robot back there', freed_to_a))
-    print(f'  Δ violations on the preempted robot: {violations} of {len(freed_to_b)}; '
-          f'over-commit: {bench.over_s:.1f} s')
-    return 1 if violations or bench.over_s else 0
+    ok, why = netns.available()
+    if not ok:
+        print(f'the fleet in namespaces needs the test-bed: {why}', file=sys.stderr)
+        return 2
+    return cuts(a) if a.cuts else preemptions(a)
 
 
 if __name__ == '__main__':

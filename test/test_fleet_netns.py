@@ -165,7 +165,8 @@ def test_two_robots_in_namespaces_share_one_server_through_the_holders_link_cut(
         took = bed.until(lambda s: s.where(other) == SERVER and s.where(holder) == HOME,
                          60.0, f'{other} (priority 1) on the server, {holder} home')
         left = rec.first(lambda s: s.workers[holder][SERVER] == 0, since=arrived)
-        started = rec.first(lambda s: s.workers[other][SERVER] >= 1, since=arrived)
+        started = rec.first(lambda s: s.workers.get(other, {}).get(SERVER, 0) >= 1,
+                            since=arrived)
         assert left is not None and started is not None and started >= left, bed.describe()
         bed.until(lambda s: s.t >= took.t + 3.0 and rec.judged_until(holder) >= s.t - 0.5,
                   20.0, f"{holder}'s observer's lines past the preemption")
