@@ -6,6 +6,7 @@ import dataclasses
 import time
 
 from anyscale_manager import protocol as p
+from anyscale_manager.agent import lifecycle as lc
 from anyscale_manager.agent.claims import HostClaims
 from anyscale_manager.agent.ledger import Ledger
 from anyscale_manager.agent.reconcile import Reconciler
@@ -142,3 +143,46 @@ def test_an_agent_shutting_down_gives_its_room_back_before_it_exits(make_sup, tm
         time.sleep(0.02)
     # Finished (it would exit now): its claim is gone already, not after a lease.
     assert b.step().wanted == {'amcl'}
+
+
+def test_a_copy_being_deactivated_keeps_its_room_until_it_is_inactive(tmp_path):
+    """A layout stands robot_a's active copy down (its goal inactive): while its lifecycle
+    state is still active the agent's claim stays active, so robot_b (waiting with a higher
+    priority) cannot be handed the room while both would serve; once inactive, the claim
+    shrinks to a standby one and robot_b's is granted."""
+    low = HostClaims(Ledger(str(tmp_path), 'robot_a', 10.0), fleet_member('robot_a'), 'server')
+    high = HostClaims(Ledger(str(tmp_path), 'robot_b', 10.0), fleet_member('robot_b', 1),
+                      'server')
+    low.begin(0.0)
+    high.begin(0.0)
+    live = {'amcl'}
+    assert low.gate(1.0, {'amcl'}, {'amcl': lc.ACTIVE}, live.__contains__) is not None
+    assert low.held['amcl'].active
+    goals = {'amcl': lc.ACTIVE}
+    high.gate(2.0, {'amcl'}, goals, lambda n: False)
+    assert goals['amcl'] == lc.FINALIZED and 'amcl' in high.waiting
+    serving = {'amcl'}
+    low.gate(3.0, {'amcl'}, {'amcl': lc.INACTIVE}, live.__contains__, serving.__contains__)
+    assert low.held['amcl'].active                 # still serving: its room stays held
+    goals = {'amcl': lc.ACTIVE}
+    high.gate(3.1, {'amcl'}, goals, lambda n: False)
+    assert 'amcl' in high.waiting
+    serving.clear()                                # its deactivation done
+    low.gate(4.0, {'amcl'}, {'amcl': lc.INACTIVE}, live.__contains__, serving.__contains__)
+    assert not low.held['amcl'].active
+    goals = {'amcl': lc.ACTIVE}
+    high.gate(4.1, {'amcl'}, goals, lambda n: False)
+    assert high.held['amcl'].active and goals['amcl'] == lc.ACTIVE
+
+
+def test_before_any_layout_a_standby_copy_claims_no_cpu_and_an_unknown_one_its_room(tmp_path):
+    """Before the first layout a live copy keeps its state (goal None): a standby copy the
+    agent has just started claims memory only (it asks no one to leave), one adopted in an
+    unknown state (it may serve) claims its CPU."""
+    d = fleet_member('robot_a', 1)
+    claims = HostClaims(Ledger(str(tmp_path), 'robot_a', 10.0), d, 'server')
+    claims.begin(0.0)
+    claims.gate(1.0, {'amcl'}, {'amcl': None}, lambda n: True, lambda n: False)
+    assert not claims.held['amcl'].active and claims.held['amcl'].memory_mb == 70.0
+    claims.gate(2.0, {'amcl'}, {'amcl': None}, lambda n: True, lambda n: True)
+    assert claims.held['amcl'].active and claims.held['amcl'].cpu == 60.0

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from anyscale_manager.testbed.fleet_netns import link_name, output_topic
+from anyscale_manager.testbed.fleet_netns import link_name
 from anyscale_manager.testbed.fleet_record import FleetRecord, FleetSample
 from anyscale_manager.testbed.record import HEARD_LAG_S
 
@@ -58,9 +58,8 @@ def test_the_timeline_has_a_row_per_period_and_every_mark():
     assert 'robot_a: away link CUT' in rows[3], rows
 
 
-def test_each_robot_has_its_link_and_output_topic():
+def test_each_robot_has_its_link():
     assert link_name('robot_a') == 'link_a' and link_name('scout') == 'link_scout'
-    assert output_topic('robot_b') == '/robot_b/w'
 
 
 def test_a_hand_over_after_a_cut_is_read_from_the_samples():

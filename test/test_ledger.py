@@ -170,3 +170,42 @@ def test_a_waiting_claim_given_up_reserves_nothing_more(tmp_path):
     high.release('amcl', 2.2)              # robot_b placed its node elsewhere
     assert low.share(2.2).asked == {} and low.share(2.2).reserved == ()
     assert low.claim(Claim('robot_a', 'ar', 40, 0), 2.3).granted
+
+
+def test_a_robot_that_waits_for_two_nodes_asks_room_for_both(tmp_path):
+    """robot_b (priority 1) wants its AMCL and AR where robot_a (0) holds both: each of
+    robot_b's claims counts the room its other one waits for, so robot_a is asked for as much
+    as both need, not only for what each would need alone (which left robot_b's second node
+    waiting for an ask that had been answered)."""
+    low, high = ledger(tmp_path, 'robot_a'), ledger(tmp_path, 'robot_b', priority=1)
+    assert low.claim(Claim('robot_a', 'amcl', 50, 0), 1.0).granted
+    assert low.claim(Claim('robot_a', 'ar', 33, 0), 1.0).granted
+    assert high.claim(Claim('robot_b', 'amcl', 50, 0, priority=1), 2.0).waiting
+    answer = high.claim(Claim('robot_b', 'ar', 33, 0, priority=1), 2.0)
+    assert answer.waiting and 'robot_a/amcl' in answer.reason and 'robot_a/ar' in answer.reason
+    low.release('amcl', 3.0)
+    # AMCL alone would fit beside robot_a's AR now; with robot_b's AR waiting it does not, and
+    # robot_a's AR stays asked.
+    assert high.claim(Claim('robot_b', 'amcl', 50, 0, priority=1), 3.1).waiting
+    assert low.share(3.1).asked == {'ar': 'robot_b/ar'}
+    low.release('ar', 4.0)
+    assert high.claim(Claim('robot_b', 'amcl', 50, 0, priority=1), 4.1).granted
+    assert high.claim(Claim('robot_b', 'ar', 33, 0, priority=1), 4.1).granted
+
+
+def test_a_copy_deactivated_while_others_wait_for_room_gets_its_smaller_claim(tmp_path):
+    """robot_a (0) holds AMCL and AR; robot_b (1) waits for room for both. robot_a yields
+    AMCL first (its copy deactivated: a standby claim of no CPU): held and waited-for room add
+    up past the capacity meanwhile, and the smaller claim must still be granted, or robot_a's
+    active claim would stay and robot_b would wait for ever."""
+    low, high = ledger(tmp_path, 'robot_a'), ledger(tmp_path, 'robot_b', priority=1)
+    assert low.claim(Claim('robot_a', 'amcl', 50, 0), 1.0).granted
+    assert low.claim(Claim('robot_a', 'ar', 33, 0), 1.0).granted
+    assert high.claim(Claim('robot_b', 'amcl', 50, 0, priority=1), 2.0).waiting
+    assert high.claim(Claim('robot_b', 'ar', 33, 0, priority=1), 2.0).waiting
+    assert low.claim(Claim('robot_a', 'amcl', 50, 0, active=False), 3.0).granted
+    assert low.claim(Claim('robot_a', 'ar', 33, 0, active=False), 3.0).granted
+    # A claim growing back is not let through that way.
+    assert not low.claim(Claim('robot_a', 'ar', 33, 0), 3.1).granted
+    assert high.claim(Claim('robot_b', 'amcl', 50, 0, priority=1), 4.0).granted
+    assert high.claim(Claim('robot_b', 'ar', 33, 0, priority=1), 4.0).granted

@@ -60,13 +60,16 @@ class HostClaims:
                      self.deployment.priority, active)
 
     def gate(self, now: float, want: Set[str], goals: Dict[str, Optional[LifecycleState]],
-             live: Callable[[str], bool]) -> List[LogLine]:
+             live: Callable[[str], bool],
+             serving: Callable[[str], bool] = lambda name: False) -> List[LogLine]:
         """Take out of ``want`` and ``goals`` (in place) what the host's claims do not allow;
-        release the claims of copies gone. ``live(name)``: its process runs here."""
+        release the claims of copies gone. ``live(name)``: its process runs here;
+        ``serving(name)``: its copy may still be active (a copy being deactivated keeps its
+        active claim until it is inactive, so that its room is not handed on while it serves)."""
         logs: List[LogLine] = []
         try:
             for name in sorted(set(want) | set(self.held)):
-                self._gate_one(name, now, want, goals, live, logs)
+                self._gate_one(name, now, want, goals, live, serving, logs)
             if now - self._renewed >= self.ledger.lease_s / 4:
                 self.ledger.renew(now)
                 self._renewed = now
@@ -85,7 +88,7 @@ class HostClaims:
 
     def _gate_one(self, name: str, now: float, want: Set[str],
                   goals: Dict[str, Optional[LifecycleState]], live: Callable[[str], bool],
-                  logs: List[LogLine]) -> None:
+                  serving: Callable[[str], bool], logs: List[LogLine]) -> None:
         if name not in want:
             self.refused.pop(name, None)
             self.waiting.pop(name, None)
@@ -95,8 +98,13 @@ class HostClaims:
                 logs.append(('info', f'{name}: its copy is gone; its claim released'))
             return
         goal = goals.get(name, lc.ACTIVE)
-        wanted = self.claim_for(name, goal in (lc.ACTIVE, None))
-        if self.held.get(name) == wanted:
+        # A copy kept as it is (goal None: before the first layout) claims as it may serve:
+        # one adopted in an unknown state, or active, holds its room; a standby copy just
+        # started here does not (it would ask others to leave before any layout placed it).
+        wanted = self.claim_for(name, goal == lc.ACTIVE or (goal is None and serving(name)))
+        held = self.held.get(name)
+        if held == wanted or (held is not None and held.active and not wanted.active
+                              and serving(name)):
             return
         answer = self.ledger.claim(wanted, now)
         if answer.granted:

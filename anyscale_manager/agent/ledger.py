@@ -174,10 +174,19 @@ class Ledger:
             self._expire(now)
             host = self._host()
             key = (claim.deployment, claim.node)
+            mine = [c for c in self._claims() if (c.deployment, c.node) == key]
             held = [c for c in self._claims() if (c.deployment, c.node) != key]
-            reserved = [w for w in self._claims(table='waits') if w.deployment != claim.deployment
-                        and w.priority > claim.priority]
-            over = _over(host, held + reserved, claim)
+            # The room others of a higher priority wait for, and the room this deployment's
+            # other claims wait for: a robot that wants two nodes there asks room for both.
+            reserved = [w for w in self._claims(table='waits') if (w.deployment, w.node) != key
+                        and (w.deployment == claim.deployment or w.priority > claim.priority)]
+            # A claim that asks no more than the one it replaces (a copy deactivated: its
+            # standby claim) always fits: held and waited-for room may add up past the
+            # capacity while a preemption is under way, and refusing the smaller claim would
+            # keep the larger one, and the preemption, waiting for ever.
+            shrinks = bool(mine) and _cpu(claim) <= _cpu(mine[0]) + 1e-9 \
+                and claim.memory_mb <= mine[0].memory_mb + 1e-9
+            over = '' if shrinks else _over(host, held + reserved, claim)
             row = (claim.deployment, claim.node, claim.cpu, claim.memory_mb, int(claim.active),
                    claim.priority, now + self.lease_s)
             if not over:
@@ -284,6 +293,11 @@ def _totals(held: Iterable[Claim]) -> Tuple[float, float]:
         cpu += c.cpu if c.active else 0.0
         memory += c.memory_mb
     return cpu, memory
+
+
+def _cpu(claim: Claim) -> float:
+    """The CPU ``claim`` holds: a standby copy's none."""
+    return claim.cpu if claim.active else 0.0
 
 
 def _over(host: Tuple[float, float], held: Sequence[Claim], claim: Claim) -> str:

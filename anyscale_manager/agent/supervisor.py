@@ -127,6 +127,11 @@ class Supervisor:
         """Nodes with a live process here (starting, running or stopping)."""
         return tuple(n for n, p in self._procs.items() if p.state in ACTIVE)
 
+    def adopted(self, name: str) -> bool:
+        """``name`` runs in a process this agent adopted (started by an agent before it)."""
+        p = self._procs.get(name)
+        return p is not None and p.adopted and p.state in ACTIVE
+
     def pids(self) -> Dict[str, int]:
         """Live nodes' pids."""
         return {n: p.pid for n, p in self._procs.items() if p.state in ACTIVE and p.pid}

@@ -392,6 +392,15 @@ class AgentTurn:
         return out
 
     # --- one step ---------------------------------------------------------------------------
+    def _may_serve(self, name: str) -> bool:
+        """The lifecycle copy of ``name`` here may be active: it says so, or it was adopted
+        and has not said yet (a copy this agent started begins inactive)."""
+        driver = self.drivers.get(name)
+        if driver is None:
+            return False
+        return driver.state == lc.ACTIVE or (driver.state == lc.UNKNOWN
+                                             and self.supervisor.adopted(name))
+
     def step(self, now: float, inputs: AgentInputs) -> AgentOutput:
         """One step at ``now``: decide what runs here, drive the processes and lifecycles."""
         out = AgentOutput()
@@ -422,8 +431,8 @@ class AgentTurn:
             self._note_waiting(waiting, out)
         want |= {n for n, g in goals.items() if g == lc.FINALIZED and self._finalizing(n, now)}
         if self.claims is not None:
-            out.logs.extend(self.claims.gate(now, want, goals,
-                                             lambda n: n in sup.pids()))
+            out.logs.extend(self.claims.gate(now, want, goals, lambda n: n in sup.pids(),
+                                             self._may_serve))
             self._publish_due |= self.claims.report_changed
         sup.set_wanted(want, now)
         self._sync_drivers()

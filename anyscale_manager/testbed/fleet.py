@@ -1,25 +1,27 @@
-"""Robots of a fleet on this machine's loopback, for the fleet's tests and benches.
+"""Robots of a fleet on this machine, for the fleet's tests, benches and demo.
 
 Each robot is a deployment of its own, in a ROS domain of its own: its decider, the agent of its
 robot ('home', the master) and its agent of the shared server ('away', ``shared: true``). Every
 server agent, of whichever robot, has the same ``agent.state_dir``: one host, one claims ledger
-(agent/ledger.py). A robot's graph: sensor (home) -> worker (migratable, CPU ``worker_cpu``) ->
-pinned (home), the worker's output watched with a Δ that a cold move meets; the server has
-room for one worker.
+(agent/ledger.py). What a robot runs is its graph (testbed/fleet_graphs.py): a worker the
+server has room for one of, or the ICAR test-bed's graph, whose AMCL and AR of one robot fill
+the server.
 
-Judged from outside: the worker processes under each server agent (psutil) and the active
-claims in the host's database. Every process runs with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST,
-unless the fleet is given other places to run them (``Loopback`` is the default; testbed/
-fleet_netns.py runs each robot and the server in network namespaces of their own).
+Judged from outside: the copies of the migratable nodes that serve under each agent (psutil: a
+plain node's live process; a lifecycle node's process busy on its CPU, as only an active copy
+is) and the active claims in the host's database. Every process runs with
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, unless the fleet is given other places to run them
+(``Loopback`` is the default; testbed/fleet_netns.py runs each robot and the server in network
+namespaces of their own).
 """
 
 import os
 import signal
 import sqlite3
 import subprocess
-import sys
-from dataclasses import dataclass
-from typing import Dict, List, Mapping, Optional, Tuple
+import time
+from collections import deque
+from typing import Deque, Dict, List, Mapping, Optional, Tuple
 
 import psutil
 import yaml
@@ -27,74 +29,21 @@ import yaml
 from ..agent.ledger import FILE_NAME
 from . import ports
 from ..runtime.delta import DeltaJudge, past_delta
+from .fleet_graphs import BIN, FleetShape, graph_of, HOME, SERVER
 
-BIN = os.path.dirname(sys.executable)
-SERVER = 'away'
-HOME = 'home'
-
-
-@dataclass(frozen=True)
-class FleetShape:
-    """What every robot of the fleet runs, and the server's room."""
-
-    capacity_cpu: float = 100.0        # the server's (and each robot's) capacity
-    worker_cpu: float = 60.0
-    rate_hz: float = 10.0
-    freq_min_hz: float = 5.0
-    # The worker is a plain node: a move, a preemption included, starts it cold, and its Δ
-    # covers a cold start (validate's budget here: 12 beats at 4 Hz + 0.8 s = 3.8 s).
-    tolerance_s: float = 5.0
-    hysteresis_s: float = 60.0
-
-
-def member_params(name: str, priority: int, run_dir: str, port_base: int,
-                  shape: FleetShape, hosts: Optional[Mapping[str, str]] = None) -> dict:
-    """Robot ``name``'s deployment file, as ROS parameters; ``hosts``: scale -> its address
-    (``scales.<s>.host``), left to the default (this machine) when not given."""
-    topic = f'/{name}'
-    rate = ('--rate-hz', str(shape.rate_hz))
-
-    def workload(node: str, *args: str) -> dict:
-        return {'command': [os.path.join(BIN, 'workload'), '--name', node, *args, *rate]}
-    nodes = {'sensor': {'launch': workload('sensor', '--pub', topic + '/s'), 'cpu': 1.0,
-                        'residence': [HOME]},
-             'worker': {'launch': workload('worker', '--sub', topic + '/s', '--pub',
-                                           topic + '/w'), 'cpu': shape.worker_cpu},
-             'pinned': {'launch': workload('pinned', '--sub', topic + '/w', '--pub',
-                                           topic + '/p'), 'cpu': 1.0, 'residence': [HOME]}}
-    flow = {'msg_type': 'std_msgs/msg/UInt8MultiArray', 'bandwidth_kbps': 1.0}
-    connections = {'sensor_worker': dict(flow, topic=topic + '/s', publisher='sensor',
-                                         subscriber='worker'),
-                   'worker_pinned': dict(flow, topic=topic + '/w', publisher='worker',
-                                         subscriber='pinned', freq_min_hz=shape.freq_min_hz,
-                                         tolerance_s=shape.tolerance_s)}
-    scales = {HOME: {'role': 'master', 'kind': 'robot', 'capacity_cpu': shape.capacity_cpu,
-                     'cores': 2, 'clock_ghz': 1.0},
-              SERVER: {'role': 'remote', 'kind': 'server', 'capacity_cpu': shape.capacity_cpu,
-                       'cores': 4, 'clock_ghz': 2.0, 'shared': True}}
-    for scale, host in (hosts or {}).items():
-        scales[scale]['host'] = host
-    return {
-        'deployment': {'name': name, 'priority': priority},
-        'scales': dict(scales, names=[HOME, SERVER]),
-        'links': {'names': ['net'], 'net': {'ends': [HOME, SERVER], 'bandwidth_kbps': 100000.0,
-                                            'medium': 'wired'}},
-        'nodes': dict(nodes, names=list(nodes)),
-        'connections': dict(connections, names=list(connections)),
-        # Both scales are this one machine: no headroom kept; a missed echo is an agent not
-        # scheduled on a loaded machine, so the link is judged down only after 3 s. Each robot
-        # runs one decider: it listens 1.5 s for a leader before it leads, not 5 s.
-        'decider': {'cpu_headroom': 1.0, 'period_s': 0.25, 'grace_s': 1.0,
-                    'agent_timeout_s': 3.0, 'observation_max_age_s': 3.0,
-                    'hysteresis_s': shape.hysteresis_s, 'discovery_s': 1.5},
-        'monitoring': {'heartbeat_rate_hz': 4.0, 'heartbeat_misses_down': 12,
-                       'scale_rate_hz': 4.0, 'bandwidth_probe_interval_s': 86400.0,
-                       'bandwidth_probe_port': port_base},
-        'agent': {'sigint_grace_s': 1.0, 'sigterm_grace_s': 1.0, 'readiness_timeout_s': 5.0,
-                  'restart_backoff_s': 0.2, 'restart_backoff_max_s': 2.0,
-                  'heartbeat_rate_hz': 4.0, 'state_dir': os.path.join(run_dir, 'host_state'),
-                  'log_dir': os.path.join(run_dir, name)},
-    }
+# A lifecycle copy serves when its process is busy on its CPU, measured over two windows:
+# AR active takes 6-7 % of a core (30 images a second), AMCL 35 % and more; an inactive copy
+# 0.2-0.6 %, but 1.5-4.6 % over 0.2 s while a robot's nodes boot and discover one another in
+# its domain. Busy over the short window, so that a copy deactivated a moment ago does not
+# still count beside the one activated in its place; and over the long one, so that a
+# discovery burst is not taken for serving.
+ACTIVE_CPU = 0.04
+ACTIVE_WINDOW_S = 0.2
+ACTIVE_LONG_S = 1.0
+# A process this young is starting (the interpreter, rclpy, its configuration: a standby copy
+# is busy then too), not serving. On the ICAR graph a copy serves long after its start: its
+# standby copy is started with its agent and activated when the layout moves it there.
+STARTING_S = 4.0
 
 
 class Loopback:
@@ -125,7 +74,9 @@ class Fleet:
         self.run_dir = run_dir
         self.places = places or Loopback(environ)
         self.shape = shape
+        self.graph = graph_of(shape)
         self.port_base = port_base or ports.port_base()
+        self._activity = Activity()
         self.paths: Dict[str, str] = {}
         self._index: Dict[str, int] = {}     # a robot's place in the fleet: its ports
         self.domains: Dict[str, str] = {}
@@ -138,8 +89,8 @@ class Fleet:
         if name in self.procs:
             raise ValueError(f'{name} is running; stop it before starting it again')
         index = self._index.setdefault(name, len(self._index))
-        params = member_params(name, priority, self.run_dir, self.port_base + 7 * index,
-                               self.shape, self.places.hosts(name))
+        params = self.graph.params(name, priority, self.run_dir, self.port_base + 7 * index,
+                                   self.places.hosts(name))
         path = os.path.join(self.run_dir, f'{name}.yaml')
         with open(path, 'w') as f:
             yaml.safe_dump({'/**': {'ros__parameters': params}}, f)
@@ -165,11 +116,31 @@ class Fleet:
             return f.read()
 
     def workers(self, name: str, role: str) -> int:
-        """The live worker processes robot ``name``'s ``role`` agent supervises."""
+        """The copies of robot ``name``'s migratable nodes that serve under its ``role``
+        agent."""
+        return len(self.serving(name, role))
+
+    def serving(self, name: str, role: str) -> Tuple[str, ...]:
+        """The migratable nodes of robot ``name`` whose copy under its ``role`` agent serves
+        (the module's docstring), sorted."""
         proc = self.procs.get(name, {}).get(role)
         if proc is None or proc.poll() is not None:
-            return 0
-        return workers_under(proc.pid)
+            return ()
+        try:
+            kids = psutil.Process(proc.pid).children(recursive=True)
+        except psutil.NoSuchProcess:
+            return ()
+        out = []
+        for kid in kids:
+            node = node_of(kid)
+            if node in self.graph.moving and (not self.graph.lifecycle
+                                              or self._activity.busy(kid)):
+                out.append(node)
+        return tuple(sorted(out))
+
+    def serving_cpu(self, name: str, role: str) -> float:
+        """The CPU the file declares for the copies ``serving(name, role)`` names."""
+        return sum(self.graph.cpu(n) for n in self.serving(name, role))
 
     def on_server(self) -> Dict[str, int]:
         return {name: self.workers(name, SERVER) for name in self.procs}
@@ -248,21 +219,74 @@ def stretches_past_delta(arrivals: List[float], start: float, end: float,
             max(stretches, default=0.0))
 
 
-def workers_under(pid: int) -> int:
+def node_of(proc: psutil.Process) -> Optional[str]:
+    """The node a live workload process runs (its ``--name``), else None."""
     try:
-        kids = psutil.Process(pid).children(recursive=True)
-    except psutil.NoSuchProcess:
-        return 0
-    return sum(1 for k in kids if is_worker(k))
+        cmd = proc.cmdline()
+        if proc.status() == psutil.STATUS_ZOMBIE or '--name' not in cmd:
+            return None
+        return cmd[cmd.index('--name') + 1]
+    except (psutil.Error, IndexError):
+        return None
 
 
 def is_worker(proc: psutil.Process) -> bool:
+    return node_of(proc) == 'worker'
+
+
+def cpu_seconds(proc: psutil.Process) -> Optional[float]:
+    """The CPU time of every thread of ``proc``, to the nanosecond where the kernel keeps
+    scheduler statistics (/proc/PID/task/TID/schedstat; the clock-tick counts psutil reads
+    move by 10 ms, a twentieth of a 0.2 s window), else psutil's; None once it is gone."""
+    total, seen = 0, False
     try:
-        cmd = proc.cmdline()
-        return proc.status() != psutil.STATUS_ZOMBIE and '--name' in cmd \
-            and cmd[cmd.index('--name') + 1] == 'worker'
-    except (psutil.Error, IndexError):
-        return False
+        tids = os.listdir(f'/proc/{proc.pid}/task')
+    except OSError:
+        tids = []
+    for tid in tids:
+        try:
+            with open(f'/proc/{proc.pid}/task/{tid}/schedstat') as f:
+                total += int(f.read().split()[0])
+            seen = True
+        except (OSError, ValueError, IndexError):
+            continue
+    if seen:
+        return total / 1e9
+    try:
+        times = proc.cpu_times()
+    except psutil.Error:
+        return None
+    return times.user + times.system
+
+
+class Activity:
+    """Whether a process has been busy lately: its CPU since the last sample of it taken at
+    least ``ACTIVE_WINDOW_S`` before and since the oldest kept (up to ``ACTIVE_LONG_S``),
+    each at least ``ACTIVE_CPU`` (unknown, so not busy, until a sample is that old); a process
+    younger than ``STARTING_S`` is not."""
+
+    def __init__(self):
+        self._seen: Dict[Tuple[int, float], Deque[Tuple[float, float]]] = {}
+
+    def busy(self, proc: psutil.Process) -> bool:
+        try:
+            key = (proc.pid, proc.create_time())
+        except psutil.Error:
+            return False
+        if time.time() - key[1] < STARTING_S:
+            return False
+        cpu = cpu_seconds(proc)
+        if cpu is None:
+            return False
+        now = time.monotonic()
+        seen = self._seen.setdefault(key, deque())
+        seen.append((now, cpu))
+        while len(seen) > 2 and now - seen[1][0] >= ACTIVE_LONG_S:
+            seen.popleft()
+        recent = [(t, c) for t, c in seen if now - t >= ACTIVE_WINDOW_S]
+        if not recent:
+            return False
+        return all((cpu - c) / (now - t) >= ACTIVE_CPU for t, c in (seen[0], recent[-1]))
 
 
 def other_domain(domain: int) -> int:

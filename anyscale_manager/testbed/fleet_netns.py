@@ -28,6 +28,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 from ..protocol import TOPIC_LAYOUT
 from .errors import HarnessError
 from .fleet import Fleet, FleetShape, HOME, SERVER
+from .fleet_graphs import graph_of
 from .fleet_record import FleetRecord, FleetSample
 from .harness import child_env
 from .links import NamespaceLinks
@@ -35,23 +36,19 @@ from .netns import DEFAULT_RATE_KBPS
 
 SERVER_SCALE = 'server'
 ROBOT_PREFIX = 'robot_'
-MSG_TYPE = 'std_msgs/msg/UInt8MultiArray'
 # CPU quotas in cores of this machine: a robot runs its decider, its home agent and three
 # workload nodes; the server two agents and a worker. Enough that a cold start of the worker
 # (a Python process importing rclpy) fits within the worker's Δ on a machine shared with
-# other work.
+# other work. The ICAR graph's robot gets its capacity at the graph's reference core
+# (fleet_graphs.py); the server holds one robot's AMCL and AR in either.
 ROBOT_CORES = 0.6
 SERVER_CORES = 1.0
+BOOT_TIMEOUT_S = 90.0
 
 
 def link_name(robot: str) -> str:
     """The link of ``robot`` to the server: link_a for robot_a."""
     return 'link_' + (robot[len(ROBOT_PREFIX):] if robot.startswith(ROBOT_PREFIX) else robot)
-
-
-def output_topic(robot: str) -> str:
-    """The topic of ``robot``'s worker output (fleet.member_params)."""
-    return f'/{robot}/w'
 
 
 class FleetNetwork:
@@ -110,17 +107,25 @@ class FleetNetwork:
         return self.control.popen(scale, argv, self.env(name, scale, domain), True,
                                   stdout=log, stderr=subprocess.STDOUT)
 
-    def observer(self, robot: str, domain: int, stdout, stderr) -> subprocess.Popen:
-        """An observer of ``robot``'s worker output in the robot's namespace, outside its
+    def observer(self, robot: str, domain: int, topics: Sequence[str], stdout,
+                 stderr) -> subprocess.Popen:
+        """An observer of ``topics`` (``TOPIC:TYPE``) in ``robot``'s namespace, outside its
         quota, at a real-time priority where it may have one: the instrument that judges must
         not wait for a core behind the processes it judges."""
-        argv = [sys.executable, '-m', 'anyscale_manager.testbed.observer',
-                '--topic', f'{output_topic(robot)}:{MSG_TYPE}',
-                '--project', TOPIC_LAYOUT]
+        argv = [sys.executable, '-m', 'anyscale_manager.testbed.observer']
+        for topic in topics:
+            argv += ['--topic', topic]
+        argv += ['--project', TOPIC_LAYOUT]
         if os.geteuid() == 0 and shutil.which('chrt'):
             argv = ['chrt', '--rr', '10'] + argv
         return self.control.popen(robot, argv, self.env(robot, robot, domain), False,
                                   stdout=stdout, stderr=stderr)
+
+    def set_robot_cores(self, robot: str, cores: Optional[float]) -> None:
+        """``robot``'s CPU quota, in cores of this machine (None: the whole machine)."""
+        group = self.control.cpu_group(robot)
+        if group is not None:
+            group.set_cores(cores)
 
     def cut(self, robot: str) -> None:
         self.control.cut(self.links[robot])
@@ -148,7 +153,11 @@ class FleetBed:
                  shape: FleetShape = FleetShape(), network: Optional[FleetNetwork] = None):
         self.run_dir = run_dir
         self.robots = tuple(robots)
-        self.network = network or FleetNetwork(self.robots, run_dir)
+        self.graph = graph_of(shape)
+        self.robot_cores = self.graph.robot_cores() or ROBOT_CORES
+        self.network = network or FleetNetwork(
+            self.robots, run_dir, robot_cores=self.robot_cores,
+            server_cores=self.graph.server_cores() or SERVER_CORES)
         self.fleet = Fleet(run_dir, {}, shape, places=self.network)
         self.shape = shape
         self.record = FleetRecord(time.monotonic())
@@ -178,8 +187,22 @@ class FleetBed:
             raise ValueError(f'unknown robot {robot!r}; this bed has {", ".join(self.robots)}')
         if robot not in self._observers:
             self._start_observer(robot, domain, observer_timeout_s)
+        big = self.graph.lifecycle
+        if big:
+            # Eleven Python nodes starting at once under an Atom-sized quota take many seconds
+            # (the ICAR test-bed's harness does the same): the whole machine until each
+            # connection is heard, then the quota. Nothing of this robot is judged before.
+            self.network.set_robot_cores(robot, None)
         self.fleet.start(robot, domain, priority)
         self.mark(f'{robot} started (priority {priority}, ROS domain {domain})')
+        if big:
+            started = time.monotonic()
+            self.until(lambda s: all(self.record.heard(robot, j.topic)
+                                     and self.record.heard(robot, j.topic)[-1] > started
+                                     for j in self.graph.judged(robot)),
+                       BOOT_TIMEOUT_S, f'every connection of {robot} heard')
+            self.network.set_robot_cores(robot, self.robot_cores)
+            self.mark(f'{robot}: CPU quota {self.robot_cores:g} cores')
 
     def stop(self, robot: str) -> float:
         """Stop ``robot``'s processes as a user would (SIGINT; its observer listens on);
@@ -192,7 +215,8 @@ class FleetBed:
     def _start_observer(self, robot: str, domain: int, timeout_s: float) -> None:
         err = open(os.path.join(self.run_dir, f'{robot}_observer.err'), 'ab')
         self._logs.append(err)
-        proc = self.network.observer(robot, domain, subprocess.PIPE, err)
+        topics = [f'{j.topic}:{j.msg_type}' for j in self.graph.judged(robot)]
+        proc = self.network.observer(robot, domain, topics, subprocess.PIPE, err)
         self._observers[robot] = proc
         stream = proc.stdout
         if stream is None:
@@ -255,10 +279,14 @@ class FleetBed:
     def sample(self) -> FleetSample:
         """The fleet now, kept in the record."""
         t = time.monotonic()
+        serving = {r: {role: self.fleet.serving(r, role) for role in (HOME, SERVER)}
+                   for r in self.fleet.procs}
         sample = FleetSample(
-            t, {r: {role: self.fleet.workers(r, role) for role in (HOME, SERVER)}
-                for r in self.fleet.procs},
-            {r: self.network.up(r) for r in self.robots}, self.fleet.claims_by_robot())
+            t, {r: {role: len(nodes) for role, nodes in at.items()}
+                for r, at in serving.items()},
+            {r: self.network.up(r) for r in self.robots}, self.fleet.claims_by_robot(),
+            {r: at[SERVER] for r, at in serving.items()},
+            {r: sum(self.graph.cpu(n) for n in at[SERVER]) for r, at in serving.items()})
         self.record.add(sample)
         return sample
 
@@ -291,4 +319,4 @@ class FleetBed:
 
 
 __all__ = ['FleetBed', 'FleetNetwork', 'ROBOT_CORES', 'SERVER_CORES', 'SERVER_SCALE',
-           'link_name', 'output_topic']
+           'link_name']

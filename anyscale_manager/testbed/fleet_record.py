@@ -10,7 +10,7 @@ samples).
 import json
 import math
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from .fleet import HOME, SERVER
@@ -26,6 +26,10 @@ class FleetSample:
     workers: Mapping[str, Mapping[str, int]]
     links_up: Mapping[str, bool]          # robot -> its link to the server is up
     claims_cpu: Mapping[str, float]       # robot -> the CPU of its active claims on the server
+    # robot -> the migratable nodes whose copy serves on the server, and the CPU its file
+    # declares for them (the ICAR graph: where workers counts copies of two nodes)
+    on_server_nodes: Mapping[str, Tuple[str, ...]] = field(default_factory=dict)
+    server_cpu: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def on_server(self) -> int:
@@ -35,6 +39,11 @@ class FleetSample:
     @property
     def claimed_cpu(self) -> float:
         return sum(self.claims_cpu.values())
+
+    @property
+    def serving_cpu(self) -> float:
+        """The CPU declared for every copy serving on the server, of every robot."""
+        return sum(self.server_cpu.values())
 
     def where(self, robot: str) -> str:
         """Where robot's worker runs: 'home', 'away', 'both' or 'none'."""
@@ -71,6 +80,7 @@ class FleetRecord:
         self.samples: List[FleetSample] = []
         self.marks: List[Tuple[float, str]] = []
         self._arrivals: Dict[str, List[float]] = {}
+        self._by_topic: Dict[str, Dict[str, List[float]]] = {}
         self._heard_until: Dict[str, float] = {}
         self._ready: Dict[str, float] = {}
         self._lock = threading.Lock()
@@ -86,7 +96,7 @@ class FleetRecord:
 
     def ingest_line(self, robot: str, line: str) -> None:
         """One line of the observer in ``robot``'s namespace: its arrivals on every topic it
-        hears are that robot's (it is started with the robot's worker output only)."""
+        hears are that robot's (the worker graph: its worker's output only)."""
         try:
             obj = json.loads(line)
         except ValueError:
@@ -97,9 +107,13 @@ class FleetRecord:
             self._heard_until[robot] = max(self._heard_until.get(robot, -math.inf), obj['t'])
             if obj.get('ready'):
                 self._ready.setdefault(robot, obj['t'])
-            for times in (obj.get('arrivals') or {}).values():
-                self._arrivals.setdefault(robot, []).extend(
-                    float(t) for t in times if isinstance(t, (int, float)))
+            arrivals = obj.get('arrivals')
+            for topic, times in (arrivals.items() if isinstance(arrivals, dict) else ()):
+                if not isinstance(times, list):
+                    continue
+                got = [float(t) for t in times if isinstance(t, (int, float))]
+                self._arrivals.setdefault(robot, []).extend(got)
+                self._by_topic.setdefault(robot, {}).setdefault(str(topic), []).extend(got)
 
     # --- questions --------------------------------------------------------------------------
     def ready(self, robot: str) -> bool:
@@ -107,10 +121,13 @@ class FleetRecord:
         with self._lock:
             return robot in self._ready
 
-    def heard(self, robot: str) -> List[float]:
-        """When ``robot``'s users heard its worker's output, in order."""
+    def heard(self, robot: str, topic: Optional[str] = None) -> List[float]:
+        """When ``robot``'s users heard ``topic`` (None: any topic its observer hears, the
+        worker graph's worker output), in order."""
         with self._lock:
-            return sorted(self._arrivals.get(robot, []))
+            if topic is None:
+                return sorted(self._arrivals.get(robot, []))
+            return sorted(self._by_topic.get(robot, {}).get(topic, []))
 
     def judged_until(self, robot: str) -> float:
         """Up to when ``robot``'s heard arrivals are complete (the observer's flush lag)."""
@@ -160,7 +177,9 @@ class FleetRecord:
             next_t = sample.t + every_s
             rows.append((sample.t, 0, f'{sample.t - self.t0:7.2f}  ' + '  '.join(
                 f'{r}: {sample.where(r):4} link {"up" if sample.links_up.get(r) else "CUT":3} '
-                f'claim {sample.claims_cpu.get(r, 0.0):3.0f}' for r in robots)))
+                f'claim {sample.claims_cpu.get(r, 0.0):3.0f}'
+                + (f' away {",".join(sample.on_server_nodes[r]) or "-"}'
+                   if r in sample.on_server_nodes else '') for r in robots)))
         return [text for _, _, text in sorted(rows)]
 
 
