@@ -31,13 +31,14 @@ from . import ports
 from ..runtime.delta import DeltaJudge, past_delta
 from .fleet_graphs import BIN, FleetShape, graph_of, HOME, SERVER
 
-# A lifecycle copy serves when its process is busy on its CPU, measured over two windows:
-# AR active takes 6-7 % of a core (30 images a second), AMCL 35 % and more; an inactive copy
-# 0.2-0.6 %, but 1.5-4.6 % over 0.2 s while a robot's nodes boot and discover one another in
-# its domain. Busy over the short window, so that a copy deactivated a moment ago does not
-# still count beside the one activated in its place; and over the long one, so that a
-# discovery burst is not taken for serving.
-ACTIVE_CPU = 0.04
+# A lifecycle copy serves when its main thread (the executor's: the node's callbacks and
+# work) is busy, measured over two windows: AR active takes 4.6-6 % of a core there (30 images
+# a second), AMCL 35 %; an inactive copy 0.0 % but for its configuration (3 % over 0.2 s, once),
+# while its middleware threads take up to 4.6 % over 0.2 s as a robot's nodes boot and discover
+# one another. Busy over the short window, so that a copy deactivated a moment ago does not
+# still count beside the one activated in its place; and over the long one, so that a burst
+# is not taken for serving.
+ACTIVE_CPU = 0.02
 ACTIVE_WINDOW_S = 0.2
 ACTIVE_LONG_S = 1.0
 # A process this young is starting (the interpreter, rclpy, its configuration: a standby copy
@@ -77,6 +78,8 @@ class Fleet:
         self.graph = graph_of(shape)
         self.port_base = port_base or ports.port_base()
         self._activity = Activity()
+        # (robot, role) -> the copies of its migratable nodes seen under that agent, by pid
+        self._copies: Dict[Tuple[str, str], Dict[int, psutil.Process]] = {}
         self.paths: Dict[str, str] = {}
         self._index: Dict[str, int] = {}     # a robot's place in the fleet: its ports
         self.domains: Dict[str, str] = {}
@@ -123,18 +126,22 @@ class Fleet:
     def serving(self, name: str, role: str) -> Tuple[str, ...]:
         """The migratable nodes of robot ``name`` whose copy under its ``role`` agent serves
         (the module's docstring), sorted."""
+        known = self._copies.setdefault((name, role), {})
         proc = self.procs.get(name, {}).get(role)
-        if proc is None or proc.poll() is not None:
-            return ()
-        try:
-            kids = psutil.Process(proc.pid).children(recursive=True)
-        except psutil.NoSuchProcess:
-            return ()
+        if proc is not None and proc.poll() is None:
+            try:
+                for kid in psutil.Process(proc.pid).children(recursive=True):
+                    if node_of(kid) in self.graph.moving:
+                        known.setdefault(kid.pid, kid)
+            except psutil.NoSuchProcess:
+                pass
+        # A copy is followed past its agent's death (an orphan serves until fenced).
         out = []
-        for kid in kids:
-            node = node_of(kid)
-            if node in self.graph.moving and (not self.graph.lifecycle
-                                              or self._activity.busy(kid)):
+        for pid, kid in list(known.items()):
+            node = node_of(kid) if kid.is_running() else None
+            if node is None:
+                del known[pid]
+            elif not self.graph.lifecycle or self._activity.busy(kid):
                 out.append(node)
         return tuple(sorted(out))
 
@@ -235,23 +242,15 @@ def is_worker(proc: psutil.Process) -> bool:
 
 
 def cpu_seconds(proc: psutil.Process) -> Optional[float]:
-    """The CPU time of every thread of ``proc``, to the nanosecond where the kernel keeps
-    scheduler statistics (/proc/PID/task/TID/schedstat; the clock-tick counts psutil reads
-    move by 10 ms, a twentieth of a 0.2 s window), else psutil's; None once it is gone."""
-    total, seen = 0, False
+    """The CPU time of ``proc``'s main thread, to the nanosecond where the kernel keeps
+    scheduler statistics (/proc/PID/task/PID/schedstat; psutil's clock-tick counts move by
+    10 ms, a twentieth of a 0.2 s window, and span every thread), else psutil's; None once it
+    is gone."""
     try:
-        tids = os.listdir(f'/proc/{proc.pid}/task')
-    except OSError:
-        tids = []
-    for tid in tids:
-        try:
-            with open(f'/proc/{proc.pid}/task/{tid}/schedstat') as f:
-                total += int(f.read().split()[0])
-            seen = True
-        except (OSError, ValueError, IndexError):
-            continue
-    if seen:
-        return total / 1e9
+        with open(f'/proc/{proc.pid}/task/{proc.pid}/schedstat') as f:
+            return int(f.read().split()[0]) / 1e9
+    except (OSError, ValueError, IndexError):
+        pass
     try:
         times = proc.cpu_times()
     except psutil.Error:
@@ -260,10 +259,11 @@ def cpu_seconds(proc: psutil.Process) -> Optional[float]:
 
 
 class Activity:
-    """Whether a process has been busy lately: its CPU since the last sample of it taken at
-    least ``ACTIVE_WINDOW_S`` before and since the oldest kept (up to ``ACTIVE_LONG_S``),
-    each at least ``ACTIVE_CPU`` (unknown, so not busy, until a sample is that old); a process
-    younger than ``STARTING_S`` is not."""
+    """Whether a process has been busy lately: its main thread's CPU since the last sample of
+    it taken at least ``ACTIVE_WINDOW_S`` before and since the oldest kept (up to
+    ``ACTIVE_LONG_S``), each at least ``ACTIVE_CPU`` (unknown, so not busy, until a sample is
+    that old); a process younger than ``STARTING_S`` (starting: its main thread busy with
+    the interpreter and rclpy) is not."""
 
     def __init__(self):
         self._seen: Dict[Tuple[int, float], Deque[Tuple[float, float]]] = {}
