@@ -2,6 +2,7 @@
 judges of a run (over-commit, moves, Δ) and its figure, on records built here; its refusals of
 bad input through the command. The live fleet in namespaces is test_fleet_netns.py's."""
 
+import json
 import os
 
 import pytest
@@ -44,7 +45,10 @@ def test_a_bad_schedule_is_refused_with_the_step_named(text, says):
 def sample(t, a_home=0, a_away=0, b_home=0, b_away=0, a_up=True, claims=None):
     return FleetSample(t, {'robot_a': {HOME: a_home, SERVER: a_away},
                            'robot_b': {HOME: b_home, SERVER: b_away}},
-                       {'robot_a': a_up, 'robot_b': True}, claims or {})
+                       {'robot_a': a_up, 'robot_b': True}, claims or {},
+                       {'robot_a': ('worker',) * a_away, 'robot_b': ('worker',) * b_away},
+                       {'robot_a': SHAPE.worker_cpu * a_away,
+                        'robot_b': SHAPE.worker_cpu * b_away})
 
 
 def test_over_commit_counts_the_time_two_were_on_the_server_or_claims_above_capacity():
@@ -114,3 +118,23 @@ def test_demo_fleet_refuses_bad_input_with_exit_2(argv, says, capsys, tmp_path):
     assert main(['demo', '--fleet', '--out', str(tmp_path / 'out'), *argv]) == 2
     assert says in capsys.readouterr().err
     assert not os.path.exists(tmp_path / 'out')
+
+
+def test_an_icar_robots_summary_judges_each_connection():
+    """The ICAR graph: every connection the robot's observer hears is judged apart; one
+    silent past its Δ (amcl_ekf: 2 s) is named, the others hold."""
+    shape = FleetShape(graph='icar')
+    record = FleetRecord(0.0)
+    record.ingest_line('robot_a', '{"t": 0.0, "ready": true}')
+    fast = [1.0 + 0.01 * k for k in range(1900)]
+    arrivals = {'/scan': fast, '/wheel_ticks': fast, '/odom': fast, '/pose': fast,
+                '/markers': fast,
+                '/amcl_pose': [t for t in fast if not 5.0 < t < 9.0]}
+    record.ingest_line('robot_a', json.dumps({'t': 20.0, 'arrivals': arrivals}))
+    row = robot_summary(record, 'robot_a', shape, 0.0, 19.0)
+    assert set(row['connections']) == {'laser_navigation', 'odometer_odometry', 'amcl_ekf',
+                                       'odometry_ekf', 'ekf_navigation', 'ar_navigation'}
+    assert row['delta_violations'] == 1
+    assert row['connections']['amcl_ekf']['delta_violations'] == 1
+    assert 3.0 < row['connections']['amcl_ekf']['longest_below_s'] <= 4.0
+    assert row['connections']['odometry_ekf']['delta_violations'] == 0

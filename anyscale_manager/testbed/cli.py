@@ -47,10 +47,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              'needs network namespaces')
     parser.add_argument('--fleet', action='store_true',
                         help='two robots, each its own deployment, decider and ROS domain, '
-                             'share one server with room for one worker; the schedule starts '
+                             "share one server (--graph: each robot's graph, the server with "
+                             "room for one robot's share of it); the schedule starts "
                              'robots and cuts or restores their links: "0:start@robot_a,'
                              '25:cut@robot_a,40:restore@robot_a,60:start=1@robot_b" (the '
                              'default; start=N: priority N); needs network namespaces')
+    parser.add_argument('--graph', choices=('icar', 'worker'), default='icar',
+                        help='with --fleet, what each robot runs: its own copy of the ICAR '
+                             "2015 graph (the default; the server has room for one robot's "
+                             'AMCL and AR) or a sensor -> worker -> consumer graph (room for '
+                             'one worker)')
     parser.add_argument('--schedule', default='', metavar='STEPS',
                         help='link schedule instead of the paper-like default, e.g. '
                              '"20:cut,35:restore,40:throttle=4000" (seconds after start); '

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from .fleet import FleetShape, HOME, SERVER, other_domain, stretches_past_delta
+from .fleet_graphs import graph_of
 from .fleet_record import FleetRecord, FleetSample
 
 ROBOTS = ('robot_a', 'robot_b')
@@ -98,11 +99,11 @@ def parse_fleet_schedule(text: str, robots: Sequence[str] = ROBOTS) -> List[Flee
 # --- judging ---------------------------------------------------------------------------------
 
 def over_commit_s(samples: Sequence[FleetSample], capacity_cpu: float) -> float:
-    """Seconds with two workers on the server or claims above its capacity (each sample
-    holds until the next)."""
+    """Seconds with copies serving on the server, or claims, above its capacity (the CPU
+    each copy's file declares; each sample holds until the next)."""
     total = 0.0
     for a, b in zip(samples, samples[1:]):
-        if a.on_server > 1 or a.claimed_cpu > capacity_cpu + 1e-9:
+        if a.serving_cpu > capacity_cpu + 1e-9 or a.claimed_cpu > capacity_cpu + 1e-9:
             total += b.t - a.t
     return total
 
@@ -123,19 +124,26 @@ def moves(samples: Sequence[FleetSample], robot: str) -> List[Tuple[float, str, 
 
 def robot_summary(record: FleetRecord, robot: str, shape: FleetShape, t0: float,
                   end: float) -> Dict[str, Any]:
-    """What ``robot``'s users lived: Δ violations and the longest stretch below freq_min,
-    from its first message heard, and its moves."""
-    heard = record.heard(robot)
-    first = next((t for t in heard if t >= t0), None)
+    """What ``robot``'s users lived on each connection its graph judges: Δ violations and the
+    longest stretch below freq_min, each from its first message heard; and its moves."""
     row: Dict[str, Any] = {'moves': [
         {'at_s': round(t - t0, 2), 'from': a, 'to': b}
         for t, a, b in moves(record.between(t0, end), robot)]}
-    if first is None:
+    connections: Dict[str, Any] = {}
+    for j in graph_of(shape).judged(robot):
+        heard = record.heard(robot, j.topic)
+        first = next((t for t in heard if t >= t0), None)
+        if first is None:
+            continue
+        past, longest = stretches_past_delta(heard, first, end, j)
+        connections[j.name] = {'delta_violations': past, 'longest_below_s': round(longest, 2),
+                               'heard': sum(1 for t in heard if first <= t <= end)}
+    if not connections:
         row.update(delta_violations=None, longest_below_s=None, heard=0)
         return row
-    past, longest = stretches_past_delta(heard, first, end, shape)
-    row.update(delta_violations=past, longest_below_s=round(longest, 2),
-               heard=sum(1 for t in heard if first <= t <= end))
+    row.update(delta_violations=sum(c['delta_violations'] for c in connections.values()),
+               longest_below_s=max(c['longest_below_s'] for c in connections.values()),
+               heard=sum(c['heard'] for c in connections.values()), connections=connections)
     return row
 
 
@@ -154,14 +162,17 @@ def rate_series(arrivals: Sequence[float], t0: float, t1: float,
 
 def draw_fleet_timeline(record: FleetRecord, path: str, robots: Sequence[str],
                         shape: FleetShape, t0: float, t1: float, title: str = '') -> str:
-    """Per robot: where its worker runs with its link under it, and the rate its users hear
-    against freq_min; then the server's claims by robot against its capacity. Schedule steps
-    are grey vertical lines, named at the top."""
+    """Per robot: where its migratable nodes serve with its link under it, and the rate its
+    users hear of one connection (the graph's shown one) against its freq_min; then the
+    server's claims by robot against its capacity. Schedule steps are grey vertical lines,
+    named at the top."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
+    graph = graph_of(shape)
+    what = graph.what
     samples = record.between(t0, t1)
     rows = 2 * len(robots) + 1
     fig, axes = plt.subplots(rows, 1, figsize=(13, 1.2 + 1.5 * rows), sharex=True,
@@ -181,19 +192,21 @@ def draw_fleet_timeline(record: FleetRecord, path: str, robots: Sequence[str],
                        edgecolor=None if up else '#c44e52', hatch=None if up else '////')
         ax.set_yticks([])
         ax.set_ylabel(robot, rotation=0, ha='right', va='center', fontsize=8)
-        ax.legend(handles=[Patch(color=COLOURS[HOME], label='worker home'),
-                           Patch(color=COLOURS[SERVER], label='worker on the server'),
+        ax.legend(handles=[Patch(color=COLOURS[HOME], label=f'{what} home'),
+                           Patch(color=COLOURS[SERVER], label=f'{what} on the server'),
                            Patch(color=COLOURS['both'], label='both (a move, or a copy cut off)'),
                            Patch(color=COLOURS['none'], label='not running'),
                            Patch(color='#55a868', label='link up (lower lane)'),
                            Patch(facecolor='white', edgecolor='#c44e52', hatch='////',
                                  label='link cut')], **legend)
         ax = axes[2 * i + 1]
-        xs, ys = rate_series(record.heard(robot), t0, t1)
-        ax.step(xs, ys, where='post', color='#4c72b0', lw=1, label=f"{robot}'s output heard")
-        ax.axhline(shape.freq_min_hz, color='#c44e52', ls='--', lw=0.8,
-                   label=f'freq_min {shape.freq_min_hz:g} Hz (Δ {shape.tolerance_s:g} s)')
-        ax.set_ylim(0, shape.rate_hz * 1.6)
+        shown = graph.shown(robot)
+        xs, ys = rate_series(record.heard(robot, shown.topic), t0, t1)
+        ax.step(xs, ys, where='post', color='#4c72b0', lw=1,
+                label=f'{shown.topic} heard ({shown.name})')
+        ax.axhline(shown.freq_min_hz, color='#c44e52', ls='--', lw=0.8,
+                   label=f'freq_min {shown.freq_min_hz:g} Hz (Δ {shown.tolerance_s:g} s)')
+        ax.set_ylim(0, max([shown.freq_min_hz * 2.5] + ys) * 1.25)
         ax.set_ylabel('Hz', fontsize=8)
         ax.legend(**legend)
     ax = axes[-1]
@@ -216,7 +229,7 @@ def draw_fleet_timeline(record: FleetRecord, path: str, robots: Sequence[str],
                              fontsize=6, rotation=20, va='bottom')
     axes[0].set_xlim(0, max(1.0, t1 - t0))
     fig.suptitle(title or f'two robots share one server (capacity {shape.capacity_cpu:g}, '
-                 f'a worker needs {shape.worker_cpu:g})', y=0.995)
+                 f'{graph.needs()})', y=0.995)
     fig.text(0.01, 0.002, 'grey lines: schedule steps (named at the top)', fontsize=7)
     fig.tight_layout(rect=(0, 0.01, 1, 0.97))
     fig.savefig(path, dpi=110)
@@ -224,26 +237,27 @@ def draw_fleet_timeline(record: FleetRecord, path: str, robots: Sequence[str],
     return path
 
 
-def event_lines(record: FleetRecord, robots: Sequence[str], t0: float, t1: float
-                ) -> List[str]:
-    """The schedule's steps and each robot's moves, in time order."""
+def event_lines(record: FleetRecord, robots: Sequence[str], t0: float, t1: float,
+                what: str = 'worker') -> List[str]:
+    """The schedule's steps and each robot's moves (of its ``what``), in time order."""
     rows = [(t, f'{t - t0:7.2f}  {text}') for t, text in record.marks if t0 <= t <= t1]
     for robot in robots:
-        rows += [(t, f'{t - t0:7.2f}  {robot}: worker {a} -> {b}')
+        rows += [(t, f'{t - t0:7.2f}  {robot}: {what} {a} -> {b}')
                  for t, a, b in moves(record.between(t0, t1), robot)]
     return [text for _, text in sorted(rows)]
 
 
 # --- the run ---------------------------------------------------------------------------------
 
-def status_line(sample: FleetSample, robots: Sequence[str], t0: float) -> str:
+def status_line(sample: FleetSample, robots: Sequence[str], t0: float,
+                what: str = 'worker') -> str:
     parts = []
     for r in robots:
         if r not in sample.workers:
             parts.append(f'{r}: -')
             continue
         link = 'up' if sample.links_up.get(r, True) else 'CUT'
-        parts.append(f'{r}: worker {sample.where(r)}, link {link}, '
+        parts.append(f'{r}: {what} {sample.where(r)}, link {link}, '
                      f'claim {sample.claims_cpu.get(r, 0.0):g}')
     return f'{sample.t - t0:6.1f} s  ' + ' | '.join(parts)
 
@@ -303,7 +317,7 @@ def _play(bed, steps: Sequence[FleetStep], domains: Dict[str, int], duration: fl
         if dead is not None:
             raise HarnessError(dead)
         if now >= next_show:
-            print(status_line(sample, ROBOTS, t0), flush=True)
+            print(status_line(sample, ROBOTS, t0, bed.graph.what), flush=True)
             next_show = now + refresh_s
         time.sleep(SAMPLE_S)
     t1 = time.monotonic()
@@ -318,12 +332,15 @@ def _play(bed, steps: Sequence[FleetStep], domains: Dict[str, int], duration: fl
 def _write(record: FleetRecord, shape: FleetShape, steps: Sequence[FleetStep], out: str,
            t0: float, t1: float, notes: List[str]) -> Tuple[Dict[str, Any], List[str]]:
     """summary.json, events.txt and the timeline in ``out``: (the summary, the files)."""
+    graph = graph_of(shape)
     summary: Dict[str, Any] = {
         'schedule': [str(s) for s in steps], 'duration_s': round(t1 - t0, 2),
-        'server_capacity_cpu': shape.capacity_cpu, 'worker_cpu': shape.worker_cpu,
+        'graph': shape.graph, 'server_capacity_cpu': shape.capacity_cpu,
+        'migratable_cpu': {n: graph.cpu(n) for n in graph.moving},
         'hysteresis_s': shape.hysteresis_s, 'tolerance_s': shape.tolerance_s,
         'over_commit_s': round(over_commit_s(record.between(t0, t1), shape.capacity_cpu), 2),
-        'most_workers_on_server': record.most_on_server(t0, t1),
+        'most_copies_on_server': record.most_on_server(t0, t1),
+        'most_serving_cpu': max((x.serving_cpu for x in record.between(t0, t1)), default=0.0),
         'most_claimed_cpu': record.most_claimed(t0, t1),
         'robots': {r: robot_summary(record, r, shape, t0, t1) for r in ROBOTS},
         'teardown_notes': notes}
@@ -333,7 +350,7 @@ def _write(record: FleetRecord, shape: FleetShape, steps: Sequence[FleetStep], o
                                          shape, t0, t1))
     events = os.path.join(out, 'events.txt')
     with open(events, 'w') as f:
-        f.write('\n'.join(event_lines(record, ROBOTS, t0, t1)) + '\n')
+        f.write('\n'.join(event_lines(record, ROBOTS, t0, t1, graph.what)) + '\n')
     files.append(events)
     path = os.path.join(out, 'summary.json')
     with open(path, 'w') as f:
@@ -346,8 +363,8 @@ def _say_result(summary: Dict[str, Any], shape: FleetShape) -> bool:
     """Print the server's and each robot's outcome; whether the run failed."""
     print('')
     print(f'server: over-committed {summary["over_commit_s"]:g} s; at most '
-          f'{summary["most_workers_on_server"]} worker(s) there, '
-          f'{summary["most_claimed_cpu"]:g} CPU claimed of {shape.capacity_cpu:g}')
+          f'{summary["most_serving_cpu"]:g} CPU serving there and '
+          f'{summary["most_claimed_cpu"]:g} CPU claimed, of {shape.capacity_cpu:g}')
     failed = summary['over_commit_s'] > 0
     for robot, row in summary['robots'].items():
         moved = ', '.join(f'{m["from"]} -> {m["to"]} at {m["at_s"]:g} s'
@@ -356,8 +373,10 @@ def _say_result(summary: Dict[str, Any], shape: FleetShape) -> bool:
             print(f'{robot}: its output was never heard; moves: {moved}')
             continue
         failed |= bool(row['delta_violations'])
-        print(f'{robot}: moves {moved}; below freq_min at most {row["longest_below_s"]:g} s, '
-              f'{row["delta_violations"]} past its Δ of {shape.tolerance_s:g} s')
+        worst = max(row['connections'], key=lambda c: row['connections'][c]['longest_below_s'])
+        print(f'{robot}: moves {moved}; below freq_min at most {row["longest_below_s"]:g} s '
+              f'({worst}), {row["delta_violations"]} past Δ over '
+              f'{len(row["connections"])} connection(s)')
     return failed
 
 
@@ -373,10 +392,11 @@ def run(args: argparse.Namespace) -> int:
         os.makedirs(run_dir, exist_ok=True)
     except OSError as e:
         return _fail(f'cannot create {out}: {e.strerror}')
-    shape = FleetShape(hysteresis_s=HYSTERESIS_S)
+    shape = FleetShape(hysteresis_s=HYSTERESIS_S, graph=args.graph)
+    graph = graph_of(shape)
     print('anyscale-manager demo --fleet: robot_a and robot_b (one deployment and ROS domain '
-          f'each: {domains[ROBOTS[0]]}, {domains[ROBOTS[1]]}) share a server of capacity '
-          f'{shape.capacity_cpu:g}; each worker needs {shape.worker_cpu:g} CPU')
+          f'each: {domains[ROBOTS[0]]}, {domains[ROBOTS[1]]}; graph {shape.graph}) share a '
+          f'server of capacity {shape.capacity_cpu:g}; {graph.needs()}')
     print('schedule: ' + ', '.join(str(s) for s in steps) + f'; {duration:g} s', flush=True)
     code = 0
     bed = FleetBed(run_dir, ROBOTS, shape)

@@ -68,6 +68,7 @@ class WorkerGraph:
 
     moving: Tuple[str, ...] = ('worker',)
     lifecycle = False
+    what = 'worker'
     msg_type = 'std_msgs/msg/UInt8MultiArray'
 
     def __init__(self, shape: FleetShape):
@@ -88,6 +89,13 @@ class WorkerGraph:
         s = self.shape
         return [Judged('worker_pinned', f'/{robot}/w', self.msg_type, s.freq_min_hz,
                        s.tolerance_s)]
+
+    def shown(self, robot: str) -> Judged:
+        """The connection a demo's figure draws for ``robot``: the worker's output."""
+        return self.judged(robot)[0]
+
+    def needs(self) -> str:
+        return f'a worker needs {self.shape.worker_cpu:g}'
 
     def params(self, name: str, priority: int, run_dir: str, port_base: int,
                hosts: Optional[Mapping[str, str]] = None) -> dict:
@@ -146,6 +154,7 @@ class IcarGraph:
 
     moving: Tuple[str, ...] = ('amcl', 'ar')
     lifecycle = True
+    what = 'AMCL and AR'
 
     def __init__(self, shape: FleetShape, path: Optional[str] = None):
         self.shape = shape
@@ -179,6 +188,14 @@ class IcarGraph:
                        float(conns[c]['freq_min_hz']), float(conns[c]['tolerance_s']))
                 for c in conns['names'] if conns[c].get('freq_min_hz')
                 and conns[c]['subscriber'] not in self.moving]
+
+    def shown(self, robot: str) -> Judged:
+        """The connection a demo's figure draws for ``robot``: AMCL's pose to the EKF."""
+        return next(j for j in self.judged(robot) if j.name == 'amcl_ekf')
+
+    def needs(self) -> str:
+        return ' and '.join(f'{n.upper() if len(n) < 5 else n} {self.cpu(n):g}'
+                            for n in self.moving) + ' per robot'
 
     def params(self, name: str, priority: int, run_dir: str, port_base: int,
                hosts: Optional[Mapping[str, str]] = None) -> dict:
