@@ -51,15 +51,15 @@ WATCH_S = 6.0
 
 def away(s, robot):
     """``robot``'s AMCL and AR both serve on the server."""
-    return s.on_server_nodes.get(robot) == PAIR
+    return s.all_away(robot, PAIR)
 
 
 def home(s, robot):
-    """Neither of ``robot``'s AMCL and AR serves on the server: they serve at home, which
-    its users' observer judges (AMCL's and AR's outputs, amcl_ekf and ar_navigation, each
-    within its Δ). A copy at home is not judged by its CPU: under the robot's saturated quota
-    AR may get too little of it to look busy."""
-    return robot in s.on_server_nodes and not s.on_server_nodes[robot]
+    """Neither of ``robot``'s AMCL and AR serves on the server: they serve at home, which its
+    users' observer judges (AMCL's and AR's outputs, amcl_ekf and ar_navigation, each within
+    its Δ). A copy at home is not judged by its CPU: under the robot's saturated quota AR may
+    get too little of it to look busy."""
+    return s.none_away(robot)
 
 
 def past_delta(bed, robot, start, end):

@@ -81,3 +81,10 @@ def test_a_hand_over_after_a_cut_is_read_from_the_samples():
         (11.0, 12.0, 13.0, 14.0, 15.0, 13.0)
     with pytest.raises(ValueError, match='not sampled'):
         rec.hand_over('robot_b', 'robot_a', 10.0)
+
+
+def test_a_sample_says_whether_all_or_none_of_a_robots_nodes_serve_on_the_server():
+    s = FleetSample(0.0, {}, {}, {}, {'robot_a': ('amcl', 'ar'), 'robot_b': ()})
+    assert s.all_away('robot_a', ('ar', 'amcl')) and not s.none_away('robot_a')
+    assert s.none_away('robot_b') and not s.all_away('robot_b', ('amcl', 'ar'))
+    assert not s.none_away('robot_c')         # not started: neither

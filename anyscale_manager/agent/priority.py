@@ -27,6 +27,24 @@ from typing import Optional
 SETTLE_S = 2.0
 
 
+def advice(setting: str) -> str:
+    """What to do where real-time priority is refused (the agent's ``setting`` asked for it)."""
+    return ('Grant CAP_SYS_NICE to the agent (systemd: AmbientCapabilities=CAP_SYS_NICE) or '
+            f'set agent.{setting} to 0')
+
+
+def set_realtime(tid: int, priority: int) -> Optional[str]:
+    """Thread (or process) ``tid`` (0: the caller) to real-time round robin ``priority``.
+    None when done or the thread is gone, else why not."""
+    try:
+        os.sched_setscheduler(tid, os.SCHED_RR, os.sched_param(priority))
+    except ProcessLookupError:
+        return None                             # that thread has ended
+    except OSError as e:
+        return e.strerror or str(e)
+    return None
+
+
 def raise_threads(pid: int, priority: int, rounds: int = 5) -> Optional[str]:
     """Every thread of ``pid`` to real-time round robin ``priority``, until no new thread
     appears. None when done (or the process is gone: nothing left to raise), else why not."""
@@ -40,12 +58,9 @@ def raise_threads(pid: int, priority: int, rounds: int = 5) -> Optional[str]:
         if not fresh:
             return None
         for tid in sorted(fresh):
-            try:
-                os.sched_setscheduler(tid, os.SCHED_RR, os.sched_param(priority))
-            except ProcessLookupError:
-                pass                            # that thread has ended
-            except OSError as e:
-                return e.strerror or str(e)
+            why = set_realtime(tid, priority)
+            if why is not None:
+                return why
         done |= fresh
     return None
 
@@ -67,8 +82,7 @@ class Realtime:
             self.refused = True
             return (f'critical nodes run at normal priority: real-time priority '
                     f'{self.priority} refused for {name} ({why}); on a full CPU they can then '
-                    'wait behind the other nodes. Grant CAP_SYS_NICE to the agent (systemd: '
-                    'AmbientCapabilities=CAP_SYS_NICE) or set agent.critical_priority to 0')
+                    f'wait behind the other nodes. {advice("critical_priority")}')
         if self._said:
             return ''
         self._said = True

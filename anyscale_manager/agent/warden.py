@@ -42,6 +42,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, Callable, List, Optional, Tuple
 
+from . import priority as realtime
 from .. import protocol_auth as auth
 from ..interrupt import restore_ctrl_c
 
@@ -350,13 +351,11 @@ def prioritise(priority: int, scale: str, say: Callable[[str], None]) -> bool:
     the privilege it says so once and keeps the normal priority."""
     if priority <= 0:
         return False
-    try:
-        os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(priority))
-    except OSError as e:
+    why = realtime.set_realtime(0, priority)
+    if why is not None:
         say(f'heartbeats answered at normal priority: real-time priority {priority} refused '
-            f'({e.strerror or e}); a fully loaded {scale} can then answer late enough to '
-            'read as a cut. Grant CAP_SYS_NICE to the agent (systemd: '
-            'AmbientCapabilities=CAP_SYS_NICE) or set agent.warden_priority to 0')
+            f'({why}); a fully loaded {scale} can then answer late enough to read as a cut. '
+            f'{realtime.advice("warden_priority")}')
         return False
     say(f'heartbeats answered at real-time priority {priority} (SCHED_RR)')
     return True

@@ -45,6 +45,14 @@ class FleetSample:
         """The CPU declared for every copy serving on the server, of every robot."""
         return sum(self.server_cpu.values())
 
+    def all_away(self, robot: str, nodes) -> bool:
+        """Every one of ``nodes`` (robot's migratable nodes) serves on the server."""
+        return self.on_server_nodes.get(robot) == tuple(sorted(nodes))
+
+    def none_away(self, robot: str) -> bool:
+        """None of ``robot``'s copies serves on the server (the robot has started)."""
+        return robot in self.on_server_nodes and not self.on_server_nodes[robot]
+
     def where(self, robot: str) -> str:
         """Where robot's worker runs: 'home', 'away', 'both' or 'none'."""
         w = self.workers.get(robot, {})
