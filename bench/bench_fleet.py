@@ -51,6 +51,7 @@ from anyscale_manager.testbed import netns  # noqa: E402
 from anyscale_manager.testbed.fleet import (FleetShape, HOME, other_domain,  # noqa: E402
                                             SERVER, stretches_past_delta)
 from anyscale_manager.testbed.fleet_netns import FleetBed  # noqa: E402
+from anyscale_manager.testbed.fleet_record import over_capacity  # noqa: E402
 
 
 def _pct(values, q):
@@ -82,12 +83,15 @@ def link_judged_up(bed, robot):
 
 
 def over_commit(samples, shape):
-    """(samples with copies serving on the server, or claims, above its capacity (the CPU each
-    copy's file declares), their seconds: each such sample counted until the next one)."""
-    over = [s.serving_cpu > shape.capacity_cpu + 1e-9 or s.claimed_cpu > shape.capacity_cpu + 1e-9
-            for s in samples]
-    seconds = sum(b.t - a.t for a, b, o in zip(samples, samples[1:], over) if o)
-    return sum(over), seconds
+    """(samples with the server over its capacity (fleet_record.over_capacity), their seconds:
+    each such sample counted until the next one)."""
+    over = {id(s) for s in over_capacity(samples, shape.capacity_cpu)}
+    seconds = sum(b.t - a.t for a, b in zip(samples, samples[1:]) if id(a) in over)
+    for s in samples:
+        if id(s) in over:
+            print(f'  over capacity at {s.t - samples[0].t:.2f} s: serving '
+                  f'{dict(s.on_server_nodes)}, claims {dict(s.claims_cpu)}')
+    return len(over), seconds
 
 
 def quiet(bed, shape, not_before, what):

@@ -23,7 +23,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 from .fleet import FleetShape, HOME, SERVER, other_domain, stretches_past_delta
 from .fleet_graphs import graph_of
-from .fleet_record import FleetRecord, FleetSample
+from .fleet_record import FleetRecord, FleetSample, over_capacity
 
 ROBOTS = ('robot_a', 'robot_b')
 FLEET_SCHEDULE = '0:start@robot_a,25:cut@robot_a,40:restore@robot_a,60:start=1@robot_b'
@@ -99,13 +99,10 @@ def parse_fleet_schedule(text: str, robots: Sequence[str] = ROBOTS) -> List[Flee
 # --- judging ---------------------------------------------------------------------------------
 
 def over_commit_s(samples: Sequence[FleetSample], capacity_cpu: float) -> float:
-    """Seconds with copies serving on the server, or claims, above its capacity (the CPU
-    each copy's file declares; each sample holds until the next)."""
-    total = 0.0
-    for a, b in zip(samples, samples[1:]):
-        if a.serving_cpu > capacity_cpu + 1e-9 or a.claimed_cpu > capacity_cpu + 1e-9:
-            total += b.t - a.t
-    return total
+    """Seconds with the server over its capacity (fleet_record.over_capacity; each such sample
+    holds until the next)."""
+    over = {id(s) for s in over_capacity(samples, capacity_cpu)}
+    return sum(b.t - a.t for a, b in zip(samples, samples[1:]) if id(a) in over)
 
 
 def moves(samples: Sequence[FleetSample], robot: str) -> List[Tuple[float, str, str]]:

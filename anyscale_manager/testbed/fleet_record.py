@@ -60,6 +60,21 @@ class FleetSample:
         return at[0] if len(at) == 1 else ('both' if at else 'none')
 
 
+def over_capacity(samples: Sequence[FleetSample], capacity_cpu: float) -> List[FleetSample]:
+    """The samples in which the server is over ``capacity_cpu``: its claims above it, or the CPU
+    its serving copies declare above it in that sample and the one before. A lifecycle copy is
+    judged serving from its CPU over the last 0.2 s (fleet.Activity), so a copy deactivated
+    within that window still counts beside the one its robot's claim let activate after it: one
+    sample over is the judge's resolution, two in a row are not."""
+    out = []
+    for prev, s in zip([None] + list(samples[:-1]), samples):
+        serving = s.serving_cpu > capacity_cpu + 1e-9 and (
+            prev is not None and prev.serving_cpu > capacity_cpu + 1e-9)
+        if serving or s.claimed_cpu > capacity_cpu + 1e-9:
+            out.append(s)
+    return out
+
+
 @dataclass(frozen=True)
 class HandOver:
     """After a holder's link was cut at ``cut``: when its worker was home, its server copy gone
@@ -191,4 +206,4 @@ class FleetRecord:
         return [text for _, _, text in sorted(rows)]
 
 
-__all__ = ['FleetRecord', 'FleetSample', 'HandOver']
+__all__ = ['FleetRecord', 'FleetSample', 'HandOver', 'over_capacity']
