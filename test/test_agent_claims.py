@@ -186,3 +186,22 @@ def test_before_any_layout_a_standby_copy_claims_no_cpu_and_an_unknown_one_its_r
     assert not claims.held['amcl'].active and claims.held['amcl'].memory_mb == 70.0
     claims.gate(2.0, {'amcl'}, {'amcl': None}, lambda n: True, lambda n: True)
     assert claims.held['amcl'].active and claims.held['amcl'].cpu == 60.0
+
+
+def test_a_wait_given_up_by_the_layout_reserves_nothing_more(tmp_path):
+    """robot_b (priority 1) waits for room robot_a holds; its layout then keeps its copy a
+    standby (its node placed elsewhere): the reservation goes with the wait, so robot_a's next
+    claim and robot_b's own other claims are not held back by room nobody waits for."""
+    low = HostClaims(Ledger(str(tmp_path), 'robot_a', 10.0), fleet_member('robot_a'), 'server')
+    high = HostClaims(Ledger(str(tmp_path), 'robot_b', 10.0), fleet_member('robot_b', 1),
+                      'server')
+    low.begin(0.0)
+    high.begin(0.0)
+    low.gate(1.0, {'amcl'}, {'amcl': lc.ACTIVE}, lambda n: True)
+    high.gate(1.5, {'amcl'}, {'amcl': lc.INACTIVE}, lambda n: True)    # its standby copy
+    goals = {'amcl': lc.ACTIVE}
+    high.gate(2.0, {'amcl'}, goals, lambda n: True)
+    assert 'amcl' in high.waiting and low.ledger.share(2.0).asked == {'amcl': 'robot_b/amcl'}
+    high.gate(3.0, {'amcl'}, {'amcl': lc.INACTIVE}, lambda n: True)   # placed elsewhere
+    assert high.waiting == {} and low.ledger.share(3.0).reserved == ()
+    assert low.ledger.share(3.0).asked == {}

@@ -91,7 +91,7 @@ class HostClaims:
                   serving: Callable[[str], bool], logs: List[LogLine]) -> None:
         if name not in want:
             self.refused.pop(name, None)
-            self.waiting.pop(name, None)
+            self._withdraw(name, now)
             if name in self.held and not live(name):
                 self.ledger.release(name, now)
                 del self.held[name]
@@ -105,6 +105,7 @@ class HostClaims:
         held = self.held.get(name)
         if held == wanted or (held is not None and held.active and not wanted.active
                               and serving(name)):
+            self._withdraw(name, now)
             return
         answer = self.ledger.claim(wanted, now)
         if answer.granted:
@@ -125,6 +126,11 @@ class HostClaims:
             want.discard(name)
             if name in goals:
                 goals[name] = lc.FINALIZED
+
+    def _withdraw(self, name: str, now: float) -> None:
+        """No longer wait for room for ``name``: the reservation that waiting held goes."""
+        if self.waiting.pop(name, None) is not None:
+            self.ledger.withdraw(name, now)
 
     def report(self) -> Optional[HostShare]:
         """The host as this agent sees it, for its report (None before it joined), as of the

@@ -219,6 +219,16 @@ class Ledger:
                              '(by_deployment = ? AND by_node = ?)',
                              (self.deployment, node, self.deployment, node))
 
+    def withdraw(self, node: str, now: float) -> None:
+        """This deployment no longer waits for room for ``node`` (it placed it elsewhere, or
+        keeps it as it is): its reservation and its asks go, its claim stays."""
+        with self._write():
+            self._expire(now)
+            self._db.execute('DELETE FROM waits WHERE deployment = ? AND node = ?',
+                             (self.deployment, node))
+            self._db.execute('DELETE FROM asks WHERE by_deployment = ? AND by_node = ?',
+                             (self.deployment, node))
+
     def leave(self) -> None:
         """This deployment leaves the host: its membership, claims and asks go."""
         with self._write():
