@@ -156,7 +156,7 @@ def test_a_copy_being_deactivated_keeps_its_room_until_it_is_inactive(tmp_path):
     low.begin(0.0)
     high.begin(0.0)
     live = {'amcl'}
-    assert low.gate(1.0, {'amcl'}, {'amcl': lc.ACTIVE}, live.__contains__) is not None
+    low.gate(1.0, {'amcl'}, {'amcl': lc.ACTIVE}, live.__contains__)
     assert low.held['amcl'].active
     goals = {'amcl': lc.ACTIVE}
     high.gate(2.0, {'amcl'}, goals, lambda n: False)
@@ -203,5 +203,22 @@ def test_a_wait_given_up_by_the_layout_reserves_nothing_more(tmp_path):
     high.gate(2.0, {'amcl'}, goals, lambda n: True)
     assert 'amcl' in high.waiting and low.ledger.share(2.0).asked == {'amcl': 'robot_b/amcl'}
     high.gate(3.0, {'amcl'}, {'amcl': lc.INACTIVE}, lambda n: True)   # placed elsewhere
+    assert high.waiting == {} and low.ledger.share(3.0).reserved == ()
+    assert low.ledger.share(3.0).asked == {}
+
+
+def test_a_wait_for_a_node_without_a_claim_here_is_withdrawn_once_not_wanted(tmp_path):
+    """A plain node (no standby claim) waits for room; the layout then places it elsewhere (it
+    leaves ``want``): its wait and asks go all the same."""
+    low = HostClaims(Ledger(str(tmp_path), 'robot_a', 10.0), fleet_member('robot_a'), 'server')
+    high = HostClaims(Ledger(str(tmp_path), 'robot_b', 10.0), fleet_member('robot_b', 1),
+                      'server')
+    low.begin(0.0)
+    high.begin(0.0)
+    low.gate(1.0, {'amcl'}, {}, lambda n: True)
+    want = {'amcl'}
+    high.gate(2.0, want, {}, lambda n: False)
+    assert 'amcl' in high.waiting and 'amcl' not in want
+    high.gate(3.0, set(), {}, lambda n: False)
     assert high.waiting == {} and low.ledger.share(3.0).reserved == ()
     assert low.ledger.share(3.0).asked == {}

@@ -68,7 +68,7 @@ class HostClaims:
         active claim until it is inactive, so that its room is not handed on while it serves)."""
         logs: List[LogLine] = []
         try:
-            for name in sorted(set(want) | set(self.held)):
+            for name in sorted(set(want) | set(self.held) | set(self.waiting)):
                 self._gate_one(name, now, want, goals, live, serving, logs)
             if now - self._renewed >= self.ledger.lease_s / 4:
                 self.ledger.renew(now)
@@ -129,8 +129,9 @@ class HostClaims:
 
     def _withdraw(self, name: str, now: float) -> None:
         """No longer wait for room for ``name``: the reservation that waiting held goes."""
-        if self.waiting.pop(name, None) is not None:
+        if name in self.waiting:
             self.ledger.withdraw(name, now)
+            del self.waiting[name]
 
     def report(self) -> Optional[HostShare]:
         """The host as this agent sees it, for its report (None before it joined), as of the
