@@ -34,7 +34,8 @@ first one's agent judged its link up, past the first one's hysteresis since its 
 room, not T, decides the next hand-over), and nothing moved for 5 s; the next round cuts the
 new holder.
 
-Over-commit, in both: samples with two workers on the server or claims above its capacity.
+Over-commit, in both: claims above the server's capacity, or the CPU its serving copies declare
+above it in two samples in a row (testbed/fleet_record.over_capacity).
 """
 
 import argparse

@@ -9,7 +9,7 @@ Two graphs (``FleetShape.graph``):
 - ``icar``: the ICAR 2015 test-bed's graph (config/icar2015_testbed.yaml: eleven nodes, AMCL and
   AR migratable lifecycle nodes with a standby copy on each scale, the robot's Δ 0 chain at
   real-time priority), the robot its ``home`` scale, the laptop turned into the shared server
-  ``away`` (capacity ``server_capacity_cpu``: room for one robot's AMCL and AR, 50 + 33, not
+  ``away`` (capacity ``capacity_cpu``: room for one robot's AMCL and AR, 50 + 33, not
   two). Every workload runs at ``reference_core`` (one robot core as a fraction of one core of
   this machine) and the robot's quota is its capacity at that speed, so that two robots and the
   server fit a 2-core machine.
