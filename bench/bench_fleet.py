@@ -65,6 +65,13 @@ def _line(label, values, unit='s'):
             f'{_pct(values, 0.95):.2f} {unit}  max {max(values):.2f} {unit}  (n={len(values)})')
 
 
+def _table(rows):
+    """One ``_line`` per (label, values), none when nothing was measured."""
+    for label, values in rows:
+        if values:
+            print(_line(label, values))
+
+
 ROBOTS = ('robot_a', 'robot_b')
 # How long the layout must stay as it is before a cut: several turns of both deciders.
 QUIET_S = 5.0
@@ -168,11 +175,10 @@ def cuts(a) -> int:
     print(f'fleet, link cuts: 2 robots in namespaces, one server (capacity '
           f'{shape.capacity_cpu:g}, worker {shape.worker_cpu:g}), {len(rows["home"])} cuts, '
           f'hysteresis {shape.hysteresis_s:g} s, Δ {shape.tolerance_s:g} s; run folder {run_dir}')
-    if rows['home']:
-        print(_line("cut -> the holder's worker home", rows['home']))
-        print(_line('cut -> room freed (copy gone, claim released)', rows['freed']))
-        print(_line("room freed -> the other's worker serving there", rows['serving']))
-        print(_line("the holder's longest stretch below freq_min", rows['gap']))
+    _table([("cut -> the holder's worker home", rows['home']),
+            ('cut -> room freed (copy gone, claim released)', rows['freed']),
+            ("room freed -> the other's worker serving there", rows['serving']),
+            ("the holder's longest stretch below freq_min", rows['gap'])])
     print(f'  Δ violations on the cut robot: {violations} of {len(rows["home"])}; started '
           f'before the room was freed: {early}; over-commit: {over_n} samples of '
           f'{len(bed.record.samples)}, {over_s:.1f} s; teardown cleaned: {notes or "nothing"}')
@@ -229,10 +235,9 @@ def preemptions(a) -> int:
     print(f'fleet, preemptions: 2 robots in namespaces, graph {shape.graph}, one server '
           f'(capacity {shape.capacity_cpu:g}; {graph.needs()}), {len(rows["there"])} '
           f'preemptions, hysteresis {shape.hysteresis_s:g} s; run folder {run_dir}')
-    if rows['there']:
-        print(_line('room freed -> the higher robot all there', rows['there']))
-        print(_line("the lower robot's longest stretch below freq_min", rows['gap']))
-        print(_line('the higher robot gone -> the lower one back', rows['back']))
+    _table([('room freed -> the higher robot all there', rows['there']),
+            ("the lower robot's longest stretch below freq_min", rows['gap']),
+            ('the higher robot gone -> the lower one back', rows['back'])])
     print(f'  Δ violations on the preempted robot (every connection judged): {violations} of '
           f'{len(rows["there"])}; over-commit: {over_n} samples of {len(rec.samples)}, '
           f'{over_s:.1f} s; teardown cleaned: {notes or "nothing"}')

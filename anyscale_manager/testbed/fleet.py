@@ -70,12 +70,13 @@ class Fleet:
     """The robots started so far; each robot's processes by role ('decider', 'home', 'away')."""
 
     def __init__(self, run_dir: str, environ: Mapping[str, str], shape: FleetShape = FleetShape(),
-                 port_base: int = 0, places=None):
-        """``places``: where the processes run (``Loopback(environ)`` when not given)."""
+                 port_base: int = 0, places=None, graph=None):
+        """``places``: where the processes run (``Loopback(environ)`` when not given);
+        ``graph``: the shape's graph, when the caller has it already (fleet_graphs.graph_of)."""
         self.run_dir = run_dir
         self.places = places or Loopback(environ)
         self.shape = shape
-        self.graph = graph_of(shape)
+        self.graph = graph or graph_of(shape)
         self.port_base = port_base or ports.port_base()
         self._activity = Activity()
         # (robot, role) -> the copies of its migratable nodes seen under that agent, by pid

@@ -158,7 +158,7 @@ class FleetBed:
         self.network = network or FleetNetwork(
             self.robots, run_dir, robot_cores=self.robot_cores,
             server_cores=self.graph.server_cores() or SERVER_CORES)
-        self.fleet = Fleet(run_dir, {}, shape, places=self.network)
+        self.fleet = Fleet(run_dir, {}, shape, places=self.network, graph=self.graph)
         self.shape = shape
         self.record = FleetRecord(time.monotonic())
         self._observers: Dict[str, subprocess.Popen] = {}
