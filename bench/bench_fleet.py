@@ -93,7 +93,7 @@ def link_judged_up(bed, robot):
 def over_commit(samples, shape):
     """(samples with the server over its capacity (fleet_record.over_capacity), their seconds:
     each such sample counted until the next one)."""
-    over = {id(s) for s in over_capacity(samples, shape.capacity_cpu)}
+    over = {id(s) for s in over_capacity(samples, shape.capacity_cpu, shape.lifecycle)}
     seconds = sum(b.t - a.t for a, b in zip(samples, samples[1:]) if id(a) in over)
     for s in samples:
         if id(s) in over:

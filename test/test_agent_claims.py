@@ -222,3 +222,24 @@ def test_a_wait_for_a_node_without_a_claim_here_is_withdrawn_once_not_wanted(tmp
     high.gate(3.0, set(), {}, lambda n: False)
     assert high.waiting == {} and low.ledger.share(3.0).reserved == ()
     assert low.ledger.share(3.0).asked == {}
+
+
+def test_a_restarted_agent_drops_the_waits_of_the_one_before_it(tmp_path):
+    """An agent that waited for room and died: its successor, which adopts its claims, does not
+    know those waits, and its renewals would keep them (and their asks) for as long as it
+    lives: they go when it joins, and it waits anew if its layout still wants the node."""
+    low = HostClaims(Ledger(str(tmp_path), 'robot_a', 10.0), fleet_member('robot_a'), 'server')
+    high = HostClaims(Ledger(str(tmp_path), 'robot_b', 10.0), fleet_member('robot_b', 1),
+                      'server')
+    low.begin(0.0)
+    high.begin(0.0)
+    low.gate(1.0, {'amcl'}, {}, lambda n: True)
+    high.gate(2.0, {'amcl'}, {}, lambda n: False)
+    assert 'amcl' in high.waiting and low.ledger.share(2.0).asked
+    successor = HostClaims(Ledger(str(tmp_path), 'robot_b', 10.0), fleet_member('robot_b', 1),
+                           'server')
+    successor.begin(3.0)
+    successor.ledger.renew(4.0)
+    assert low.ledger.share(4.0).reserved == () and low.ledger.share(4.0).asked == {}
+    successor.gate(5.0, {'amcl'}, {}, lambda n: False)
+    assert 'amcl' in successor.waiting and low.ledger.share(5.0).asked

@@ -66,6 +66,41 @@ def test_a_new_copy_is_read_then_configured_then_activated():
     assert d.state == lc.INACTIVE and d.next_request(1.1, True) is None
 
 
+def test_a_copy_may_be_serving_from_the_activation_asked_until_it_is_seen_inactive():
+    """What a shared scale's claim counts as serving (turn._may_serve): a copy mid-transition
+    or whose activation timed out may be active; one never asked to activate is not."""
+    d = driver()
+    assert not d.may_be_active                               # started, nothing known
+    d.set_goal(lc.INACTIVE)
+    d.next_request(0.0, True)
+    answer(d, 0.0, state='unconfigured')
+    d.next_request(0.0, True)
+    answer(d, 0.1, success=True)
+    assert d.state == lc.INACTIVE and not d.may_be_active    # a standby
+    d.set_goal(lc.ACTIVE)
+    assert d.next_request(0.2, True).transition == 'activate'
+    assert d.may_be_active                                   # asked: it may be active now
+    assert d.next_request(2.3, True).kind == 'get'           # timed out: checked at once
+    assert d.may_be_active
+    answer(d, 2.4, state='activating')                       # mid-transition: still may be
+    assert d.state != lc.ACTIVE and d.may_be_active
+    d.next_request(3.3, True)
+    answer(d, 3.3, state='active')
+    d.set_goal(lc.INACTIVE)
+    assert d.next_request(3.4, True).transition == 'deactivate'
+    assert d.may_be_active                                   # until the answer
+    assert d.next_request(5.5, True).kind == 'get'
+    answer(d, 5.6, state='deactivating')
+    assert d.may_be_active
+    d.next_request(6.5, True)
+    answer(d, 6.5, state='inactive')
+    assert not d.may_be_active
+    d.reset()                                                # a new process
+    d.next_request(7.0, True)
+    answer(d, 7.0, state='errorprocessing')
+    assert not d.may_be_active                               # never asked to activate
+
+
 def test_finalizing_goes_through_deactivate_cleanup_and_shutdown():
     d = driver()
     d.set_goal(lc.FINALIZED)

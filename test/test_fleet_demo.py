@@ -2,6 +2,7 @@
 judges of a run (over-commit, moves, Δ) and its figure, on records built here; its refusals of
 bad input through the command. The live fleet in namespaces is test_fleet_netns.py's."""
 
+import dataclasses
 import json
 import os
 
@@ -52,8 +53,9 @@ def sample(t, a_home=0, a_away=0, b_home=0, b_away=0, a_up=True, claims=None):
 
 
 def test_over_commit_counts_the_time_two_were_on_the_server_or_claims_above_capacity():
-    """Claims above capacity count at once; copies serving above it from the second sample in a
-    row (one sample is the serving judge's resolution: fleet_record.over_capacity)."""
+    """Claims above capacity count at once; lifecycle copies serving above it from the second
+    sample in a row (one sample is the serving judge's resolution: fleet_record.over_capacity),
+    plain ones at once."""
     samples = [sample(0.0, a_away=1, claims={'robot_a': 60.0}),
                sample(1.0, a_away=1, b_away=1, claims={'robot_a': 60.0}),
                sample(1.5, a_away=1, claims={'robot_a': 60.0, 'robot_b': 60.0}),
@@ -61,8 +63,10 @@ def test_over_commit_counts_the_time_two_were_on_the_server_or_claims_above_capa
                sample(3.0, a_away=1, b_away=1, claims={'robot_b': 60.0}),
                sample(3.5, a_away=1, b_away=1, claims={'robot_b': 60.0}),
                sample(4.0, b_away=1, claims={'robot_b': 60.0})]
-    assert over_commit_s(samples, 100.0) == pytest.approx(1.0 + 0.5)
-    assert over_commit_s(samples[3:5], 100.0) == 0.0
+    icar, worker = (dataclasses.replace(SHAPE, graph=g) for g in ('icar', 'worker'))
+    assert over_commit_s(samples, icar) == pytest.approx(1.0 + 0.5)
+    assert over_commit_s(samples, worker) == pytest.approx(0.5 + 1.0 + 0.5 + 0.5)
+    assert over_commit_s(samples[3:5], icar) == 0.0
 
 
 def test_moves_pass_through_both_and_none():

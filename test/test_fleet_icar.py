@@ -169,7 +169,7 @@ def test_two_icar_robots_share_one_server_through_a_cut_and_a_preemption(tmp_pat
         assert b_first >= a_home, bed.describe()      # never beside robot_a's orphans
 
         over = [(round(s.t - rec.t0, 2), dict(s.on_server_nodes), dict(s.claims_cpu))
-                for s in over_capacity(rec.samples, room)]
+                for s in over_capacity(rec.samples, room, lifecycle=True)]
         assert over == [], f'copies serving on the server past its capacity: {over}\n' \
                            f'{bed.describe()}'
         assert rec.most_claimed() <= room, bed.describe()

@@ -18,6 +18,8 @@ from spinning import RosContext, spin_until
 
 RATE_HZ = 20.0
 HYSTERESIS_S = 5.0
+# A takeover continues the count when it goes on from one heard at most this long before.
+CONTINUED_S = 1.0
 COUNTER = os.path.join(os.path.dirname(__file__), 'fixtures', 'state_counter.py')
 
 
@@ -62,16 +64,7 @@ class Counts:
         return [v for at, v in list(self.heard) if at >= t]
 
     def restarts(self):
-        """Each count that fell back below the highest before it (by more than the one or
-        two messages a state handed over a moment old can lag): a copy that did not continue."""
-        out, top, falling = [], None, False
-        for at, v in list(self.heard):
-            fell = top is not None and v < top - 2
-            if fell and not falling:
-                out.append((round(at, 3), top, v))       # the first count of each fall
-            falling = fell
-            top = v if top is None else max(top, v)
-        return out
+        return restarts(list(self.heard))
 
     def close(self):
         self._stop.set()
@@ -89,6 +82,48 @@ def serving(seen, scale, standby_elsewhere=True):
     other = node_copy(seen, 'away' if scale == 'home' else 'home')
     ok = here is not None and here.state == 'running' and here.ready
     return ok and (not standby_elsewhere or (other is not None and other.state == 'standby'))
+
+
+def takeovers(heard):
+    """Each count (of ``heard``: (arrival, count)) that did not go up from the highest before
+    it, another copy's output, as (arrival, highest before, count, lag); the first of each run
+    of one copy's counts only. ``lag``: how long before it the count it continued from was
+    first heard (None: never). A copy handed its state goes on from a count heard a moment ago;
+    during a ``start_before_stop`` overlap the copy being replaced counts on from the hand-over
+    until it is stopped, so the new one falls behind it by what arrived since."""
+    out, top, first, run = [], None, {}, None
+    for at, v in heard:
+        if top is not None and v <= top:
+            if run is None or v != run + 1:              # not the same copy counting on
+                base = first.get(v - 1)
+                out.append((round(at, 3), top, v, None if base is None else round(at - base, 3)))
+            run = v
+        elif run is not None and v == run + 1:
+            run = None                                   # it caught up: no longer behind
+        first.setdefault(v, at)
+        top = v if top is None else max(top, v)
+    return out
+
+
+def restarts(heard):
+    """The takeovers by a copy that did not continue: it went on from a count first heard more
+    than ``CONTINUED_S`` before its own output (a state from before the last copy served, or
+    none at all)."""
+    return [t for t in takeovers(heard) if t[3] is None or t[3] > CONTINUED_S]
+
+
+def test_the_judge_tells_a_copy_that_continued_from_one_that_started_anew():
+    step = 1.0 / RATE_HZ
+    old = [(i * step, i) for i in range(1, 101)]                     # 5 s of one copy
+    # A start_before_stop overlap: handed 90 at 4.5 s, it counts from 91 at 4.9 s beside the
+    # old copy (at 98 by then), which stops at 100.
+    overlap = sorted(old + [(4.9 + j * step + 0.01, 91 + j) for j in range(20)])
+    assert [t[2] for t in takeovers(overlap)] == [91] and not restarts(overlap)
+    # A copy after the old one died, handed its last count: no fall at all.
+    assert takeovers(old + [(6.0 + j * step, 101 + j) for j in range(5)]) == []
+    # Started anew, or from a count 2 s old: restarts.
+    assert [t[2] for t in restarts(old + [(5.5 + j * step, 1 + j) for j in range(5)])] == [1]
+    assert [t[2] for t in restarts(overlap[:90] + [(4.6, 61), (4.65, 62)])] == [61]
 
 
 @pytest.fixture
@@ -141,7 +176,9 @@ def test_the_count_continues_across_a_move_and_every_failover_of_a_crash_loop(
         assert pairs == [('away', 'home'), ('home', 'away')], failovers
         assert handed(tmp_path, 'home') >= 1 and handed(tmp_path, 'away') >= 1
         assert not counts.restarts(), f'copies that started their count anew: ' \
-                                      f'{counts.restarts()}'
+                                      f'{counts.restarts()} (every takeover: ' \
+                                      f'{takeovers(list(counts.heard))})'
+        print('takeovers (arrival, highest, count, lag):', takeovers(list(counts.heard)))
     finally:
         counts.close()
         for name, pr in reversed(procs):
@@ -186,7 +223,9 @@ def test_the_count_continues_across_a_restart_in_place_a_relocation_and_a_planne
                    'the counter moved out to away again, handed its count', procs)
         counting_on(ex, counts, procs, 'on away again')
         assert not counts.restarts(), f'copies that started their count anew: ' \
-                                      f'{counts.restarts()}'
+                                      f'{counts.restarts()} (every takeover: ' \
+                                      f'{takeovers(list(counts.heard))})'
+        print('takeovers (arrival, highest, count, lag):', takeovers(list(counts.heard)))
         # A person sets the count on the node's own restore topic: the serving copy takes it.
         ros = RosContext()
         try:

@@ -37,10 +37,12 @@ class HostClaims:
         self.report_changed = False             # by the last gate: the agent publishes anew
 
     def begin(self, now: float) -> List[LogLine]:
-        """Join the host; a copy this agent adopts keeps the claim it had."""
+        """Join the host; a copy this agent adopts keeps the claim it had, and the waits of
+        an agent before it go (``Ledger.forget_waits``)."""
         scale = self.deployment.scale(self.scale)
         self.figure = self.ledger.join(scale.capacity_cpu, scale.memory_mb,
                                        self.deployment.priority, now)
+        self.ledger.forget_waits(now)
         self.held = self.ledger.own(now)
         self._renewed = now
         self.share = self.ledger.share(now)

@@ -229,6 +229,15 @@ class Ledger:
             self._db.execute('DELETE FROM asks WHERE by_deployment = ? AND by_node = ?',
                              (self.deployment, node))
 
+    def forget_waits(self, now: float) -> None:
+        """Drop every wait of this deployment and the asks they made: a restarted agent does not
+        know its predecessor's waits, and its renewals would keep them for as long as it
+        lives; it waits anew for what its layout still wants."""
+        with self._write():
+            self._expire(now)
+            self._db.execute('DELETE FROM waits WHERE deployment = ?', (self.deployment,))
+            self._db.execute('DELETE FROM asks WHERE by_deployment = ?', (self.deployment,))
+
     def leave(self) -> None:
         """This deployment leaves the host: its membership, claims and asks go."""
         with self._write():

@@ -100,6 +100,7 @@ class Driver:
         self.problem = ''       # why the last transition failed ('' when none did)
         self._check = True      # read the state before asking for any transition
         self.check_at = 0.0     # not before then
+        self._activated = False     # asked to activate, or seen active, since last seen not
 
     # --- what the caller asks ---------------------------------------------------------------
     def set_goal(self, goal: Optional[LifecycleState]) -> None:
@@ -118,6 +119,13 @@ class Driver:
     def failed(self) -> bool:
         """It gave up: ``max_failures`` refusals or time-outs in a row."""
         return self.failures >= self.max_failures
+
+    @property
+    def may_be_active(self) -> bool:
+        """Whether the copy may be serving: it is active, or it was asked to activate (or was
+        active) and has not been seen inactive since: an activation not answered yet or timed
+        out, an 'activating' or 'deactivating' answer, an error being processed."""
+        return self.state == ACTIVE or self._activated
 
     @property
     def known(self) -> bool:
@@ -159,6 +167,7 @@ class Driver:
             return
         self.pending = None
         self.state = label_state(label)
+        self._note_state()
         self._check = self.state not in PRIMARY
         if self._check:
             # A transition in progress (another client's, or ours that timed out): look again.
@@ -174,6 +183,7 @@ class Driver:
         self.pending = None
         if success:
             self.state = TRANSITIONS[request.transition][1]
+            self._note_state()
             if self.at_goal:
                 self.failures = 0
                 self.problem = ''
@@ -193,7 +203,15 @@ class Driver:
             self.check_at = now + self.backoff_s
 
     # --- internals ---------------------------------------------------------------------------
+    def _note_state(self) -> None:
+        if self.state == ACTIVE:
+            self._activated = True
+        elif self.state in (UNCONFIGURED, INACTIVE, FINALIZED):
+            self._activated = False
+
     def _send(self, kind: str, transition: str, now: float, timeout_s: float) -> Request:
+        if transition == 'activate':
+            self._activated = True
         self._serial += 1
         self.pending = Request(self._serial, kind, transition, now, now + timeout_s)
         return self.pending

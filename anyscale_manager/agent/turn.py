@@ -393,13 +393,15 @@ class AgentTurn:
 
     # --- one step ---------------------------------------------------------------------------
     def _may_serve(self, name: str) -> bool:
-        """The lifecycle copy of ``name`` here may be active: it says so, or it was adopted
-        and has not said yet (a copy this agent started begins inactive)."""
+        """The lifecycle copy of ``name`` here may be active: it says so, it was asked to
+        activate (or was active) and has not been seen inactive since (a transition under way,
+        one that timed out), or it was adopted and has not said yet (a copy this agent started
+        begins inactive)."""
         driver = self.drivers.get(name)
         if driver is None:
             return False
-        return driver.state == lc.ACTIVE or (driver.state == lc.UNKNOWN
-                                             and self.supervisor.adopted(name))
+        return driver.may_be_active or (driver.state == lc.UNKNOWN
+                                        and self.supervisor.adopted(name))
 
     def step(self, now: float, inputs: AgentInputs) -> AgentOutput:
         """One step at ``now``: decide what runs here, drive the processes and lifecycles."""

@@ -98,10 +98,10 @@ def parse_fleet_schedule(text: str, robots: Sequence[str] = ROBOTS) -> List[Flee
 
 # --- judging ---------------------------------------------------------------------------------
 
-def over_commit_s(samples: Sequence[FleetSample], capacity_cpu: float) -> float:
+def over_commit_s(samples: Sequence[FleetSample], shape: FleetShape) -> float:
     """Seconds with the server over its capacity (fleet_record.over_capacity; each such sample
     holds until the next)."""
-    over = {id(s) for s in over_capacity(samples, capacity_cpu)}
+    over = {id(s) for s in over_capacity(samples, shape.capacity_cpu, shape.lifecycle)}
     return sum(b.t - a.t for a, b in zip(samples, samples[1:]) if id(a) in over)
 
 
@@ -335,7 +335,7 @@ def _write(record: FleetRecord, shape: FleetShape, steps: Sequence[FleetStep], o
         'graph': shape.graph, 'server_capacity_cpu': shape.capacity_cpu,
         'migratable_cpu': {n: graph.cpu(n) for n in graph.moving},
         'hysteresis_s': shape.hysteresis_s, 'tolerance_s': shape.tolerance_s,
-        'over_commit_s': round(over_commit_s(record.between(t0, t1), shape.capacity_cpu), 2),
+        'over_commit_s': round(over_commit_s(record.between(t0, t1), shape), 2),
         'most_copies_on_server': record.most_on_server(t0, t1),
         'most_serving_cpu': max((x.serving_cpu for x in record.between(t0, t1)), default=0.0),
         'most_claimed_cpu': record.most_claimed(t0, t1),

@@ -51,6 +51,12 @@ class FleetShape:
         if self.graph not in GRAPHS:
             raise ValueError(f'unknown fleet graph {self.graph!r}; one of {", ".join(GRAPHS)}')
 
+    @property
+    def lifecycle(self) -> bool:
+        """Whether the moving nodes are lifecycle copies, judged serving by their CPU over a
+        window (fleet.Activity), not by their process."""
+        return graph_class(self.graph).lifecycle
+
 
 @dataclass(frozen=True)
 class Judged:
@@ -232,9 +238,13 @@ class IcarGraph:
         }
 
 
+def graph_class(name: str):
+    return IcarGraph if name == 'icar' else WorkerGraph
+
+
 def graph_of(shape: FleetShape):
     """The graph ``shape`` names."""
-    return IcarGraph(shape) if shape.graph == 'icar' else WorkerGraph(shape)
+    return graph_class(shape.graph)(shape)
 
 
 def _place(scales: Dict[str, dict], hosts: Optional[Mapping[str, str]]) -> None:

@@ -60,16 +60,18 @@ class FleetSample:
         return at[0] if len(at) == 1 else ('both' if at else 'none')
 
 
-def over_capacity(samples: Sequence[FleetSample], capacity_cpu: float) -> List[FleetSample]:
+def over_capacity(samples: Sequence[FleetSample], capacity_cpu: float,
+                  lifecycle: bool) -> List[FleetSample]:
     """The samples in which the server is over ``capacity_cpu``: its claims above it, or the CPU
-    its serving copies declare above it in that sample and the one before. A lifecycle copy is
-    judged serving from its CPU over the last 0.2 s (fleet.Activity), so a copy deactivated
-    within that window still counts beside the one its robot's claim let activate after it: one
-    sample over is the judge's resolution, two in a row are not."""
+    its serving copies declare above it (``lifecycle``: in that sample and the one before). A
+    lifecycle copy is judged serving from its CPU over the last 0.2 s (fleet.Activity), so a
+    copy deactivated within that window still counts beside the one its robot's claim let
+    activate after it: one sample over is the judge's resolution, two in a row are not. A
+    plain copy serves while its process lives: one sample over is over."""
     out = []
     for prev, s in zip([None] + list(samples[:-1]), samples):
         serving = s.serving_cpu > capacity_cpu + 1e-9 and (
-            prev is not None and prev.serving_cpu > capacity_cpu + 1e-9)
+            not lifecycle or (prev is not None and prev.serving_cpu > capacity_cpu + 1e-9))
         if serving or s.claimed_cpu > capacity_cpu + 1e-9:
             out.append(s)
     return out
