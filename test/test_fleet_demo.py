@@ -128,6 +128,12 @@ def test_demo_fleet_refuses_bad_input_with_exit_2(argv, says, capsys, tmp_path):
     assert not os.path.exists(tmp_path / 'out')
 
 
+def test_graph_without_fleet_is_refused_with_exit_2(capsys, tmp_path):
+    assert main(['demo', '--graph', 'worker', '--out', str(tmp_path / 'out')]) == 2
+    assert '--graph is what each robot of --fleet runs' in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / 'out')
+
+
 def test_an_icar_robots_summary_judges_each_connection():
     """The ICAR graph: every connection the robot's observer hears is judged apart; one
     silent past its Δ (amcl_ekf: 2 s) is named, the others hold."""

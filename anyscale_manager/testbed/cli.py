@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              'robots and cuts or restores their links: "0:start@robot_a,'
                              '25:cut@robot_a,40:restore@robot_a,60:start=1@robot_b" (the '
                              'default; start=N: priority N); needs network namespaces')
-    parser.add_argument('--graph', choices=('icar', 'worker'), default='icar',
+    parser.add_argument('--graph', choices=('icar', 'worker'), default=None,
                         help='with --fleet, what each robot runs: its own copy of the ICAR '
                              "2015 graph (the default; the server has room for one robot's "
                              'AMCL and AR) or a sensor -> worker -> consumer graph (room for '
@@ -108,6 +108,8 @@ def run(args: argparse.Namespace) -> int:
                          '--three-scales, --config, --no-migration and --mode loopback')
         from . import fleet_demo
         return fleet_demo.run(args)
+    if args.graph is not None:
+        return _fail('--graph is what each robot of --fleet runs: add --fleet, or leave it out')
     from .harness import HarnessError, Options, Testbed
     from .report import draw_timeline, status_table, with_own_reports, write_event_log
 

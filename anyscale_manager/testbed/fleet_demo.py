@@ -1,15 +1,17 @@
 """``anyscale-manager demo --fleet``: two robots share one server, in network namespaces.
 
 Each robot is its own deployment (its decider, its agents, its ROS domain: testbed/fleet.py)
-whose worker (CPU 60) would go to the server; the server has room for one (capacity 100). A
-schedule drives the run (default ``FLEET_SCHEDULE``): robot_a starts and takes the server, its
-link is cut (its worker goes home, its claim is released) and restored (it takes the server
-back after its hysteresis), then robot_b arrives with a higher priority and preempts it
-(robot_a takes its worker home first, only then does robot_b's start there). The run is judged
-from outside (testbed/fleet_netns.py): where each worker runs, the server's claims by robot,
-and what each robot's users hear of its worker, in its own namespace. Writes timeline.png,
-events.txt and summary.json; exits 1 when the server was over-committed or a robot's output
-stayed below freq_min past its Δ.
+running the graph ``--graph`` names (testbed/fleet_graphs.py): ``icar`` (the default), its own
+copy of the ICAR 2015 test-bed, whose AMCL and AR would go to the server, which has room for one
+robot's pair; ``worker``, a sensor -> worker -> consumer graph whose worker (CPU 60) would go
+there, room for one worker. A schedule drives the run (default ``FLEET_SCHEDULE``): robot_a
+starts and takes the server, its link is cut (its nodes go home, its claims are released) and
+restored (it takes the server back after its hysteresis), then robot_b arrives with a higher
+priority and preempts it (robot_a takes its nodes home first, only then do robot_b's serve
+there). The run is judged from outside (testbed/fleet_netns.py): where each robot's nodes
+serve, the server's claims by robot, and what each robot's users hear on every connection its
+graph judges, in its own namespace. Writes timeline.png, events.txt and summary.json; exits 1
+when the server was over-committed or a robot's connection stayed below freq_min past its Δ.
 """
 
 import argparse
@@ -389,7 +391,7 @@ def run(args: argparse.Namespace) -> int:
         os.makedirs(run_dir, exist_ok=True)
     except OSError as e:
         return _fail(f'cannot create {out}: {e.strerror}')
-    shape = FleetShape(hysteresis_s=HYSTERESIS_S, graph=args.graph)
+    shape = FleetShape(hysteresis_s=HYSTERESIS_S, graph=args.graph or 'icar')
     graph = graph_of(shape)
     print('anyscale-manager demo --fleet: robot_a and robot_b (one deployment and ROS domain '
           f'each: {domains[ROBOTS[0]]}, {domains[ROBOTS[1]]}; graph {shape.graph}) share a '

@@ -15,6 +15,7 @@ Two graphs (``FleetShape.graph``):
   server fit a 2-core machine.
 """
 
+import functools
 import os
 import sys
 from dataclasses import dataclass
@@ -242,8 +243,9 @@ def graph_class(name: str):
     return IcarGraph if name == 'icar' else WorkerGraph
 
 
+@functools.lru_cache(maxsize=8)
 def graph_of(shape: FleetShape):
-    """The graph ``shape`` names."""
+    """The graph ``shape`` names (one per shape: the ICAR file is read once)."""
     return graph_class(shape.graph)(shape)
 
 
