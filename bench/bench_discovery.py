@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """DDS discovery alone over one link, per discovery setup and participant count (needs root).
 
-    sudo python bench/bench_discovery.py [--setups multicast,unicast,server]
+    sudo python bench/bench_discovery.py [--setups multicast,unicast,server,servers]
         [--participants 10,26,50] [--laptop 4] [--per-process 5] [--seconds 20] [--cold 10]
         [--domain-id N]
 
@@ -33,17 +33,18 @@ def run_one(setup: str, robot_count: int, args) -> Dict[str, object]:
     from anyscale_manager.testbed import harness, netns
 
     netns.remove_stale()
-    net = netns.Network().setup()
+    net = netns.Network(multicast=setup != 'servers').setup()
     procs = []
     folder = f'/tmp/bench_discovery_{os.getpid()}_{setup}_{robot_count}'
     os.makedirs(folder, exist_ok=True)
     master = net.addresses['robot']
+    addresses = [master, net.addresses['laptop']]
 
     def spawn(name: str, scale: str, argv: List[str], env=None):
         log_path = os.path.join(folder, f'{name}.log')
         env = env or discovery_setups.environment(
             setup, harness.child_env(args.domain_id, folder, net.peers(scale)[0]),
-            net.peers(scale), master)
+            net.peers(scale), master, addresses)
         with open(log_path, 'ab') as log:
             proc = net.popen(scale, argv, env, cpu_quota=False, stdout=log, stderr=log)
         procs.append(proc)
@@ -57,6 +58,13 @@ def run_one(setup: str, robot_count: int, args) -> Dict[str, object]:
                 net.peers('robot'), master)
             spawn('discovery_server', 'robot', discovery_setups.server_argv(master),
                   discovery_setups.server_environment(env))
+        if setup == 'servers':
+            env = discovery_setups.environment(
+                setup, harness.child_env(args.domain_id, folder, net.peers('robot')[0]),
+                net.peers('robot'), master, addresses)
+            for scale, argv in zip(('robot', 'laptop'), discovery_setups.servers_argv(addresses)):
+                spawn(f'discovery_server_{scale}', scale, argv,
+                      discovery_setups.server_environment(env))
         idle = [sys.executable, os.path.abspath(discovery_setups.__file__), '--role', 'idle']
         holders: List[str] = []
         started = time.monotonic()

@@ -16,8 +16,10 @@ ports).
 
 ``--discovery SETUP``: how every process of the test-bed discovers (discovery_setups.py):
 ``multicast`` (the test-bed's own: SUBNET and the neighbour as a static peer), ``unicast``
-(LOCALHOST and the neighbour as a static peer: nothing multicast) or ``server`` (a Fast DDS
-discovery server on the robot, every process its client).
+(LOCALHOST and the neighbour as a static peer: nothing multicast), ``server`` (a Fast DDS
+discovery server on the robot, every process its client) or ``servers`` (the package's own
+``discovery.mode: server``: each scale's warden runs a server, every process a client of both,
+the link carries no multicast; the test-bed's ``Options.discovery``).
 
 ``--cold N``: then N times, a publisher started cold on the laptop: the time from its node's
 creation until a subscriber on the robot matches it (p50, max).
@@ -81,8 +83,8 @@ def capture(interface: str, seconds: float) -> int:
 
 
 def kind(port: int, domain: int) -> str:
-    if port == discovery_setups.SERVER_PORT:
-        return 'discovery'                  # the discovery server's
+    if 0 <= port - discovery_setups.SERVER_PORT < 8:
+        return 'discovery'                  # a discovery server's
     base = 7400 + 250 * domain
     offset = port - base
     if offset == 0:
@@ -154,6 +156,8 @@ def testbed_class():
             self.server = None
 
         def _env(self, scale: str):
+            if self.setup == 'servers':
+                return super()._env(scale)          # the package's own (Options.discovery)
             net = self.network
             return discovery_setups.environment(self.setup, super()._env(scale),
                                                 net.peers(scale), net.addresses['robot'])
@@ -210,7 +214,8 @@ def main() -> int:
     # A run folder of its own (the harness's default is a /tmp/anyscale-testbed-* one).
     run_dir = tempfile.mkdtemp(prefix='bench-link-traffic-')
     options = harness.Options(args.config, args.domain_id, mode='netns', link_up_at_start=True,
-                              run_dir=run_dir)
+                              run_dir=run_dir,
+                              discovery='server' if args.discovery == 'servers' else 'multicast')
     tb = testbed_class()(options, args.discovery).start()
     try:
         on = (lambda node: lambda r: r.where(node) == ('laptop',))
@@ -225,12 +230,19 @@ def main() -> int:
               f'{args.discovery} (profile: {args.profile or "packaged"}):')
         print('ROS processes: ' + ', '.join(f'{n} on the {s}' for s, n in counts.items()))
         print_traffic(ways, args.seconds, args.domain_id)
-        if tb.server is not None:
-            import psutil
-            t = psutil.Process(tb.server.pid).cpu_times()
-            print(f'the discovery server on the robot: '
+        import psutil
+        servers = [tb.server.pid] if tb.server is not None else []
+        for proc in psutil.process_iter(['cmdline']):
+            cmd = proc.info['cmdline'] or []
+            if cmd and cmd[0].endswith('fast-discovery-server') and any(
+                    a in cmd for a in tb.network.addresses.values()):
+                servers.append(proc.pid)
+        for pid in sorted(set(servers)):
+            proc = psutil.Process(pid)
+            t = proc.cpu_times()
+            print(f'discovery server {" ".join(proc.cmdline()[1:])}: '
                   f'{(t.user + t.system) / (time.monotonic() - tb.t0) * 100:.1f} % of a core '
-                  f'since the start')
+                  f'since the start, {proc.memory_info().rss / 2 ** 20:.1f} MiB')
         sys.stdout.flush()
         if args.cold:
             def spawn(name, scale, argv):

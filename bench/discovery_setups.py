@@ -14,6 +14,9 @@ Setups (``SETUPS``), for processes in the test-bed's namespaces:
 - ``server``: a Fast DDS discovery server on the master (``server_argv``), every process its
   client (ROS_DISCOVERY_SERVER): a participant announces itself to the server only, which
   hands each client the participants and matching endpoints it needs.
+- ``servers``: the package's own (``discovery.mode: server``): a server on each scale
+  (``servers_argv``: server i on scale i's address, port SERVER_PORT + i), every process a
+  client of both, and the link carries no multicast.
 
 Each with the packaged discovery profile (config/fastdds_discovery.xml) unless the caller's
 environment names one.
@@ -42,14 +45,15 @@ import sys
 import time
 from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
-SETUPS = ('multicast', 'unicast', 'server')
+SETUPS = ('multicast', 'unicast', 'server', 'servers')
 SERVER_PORT = 11811
 COLD_TOPIC = '/discovery_cold'
 
 
 def environment(setup: str, base: Mapping[str, str], peers: Sequence[str],
-                master_address: str) -> Dict[str, str]:
-    """``base`` (a test-bed process's environment) with ``setup``'s discovery."""
+                master_address: str, addresses: Sequence[str] = ()) -> Dict[str, str]:
+    """``base`` (a test-bed process's environment) with ``setup``'s discovery; ``addresses``:
+    every scale's, the master's first (``servers``)."""
     env = {k: v for k, v in base.items()
            if k not in ('ROS_AUTOMATIC_DISCOVERY_RANGE', 'ROS_STATIC_PEERS',
                         'ROS_DISCOVERY_SERVER')}
@@ -61,6 +65,9 @@ def environment(setup: str, base: Mapping[str, str], peers: Sequence[str],
     elif setup == 'server':
         env.update(ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET',
                    ROS_DISCOVERY_SERVER=f'{master_address}:{SERVER_PORT}')
+    elif setup == 'servers':
+        env.update(ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET', ROS_DISCOVERY_SERVER=';'.join(
+            f'{a}:{SERVER_PORT + i}' for i, a in enumerate(addresses)))
     else:
         raise ValueError(f'unknown discovery setup {setup!r}; one of {", ".join(SETUPS)}')
     return env
@@ -71,6 +78,13 @@ def server_argv(address: str) -> List[str]:
     venv_bin = os.path.dirname(sys.executable)
     return [os.path.join(venv_bin, 'fast-discovery-server'), '-i', '0', '-l', address,
             '-p', str(SERVER_PORT)]
+
+
+def servers_argv(addresses: Sequence[str]) -> List[List[str]]:
+    """The ``servers`` setup's servers, one per address: server i on the i-th."""
+    venv_bin = os.path.dirname(sys.executable)
+    return [[os.path.join(venv_bin, 'fast-discovery-server'), '-i', str(i), '-l', a, '-p',
+             str(SERVER_PORT + i)] for i, a in enumerate(addresses)]
 
 
 def server_environment(env: Mapping[str, str]) -> Dict[str, str]:

@@ -9,6 +9,8 @@ import time
 from typing import List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import AgentSettings, Deployment
+from ..model.discovery import server_port, uses_servers
+from .discovery import DiscoveryError, server_argv
 from .supervisor import Supervisor
 from .warden import spawn as spawn_warden, warden_port
 
@@ -60,19 +62,30 @@ def start_warden(deployment: Deployment, scale: str, supervisor: Supervisor, ste
     supervisor.save()       # who this agent is, before the warden reads it
     port = warden_port(d, scale)
     log = os.path.join(log_dir, 'warden.log')
+    lines: List[Tuple[str, str]] = []
+    server: List[str] = []
+    if uses_servers(d):
+        try:
+            server = server_argv(d, scale, os.environ)
+        except DiscoveryError as e:
+            lines.append(('error', f'{e}: this scale runs no discovery server; its processes '
+                                   "find the others through the other scales' servers only "
+                                   '(not while a link is cut)'))
     try:
         pid = spawn_warden(stem + '.json', scale, d.name, d.scale(scale).host, port,
                            s.adopt_grace_s, s.restart_grace_s, s.fence_grace_s, log,
-                           d.security.key_file, s.warden_priority)
+                           d.security.key_file, s.warden_priority, server)
     except OSError as e:
         # The nodes still run and are supervised; what is lost is said.
         return [('error', f'cannot start the warden ({e.strerror or e}; log {log}): the master '
                           'hears no heartbeat from this scale (its link counts as down) and '
                           'nothing stops these nodes if this agent dies')]
     if pid is None:
-        return []
-    return [('info', f'warden started: pid {pid}, heartbeats on UDP {d.scale(scale).host}:'
-                     f'{port} (log {log})')]
+        return lines
+    return lines + [('info', f'warden started: pid {pid}, heartbeats on UDP '
+                             f'{d.scale(scale).host}:{port} (log {log})'
+                             + (f'; it keeps the discovery server on port '
+                                f'{server_port(d, scale)} running' if server else ''))]
 
 
 class Signals:

@@ -40,7 +40,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, List, Optional, Tuple
+from typing import Any, Callable, List, Optional, Sequence, Tuple
 
 from . import priority as realtime
 from .. import protocol_auth as auth
@@ -285,6 +285,7 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
         return 2
     sock.setblocking(False)
     prioritise(args.priority, args.scale, say)
+    args.keeper = keeper(args, say)
     watch = AgentWatch()
     verdict = Verdict(args.adopt_grace, args.restart_grace)
     view = AgentView()
@@ -295,6 +296,8 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
         f'{args.host}:{args.port}')
     while True:
         now = time.monotonic()
+        if args.keeper is not None:
+            args.keeper.step(now)
         try:
             stat = os.stat(args.state)
             missing_since = None
@@ -343,6 +346,19 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
             ready, _, _ = select.select([sock], [], [], 0)
 
 
+def keeper(args: argparse.Namespace, say: Callable[[str], None]):
+    """The discovery server this warden keeps running (agent/discovery.py), if any: it lives
+    as long as the warden, so a restarted or dead agent leaves the scale's discovery as it
+    was."""
+    if not getattr(args, 'discovery_server', ''):
+        return None
+    from .discovery import ServerKeeper, server_environment
+    argv = json.loads(args.discovery_server)
+    log = getattr(args, 'discovery_log', '') or os.path.join(os.path.dirname(args.state),
+                                                             'discovery.log')
+    return ServerKeeper(argv, server_environment(os.environ), log, say)
+
+
 def prioritise(priority: int, scale: str, say: Callable[[str], None]) -> bool:
     """Answer heartbeats ahead of the scale's workload. The echo is the proof that the link
     works: one that waits for a core behind a loaded scale's processes arrives as late as a
@@ -363,8 +379,11 @@ def prioritise(priority: int, scale: str, say: Callable[[str], None]) -> bool:
 
 def spawn(state_path: str, scale: str, deployment: str, host: str, port: int,
           adopt_grace_s: float, restart_grace_s: float, fence_grace_s: float,
-          log_path: str, key_file: str = '', priority: int = 0) -> Optional[int]:
-    """Start the warden of this state file unless one runs; its pid, or None if one did."""
+          log_path: str, key_file: str = '', priority: int = 0,
+          discovery_server: Sequence[str] = ()) -> Optional[int]:
+    """Start the warden of this state file unless one runs; its pid, or None if one did.
+    ``discovery_server``: the command of the scale's discovery server, which it keeps running
+    (its log beside the warden's)."""
     try:
         with open(state_path + '.warden', 'a+') as f:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -379,6 +398,9 @@ def spawn(state_path: str, scale: str, deployment: str, host: str, port: int,
         argv += ['--key-file', key_file]
     if priority > 0:
         argv += ['--priority', str(priority)]
+    if discovery_server:
+        argv += ['--discovery-server', json.dumps(list(discovery_server)), '--discovery-log',
+                 os.path.join(os.path.dirname(log_path) or '.', 'discovery.log')]
     os.makedirs(os.path.dirname(log_path) or '.', exist_ok=True)
     with open(log_path, 'ab') as log:
         proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log,
@@ -402,7 +424,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     ap.add_argument('--key-file', default='', help="the deployment's key: signed heartbeats")
     ap.add_argument('--priority', type=int, default=0,
                     help='real-time (SCHED_RR) priority to answer heartbeats at; 0: normal')
+    ap.add_argument('--discovery-server', default='',
+                    help="the scale's DDS discovery server to keep running, as a JSON list "
+                         '(its command and arguments)')
+    ap.add_argument('--discovery-log', default='', help="the discovery server's log")
     args = ap.parse_args(argv)
+    args.keeper = None
 
     def say(text: str) -> None:
         print(f'[warden {args.scale}] {time.strftime("%H:%M:%S")} {text}', flush=True)
@@ -410,6 +437,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         return run(args, say)
     except KeyboardInterrupt:
         return 0
+    finally:
+        if args.keeper is not None:
+            args.keeper.stop()
 
 
 if __name__ == '__main__':

@@ -359,6 +359,7 @@ def read_deployment(root: Section) -> t.Deployment:
     monitoring = read_settings(root, 'monitoring', t.MonitorSettings)
     agent = read_settings(root, 'agent', t.AgentSettings)
     security = read_settings(root, 'security', t.SecuritySettings)
+    discovery = read_settings(root, 'discovery', t.DiscoverySettings)
     if security.key_file and not os.path.isabs(os.path.expanduser(security.key_file)):
         # The decider, each agent and validate run in different folders: one meaning only.
         ctx.error('security.key_file', f'expected an absolute path, got {security.key_file!r}')
@@ -366,4 +367,4 @@ def read_deployment(root: Section) -> t.Deployment:
     return t.Deployment(name=name, source=ctx.source, scales=scales, links=links, nodes=nodes,
                         connections=connections, decider=decider, monitoring=monitoring,
                         agent=agent, description=description, security=security,
-                        priority=priority)
+                        priority=priority, discovery=discovery)

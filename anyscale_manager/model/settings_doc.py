@@ -16,7 +16,8 @@ from typing import List
 from . import types as t
 
 SECTIONS = (('decider', t.DeciderSettings), ('monitoring', t.MonitorSettings),
-            ('agent', t.AgentSettings), ('security', t.SecuritySettings))
+            ('agent', t.AgentSettings), ('security', t.SecuritySettings),
+            ('discovery', t.DiscoverySettings))
 BEGIN = '<!-- settings table: made by python -m anyscale_manager.model.settings_doc --write -->'
 END = '<!-- end of the settings table -->'
 DOC = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),

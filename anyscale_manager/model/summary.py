@@ -8,6 +8,7 @@ import textwrap
 from typing import Optional
 
 from .advice import single_machine
+from .discovery import ENV_SERVERS, ENV_SUPER_CLIENT, server_list, uses_servers
 from .types import Deployment, Scale
 
 
@@ -88,6 +89,9 @@ def summary(d: Deployment) -> str:
                          f'min {_fmt(c.freq_min_hz)} Hz, opt {_fmt(c.freq_opt_hz)} Hz, '
                          f'tolerance {_fmt(c.tolerance_s)} s, {c.bandwidth_kbps:g} kbit/s'
                          + _crosses(d, c.publisher, c.subscriber))
+    if uses_servers(d):
+        lines.append(f'  discovery: through a server on each scale; a shell for ros2 tools: '
+                     f'export {ENV_SERVERS}="{server_list(d)}" {ENV_SUPER_CLIENT}=TRUE')
     shared = single_machine(d)
     if shared:
         lines += textwrap.wrap(shared, 99, initial_indent='  ', subsequent_indent='    ')

@@ -286,6 +286,25 @@ class SecuritySettings:
         low_open=True, unit='s')
 
 
+MULTICAST, SERVER = 'multicast', 'server'
+
+
+@dataclass(frozen=True)
+class DiscoverySettings:
+    # How every process of the deployment finds the others (docs/discovery.md).
+    mode: str = setting(
+        MULTICAST, "'multicast': DDS's own discovery (ROS's default; many WiFi access points "
+                   "drop or throttle multicast); 'server': each scale's warden runs a Fast DDS "
+                   'discovery server on its host, every process of the deployment a client of '
+                   'all of them (ROS_DISCOVERY_SERVER): nothing multicast, a few kbit/s on a '
+                   'link whatever the number of processes', choices=(MULTICAST, SERVER))
+    port: int = setting(11811, 'base UDP port of the discovery servers: scale i (from 0, in '
+                               'file order) serves on it + i', low=1, high=65535 - 250)
+    server_command: str = setting(
+        '', 'the Fast DDS discovery server executable (empty: fast-discovery-server, else '
+            "fastdds's 'discovery' verb, found beside this Python or on PATH)")
+
+
 @dataclass(frozen=True)
 class MonitorSettings:
     scale_rate_hz: float = setting(2.0, 'scale status rate', low=0, high=1000, low_open=True,
@@ -397,6 +416,7 @@ class Deployment:
     agent: AgentSettings = AgentSettings()
     description: str = ''
     security: SecuritySettings = SecuritySettings()
+    discovery: DiscoverySettings = DiscoverySettings()
     # Of a fleet: a claim of a higher priority on a shared scale may preempt a lower one's.
     priority: int = 0
 

@@ -8,7 +8,7 @@ from .reader import Context, DeploymentError, Problem
 
 # The top-level keys of a deployment: a node's other parameters are not part of it.
 SECTIONS = ('deployment', 'scales', 'links', 'nodes', 'connections', 'decider', 'monitoring',
-            'agent', 'security')
+            'agent', 'security', 'discovery')
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):

@@ -38,6 +38,7 @@ from .. import protocol_auth as auth
 from ..agent.authority import describe
 from ..agent.catalogue import build_catalogue, Entry
 from ..agent.claims import HostClaims
+from ..agent.discovery import apply_client_setup
 from ..agent.exits import ExitWatcher
 from ..agent.ledger import Ledger, LedgerError
 from ..agent.host import this_host
@@ -330,6 +331,8 @@ def main(args: Optional[List[str]] = None) -> int:
         return 2
     if refuse_bad_params_files('agent', argv):    # said with its line, not as rcl words it
         return 2
+    # discovery.mode server: a client of the deployment's discovery servers (before it joins).
+    apply_client_setup('agent', argv)
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as e:   # rcl refuses the arguments or the parameters file

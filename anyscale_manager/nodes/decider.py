@@ -39,6 +39,7 @@ from .log_lines import log_at
 from .throttled_log import ThrottledLog
 from .. import protocol as p
 from .. import protocol_auth as auth
+from ..agent.discovery import apply_client_setup
 from ..model.advice import UNSIGNED
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.params_file import refuse_bad_params_files
@@ -546,6 +547,8 @@ def main(args=None) -> int:
     # rcl's parser words it.
     if refuse_bad_params_files('anyscale_manager decider', sys.argv if args is None else args):
         return 2
+    # discovery.mode server: a client of the deployment's discovery servers (before it joins).
+    apply_client_setup('anyscale_manager decider', sys.argv if args is None else args)
     # A SIGINT shuts rclpy's context down (its handler) and is not also raised as
     # KeyboardInterrupt: raised in the middle of an rclpy call, that came out as a RuntimeError
     # ("Unable to convert call argument '0' to Python object") while the context was still up,

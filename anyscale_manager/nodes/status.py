@@ -65,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
         except auth.KeyFileError as e:
             print(f'anyscale-manager status: {e}: messages shown unverified', file=sys.stderr)
     book = StatusBook(deployment, key=key, environ=dict(os.environ))
+    # discovery.mode server: a client of the deployment's servers, as its processes are.
+    from ..agent.discovery import client_environment
+    os.environ.update(client_environment(deployment, os.environ)[0])
     ctx = rclpy.Context()
     # Python's own handlers: Ctrl-C is a KeyboardInterrupt in the loop below, which gives the
     # terminal back before the process ends.

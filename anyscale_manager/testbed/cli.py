@@ -64,6 +64,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              '"20:cut@wifi,30:restore@wifi"')
     parser.add_argument('--mode', choices=('auto', 'netns', 'loopback'), default='auto',
                         help='netns needs root; auto falls back to loopback and says so')
+    parser.add_argument('--discovery', choices=('multicast', 'server'), default='multicast',
+                        help="server: the deployment's discovery.mode server (each scale's "
+                             'warden runs a discovery server) on links that carry no '
+                             'multicast; needs network namespaces')
     parser.add_argument('--no-migration', action='store_true',
                         help='run the same schedule with decider.migration false (baseline)')
     parser.add_argument('--domain-id', type=int, default=None,
@@ -103,9 +107,11 @@ def _fail(message: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     if args.fleet:
-        if args.three_scales or args.config or args.no_migration or args.mode == 'loopback':
+        if args.three_scales or args.config or args.no_migration or args.mode == 'loopback' \
+                or args.discovery != 'multicast':
             return _fail('--fleet runs its own two robots in namespaces: leave out '
-                         '--three-scales, --config, --no-migration and --mode loopback')
+                         '--three-scales, --config, --no-migration, --discovery and --mode '
+                         'loopback')
         from . import fleet_demo
         return fleet_demo.run(args)
     if args.graph is not None:
@@ -159,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
     # Boot with the link cut so every node starts on the robot; the schedule opens the link.
     options = Options(config, domain, mode=args.mode, decider_parameters=parameters,
                       run_dir=os.path.join(out, 'run'), keep_run_dir=True,
-                      link_up_at_start=False)
+                      link_up_at_start=False, discovery=args.discovery)
     try:
         testbed = Testbed(options)
     except (HarnessError, DeploymentError) as e:

@@ -41,7 +41,7 @@ from .. import config_files, protocol, protocol_auth
 from ..agent import shm
 from ..agent.catalogue import ENV_NODE, ENV_SCALE
 from ..model.loader import load_deployment
-from ..model.types import Deployment
+from ..model.types import SERVER, Deployment
 from ..nodes.workload import POSE_TYPE, REFERENCE_CORE
 from . import links, netns
 from .errors import HarnessError
@@ -84,6 +84,9 @@ class Options:
     decider_parameters: Mapping[str, str] = field(default_factory=dict)
     link_up_at_start: bool = True            # False: boot with the link cut (all on the robot)
     python: str = sys.executable
+    # 'server': the deployment's discovery.mode server, on links that carry no multicast
+    # (namespaces only); 'multicast': the file's own (its neighbours static peers).
+    discovery: str = 'multicast'
 
 
 class Testbed:
@@ -175,7 +178,11 @@ class Testbed:
                 d.scale_names,
                 [(link.name, link.ends[0], link.ends[1], self._links[link.name][1])
                  for link in d.links],
-                self.cpu_cores if self.options.cpu_quota else {})
+                self.cpu_cores if self.options.cpu_quota else {},
+                multicast=self.options.discovery != SERVER)
+        elif self.options.discovery == SERVER:
+            raise HarnessError('discovery through servers runs in network namespaces only '
+                               f'(here: {self.mode_reason})')
         else:
             control = links.LoopbackLinks(d.scale_names, self._laptop_agent_pid)
         control.setup()
@@ -321,12 +328,21 @@ class Testbed:
 
     # --- processes ----------------------------------------------------------------------------
     def _env(self, scale: str) -> Dict[str, str]:
-        return child_env(self.options.domain_id, os.path.join(self.run_dir, 'ros_log'),
-                         self.link_control.discovery_peers(scale))
+        env = child_env(self.options.domain_id, os.path.join(self.run_dir, 'ros_log'),
+                        self.link_control.discovery_peers(scale))
+        if self.options.discovery == SERVER:
+            # Every process a client of the scales' servers (as the agents and the decider
+            # make themselves): no static peers, nothing multicast.
+            from ..agent.discovery import client_setup
+            env.pop('ROS_STATIC_PEERS', None)
+            env.update(client_setup(['x'] + self._deployment_args(), {})[0])
+        return env
 
     def _deployment_args(self) -> List[str]:
         args = ['--ros-args', '--params-file', self.options.deployment_path]
         args += self.link_control.ros_parameters()
+        if self.options.discovery == SERVER:
+            args += ['-p', f'discovery.mode:={SERVER}']
         args += ['-p', f'agent.state_dir:={os.path.join(self.run_dir, "state")}',
                  '-p', f'agent.log_dir:={os.path.join(self.run_dir, "nodes")}']
         return args

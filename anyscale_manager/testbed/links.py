@@ -118,9 +118,11 @@ class NamespaceLinks(LinkControl):
     observer_per_scale = True
 
     def __init__(self, scales: Sequence[str], links: Sequence[Tuple[str, str, str, float]],
-                 cpu_cores: Mapping[str, float]):
+                 cpu_cores: Mapping[str, float], multicast: bool = True):
         """``links``: (name, end, end, rate kbit/s) each; ``cpu_cores``: the quota of each
-        scale, in cores of this machine (empty: no quotas)."""
+        scale, in cores of this machine (empty: no quotas); ``multicast`` False: the links
+        carry none."""
+        self._multicast = multicast
         self._scales = tuple(scales)
         self._links = list(links)
         self._cpu_cores = dict(cpu_cores)
@@ -129,7 +131,7 @@ class NamespaceLinks(LinkControl):
         netns.remove_stale()
         # Network.setup tears down what it built when a step fails.
         self.network = netns.Network(cpu_cores=self._cpu_cores, scales=self._scales,
-                                     links=self._links).setup()
+                                     links=self._links, multicast=self._multicast).setup()
 
     def cut(self, link: str) -> None:
         self.network.cut(link)

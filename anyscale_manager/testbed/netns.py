@@ -338,9 +338,12 @@ class Network:
                  cpu_cores: Optional[Mapping[str, Optional[float]]] = None,
                  subnet: str = DEFAULT_SUBNET, tag: Optional[str] = None,
                  scales: Sequence[str] = SCALES,
-                 links: Optional[Sequence[Tuple[str, str, str, float]]] = None):
+                 links: Optional[Sequence[Tuple[str, str, str, float]]] = None,
+                 multicast: bool = True):
         """``links``: (name, end, end, rate kbit/s) each; default one link ``wifi`` joining
-        the first two scales at ``rate_kbps``."""
+        the first two scales at ``rate_kbps``. ``multicast`` False: the links carry none (as
+        a WiFi access point that drops it), and no multicast route leaves a namespace."""
+        self.multicast = multicast
         self.tag = tag or f'{NAME_PREFIX}-{os.getpid()}-{next(_counter)}'
         self.scales = tuple(scales)
         if len(set(self.scales)) != len(self.scales) or len(self.scales) < 2 \
@@ -386,10 +389,11 @@ class Network:
                     ns, dev = self.namespaces[scale], self.interfaces[(wire.name, scale)]
                     mine = self.addresses[scale]
                     _run(['ip', '-n', ns, 'addr', 'add', mine + '/32', 'dev', dev])
-                    _run(['ip', '-n', ns, 'link', 'set', dev, 'multicast', 'on', 'up'])
+                    _run(['ip', '-n', ns, 'link', 'set', dev, 'multicast',
+                          'on' if self.multicast else 'off', 'up'])
                     _run(['ip', '-n', ns, 'route', 'add', self.addresses[other] + '/32',
                           'dev', dev, 'src', mine])
-                    if scale not in multicast_set:
+                    if scale not in multicast_set and self.multicast:
                         # DDS discovery multicast leaves by one link (a route per prefix);
                         # the neighbours over the others are static unicast peers
                         # (``peers``), and multicast loops back inside the namespace.
@@ -513,6 +517,19 @@ class Network:
 
     def link_state(self, link: str) -> LinkState:
         return self._state[self._wire(link).name]
+
+    def multicast_packets(self, scale: str) -> int:
+        """Multicast packets received on ``scale``'s end of every link since they were made."""
+        total = 0
+        for (wire, end), dev in self.interfaces.items():
+            if end != scale:
+                continue
+            out = _run(['ip', '-n', self.namespaces[scale], '-s', 'link', 'show', 'dev', dev])
+            lines = out.splitlines()
+            head = next(i for i, line in enumerate(lines) if line.strip().startswith('RX:'))
+            names, values = lines[head].split()[1:], lines[head + 1].split()
+            total += int(values[names.index('mcast')])
+        return total
 
     def qdisc(self, scale: str, link: Optional[str] = None) -> str:
         """The kernel's view of one end's root qdisc (for checks and the status table)."""

