@@ -5,6 +5,8 @@ import os
 from typing import Dict, List, MutableMapping, Optional
 
 DISCOVERY_PROFILE = 'fastdds_discovery.xml'
+# The profile under discovery.mode server (docs/discovery.md), in place of the one above.
+SERVER_PROFILE = 'fastdds_discovery_server.xml'
 # Jazzy's Fast DDS (2.x) reads this variable; Fast DDS 3 reads FASTDDS_DEFAULT_PROFILES_FILE.
 PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
@@ -37,3 +39,17 @@ def with_discovery_profile(env: MutableMapping[str, str]) -> Dict[str, str]:
     if path is not None:
         out[PROFILE_VARS[0]] = path
     return out
+
+
+def with_server_profile(env: MutableMapping[str, str]) -> Dict[str, str]:
+    """The variables that name the packaged profile for discovery servers' clients
+    (``SERVER_PROFILE``) in ``env``: where it names no profile or the packaged multicast one
+    (empty: a user's own profile, kept)."""
+    named = [env.get(v) for v in PROFILE_VARS if env.get(v)]
+    packaged = {os.path.realpath(p) for p in candidates(DISCOVERY_PROFILE)}
+    if any(os.path.realpath(p) not in packaged for p in named):
+        return {}
+    path = find(SERVER_PROFILE)
+    if path is None:
+        return {}
+    return {v: path for v in PROFILE_VARS if env.get(v)} or {PROFILE_VARS[0]: path}

@@ -16,7 +16,8 @@ Setups (``SETUPS``), for processes in the test-bed's namespaces:
   hands each client the participants and matching endpoints it needs.
 - ``servers``: the package's own (``discovery.mode: server``): a server on each scale
   (``servers_argv``: server i on scale i's address, port SERVER_PORT + i), every process a
-  client of both, and the link carries no multicast.
+  client of both with the package's profile for them (config/fastdds_discovery_server.xml),
+  and the link carries no multicast.
 
 Each with the packaged discovery profile (config/fastdds_discovery.xml) unless the caller's
 environment names one.
@@ -66,8 +67,10 @@ def environment(setup: str, base: Mapping[str, str], peers: Sequence[str],
         env.update(ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET',
                    ROS_DISCOVERY_SERVER=f'{master_address}:{SERVER_PORT}')
     elif setup == 'servers':
+        from anyscale_manager import config_files
         env.update(ROS_AUTOMATIC_DISCOVERY_RANGE='SUBNET', ROS_DISCOVERY_SERVER=';'.join(
             f'{a}:{SERVER_PORT + i}' for i, a in enumerate(addresses)))
+        env.update(config_files.with_server_profile(env))    # the package's, as it sets it
     else:
         raise ValueError(f'unknown discovery setup {setup!r}; one of {", ".join(SETUPS)}')
     return env

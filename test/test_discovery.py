@@ -14,6 +14,7 @@ import psutil
 import pytest
 import yaml
 
+from anyscale_manager import config_files
 from anyscale_manager.agent import discovery as ad
 from anyscale_manager.model import discovery as md
 from anyscale_manager.model.loader import load_mapping
@@ -61,13 +62,18 @@ def test_a_node_reads_its_servers_from_its_file_and_overrides_before_it_joins(tm
     argv = ['agent', '--ros-args', '--params-file', path, '-p', 'scale:=a']
     assert ad.client_setup(argv, {}) == ({}, '')            # multicast: nothing to set
     argv += ['-p', 'discovery.mode:=server', '-p', 'scales.a.host:=10.9.0.7']
-    env, said = ad.client_setup(argv, {})
-    # Host names are resolved: Fast DDS takes addresses.
-    assert env == {'ROS_DISCOVERY_SERVER': '10.9.0.7:11811;127.0.0.1:11812'}
+    packaged = config_files.find(config_files.DISCOVERY_PROFILE)
+    env, said = ad.client_setup(argv, {'FASTRTPS_DEFAULT_PROFILES_FILE': packaged})
+    # Host names are resolved (Fast DDS takes addresses); the profile for servers' clients
+    # takes the multicast one's place.
+    assert env == {'ROS_DISCOVERY_SERVER': '10.9.0.7:11811;127.0.0.1:11812',
+                   'FASTRTPS_DEFAULT_PROFILES_FILE':
+                       config_files.find(config_files.SERVER_PROFILE)}
     assert '10.9.0.7:11811' in said
-    # Servers named by the environment rule; a difference is said.
-    env, said = ad.client_setup(argv, {'ROS_DISCOVERY_SERVER': '10.0.0.1:11811'})
-    assert env == {} and 'from the environment' in said
+    # Servers named by the environment rule, and a user's own profile is kept: both said.
+    env, said = ad.client_setup(argv, {'ROS_DISCOVERY_SERVER': '10.0.0.1:11811',
+                                       'FASTRTPS_DEFAULT_PROFILES_FILE': '/my/profile.xml'})
+    assert env == {} and 'from the environment' in said and '/my/profile.xml is kept' in said
     # A file that cannot be read is the node's own business: nothing set, nothing said here.
     bad = tmp_path / 'bad.yaml'
     bad.write_text('/**: {ros__parameters: {scales: 3}}')

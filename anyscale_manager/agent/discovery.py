@@ -15,6 +15,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import yaml
 
+from .. import config_files
 from ..model import discovery as disc
 from ..model.params_file import PARAMETERS, params_files, ros_arguments
 from ..model.reader import DeploymentError
@@ -214,17 +215,26 @@ def client_setup(argv: Sequence[str], environ: Mapping[str, str]
 
 def client_environment(deployment: Deployment, environ: Mapping[str, str]
                        ) -> Tuple[Dict[str, str], str]:
-    """``client_setup`` for a deployment already read (the status view reads its file)."""
+    """``client_setup`` for a deployment already read (the status view reads its file): the
+    servers, and the packaged profile for their clients in place of the multicast one
+    (config/fastdds_discovery_server.xml; a user's own profile is kept)."""
     if not disc.uses_servers(deployment):
         return {}, ''
-    want = disc.client_environment(deployment, resolve)
+    want = disc.server_list(deployment, resolve)
     have = environ.get(disc.ENV_SERVERS)
-    if have:
-        if have != want[disc.ENV_SERVERS]:
-            return {}, (f'discovery: {disc.ENV_SERVERS}={have} from the environment, not the '
-                        f"deployment's {want[disc.ENV_SERVERS]}")
-        return {}, f'discovery: a client of the servers {have}'
-    return want, f'discovery: a client of the servers {want[disc.ENV_SERVERS]}'
+    out = {} if have else {disc.ENV_SERVERS: want}
+    said = f'discovery: a client of the servers {have or want}'
+    if have and have != want:
+        said = (f'discovery: {disc.ENV_SERVERS}={have} from the environment, not the '
+                f"deployment's {want}")
+    profile = config_files.with_server_profile(environ)
+    out.update(profile)
+    if not profile:
+        named = next((environ[v] for v in config_files.PROFILE_VARS if environ.get(v)), '')
+        said += (f'; your Fast DDS profile {named} is kept (the packaged one for the '
+                 "servers' clients announces every 3 s and pings them every 50 ms)") \
+            if named else ''
+    return out, said
 
 
 def apply_client_setup(program: str, argv: Sequence[str]) -> None:

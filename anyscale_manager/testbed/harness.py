@@ -335,7 +335,7 @@ class Testbed:
             # make themselves): no static peers, nothing multicast.
             from ..agent.discovery import client_setup
             env.pop('ROS_STATIC_PEERS', None)
-            env.update(client_setup(['x'] + self._deployment_args(), {})[0])
+            env.update(client_setup(['x'] + self._deployment_args(), env)[0])
         return env
 
     def _deployment_args(self) -> List[str]:
