@@ -154,3 +154,14 @@ def test_validate_says_how_a_shell_joins_the_servers(tmp_path, capsys):
     out = capsys.readouterr().out
     assert 'export ROS_DISCOVERY_SERVER="10.9.0.1:11811;10.9.0.2:11812" ' \
            'ROS_SUPER_CLIENT=TRUE' in out
+
+
+def test_the_demo_refuses_servers_where_it_cannot_run_them(capsys, tmp_path):
+    from anyscale_manager.cli import main
+    assert main(['demo', '--fleet', '--discovery', 'server',
+                 '--out', str(tmp_path / 'out')]) == 2
+    assert '--discovery' in capsys.readouterr().err
+    assert main(['demo', '--mode', 'loopback', '--discovery', 'server', '--duration', '5',
+                 '--out', str(tmp_path / 'out2')]) == 2
+    assert 'network namespaces only' in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / 'out') and not os.path.exists(tmp_path / 'out2')

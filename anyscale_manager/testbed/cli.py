@@ -116,6 +116,9 @@ def run(args: argparse.Namespace) -> int:
         return fleet_demo.run(args)
     if args.graph is not None:
         return _fail('--graph is what each robot of --fleet runs: add --fleet, or leave it out')
+    if args.discovery != 'multicast' and args.mode == 'loopback':
+        return _fail('--discovery server runs in network namespaces only: leave out --mode '
+                     'loopback')
     from .harness import HarnessError, Options, Testbed
     from .report import draw_timeline, status_table, with_own_reports, write_event_log
 
