@@ -41,13 +41,19 @@ def with_discovery_profile(env: MutableMapping[str, str]) -> Dict[str, str]:
     return out
 
 
+def is_packaged(path: str) -> bool:
+    """Whether ``path`` is one of the package's own discovery profiles."""
+    ours = {os.path.realpath(p) for name in (DISCOVERY_PROFILE, SERVER_PROFILE)
+            for p in candidates(name)}
+    return os.path.realpath(path) in ours
+
+
 def with_server_profile(env: MutableMapping[str, str]) -> Dict[str, str]:
     """The variables that name the packaged profile for discovery servers' clients
-    (``SERVER_PROFILE``) in ``env``: where it names no profile or the packaged multicast one
-    (empty: a user's own profile, kept)."""
+    (``SERVER_PROFILE``) in ``env``: where it names no profile or a packaged one (empty: a
+    user's own profile, kept)."""
     named = [env.get(v) for v in PROFILE_VARS if env.get(v)]
-    packaged = {os.path.realpath(p) for p in candidates(DISCOVERY_PROFILE)}
-    if any(os.path.realpath(p) not in packaged for p in named):
+    if any(not is_packaged(p) for p in named):
         return {}
     path = find(SERVER_PROFILE)
     if path is None:

@@ -99,6 +99,10 @@ def test_a_copy_may_be_serving_from_the_activation_asked_until_it_is_seen_inacti
     d.next_request(7.0, True)
     answer(d, 7.0, state='errorprocessing')
     assert not d.may_be_active                               # never asked to activate
+    d.reset()                                                # adopted, mid-transition
+    d.next_request(8.0, True)
+    answer(d, 8.0, state='deactivating')
+    assert d.may_be_active
 
 
 def test_finalizing_goes_through_deactivate_cleanup_and_shutdown():

@@ -41,9 +41,14 @@ def wait_for(condition, timeout_s, what):
 
 def test_every_scale_has_a_server_at_its_host_and_port_listed_by_its_index():
     d = load_mapping(deployment(port=12000))
-    assert [md.server_port(d, s) for s in ('a', 'b')] == [12000, 12001]
-    assert md.client_environment(d) == {'ROS_DISCOVERY_SERVER': '10.9.0.1:12000;10.9.0.2:12001'}
-    assert md.client_environment(load_mapping(deployment('multicast'))) == {}
+    assert [md.server_port(d, s, 0) for s in ('a', 'b')] == [12000, 12001]
+    assert md.client_environment(d, 0) == {
+        'ROS_DISCOVERY_SERVER': '10.9.0.1:12000;10.9.0.2:12001'}
+    # Another ROS domain (another robot of a fleet sharing a host): other ports.
+    assert md.client_environment(d, 3) == {
+        'ROS_DISCOVERY_SERVER': '10.9.0.1:12048;10.9.0.2:12049'}
+    assert md.client_environment(load_mapping(deployment('multicast')), 0) == {}
+    assert md.domain_of({'ROS_DOMAIN_ID': '7'}) == 7 and md.domain_of({}) == 0
 
 
 def test_a_bad_mode_is_refused_naming_the_setting():
@@ -74,16 +79,56 @@ def test_a_node_reads_its_servers_from_its_file_and_overrides_before_it_joins(tm
     env, said = ad.client_setup(argv, {'ROS_DISCOVERY_SERVER': '10.0.0.1:11811',
                                        'FASTRTPS_DEFAULT_PROFILES_FILE': '/my/profile.xml'})
     assert env == {} and 'from the environment' in said and '/my/profile.xml is kept' in said
+    # A name that cannot be resolved now is left out: Fast DDS would drop the whole list.
+    unresolved = argv + ['-p', 'scales.b.host:=no-such-host.invalid']
+    env, said = ad.client_setup(unresolved, {'ROS_DOMAIN_ID': '2'})
+    assert env['ROS_DISCOVERY_SERVER'] == '10.9.0.7:11843;' and 'cannot resolve' in said
+    # A key with dots, as rcl reads it; the agent a super client, its nodes not.
+    data = deployment()
+    params = data['/**']['ros__parameters']
+    params['discovery.mode'] = params.pop('discovery')['mode']
+    dotted = write(tmp_path, data)
+    env, _ = ad.client_setup(['agent', '--ros-args', '--params-file', dotted], {}, True)
+    assert env['ROS_DISCOVERY_SERVER'] == '10.9.0.1:11811;10.9.0.2:11812'
+    assert env['ROS_SUPER_CLIENT'] == 'TRUE'
     # A file that cannot be read is the node's own business: nothing set, nothing said here.
     bad = tmp_path / 'bad.yaml'
     bad.write_text('/**: {ros__parameters: {scales: 3}}')
     assert ad.client_setup(['agent', '--ros-args', '--params-file', str(bad)], {}) == ({}, '')
 
 
+def test_a_restart_in_place_computes_what_it_set_again(tmp_path, monkeypatch):
+    monkeypatch.setenv('ROS_DOMAIN_ID', '0')
+    path = write(tmp_path, deployment())
+    argv = ['agent', '--ros-args', '--params-file', path]
+    monkeypatch.delenv('ROS_DISCOVERY_SERVER', raising=False)
+    monkeypatch.delenv('ROS_SUPER_CLIENT', raising=False)
+    monkeypatch.delenv(ad.ENV_SET, raising=False)
+    ad.apply_client_setup('agent', argv, super_client=True)
+    assert os.environ['ROS_DISCOVERY_SERVER'] == '10.9.0.1:11811;10.9.0.2:11812'
+    # The file changed, the process exec'd with the environment it had: the file rules.
+    path = write(tmp_path, deployment(hosts=('10.9.0.5', '10.9.0.6')))
+    ad.apply_client_setup('agent', argv, super_client=True)
+    assert os.environ['ROS_DISCOVERY_SERVER'] == '10.9.0.5:11811;10.9.0.6:11812'
+    path = write(tmp_path, deployment('multicast'))
+    ad.apply_client_setup('agent', argv, super_client=True)
+    assert 'ROS_DISCOVERY_SERVER' not in os.environ and 'ROS_SUPER_CLIENT' not in os.environ
+    assert os.environ['FASTRTPS_DEFAULT_PROFILES_FILE'] != \
+        config_files.find(config_files.SERVER_PROFILE)
+
+
+def test_the_agents_nodes_are_not_super_clients():
+    from anyscale_manager.agent.catalogue import base_environment
+    env = base_environment({'ROS_SUPER_CLIENT': 'TRUE', 'ROS_DISCOVERY_SERVER': 'x:1'})
+    assert env.get('ROS_DISCOVERY_SERVER') == 'x:1' and 'ROS_SUPER_CLIENT' not in env
+
+
 def test_the_server_is_found_beside_this_python_or_named_by_the_file(monkeypatch):
     found = ad.server_command('', {'PATH': ''})
     assert os.path.basename(found[0]) == 'fast-discovery-server' and len(found) == 1
     assert ad.server_command('/opt/x/fastdds discovery', {}) == ['/opt/x/fastdds', 'discovery']
+    with pytest.raises(ad.DiscoveryError, match='No closing quotation'):
+        ad.server_command('"/opt/x/fastdds', {})
     monkeypatch.setattr(ad.shutil, 'which', lambda *a, **k: None)
     with pytest.raises(ad.DiscoveryError, match='discovery.server_command'):
         ad.server_command('', {'PATH': ''})
@@ -115,13 +160,14 @@ def test_a_warden_keeps_a_real_discovery_server_and_it_goes_with_the_warden(tmp_
     """The warden's server answers on its port while the warden lives, and dies with it
     (SIGKILLed too: the server's parent-death signal), so a new warden can take the port."""
     d = load_mapping(deployment(hosts=('127.0.0.1', '127.0.0.1'), port=24611))
-    argv = ad.server_argv(d, 'a', os.environ)
+    argv = ad.server_argv(d, 'a', {'PATH': os.environ['PATH'], 'ROS_DOMAIN_ID': '0'})
     assert argv[-6:] == ['-i', '0', '-l', '127.0.0.1', '-p', '24611']
     state = tmp_path / 'agent_unit_a.json'
     state.write_text(json.dumps({'agent_pid': os.getpid(), 'nodes': {}}))
     warden = subprocess.Popen(
         [sys.executable, '-m', 'anyscale_manager.agent.warden', '--state', str(state),
          '--scale', 'a', '--deployment', 'unit', '--host', '127.0.0.1', '--port', '24699',
+         '--priority', '1',
          '--discovery-server', json.dumps(argv), '--discovery-log',
          str(tmp_path / 'discovery.log')],
         stdout=open(tmp_path / 'warden.log', 'wb'), stderr=subprocess.STDOUT,
@@ -135,6 +181,10 @@ def test_a_warden_keeps_a_real_discovery_server_and_it_goes_with_the_warden(tmp_
             'the server listening on UDP 24611')
         kid = server()
         assert kid.cmdline()[0] == argv[0]
+        # The warden at real-time priority (when allowed here), its server at normal.
+        if os.sched_getscheduler(warden.pid) == os.SCHED_OTHER:
+            print('the warden runs at normal priority here (no CAP_SYS_NICE): the server '
+                  'cannot have inherited a real-time one; that check says nothing')
         assert os.sched_getscheduler(kid.pid) == os.SCHED_OTHER
         os.kill(warden.pid, signal.SIGKILL)
         warden.wait(10.0)
@@ -148,8 +198,9 @@ def test_a_warden_keeps_a_real_discovery_server_and_it_goes_with_the_warden(tmp_
     assert 'discovery server started' in log, log
 
 
-def test_validate_says_how_a_shell_joins_the_servers(tmp_path, capsys):
+def test_validate_says_how_a_shell_joins_the_servers(tmp_path, capsys, monkeypatch):
     from anyscale_manager.cli import main
+    monkeypatch.setenv('ROS_DOMAIN_ID', '0')
     assert main(['validate', write(tmp_path, deployment())]) == 0
     out = capsys.readouterr().out
     assert 'export ROS_DISCOVERY_SERVER="10.9.0.1:11811;10.9.0.2:11812" ' \

@@ -87,16 +87,18 @@ def serving(seen, scale, standby_elsewhere=True):
 def takeovers(heard):
     """Each count (of ``heard``: (arrival, count)) that did not go up from the highest before
     it, another copy's output, as (arrival, highest before, count, lag); the first of each run
-    of one copy's counts only. ``lag``: how long before it the count it continued from was
-    first heard (None: never). A copy handed its state goes on from a count heard a moment ago;
-    during a ``start_before_stop`` overlap the copy being replaced counts on from the hand-over
-    until it is stopped, so the new one falls behind it by what arrived since."""
+    of one copy's counts only. ``lag``: how much older the count it continued from is than the
+    highest heard before it, by when each was first heard (None: never heard). A copy handed
+    its state goes on from a count a moment old; during a ``start_before_stop`` overlap the copy
+    being replaced counts on from the hand-over until it is stopped, so the new one falls behind
+    it by what arrived since."""
     out, top, first, run = [], None, {}, None
     for at, v in heard:
         if top is not None and v <= top:
             if run is None or v != run + 1:              # not the same copy counting on
                 base = first.get(v - 1)
-                out.append((round(at, 3), top, v, None if base is None else round(at - base, 3)))
+                out.append((round(at, 3), top, v,
+                            None if base is None else round(first[top] - base, 3)))
             run = v
         elif run is not None and v == run + 1:
             run = None                                   # it caught up: no longer behind
@@ -107,7 +109,7 @@ def takeovers(heard):
 
 def restarts(heard):
     """The takeovers by a copy that did not continue: it went on from a count first heard more
-    than ``CONTINUED_S`` before its own output (a state from before the last copy served, or
+    than ``CONTINUED_S`` before the highest one (a state from before the last copy served, or
     none at all)."""
     return [t for t in takeovers(heard) if t[3] is None or t[3] > CONTINUED_S]
 
@@ -121,7 +123,10 @@ def test_the_judge_tells_a_copy_that_continued_from_one_that_started_anew():
     assert [t[2] for t in takeovers(overlap)] == [91] and not restarts(overlap)
     # A copy after the old one died, handed its last count: no fall at all.
     assert takeovers(old + [(6.0 + j * step, 101 + j) for j in range(5)]) == []
-    # Started anew, or from a count 2 s old: restarts.
+    # A failover that took 2 s, handed the count one before the last heard: it continued.
+    late = old + [(7.0 + j * step, 100 + j) for j in range(5)]
+    assert [t[2] for t in takeovers(late)] == [100] and not restarts(late)
+    # Started anew, or from a count 1.5 s older than the highest: restarts.
     assert [t[2] for t in restarts(old + [(5.5 + j * step, 1 + j) for j in range(5)])] == [1]
     assert [t[2] for t in restarts(overlap[:90] + [(4.6, 61), (4.65, 62)])] == [61]
 

@@ -19,6 +19,9 @@ from ..model import types as t
 BASE_ENV_NAMES = ('PATH', 'HOME', 'LANG', 'LC_ALL', 'PYTHONPATH', 'AMENT_PREFIX_PATH',
                   'LD_LIBRARY_PATH', 'USER', 'LOGNAME', 'TZ', '_ROS_WHEELS_BOOTSTRAP_COMPLETE')
 BASE_ENV_PREFIXES = ('ROS_', 'RMW_', 'RCUTILS_', 'FASTRTPS_', 'FASTDDS_', 'CYCLONEDDS_')
+# The agent is a discovery servers' super client (it learns message types from the graph);
+# its nodes are plain clients.
+NOT_INHERITED = ('ROS_SUPER_CLIENT',)
 DDS_TRANSPORTS = 'FASTDDS_BUILTIN_TRANSPORTS'
 ENV_NODE = 'ANYSCALE_AGENT_NODE'          # marks a child: which catalogue entry it is
 ENV_SCALE = 'ANYSCALE_AGENT_SCALE'        # and which scale's agent started it
@@ -60,7 +63,8 @@ class Entry:
 def base_environment(environ: Mapping[str, str]) -> Dict[str, str]:
     """The minimal inherited environment: paths, locale and the ROS middleware settings."""
     out = {k: v for k, v in environ.items()
-           if k in BASE_ENV_NAMES or k.startswith(BASE_ENV_PREFIXES)}
+           if (k in BASE_ENV_NAMES or k.startswith(BASE_ENV_PREFIXES))
+           and k not in NOT_INHERITED}
     # Children write to log files: unbuffered Python output keeps them readable after a crash.
     out.setdefault('PYTHONUNBUFFERED', '1')
     return out

@@ -4,6 +4,7 @@ give themselves before they join ROS, which every node they start inherits. No R
 """
 
 import ctypes
+import json
 import os
 import shlex
 import shutil
@@ -20,7 +21,7 @@ from ..model import discovery as disc
 from ..model.params_file import PARAMETERS, params_files, ros_arguments
 from ..model.reader import DeploymentError
 from ..model.types import Deployment
-from ..model.yaml_io import SECTIONS
+from ..model.yaml_io import deployment_parameters
 
 SERVER_NAMES = ('fast-discovery-server',)
 PR_SET_PDEATHSIG = 1
@@ -34,19 +35,23 @@ class DiscoveryError(RuntimeError):
 
 
 def resolve(host: str) -> str:
-    """``host``'s IPv4 address (Fast DDS takes addresses in ROS_DISCOVERY_SERVER); the name as
-    it is when it cannot be resolved now."""
+    """``host``'s IPv4 address, '' when it cannot be resolved now: Fast DDS takes addresses in
+    ROS_DISCOVERY_SERVER, and one name it cannot resolve empties its whole list (the process
+    then falls back to multicast and finds none of the servers' clients)."""
     try:
         return socket.gethostbyname(host)
-    except OSError:
-        return host
+    except (OSError, UnicodeError):
+        return ''
 
 
 def server_command(setting: str, environ: Mapping[str, str]) -> List[str]:
     """The discovery server's command without its arguments: ``discovery.server_command``, else
     fast-discovery-server beside this Python or on PATH, else ``fastdds discovery``."""
     if setting:
-        return shlex.split(setting)
+        try:
+            return shlex.split(setting)
+        except ValueError as e:
+            raise DiscoveryError(f'discovery.server_command {setting!r}: {e}') from None
     here = os.path.dirname(sys.executable)
     path = environ.get('PATH', os.defpath)
     for name in SERVER_NAMES:
@@ -63,11 +68,11 @@ def server_command(setting: str, environ: Mapping[str, str]) -> List[str]:
 
 def server_argv(deployment: Deployment, scale: str, environ: Mapping[str, str]) -> List[str]:
     """The command of ``scale``'s discovery server: server id = the scale's index, listening
-    on its host at its port."""
+    on its host at its port (in this environment's ROS domain)."""
+    host = deployment.scale(scale).host
     return server_command(deployment.discovery.server_command, environ) + [
-        '-i', str(disc.server_id(deployment, scale)),
-        '-l', resolve(deployment.scale(scale).host),
-        '-p', str(disc.server_port(deployment, scale))]
+        '-i', str(disc.server_id(deployment, scale)), '-l', resolve(host) or host,
+        '-p', str(disc.server_port(deployment, scale, disc.domain_of(environ)))]
 
 
 def server_environment(environ: Mapping[str, str]) -> Dict[str, str]:
@@ -118,9 +123,10 @@ class ServerKeeper:
             code = self.proc.poll()
             if code is None:
                 return
+            if now - self.started > 60.0:
+                self.backoff = RESTART_BACKOFF_S      # it ran a while: a first exit again
             self.say(f'discovery server pid {self.proc.pid} exited with {code} (log '
                      f'{self.log_path}); started again in {self.backoff:g} s')
-            self.backoff = RESTART_BACKOFF_S if now - self.started > 60.0 else self.backoff
             self.due = now + self.backoff
             self.backoff = min(2 * self.backoff, RESTART_BACKOFF_MAX_S)
             self.proc = None
@@ -155,54 +161,56 @@ class ServerKeeper:
 
 # --- the clients: the decider and the agents, before they join ROS --------------------------
 
-def _merge(into: Dict[str, Any], data: Mapping[str, Any]) -> None:
+def _flatten(data: Mapping[str, Any], prefix: str, out: Dict[str, Any]) -> None:
+    """Nested maps to dotted names, as rcl reads a parameters file (a key may itself hold
+    dots: ``discovery.mode: server``)."""
     for key, value in data.items():
-        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
-            _merge(into[key], value)
+        name = f'{prefix}{key}'
+        if isinstance(value, Mapping):
+            _flatten(value, name + '.', out)
         else:
-            into[key] = dict(value) if isinstance(value, Mapping) else value
+            out[name] = value
+
+
+def _parameter_blocks(data: Any) -> List[Mapping[str, Any]]:
+    """Every ``ros__parameters`` map of a parameters file, at any depth of node names and
+    namespaces (``/**``, ``agent_home``, ``/ns: {agent: ...}``)."""
+    if not isinstance(data, Mapping):
+        return []
+    if isinstance(data.get(PARAMETERS), Mapping):
+        return [data[PARAMETERS]]
+    return [b for value in data.values() for b in _parameter_blocks(value)]
 
 
 def deployment_from_args(argv: Sequence[str]) -> Optional[Deployment]:
     """The deployment a node's command line gives it (its parameters files, then its ``-p``
     overrides), read as rcl will; None when it cannot be read (the node says why itself)."""
     from ..model.loader import load_mapping
-    merged: Dict[str, Any] = {}
+    flat: Dict[str, Any] = {}
     for path in params_files(argv):
         try:
             with open(path, encoding='utf-8') as f:
                 data = yaml.safe_load(f)
         except (OSError, yaml.YAMLError):
             return None
-        if not isinstance(data, Mapping):
-            return None
-        for block in data.values():
-            if isinstance(block, Mapping) and isinstance(block.get(PARAMETERS), Mapping):
-                _merge(merged, block[PARAMETERS])
+        for block in _parameter_blocks(data):
+            _flatten(block, '', flat)
     for flag, value in ros_arguments(argv):
         name, sep, text = value.partition(':=')
-        if flag not in ('-p', '--param') or not sep or '.' not in name:
+        if flag not in ('-p', '--param') or not sep:
             continue
         try:
-            parsed = yaml.safe_load(text)
+            flat[name] = yaml.safe_load(text)
         except yaml.YAMLError:
-            parsed = text
-        parts = name.split('.')
-        node = merged
-        for part in parts[:-1]:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                break
-        else:
-            node[parts[-1]] = parsed
-    ours = {k: v for k, v in merged.items() if k in SECTIONS}
+            flat[name] = text
     try:
-        return load_mapping(ours, ', '.join(params_files(argv)) or '<arguments>', wrapped=False)
+        return load_mapping(deployment_parameters(flat),
+                            ', '.join(params_files(argv)) or '<arguments>', wrapped=False)
     except DeploymentError:
         return None
 
 
-def client_setup(argv: Sequence[str], environ: Mapping[str, str]
+def client_setup(argv: Sequence[str], environ: Mapping[str, str], super_client: bool = False
                  ) -> Tuple[Dict[str, str], str]:
     """(the variables to set in this process's environment before rclpy.init, what to say of
     it): the deployment's discovery servers, unless the environment names servers already
@@ -210,36 +218,62 @@ def client_setup(argv: Sequence[str], environ: Mapping[str, str]
     deployment = deployment_from_args(argv)
     if deployment is None:
         return {}, ''
-    return client_environment(deployment, environ)
+    return client_environment(deployment, environ, super_client)
 
 
-def client_environment(deployment: Deployment, environ: Mapping[str, str]
-                       ) -> Tuple[Dict[str, str], str]:
+def client_environment(deployment: Deployment, environ: Mapping[str, str],
+                       super_client: bool = False) -> Tuple[Dict[str, str], str]:
     """``client_setup`` for a deployment already read (the status view reads its file): the
-    servers, and the packaged profile for their clients in place of the multicast one
-    (config/fastdds_discovery_server.xml; a user's own profile is kept)."""
+    servers, the packaged profile for their clients in place of the multicast one
+    (config/fastdds_discovery_server.xml; a user's own profile is kept) and, for
+    ``super_client`` (an agent, which learns message types from the ROS graph), every
+    participant's endpoints, not only those matching its own."""
     if not disc.uses_servers(deployment):
         return {}, ''
-    want = disc.server_list(deployment, resolve)
+    want = disc.server_list(deployment, disc.domain_of(environ), resolve)
     have = environ.get(disc.ENV_SERVERS)
     out = {} if have else {disc.ENV_SERVERS: want}
     said = f'discovery: a client of the servers {have or want}'
     if have and have != want:
         said = (f'discovery: {disc.ENV_SERVERS}={have} from the environment, not the '
                 f"deployment's {want}")
+    unresolved = [s.host for s in deployment.scales if not resolve(s.host)]
+    if unresolved and not have:
+        said += (f'; cannot resolve {", ".join(unresolved)} now: left out (a name Fast DDS '
+                 'cannot resolve empties its whole list); give the scales addresses or names '
+                 'this computer resolves without the link (/etc/hosts)')
+    if super_client:
+        out[disc.ENV_SUPER_CLIENT] = 'TRUE'
     profile = config_files.with_server_profile(environ)
     out.update(profile)
-    if not profile:
-        named = next((environ[v] for v in config_files.PROFILE_VARS if environ.get(v)), '')
+    named = next((environ[v] for v in config_files.PROFILE_VARS if environ.get(v)), '')
+    if not profile and named and not config_files.is_packaged(named):
         said += (f'; your Fast DDS profile {named} is kept (the packaged one for the '
-                 "servers' clients announces every 3 s and pings them every 50 ms)") \
-            if named else ''
+                 "servers' clients announces every 3 s and pings them every 50 ms)")
     return out, said
 
 
-def apply_client_setup(program: str, argv: Sequence[str]) -> None:
-    """For a node's main() before rclpy.init: become a client of the deployment's servers."""
-    env, said = client_setup(argv, os.environ)
+# Set in a process by ``apply_client_setup``: the variables it set and what they were before
+# (JSON), so that a restart in place (the same environment, exec'd) computes them again from
+# the file rather than keep them.
+ENV_SET = 'ANYSCALE_DISCOVERY_SET'
+
+
+def apply_client_setup(program: str, argv: Sequence[str], super_client: bool = False) -> None:
+    """For a node's main() before rclpy.init: become a client of the deployment's servers.
+    What an earlier run of this process set (a restart in place) is computed again."""
+    try:
+        earlier = json.loads(os.environ.pop(ENV_SET, '{}'))
+    except ValueError:
+        earlier = {}
+    for name, value in earlier.items():         # as it was before this process set it
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value
+    env, said = client_setup(argv, os.environ, super_client)
+    if env:
+        os.environ[ENV_SET] = json.dumps({name: os.environ.get(name) for name in env})
     os.environ.update(env)
     if said:
         print(f'{program}: {said}', file=sys.stderr, flush=True)

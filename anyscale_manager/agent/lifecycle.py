@@ -26,6 +26,8 @@ ACTIVE = LifecycleState.ACTIVE
 FINALIZED = LifecycleState.FINALIZED
 PRIMARY = (UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED)
 GOALS = (ACTIVE, INACTIVE, FINALIZED)
+# A copy that answers one of these may be serving whoever asked (an adopted copy too).
+MAY_SERVE = (ACTIVE, LifecycleState.ACTIVATING, LifecycleState.DEACTIVATING)
 
 # lifecycle_msgs/msg/Transition ids, and the primary state each one ends in when it succeeds.
 TRANSITIONS = {
@@ -204,7 +206,7 @@ class Driver:
 
     # --- internals ---------------------------------------------------------------------------
     def _note_state(self) -> None:
-        if self.state == ACTIVE:
+        if self.state in MAY_SERVE:
             self._activated = True
         elif self.state in (UNCONFIGURED, INACTIVE, FINALIZED):
             self._activated = False

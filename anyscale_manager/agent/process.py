@@ -9,7 +9,7 @@ import time
 from typing import List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import AgentSettings, Deployment
-from ..model.discovery import server_port, uses_servers
+from ..model.discovery import domain_of, server_port, uses_servers
 from .discovery import DiscoveryError, server_argv
 from .supervisor import Supervisor
 from .warden import spawn as spawn_warden, warden_port
@@ -85,7 +85,8 @@ def start_warden(deployment: Deployment, scale: str, supervisor: Supervisor, ste
     return lines + [('info', f'warden started: pid {pid}, heartbeats on UDP '
                              f'{d.scale(scale).host}:{port} (log {log})'
                              + (f'; it keeps the discovery server on port '
-                                f'{server_port(d, scale)} running' if server else ''))]
+                                f'{server_port(d, scale, domain_of(os.environ))} running'
+                                if server else ''))]
 
 
 class Signals:

@@ -297,7 +297,11 @@ def run(args: argparse.Namespace, say: Callable[[str], None]) -> int:
     while True:
         now = time.monotonic()
         if args.keeper is not None:
-            args.keeper.step(now)
+            try:
+                args.keeper.step(now)
+            except Exception as e:   # noqa: B902 - the heartbeats and the fencing come first
+                say(f'the discovery server could not be started: {e!r}; trying again')
+                args.keeper.due = now + args.keeper.backoff
         try:
             stat = os.stat(args.state)
             missing_since = None

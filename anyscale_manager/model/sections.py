@@ -360,6 +360,9 @@ def read_deployment(root: Section) -> t.Deployment:
     agent = read_settings(root, 'agent', t.AgentSettings)
     security = read_settings(root, 'security', t.SecuritySettings)
     discovery = read_settings(root, 'discovery', t.DiscoverySettings)
+    if discovery.mode == t.SERVER and len(scales) > 16:
+        ctx.error('discovery.mode', f'a deployment of {len(scales)} scales cannot use '
+                                    'discovery servers: 16 at most (each scale one port)')
     if security.key_file and not os.path.isabs(os.path.expanduser(security.key_file)):
         # The decider, each agent and validate run in different folders: one meaning only.
         ctx.error('security.key_file', f'expected an absolute path, got {security.key_file!r}')

@@ -4,11 +4,12 @@ Pure: a deployment in, text out; what the file declares and what follows from it
 may move, which are pinned and why, the links each connection may cross).
 """
 
+import os
 import textwrap
 from typing import Optional
 
 from .advice import single_machine
-from .discovery import ENV_SERVERS, ENV_SUPER_CLIENT, server_list, uses_servers
+from .discovery import ENV_SERVERS, ENV_SUPER_CLIENT, domain_of, server_list, uses_servers
 from .types import Deployment, Scale
 
 
@@ -90,8 +91,10 @@ def summary(d: Deployment) -> str:
                          f'tolerance {_fmt(c.tolerance_s)} s, {c.bandwidth_kbps:g} kbit/s'
                          + _crosses(d, c.publisher, c.subscriber))
     if uses_servers(d):
-        lines.append(f'  discovery: through a server on each scale; a shell for ros2 tools: '
-                     f'export {ENV_SERVERS}="{server_list(d)}" {ENV_SUPER_CLIENT}=TRUE')
+        domain = domain_of(os.environ)
+        lines.append(f'  discovery: through a server on each scale (ROS domain {domain}); a '
+                     f'shell for ros2 tools (then ros2 daemon stop): export '
+                     f'{ENV_SERVERS}="{server_list(d, domain)}" {ENV_SUPER_CLIENT}=TRUE')
     shared = single_machine(d)
     if shared:
         lines += textwrap.wrap(shared, 99, initial_indent='  ', subsequent_indent='    ')

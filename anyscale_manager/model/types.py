@@ -299,7 +299,10 @@ class DiscoverySettings:
                    'all of them (ROS_DISCOVERY_SERVER): nothing multicast, a few kbit/s on a '
                    'link whatever the number of processes', choices=(MULTICAST, SERVER))
     port: int = setting(11811, 'base UDP port of the discovery servers: scale i (from 0, in '
-                               'file order) serves on it + i', low=1, high=65535 - 250)
+                               'file order) of a deployment in ROS domain D serves on it + 16 D '
+                               '+ i (a server ignores DDS domains: robots of a fleet sharing a '
+                               'host keep apart by their domains)', low=1,
+                        high=65535 - 16 * 233)
     server_command: str = setting(
         '', 'the Fast DDS discovery server executable (empty: fast-discovery-server, else '
             "fastdds's 'discovery' verb, found beside this Python or on PATH)")

@@ -38,7 +38,7 @@ from .. import protocol_auth as auth
 from ..agent.authority import describe
 from ..agent.catalogue import build_catalogue, Entry
 from ..agent.claims import HostClaims
-from ..agent.discovery import apply_client_setup
+from ..agent.discovery import apply_client_setup, DiscoveryError, server_argv
 from ..agent.exits import ExitWatcher
 from ..agent.ledger import Ledger, LedgerError
 from ..agent.host import this_host
@@ -48,6 +48,7 @@ from ..agent.process import (places, restart_in_place, RESTART, scale_from_args,
 from ..agent.supervisor import Supervisor
 from ..agent.turn import AgentInputs, AgentOutput, AgentTurn, name_counts, TICK_S
 from ..model.capacity import claim_lease_s
+from ..model.discovery import uses_servers
 from ..model.loader import DeploymentError, load_from_parameters
 from ..model.params_file import refuse_bad_params_files
 from ..interrupt import restore_ctrl_c
@@ -94,6 +95,12 @@ class AgentNode(Node):
                              f'(scales: {", ".join(d.scale_names)})')
         self.scale = scale
         self.settings = d.agent
+        if uses_servers(d):
+            try:
+                server_argv(d, scale, os.environ)
+            except DiscoveryError as e:
+                # A scale without its server leaves every other scale's processes pinging it.
+                raise AgentError(f'discovery.mode server: {e}') from None
         key = auth.load_key(d.security.key_file) if d.security.key_file else None
         self._key = key
         self._gate = auth.LayoutGate(key, d.security.replay_window_s)
@@ -332,7 +339,7 @@ def main(args: Optional[List[str]] = None) -> int:
     if refuse_bad_params_files('agent', argv):    # said with its line, not as rcl words it
         return 2
     # discovery.mode server: a client of the deployment's discovery servers (before it joins).
-    apply_client_setup('agent', argv)
+    apply_client_setup('agent', argv, super_client=True)
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as e:   # rcl refuses the arguments or the parameters file

@@ -32,7 +32,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import psutil
@@ -94,6 +94,9 @@ class Testbed:
         self.options = options
         self.deployment: Deployment = load_deployment(options.deployment_path)
         d = self.deployment
+        if d.discovery.mode == SERVER and options.discovery != SERVER:
+            # A file that says server: every process of the test-bed a client (the observers).
+            self.options = options = replace(options, discovery=SERVER)
         names = d.scale_names
         if d.master.name != 'robot' or len(names) < 2 or \
                 (len(names) == 2 and 'laptop' not in names):
