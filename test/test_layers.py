@@ -1,7 +1,8 @@
 """The package's layers import downward only, and the pure core knows nothing of ROS.
 
 model <- planning <- runtime <- agent and view <- nodes, with the wire's modules (protocol,
-protocol_auth, interrupt) just above model: a layer imports only those below it and itself,
+protocol_auth, interrupt) and the finder of the files the package ships (config_files) just
+above model: a layer imports only those below it and itself,
 so what two layers need lives in the lower one. The core (model, planning, runtime, agent, sim
 and the wire's modules) imports no ROS client library nor message package, and nothing reaches
 around a layer with importlib. Read from the source (ast), whatever is imported at run time.
@@ -16,8 +17,10 @@ from conftest import REPO
 
 PACKAGE = 'anyscale_manager'
 ROOT = os.path.join(REPO, PACKAGE)
-# The modules of the wire and the signal handling, at the package's top, form one layer.
-WIRE = {'protocol': 'wire', 'protocol_auth': 'wire', 'interrupt': 'wire'}
+# The modules of the wire, the signal handling and the shipped files' finder, at the package's
+# top, form one layer.
+WIRE = {'protocol': 'wire', 'protocol_auth': 'wire', 'interrupt': 'wire',
+        'config_files': 'wire'}
 RANK = {'model': 0, 'wire': 1, 'planning': 2, 'runtime': 3, 'agent': 4, 'view': 4, 'nodes': 5}
 PURE = ('model', 'wire', 'planning', 'runtime', 'agent', 'sim')
 ROS = ('rclpy', 'rosidl_runtime_py', 'rosidl_parser', 'launch', 'launch_ros')
