@@ -52,9 +52,6 @@ class Pending:
     copy: int
     since: float
     sent: bool = False
-    # Waiting for the first state from the copy the node moves from (agent/turn.py): bounded
-    # there, not by ``expired``, which counts from when a state is there to hand.
-    first_state: bool = False
 
 
 class StateBook:
@@ -191,7 +188,7 @@ class StateBook:
         without its state rather than not at all."""
         out: List[Line] = []
         for node, p in list(self._pending.items()):
-            if not p.first_state and now - p.since > timeout_s:
+            if now - p.since > timeout_s:
                 out.append(('warn', f'{node}: its copy (pid {p.copy}) did not take its '
                                     f'state on {self.specs[node].restore} (remapped to its own '
                                     f'topic) within {timeout_s:g} s: it serves from its own '

@@ -39,11 +39,8 @@ STOPPING_TICK_S = 0.02
 IDLE_TICK_S = 1.0
 # A copy to be handed a state when this agent has heard none yet waits this long at most for
 # the first one from the copy the layout moves the node from, unless that copy's agent said,
-# at most PEER_FRESH_BEATS heartbeats ago, that it neither serves nor starts. That copy serves
-# meanwhile: the wait costs the move's time only. 3 s was too short once on the three-scale
-# test-bed, where both master links come up at once and discovery saturates the robot: the
-# laptop's copy served from its own start pose, 2.17 m off.
-FIRST_STATE_WAIT_S = 8.0
+# at most PEER_FRESH_BEATS heartbeats ago, that it neither serves nor starts.
+FIRST_STATE_WAIT_S = 3.0
 PEER_FRESH_BEATS = 3.0
 # A layout that names unknown nodes or scales is logged entry by entry up to this many.
 MAX_LAYOUT_WARNINGS = 5
@@ -280,15 +277,11 @@ class AgentTurn:
                         and now - pending.since < FIRST_STATE_WAIT_S:
                     where = 'serving before this agent heard a layout' \
                         if before == UNKNOWN_SCALE else f'on {before}'
-                    pending.first_state = True
                     return f'its state is handed to the copy first: waiting for the first ' \
                            f'state of its copy {where}'
                 self._logs.extend(lines)            # none to be had: it starts from its own
                 states.handed(name, pid)
                 return ''
-            if pending.first_state:
-                # A state is here now: the copy's own time to take it counts from now.
-                pending.first_state, pending.since = False, now
             if channel is None or not topic:        # no ROS side to hand it with (a test)
                 states.handed(name, pid)
                 return ''
