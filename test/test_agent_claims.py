@@ -207,15 +207,21 @@ def test_a_wait_given_up_by_the_layout_reserves_nothing_more(tmp_path):
     assert low.ledger.share(3.0).asked == {}
 
 
-def test_a_wait_for_a_node_without_a_claim_here_is_withdrawn_once_not_wanted(tmp_path):
-    """A plain node (no standby claim) waits for room; the layout then places it elsewhere (it
-    leaves ``want``): its wait and asks go all the same."""
+def amcl_held_by_the_lower(tmp_path):
+    """robot_a (priority 0) holding amcl on the shared server, robot_b (priority 1) joined."""
     low = HostClaims(Ledger(str(tmp_path), 'robot_a', 10.0), fleet_member('robot_a'), 'server')
     high = HostClaims(Ledger(str(tmp_path), 'robot_b', 10.0), fleet_member('robot_b', 1),
                       'server')
     low.begin(0.0)
     high.begin(0.0)
     low.gate(1.0, {'amcl'}, {}, lambda n: True)
+    return low, high
+
+
+def test_a_wait_for_a_node_without_a_claim_here_is_withdrawn_once_not_wanted(tmp_path):
+    """A plain node (no standby claim) waits for room; the layout then places it elsewhere (it
+    leaves ``want``): its wait and asks go all the same."""
+    low, high = amcl_held_by_the_lower(tmp_path)
     want = {'amcl'}
     high.gate(2.0, want, {}, lambda n: False)
     assert 'amcl' in high.waiting and 'amcl' not in want
@@ -228,12 +234,7 @@ def test_a_restarted_agent_drops_the_waits_of_the_one_before_it(tmp_path):
     """An agent that waited for room and died: its successor, which adopts its claims, does not
     know those waits, and its renewals would keep them (and their asks) for as long as it
     lives: they go when it joins, and it waits anew if its layout still wants the node."""
-    low = HostClaims(Ledger(str(tmp_path), 'robot_a', 10.0), fleet_member('robot_a'), 'server')
-    high = HostClaims(Ledger(str(tmp_path), 'robot_b', 10.0), fleet_member('robot_b', 1),
-                      'server')
-    low.begin(0.0)
-    high.begin(0.0)
-    low.gate(1.0, {'amcl'}, {}, lambda n: True)
+    low, high = amcl_held_by_the_lower(tmp_path)
     high.gate(2.0, {'amcl'}, {}, lambda n: False)
     assert 'amcl' in high.waiting and low.ledger.share(2.0).asked
     successor = HostClaims(Ledger(str(tmp_path), 'robot_b', 10.0), fleet_member('robot_b', 1),
