@@ -47,6 +47,12 @@ class FleetShape:
     hysteresis_s: float = 60.0
     graph: str = 'worker'
     reference_core: float = 0.2        # icar: one robot core in cores of this machine
+    # icar: AMCL's work per output, in ms of one robot core. The ICAR file's 360 keeps AMCL
+    # CPU-bound on a robot that sends AR away; a fleet's robot may have to keep AR, and its
+    # manager and AR take a fixed share of its 0.4 cores (measured: AMCL got 0.19 cores there,
+    # 2.3-2.5 Hz at 360 against a freq_min of 2, and a stretch below it past Δ at times). At
+    # 240 it runs at 4.8 Hz there, near its 5 Hz cap.
+    amcl_work_ms: float = 240.0
 
     def __post_init__(self):
         if self.graph not in GRAPHS:
@@ -223,7 +229,10 @@ class IcarGraph:
                 spec['residence'] = [ICAR_SCALES[s] for s in spec['residence']]
             launch = spec.get('launch')
             if launch and launch.get('executable') == 'workload':
-                spec['launch'] = dict(launch, arguments=list(launch['arguments']) + [
+                arguments = list(launch['arguments'])
+                if node == 'amcl':
+                    arguments[arguments.index('--work-ms') + 1] = f'{shape.amcl_work_ms:g}'
+                spec['launch'] = dict(launch, arguments=arguments + [
                     '--reference-core', f'{shape.reference_core:g}'])
             nodes[node] = spec
         return {
