@@ -25,6 +25,7 @@ setup(
         'console_scripts': [
             'decider = anyscale_manager.nodes.decider:main',
             'agent = anyscale_manager.nodes.agent:main',
+            'master = anyscale_manager.nodes.master:main',
             'workload = anyscale_manager.nodes.workload:main',
             'anyscale-manager = anyscale_manager.cli:main',
         ],

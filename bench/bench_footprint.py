@@ -3,7 +3,7 @@ idle 3-node graph, beside a bare rclpy node.
 
     .venv/bin/python bench/bench_footprint.py [--window 60] [--settle 20] [--domain-id N]
         [--rate-hz 2] [--standby-decider] [--baseline-hz 1] [--out FILE] [--keep DIR]
-        [--profile DIR] [--source DIR] [--against DIR] [--shared-home]
+        [--profile DIR] [--source DIR] [--against DIR] [--master]
 
 Two scales of this machine, home (the master, a robot) and away, each run an agent (which
 starts its warden), and a decider runs on home; all real processes, DDS on loopback
@@ -12,10 +12,9 @@ discovery profile as run.sh gives it. The graph: sensor (home) -> worker (migrat
 (home), the package's workload node at --rate-hz, with both connections probed. The settings
 are the package's defaults but for the bandwidth probe, run once at the start only: over
 loopback it measures memory copies at gigabytes a second, which no robot's link carries.
-With --standby-decider a second decider stands by beside the first. With --shared-home the
-home agent and the decider run in one process (one rclpy context and DDS participant, one
-executor spinning both nodes): what sharing a process would save, measured, not a mode of the
-package.
+With --standby-decider a second decider stands by beside the first. With --master the
+home agent and the decider run as the package's `master` process (one rclpy context and DDS
+participant, one executor spinning both nodes: nodes/master.py).
 
 Beside them the bench starts a bare rclpy node with one timer at --baseline-hz, spun by
 rclpy.spin: what any ROS 2 Python process costs here.
@@ -75,34 +74,6 @@ except (KeyboardInterrupt, ExternalShutdownException):
     pass
 finally:
     node.destroy_node()
-    rclpy.try_shutdown()
-'''
-
-# --shared-home: the home agent and the decider as two nodes of one process.
-SHARED = r'''
-import sys
-import rclpy
-from rclpy.executors import ExternalShutdownException
-from anyscale_manager.agent.process import stop_offline
-from anyscale_manager.nodes.agent import AgentNode
-from anyscale_manager.nodes.decider import DeciderNode
-from anyscale_manager.nodes.executor import make_executor
-path = sys.argv[1]
-rclpy.init()
-agent = AgentNode('home', cli_args=['--ros-args', '--params-file', path, '-p', 'scale:=home'])
-decider = DeciderNode(cli_args=['--ros-args', '--params-file', path])
-executor = make_executor()
-executor.add_node(agent)
-executor.add_node(decider)
-try:
-    while rclpy.ok():
-        executor.spin_once(timeout_sec=0.1)
-except (KeyboardInterrupt, ExternalShutdownException):
-    pass
-finally:
-    stop_offline(agent.supervisor, 10.0)
-    decider.destroy_node()
-    agent.destroy_node()
     rclpy.try_shutdown()
 '''
 
@@ -300,7 +271,7 @@ class Run:
     def __init__(self, args, label: str, source: str, domain: int, folder: str):
         from anyscale_manager import config_files
         self.args, self.label, self.source, self.domain = args, label, source, domain
-        self.shared_home = args.shared_home and label == 'this'
+        self.master = args.master and label == 'this'
         self.folder = folder
         os.makedirs(folder, exist_ok=True)
         self.env = config_files.with_discovery_profile(dict(
@@ -332,11 +303,12 @@ class Run:
         agent = [sys.executable, '-m', 'anyscale_manager.nodes.agent']
         decider = [sys.executable, '-m', 'anyscale_manager.nodes.decider']
         for scale in SCALES:
-            if self.shared_home and scale == 'home':
-                self._start('agent_home', [sys.executable, '-c', SHARED, self.path])
+            if self.master and scale == 'home':
+                self._start('agent_home', [sys.executable, '-m', 'anyscale_manager.nodes.master',
+                                           *ros, '-p', f'scale:={scale}'])
             else:
                 self._start(f'agent_{scale}', [*agent, *ros, '-p', f'scale:={scale}'])
-        if not self.shared_home:
+        if not self.master:
             self._start('decider', [*decider, *ros])
         if args.standby_decider:
             time.sleep(2.0)          # it starts after the leader, and stands by
@@ -390,7 +362,7 @@ class Run:
         every = [n for n in rows if n.startswith(('agent_', 'decider', 'warden_'))]
         return {
             'label': self.label, 'source': self.source, 'commit': commit(self.source),
-            'domain_id': self.domain, 'shared_home': self.shared_home,
+            'domain_id': self.domain, 'master': self.master,
             'standby_decider': self.args.standby_decider, 'placed': placed_before,
             'moved_during_window': placed_before != placement(self.folder), 'processes': rows,
             'home_manager_cpu_percent': sum(rows[n]['cpu_percent'] for n in home),
@@ -438,9 +410,9 @@ def main() -> int:
     ap.add_argument('--against', metavar='DIR',
                     help='also run the deployment from this source tree (an earlier commit), '
                          'in the next domain, measured in the same window')
-    ap.add_argument('--shared-home', action='store_true',
-                    help='the home agent and the decider in one process (a measurement; not '
-                         'the run of --against)')
+    ap.add_argument('--master', action='store_true',
+                    help='the home agent and the decider as one `master` process (not the run '
+                         'of --against)')
     args = ap.parse_args()
     if args.window <= 0 or args.settle < 0:
         ap.error('--window must be positive and --settle not negative')
@@ -551,8 +523,8 @@ def report(r: dict) -> None:
                   f'{x["pss_mib"]:6.1f} {x["uss_mib"]:6.1f}')
             for k, v in (x.get('main_thread_by_component') or {}).items():
                 print(f'    {k:<30} {v:6.2f}')
-    if r['shared_home']:
-        print('\nagent_home is the home agent and the decider in one process')
+    if r['master']:
+        print('\nagent_home is the `master` process: the home agent and the decider')
     print(f'\nthe manager on home (agent + decider(s) + warden): '
           f'{r["home_manager_cpu_percent"]:.2f} % of one core; every manager process: '
           f'RSS {r["manager_rss_mib"]:.0f} MiB, PSS {r["manager_pss_mib"]:.0f} MiB')

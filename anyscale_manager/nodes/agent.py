@@ -44,7 +44,7 @@ from ..agent.ledger import Ledger, LedgerError
 from ..agent.host import this_host
 from ..agent.lock import LockError, release_lock, take_lock
 from ..agent.process import (places, restart_in_place, RESTART, scale_from_args, SCALE_RE,
-                             Signals, start_warden, stop_offline)
+                             Signals, start_warden, STOP, stop_offline)
 from ..agent.supervisor import Supervisor
 from ..agent.turn import AgentInputs, AgentOutput, AgentTurn, name_counts, TICK_S
 from ..model.capacity import claim_lease_s
@@ -326,40 +326,57 @@ class AgentNode(Node):
 
 
 def main(args: Optional[List[str]] = None) -> int:
+    return run(args, 'agent')
+
+
+def run(args: Optional[List[str]], program: str,
+        guest: Optional[Callable[[str], Node]] = None) -> int:
+    """The agent's process. ``guest``: given the scale, another node for this process, built
+    before the agent starts anything and spun by its executor until a stop is asked, then
+    destroyed first (the master's decider: nodes/master.py); it raises AgentError to refuse."""
     restore_ctrl_c()
     argv = list(sys.argv if args is None else args)
     scale = scale_from_args(argv)
     if not scale:
-        print('agent: the scale parameter is required: '
+        print(f'{program}: the scale parameter is required: '
               '--ros-args --params-file DEPLOYMENT.yaml -p scale:=NAME', file=sys.stderr)
         return 2
     if not SCALE_RE.match(scale):
-        print(f'agent: scale {scale!r} is not a valid scale name', file=sys.stderr)
+        print(f'{program}: scale {scale!r} is not a valid scale name', file=sys.stderr)
         return 2
-    if refuse_bad_params_files('agent', argv):    # said with its line, not as rcl words it
+    if refuse_bad_params_files(program, argv):    # said with its line, not as rcl words it
         return 2
     # discovery.mode server: a client of the deployment's discovery servers (before it joins).
-    apply_client_setup('agent', argv, super_client=True)
+    apply_client_setup(program, argv, super_client=True)
     try:
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as e:   # rcl refuses the arguments or the parameters file
-        print(f'agent: cannot start on scale {scale!r}: {e}', file=sys.stderr)
+        print(f'{program}: cannot start on scale {scale!r}: {e}', file=sys.stderr)
         return 2
     node = None
+    other: Optional[Node] = None
     executor = None
     signals = Signals()
     signals.install()
     try:
         try:
+            other = guest(scale) if guest is not None else None
             node = AgentNode(scale)
         except (DeploymentError, AgentError, LockError, ValueError) as e:
-            print(f'agent: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
+            print(f'{program}: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
             return 2
-        node.on_signals(signals.take())
         executor = make_executor()
         executor.add_node(node)
-        while rclpy.ok() and not node.finished and not node.restarting:
-            node.on_signals(signals.take())
+        if other is not None:
+            executor.add_node(other)
+        while rclpy.ok():
+            taken = signals.take()
+            if other is not None and STOP in taken:
+                # A stop: the guest goes first (a decider must not answer the nodes' stop).
+                executor.remove_node(other)
+                other.destroy_node()
+                other = None
+            node.on_signals(taken)
             if node.finished or node.restarting:
                 break
             try:
@@ -374,6 +391,8 @@ def main(args: Optional[List[str]] = None) -> int:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if other is not None:
+            other.destroy_node()
         if node is not None:
             if node.restarting:
                 try:
