@@ -72,3 +72,35 @@ def test_a_scale_that_is_not_the_master_is_refused_and_starts_nothing(tmp_path, 
     text = proc.text()
     assert "scale 'away' is not the master of deployment" in text and "('home')" in text, text
     assert not (tmp_path / 'log').exists() or not os.listdir(tmp_path / 'log')
+
+
+def test_sighup_restarts_the_process_in_place_with_its_decider_and_its_nodes_run_on(
+        tmp_path, ros_env, listener):
+    ex, seen = listener
+    path = ha.write_deployment(tmp_path, f'master_hup_{os.getpid()}',
+                               ha.worker_and_pinned(f'/master_hup_{os.getpid()}'))
+    procs = []
+    try:
+        master = start_master(procs, tmp_path, ros_env, path)
+        ha.start(procs, tmp_path, ros_env, path, 'agent_away', '-p', 'scale:=away')
+
+        def wait(cond, timeout, what):
+            spin_until(ex, cond, timeout, what, procs, watch=('master',))
+
+        wait(lambda: seen['layouts'] and runs(seen, 'home', 'pinned')
+             and runs(seen, 'away', 'worker'), 60.0, 'pinned home and the worker away')
+        pinned = seen['states']['home'].nodes['pinned'].pid
+        first = seen['layouts'][-1].decider.id
+        master.proc.send_signal(signal.SIGHUP)
+        # The same process (exec), a new decider in it, the same nodes adopted.
+        wait(lambda: seen['layouts'][-1].decider.id != first, 40.0,
+             "a layout of the restarted process's decider")
+        assert seen['layouts'][-1].decider.pid == master.proc.pid
+        assert seen['layouts'][-1].assignments == {'pinned': 'home', 'worker': 'away'}
+        wait(lambda: runs(seen, 'home', 'pinned')
+             and seen['states']['home'].nodes['pinned'].pid == pinned, 30.0,
+             'the same pinned reported by the restarted agent')
+        assert seen['states']['home'].nodes['pinned'].restarts == 0
+    finally:
+        codes = {name: pr.stop() for name, pr in reversed(procs)}
+    assert codes['master'] == 0 and codes['agent_away'] == 0
