@@ -174,6 +174,22 @@ def test_a_returning_server_is_used_again_after_the_hysteresis(d):
     assert w.running['amcl'] == w.running['ar'] == 'server'
 
 
+def test_a_held_rebalance_says_which_check_holds_it(d):
+    w = settled_on_server(d)
+    w.link_up['server'] = False
+    w.run(w.t + 2.0)
+    w.link_up['server'] = True
+    w.link_up['laptop-server'] = False      # the handover from the laptop needs the backhaul
+    T = w.policy.settings.hysteresis_s
+    assert not moves(w.run(w.t + T + 5.0))
+    assert any(n.startswith('amcl stays on laptop: moving it to server would gain')
+               and n.endswith('held by the handover check') for n in w.policy.notes), \
+        w.policy.notes
+    w.link_up['laptop-server'] = True
+    assert sorted(moves(w.run(w.t + 2.0))) == [(REBALANCE, 'amcl', 'laptop', 'server'),
+                                               (REBALANCE, 'ar', 'laptop', 'server')]
+
+
 def test_no_rebalance_below_the_least_gain_or_when_turned_off(d):
     for settings in (with_settings(d, rebalance_min_gain=1000.0),
                      with_settings(d, rebalance=False)):

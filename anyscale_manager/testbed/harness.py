@@ -611,8 +611,12 @@ class Testbed:
                     raise HarnessError(f'{name} exited with {code} while waiting for {what}; '
                                        f'log {proc.log_path}:\n{tail(proc.log_path)}')
             if time.monotonic() > deadline:
+                decider = self.procs.get('decider')
                 raise HarnessError(f'timed out after {timeout_s:g} s waiting for {what}; '
-                                   f'{self.describe()}')
+                                   f'{self.describe()}' + (
+                                       '' if decider is None else
+                                       f'; decider log {decider.log_path}:\n'
+                                       f'{tail(decider.log_path)}'))
             time.sleep(0.1)
 
     def sleep(self, seconds: float) -> None:
@@ -628,7 +632,8 @@ class Testbed:
             return (f'placement {dict(sorted(placement.items()))}; layout '
                     f'{layout.generation if layout else None} '
                     f'{dict(sorted(layout.assignments.items())) if layout else {}}; '
-                    f'last events {[(e.kind, e.node, e.reason[:80]) for _, e in r.events[-4:]]}')
+                    f'last events {[(e.kind, e.node, e.reason[:80]) for _, e in r.events[-4:]]}; '
+                    f'last notes {[e.reason for _, e in r.events if e.kind == "note"][-4:]}')
 
     def cpu_seconds(self) -> Dict[str, float]:
         """CPU seconds used so far by the decider, each agent (without its nodes), each scale."""

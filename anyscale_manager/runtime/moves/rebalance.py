@@ -23,7 +23,7 @@ def rebalance(step: Step, snap: Snapshot) -> List[Decision]:
     if not s.rebalance:
         return []
     remotes = by_worth(d, [x.name for x in d.remote_scales])
-    best = None
+    best = held = None
     for unit, here in remote_units(step):
         since = max(memory.last_move.get(n, -math.inf) for n in unit)
         if now - since < s.hysteresis_s:
@@ -34,16 +34,25 @@ def rebalance(step: Step, snap: Snapshot) -> List[Decision]:
             gain = rebalance_gain(d, cpu, here, scale)
             if scale == here or gain < s.rebalance_min_gain or gain <= 0:
                 continue
-            if not hysteresis(memory.last_back, s.hysteresis_s, unit, scale, now).passed \
-                    or not handover(snap, here, scale).passed:
-                continue
-            verdict = can_host(snap, Candidate(unit, scale, cpu, without))
+            verdict = hysteresis(memory.last_back, s.hysteresis_s, unit, scale, now)
+            if verdict.passed:
+                verdict = handover(snap, here, scale)
+            if verdict.passed:
+                verdict = can_host(snap, Candidate(unit, scale, cpu, without))
             if not verdict.passed:
+                if held is None or gain > held[0]:
+                    held = (gain, unit, here, scale, verdict)
                 continue
             if best is None or gain > best[0]:
                 best = (gain, unit, here, scale, cpu, verdict.reason)
             break                  # the most powerful scale that fits, for this unit
     if best is None:
+        if held is not None:
+            # Said by the check's name, not its figures: the note is an event once per text.
+            _, unit, here, scale, verdict = held
+            step.notes.append(f'{unit_text(unit)} stays on {here}: moving it to {scale} would '
+                              f'gain at least rebalance_min_gain, held by the '
+                              f'{verdict.code.value} check')
         return []
     gain, unit, here, scale, cpu, why = best
     reason = (f'{unit_text(unit)}: CPU {cpu:.0f} on {here} (worth '
