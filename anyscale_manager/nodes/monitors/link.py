@@ -34,6 +34,10 @@ from ..throttled_log import ThrottledLog
 
 CHECKS_PER_BEAT = 4            # up/down judged this many times per heartbeat period
 RESOLVE_RETRY_S = 5.0
+# An unchanged LinkStatus goes out this often at most (and a third of the decider's
+# observation_max_age_s at least: a link not reported for that long counts as down); a change
+# of what the decider acts on (up, congested, the far agent, the bandwidth figure) at once.
+LINK_STATUS_REFRESH_S = 1.0
 # What a tracker judges over, in seconds rather than beats, so that a faster beat sees a cut
 # sooner without making the queueing-delay verdict twitchier: a scale starved of CPU for a
 # moment delays a beat or two, a full link delays all of them. Half a second: a throttle is
@@ -78,6 +82,8 @@ class _Remote:
     peer_agent: Optional[str] = None            # what its warden last said of its agent
     peer_for_s: float = 0.0                     # ... and for how long, when it said so
     peer_at: float = 0.0
+    sent: Optional[Tuple] = None                # what the last LinkStatus said that matters
+    sent_at: float = -math.inf
 
 
 class LinkMonitor:
@@ -93,6 +99,8 @@ class LinkMonitor:
         self._scale = scale_of(deployment, scale)
         settings = deployment.monitoring
         self._period = period_of(settings.heartbeat_rate_hz, 'heartbeat_rate_hz')
+        self._refresh_s = max(self._period, min(LINK_STATUS_REFRESH_S,
+                                                deployment.decider.observation_max_age_s / 3.0))
         self._group = MutuallyExclusiveCallbackGroup()
         self._log = node.get_logger()
         self._bad = ThrottledLog(self._log)
@@ -321,7 +329,8 @@ class LinkMonitor:
         # the decider (a node moved home on a link that never went down).
         self._check()
         for name, remote in self._remotes.items():
-            self._publish(remote, now, used_by[name])
+            if self._status_key(remote) != remote.sent or now - remote.sent_at >= self._refresh_s:
+                self._publish(remote, now, used_by[name])
 
     def _send_beat(self, remote: _Remote, seq: int, now: float) -> None:
         name = remote.scale.name
@@ -454,6 +463,15 @@ class LinkMonitor:
                                    f'{remote.beats.silence(now)}')
                 self._publish(remote, now, self.used_kbps(remote.scale.name, now))
 
+    @staticmethod
+    def _status_key(remote: _Remote) -> Tuple:
+        """What of a LinkStatus the decider acts on at once; the rest (round trip, loss, the
+        traffic crossing) goes out at the refresh rate."""
+        up = remote.was_up
+        estimate = remote.bandwidth
+        return (up, remote.congested and up, remote.peer_agent if up else None,
+                None if estimate is None else estimate.available_kbps)
+
     def _publish(self, remote: _Remote, now: float, used: float) -> None:
         beats, estimate = remote.beats, remote.bandwidth
         if beats.last_echo is None and now - remote.started < p.LINK_MONITOR_START_S:
@@ -475,6 +493,7 @@ class LinkMonitor:
                                if up and remote.peer_agent is not None else None)
         self.last[remote.scale.name] = message
         self._out.send(message)
+        remote.sent, remote.sent_at = self._status_key(remote), now
         reference = available if available is not None else (
             estimate.nominal_kbps if estimate is not None else None)
         if not up:
