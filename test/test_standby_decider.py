@@ -20,6 +20,7 @@ from std_msgs.msg import String
 from anyscale_manager import protocol as p
 from anyscale_manager.nodes import qos
 from anyscale_manager.nodes.decider import DeciderNode
+from anyscale_manager.nodes.decider_beat import ALONE_WAIT_S
 from anyscale_manager.nodes.executor import make_executor
 from home_away import runs, start, start_agents
 from spinning import RosContext, spin_for, spin_until
@@ -205,7 +206,7 @@ def test_a_decider_alone_sends_no_beat_and_beats_while_another_listens(tmp_path)
     leading (a beat not sent is not a stall) and turns less often, and beats as soon as a
     subscription appears, until it goes. Its own beats, which its own subscription receives,
     are never decoded."""
-    path, _ = peers_deployment(tmp_path, decider={'discovery_s': 0.2})
+    path, _ = peers_deployment(tmp_path, decider={'discovery_s': 2.0})
     with RosContext(make_executor) as decider_ros, RosContext() as listener_ros:
         decider = decider_ros.add(DeciderNode(context=decider_ros.context,
                                               cli_args=['--ros-args', '--params-file', path]))
@@ -216,8 +217,13 @@ def test_a_decider_alone_sends_no_beat_and_beats_while_another_listens(tmp_path)
         decider_ros.spin_for(1.0)       # 20 beats' time, and more than takeover_s
         assert published == []
         assert decider.lead.role == 'leader' and decider.lead.may_command(decider._now())
-        # Alone, it turns every third of stall_s (0.3 s by default), not every beat_s.
-        assert decider.beat.wait_s == pytest.approx(decider.lead.stall_s / 3.0)
+        # Alone, it wakes every ALONE_WAIT_S, longer than a stall, not every beat_s: its quiet
+        # time is no stall, and it may command throughout.
+        assert decider.beat.wait_s == pytest.approx(ALONE_WAIT_S)
+        assert ALONE_WAIT_S > decider.lead.stall_s
+        for _ in range(10):
+            decider_ros.spin_for(0.1)
+            assert decider.lead.may_command(decider._now())
         heard = []
         listener = listener_ros.node('beat_listener')
         sub = listener.create_subscription(

@@ -13,10 +13,11 @@ status view): the graph shows a subscription to it beside this thread's own. A d
 would only encode, sign and publish twenty messages a second to nobody, about 0.6 % of a core
 on the robot. A decider that starts subscribes before it listens ``discovery_s`` for a leader,
 and the leader beats from its first turn after the graph shows it, as DDS matches the two. The
-leadership counts a beat as given all the same (its own stall check), and the beats it hears
-of itself (its own subscription receives them) are dropped before they are decoded. A leader
-alone turns every third of ``stall_s`` (0.1 s by default) rather than every ``beat_s``: a
-standby's turns time its takeover and stay at ``beat_s``.
+leadership counts a beat as given all the same, and the beats it hears of itself (its own
+subscription receives them) are dropped before they are decoded. A leader alone wakes every
+``ALONE_WAIT_S`` rather than every ``beat_s``, and its quiet time is no stall (nobody could
+have taken over meanwhile: Leadership.listened); a standby's turns time its takeover and stay at
+``beat_s``.
 
 A beat says "this decider decides": a callback stuck with the lock stops the beats, and so
 does an executor that has not turned for ``period_s + takeover_s``; a standby then takes over,
@@ -35,6 +36,8 @@ from . import qos
 from .. import protocol as p
 from ..runtime.leadership import LEADER
 
+# How often a leader nobody listens to wakes (at most a quarter of discovery_s).
+ALONE_WAIT_S = 0.5
 # Beats taken per wake-up at most (a burst of forged ones must not hold the lock for long).
 MAX_TAKEN = 200
 
@@ -90,6 +93,7 @@ class BeatThread:
         listened = self.listened()
         with self.lock:
             now = d._now()          # after the wait for the lock: no beat went out meanwhile
+            d.lead.listened(listened, now)
             for text in texts:
                 d.heard_beat_text(text, now)
             d.check_role(now)
@@ -101,12 +105,12 @@ class BeatThread:
                 if beats and listened else None
             if beats and beat is None:
                 d.lead.beaten(now)      # nobody to tell: the beat counts as given
-            # A leader nobody listens to turns three times per stall_s only: often enough to
-            # command without a pause (may_command), to take the beats of a decider that
-            # appears and to beat once it listens, in a tenth of a second.
+            # A leader nobody listens to wakes every ALONE_WAIT_S only: to hear a decider or
+            # a status view that appears (and beat for it from then on) well within
+            # discovery_s, the time a starting decider listens before it leads.
             alone = not listened and d.lead.role == LEADER
-            self.wait_s = max(d.settings.beat_s, d.lead.stall_s / 3.0) if alone \
-                else d.settings.beat_s
+            self.wait_s = max(d.settings.beat_s, min(ALONE_WAIT_S, d.settings.discovery_s / 4.0)) \
+                if alone else d.settings.beat_s
         if beat is not None:
             self.pub.publish(String(data=d.sealer.seal(beat)))
             # When it went out: a takeover's first layout, published in check_role, can take

@@ -93,6 +93,9 @@ class Leadership:
         self.quiet_since: Optional[float] = None    # when a leader was last known to live
         self.beats_heard = False                    # a leader's beat, not only its layouts
         self.last_beat: Optional[float] = None      # our own last beat
+        # A leader nobody listens to (no other decider, no status view): its beats go to no
+        # one, and a gap between them is no stall anyone could take over in (``alone``).
+        self.alone = False
         self.stall_s = takeover_s - min(DELIVERY_S, takeover_s / 3.0)
         self.deposed = False        # stepped down: goes after every live standby
         self.takeovers = 0
@@ -139,7 +142,7 @@ class Leadership:
         term that is due now, if any."""
         if self.role == LEADER:
             last = self.last_beat
-            if last is not None and now - last > self.stall_s:
+            if last is not None and now - last > self.stall_s and not self.alone:
                 # The deciders known when the stall began: a stall longer than lease_s would
                 # otherwise forget them all (their beats stamped before it).
                 known = any(p.received >= last - self.lease_s for p in self.peers.values())
@@ -164,9 +167,16 @@ class Leadership:
         """This decider's beat went out at ``now``."""
         self.last_beat = now
 
+    def listened(self, listened: bool, now: float) -> None:
+        """Whether another reads the beats now. A leader that was alone counts as having beaten
+        until now: nobody could have taken over, so its quiet time is no stall."""
+        if self.alone:
+            self.last_beat = now
+        self.alone = not listened and self.role == LEADER
+
     def may_command(self, now: float) -> bool:
         return self.role == LEADER and self.last_beat is not None \
-            and now - self.last_beat <= self.stall_s
+            and (self.alone or now - self.last_beat <= self.stall_s)
 
     # --- views ----------------------------------------------------------------------------
     def live_leader(self, now: float) -> Optional[Peer]:
