@@ -3,7 +3,7 @@ idle 3-node graph, beside a bare rclpy node.
 
     .venv/bin/python bench/bench_footprint.py [--window 60] [--settle 20] [--domain-id N]
         [--rate-hz 2] [--standby-decider] [--baseline-hz 1] [--out FILE] [--keep DIR]
-        [--profile DIR] [--source DIR] [--against DIR] [--master]
+        [--profile DIR] [--source DIR] [--against DIR] [--master] [--against-master]
 
 Two scales of this machine, home (the master, a robot) and away, each run an agent (which
 starts its warden), and a decider runs on home; all real processes, DDS on loopback
@@ -14,7 +14,8 @@ are the package's defaults but for the bandwidth probe, run once at the start on
 loopback it measures memory copies at gigabytes a second, which no robot's link carries.
 With --standby-decider a second decider stands by beside the first. With --master the
 home agent and the decider run as the package's `master` process (one rclpy context and DDS
-participant, one executor spinning both nodes: nodes/master.py).
+participant, one executor spinning both nodes: nodes/master.py); --against-master runs the
+tree of --against that way too.
 
 Beside them the bench starts a bare rclpy node with one timer at --baseline-hz, spun by
 rclpy.spin: what any ROS 2 Python process costs here.
@@ -271,7 +272,8 @@ class Run:
     def __init__(self, args, label: str, source: str, domain: int, folder: str):
         from anyscale_manager import config_files
         self.args, self.label, self.source, self.domain = args, label, source, domain
-        self.master = args.master and label == 'this'
+        self.master = args.master and label == 'this' \
+            or args.against_master and label == 'against'
         self.folder = folder
         os.makedirs(folder, exist_ok=True)
         self.env = config_files.with_discovery_profile(dict(
@@ -413,6 +415,9 @@ def main() -> int:
     ap.add_argument('--master', action='store_true',
                     help='the home agent and the decider as one `master` process (not the run '
                          'of --against)')
+    ap.add_argument('--against-master', action='store_true',
+                    help='the run of --against as one `master` process too (its tree must have '
+                         'nodes/master.py)')
     args = ap.parse_args()
     if args.window <= 0 or args.settle < 0:
         ap.error('--window must be positive and --settle not negative')

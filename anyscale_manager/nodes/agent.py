@@ -30,6 +30,7 @@ from . import qos
 from .agent_monitors import AgentMonitors
 from .executor import make_executor
 from .lifecycle_client import CopyClients
+from .readers import Readers
 from .log_lines import log_at
 from .state_relay import StateRelay
 from .throttled_log import ThrottledLog
@@ -70,9 +71,13 @@ def _plain(value: Any) -> Any:
 
 
 class AgentNode(Node):
-    def __init__(self, scale: str, **kwargs):
+    def __init__(self, scale: str, readers: Optional[Readers] = None, **kwargs):
         super().__init__(f'anyscale_agent_{scale}',
                          automatically_declare_parameters_from_overrides=True, **kwargs)
+        # The process's shared subscriptions (nodes/readers.py): this node owns them, and the
+        # master's decider, built before it, reads through them too.
+        self.readers = readers if readers is not None else Readers()
+        self.readers.open(self)
         self._lock_file: Optional[IO[str]] = None
         self._hosted: Optional[AgentMonitors] = None
         self._relay: Optional[StateRelay] = None
@@ -152,13 +157,14 @@ class AgentNode(Node):
         # Several writers on each (every agent; a rival decider): a reader of depth 1 keeps one
         # sample for all of them, and a peer's report that lands beside another is lost until
         # its next heartbeat (a stop_before_start move then waited one report period).
-        self.create_subscription(String, protocol.TOPIC_LAYOUT, self._signed(
-            'layout', protocol.Layout, protocol.TOPIC_LAYOUT, 'a layout message',
-            self._check_layout, self.turn.on_layout, malformed='error'), qos.LATCHED_READER)
-        self.create_subscription(String, protocol.TOPIC_AGENT_STATE, self._signed(
-            'agent_state', protocol.AgentState, protocol.TOPIC_AGENT_STATE,
-            'an agent state message', self._check_state, self.turn.on_agent_state),
-            qos.LATCHED_READER)
+        self.readers.subscribe(self, String, protocol.TOPIC_LAYOUT, qos.LATCHED_READER,
+                               self._signed('layout', protocol.Layout, protocol.TOPIC_LAYOUT,
+                                            'a layout message', self._check_layout,
+                                            self.turn.on_layout, malformed='error'))
+        self.readers.subscribe(self, String, protocol.TOPIC_AGENT_STATE, qos.LATCHED_READER,
+                               self._signed('agent_state', protocol.AgentState,
+                                            protocol.TOPIC_AGENT_STATE, 'an agent state message',
+                                            self._check_state, self.turn.on_agent_state))
         if scale != d.master.name:
             # The decider's output at each of its steps: word from the master scale, which a
             # remote scale cut off from it no longer gets (see Reconciler).
@@ -330,8 +336,9 @@ def main(args: Optional[List[str]] = None) -> int:
 
 
 def run(args: Optional[List[str]], program: str,
-        guest: Optional[Callable[[str], Node]] = None) -> int:
-    """The agent's process. ``guest``: given the scale, another node for this process, built
+        guest: Optional[Callable[[str, Readers], Node]] = None) -> int:
+    """The agent's process. ``guest``: given the scale and the process's shared subscriptions
+    (nodes/readers.py), another node for this process, built
     before the agent starts anything and spun by its executor until a stop is asked, then
     destroyed first (the master's decider: nodes/master.py); it raises AgentError to refuse."""
     restore_ctrl_c()
@@ -360,8 +367,9 @@ def run(args: Optional[List[str]], program: str,
     signals.install()
     try:
         try:
-            other = guest(scale) if guest is not None else None
-            node = AgentNode(scale)
+            readers = Readers()
+            other = guest(scale, readers) if guest is not None else None
+            node = AgentNode(scale, readers)
         except (DeploymentError, AgentError, LockError, ValueError) as e:
             print(f'{program}: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
             return 2
@@ -374,6 +382,7 @@ def run(args: Optional[List[str]], program: str,
             if other is not None and STOP in taken:
                 # A stop: the guest goes first (a decider must not answer the nodes' stop).
                 executor.remove_node(other)
+                readers.drop(other)
                 other.destroy_node()
                 other = None
             node.on_signals(taken)

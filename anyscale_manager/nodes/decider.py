@@ -36,6 +36,7 @@ from . import qos
 from .decider_beat import BeatThread
 from .executor import make_executor
 from .log_lines import log_at
+from .readers import Readers, subscribe
 from .throttled_log import ThrottledLog
 from .. import protocol as p
 from .. import protocol_auth as auth
@@ -104,7 +105,7 @@ class DeciderNode(Node):
     """One decider per deployment, on the master scale."""
 
     def __init__(self, *, parameter_overrides: Optional[List[Parameter]] = None,
-                 clock=time.monotonic, **kwargs):
+                 clock=time.monotonic, readers: Optional[Readers] = None, **kwargs):
         super().__init__(NODE_NAME, automatically_declare_parameters_from_overrides=True,
                          parameter_overrides=parameter_overrides, **kwargs)
         self._now = clock
@@ -163,7 +164,8 @@ class DeciderNode(Node):
                 (p.TOPIC_SCALE_STATUS, self._on_scale_status, MONITOR_QOS),
                 (p.TOPIC_LINK_STATUS, self._on_link_status, MONITOR_QOS),
                 (p.TOPIC_CONNECTION_STATUS, self._on_connection_status, MONITOR_QOS)):
-            self.create_subscription(String, topic, self._locked(callback), profile)
+            # Through the process's shared subscriptions in `master` (nodes/readers.py).
+            subscribe(self, readers, self, String, topic, profile, self._locked(callback))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._locked(self._after_set_parameters))
         self.timer = self.create_timer(self.settings.period_s, self._locked(self._on_timer))

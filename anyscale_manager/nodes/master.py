@@ -13,7 +13,8 @@ and the process goes on (the agent's loop); a stop (SIGINT, SIGTERM) destroys th
 so it does not answer the nodes' stop with a new layout. What it gives up: a crash of the
 interpreter ends both; the warden keeps the nodes running and the agent's restart adopts them
 (as after the agent's own crash), and a standby decider on another scale, if the deployment runs
-one, leads meanwhile.
+one, leads meanwhile. The two nodes read the topics they share (the agents' reports, the
+layout, the connection readings) through one subscription each (nodes/readers.py).
 """
 import faulthandler
 import signal
@@ -24,17 +25,18 @@ from rclpy.node import Node
 
 from . import agent
 from .decider import DeciderNode
+from .readers import Readers
 from .. import protocol_auth as auth
 from ..model.loader import DeploymentError
 
 PROGRAM = 'master'
 
 
-def decider_of(scale: str) -> Node:
-    """The decider for the agent of ``scale``; refused (AgentError) unless ``scale`` is the
-    deployment's master."""
+def decider_of(scale: str, readers: Readers) -> Node:
+    """The decider for the agent of ``scale``, reading through the process's shared
+    subscriptions; refused (AgentError) unless ``scale`` is the deployment's master."""
     try:
-        node = DeciderNode()
+        node = DeciderNode(readers=readers)
     except (DeploymentError, ValueError, auth.KeyFileError) as e:
         raise agent.AgentError(f'the decider: {e}') from None
     master = node.deployment.master.name

@@ -20,13 +20,14 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from std_msgs.msg import String
 
 from ... import protocol as p
+from .. import qos
 from ...agent import warden
 from ...model.types import Deployment
 from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import (DELIVERY_SPAN_S, BandwidthEstimate, crossing_connections,
                                   delivered_kbps, used_kbps)
 from ...runtime.rates import HeartbeatTracker
-from .common import (LATCHED_QOS, STATUS_QOS, Cadence, Publishers, period_of, scale_of,
+from .common import (LATCHED_QOS, Cadence, Publishers, period_of, scale_of,
                      status)
 from .echoes import EchoSocket
 from .throughput import ProbeServer, probe_throughput
@@ -152,12 +153,18 @@ class LinkMonitor:
         # rule being met.
         self._monitor_id = secrets.token_hex(8)   # echoes answer this process's beats only
         self._sock = EchoSocket(warden.MAX_DATAGRAM)
-        self._subs.append(self._node.create_subscription(
-            String, p.TOPIC_CONNECTION_STATUS, self._on_connections, STATUS_QOS,
-            callback_group=self._group))
-        self._subs.append(self._node.create_subscription(
-            String, p.TOPIC_AGENT_STATE, self._on_agent_state, LATCHED_QOS,
-            callback_group=self._group))
+        # Through the process's shared subscriptions when its node has them (nodes/readers.py:
+        # the agent and the master's decider read both topics too), with the decider's QoS.
+        readers = getattr(self._node, 'readers', None)
+        for topic, callback, profile in (
+                (p.TOPIC_CONNECTION_STATUS, self._on_connections, qos.MONITOR_READER),
+                (p.TOPIC_AGENT_STATE, self._on_agent_state, LATCHED_QOS)):
+            if readers is None:
+                self._subs.append(self._node.create_subscription(
+                    String, topic, callback, profile, callback_group=self._group))
+            else:
+                readers.subscribe(self, String, topic, profile, callback)
+        self._readers = readers
         # One timer: each tick judges up and down, and beats when a beat is due. Due times, not
         # a count of ticks: rcl skips the ticks a busy executor missed, and counting them would
         # send every beat after a stall late, and fewer beats than the period says. While every
@@ -543,6 +550,8 @@ class LinkMonitor:
             self._node.destroy_timer(timer)
         for sub in self._subs:
             self._node.destroy_subscription(sub)
+        if self._watching and self._readers is not None:
+            self._readers.drop(self)
         if self._watching:
             self._sock.close()
             self._out.destroy()
