@@ -93,10 +93,13 @@ class BeatThread:
         listened = self.listened()
         with self.lock:
             now = d._now()          # after the wait for the lock: no beat went out meanwhile
-            d.lead.listened(listened, now)
             for text in texts:
                 d.heard_beat_text(text, now)
+            # Judged as what it was through the time since the last wake: a leader that others
+            # listened to and that stalled (stopped, starved) steps down even if, resumed, it
+            # reads the graph before DDS has heard the others again and finds nobody.
             d.check_role(now)
+            d.lead.listened(listened, now)
             stuck = now - self.executor_alive > d.settings.period_s + d.settings.takeover_s
             beats = not (stuck and d.lead.role == LEADER)
             beat = p.DeciderBeat(

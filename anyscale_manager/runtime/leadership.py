@@ -168,8 +168,10 @@ class Leadership:
         self.last_beat = now
 
     def listened(self, listened: bool, now: float) -> None:
-        """Whether another reads the beats now. A leader that was alone counts as having beaten
-        until now: nobody could have taken over, so its quiet time is no stall."""
+        """Whether another reads the beats now, told after ``check`` has judged the time since
+        the last wake. A leader that was alone counts as having beaten until now: nobody could
+        have taken over, so its quiet time is no stall; one that was listened to and stalled
+        has been judged (stepped down) before it may count as alone."""
         if self.alone:
             self.last_beat = now
         self.alone = not listened and self.role == LEADER
