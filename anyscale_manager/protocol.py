@@ -367,6 +367,20 @@ class Message:
 
     @classmethod
     def from_json(cls: Type[T], text: Any, topic: str = '') -> T:
+        """The message ``text`` holds, checked field by field. The last message decoded is
+        kept with the very text it came from: the readers of one delivery
+        (nodes/readers.py: the agent, its link monitor and the master's decider take the same
+        message) are handed one object, decoded once, which none of them may change."""
+        global _LAST_DECODED
+        last = _LAST_DECODED
+        if last[1] is text and last[0] is cls:
+            return last[2]
+        obj = cls._decode(text, topic)
+        _LAST_DECODED = (cls, text, obj)
+        return obj
+
+    @classmethod
+    def _decode(cls: Type[T], text: Any, topic: str) -> T:
         where = topic or cls.__name__
         if not isinstance(text, str):
             raise ProtocolError(f'{where}: expected JSON text')
@@ -379,6 +393,9 @@ class Message:
             raise ProtocolError(f'{where}: not valid JSON ({e})') from None
         _depth_ok(data, where)
         return cls.from_dict(data, where)
+
+
+_LAST_DECODED: Tuple[Any, Any, Any] = (None, None, None)     # (class, text, message)
 
 
 def _nested(value: Any) -> Any:

@@ -644,9 +644,14 @@ def test_process_table_and_trees_in_one_pass():
                      'leaf': {12: 0.5}, 'gone': {}}
 
 
+def test_the_memory_in_use_reads_as_psutil_has_it():
+    assert abs(procs.memory_percent() - psutil.virtual_memory().percent) < 1.0
+
+
 def test_the_table_of_a_few_trees_reads_only_them():
     """tree_table: the processes of the given trees (a child started by another thread and a
-    grandchild included) as process_table has them, and nothing else of the machine."""
+    grandchild included) as process_table has them, and nothing else of the machine; reading
+    the main threads only, what an earlier full pass found."""
     me = os.getpid()
     started = []
     thread = threading.Thread(target=lambda: started.append(subprocess.Popen(
@@ -665,6 +670,12 @@ def test_the_table_of_a_few_trees_reads_only_them():
         assert all(table[pid][0] == full[pid][0] for pid in (child.pid, grandchild))
         assert table[grandchild][0] == child.pid and table[child.pid][0] == me
         assert procs.tree_table([child.pid]).keys() == {child.pid, grandchild}
+        # Main threads only (the thread that started the child has ended, so the main
+        # thread lists it now), and what a full pass found.
+        assert {child.pid, grandchild} <= set(procs.tree_table([me], all_threads=False))
+        partial = procs.tree_table([me], known=set(table), all_threads=False)
+        assert {me, child.pid, grandchild} <= set(partial)
+        assert partial[grandchild][0] == child.pid
     finally:
         procs.signal_session(child.pid, signal.SIGKILL)
         child.wait(5.0)

@@ -34,6 +34,18 @@ def test_round_trip(msg):
     assert type(msg).from_json(msg.to_json()) == msg
 
 
+def test_the_readers_of_one_message_share_one_decoding():
+    """The same text object (one delivery, several readers) is decoded once; an equal text
+    that is another object (the next message) and another class are decoded anew."""
+    text = sample_messages()[1].to_json()
+    first = p.AgentState.from_json(text)
+    assert p.AgentState.from_json(text) is first
+    again = p.AgentState.from_json(''.join(list(text)))
+    assert again == first and again is not first
+    with pytest.raises(p.ProtocolError):
+        p.Layout.from_json(text)              # another class: checked, not handed the last
+
+
 @pytest.mark.parametrize('text, words', [
     ('not json', 'not valid JSON'),
     ('[1, 2]', 'expected a JSON object'),

@@ -4,9 +4,11 @@ its warden, the signals it acts on, its restart in place and its last stop. No R
 import os
 import re
 import signal
+import socket
 import sys
+import threading
 import time
-from typing import List, Mapping, Optional, Sequence, Tuple
+from typing import Callable, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import AgentSettings, Deployment
 from ..model.discovery import domain_of, server_port, uses_servers
@@ -96,15 +98,47 @@ class Signals:
     handler runs between any two bytecodes of the main thread, maybe inside a callback that
     holds a monitor's lock: stopping the nodes from there deadlocked once (a SIGINT logged
     "shutting down" and stopped nothing).
+
+    Python runs a handler only when the main thread runs bytecode, not while it waits in the
+    executor. ``wake_with`` gives a wake the loop's executor answers (a one-shot timer's
+    reset): Python's C-level handler writes each signal's number to a socket (the wakeup fd)
+    at once, and a thread blocked on that socket calls the wake, so the loop can wait for its
+    callbacks as long as it likes and still take a signal within milliseconds.
     """
 
     def __init__(self):
         self._noted: List[str] = []
+        self._wake: Optional[Callable[[], None]] = None
+        self._socket: Optional[socket.socket] = None
 
     def install(self) -> None:
         signal.signal(signal.SIGINT, lambda signum, frame: self._noted.append(STOP))
         signal.signal(signal.SIGTERM, lambda signum, frame: self._noted.append(STOP))
         signal.signal(signal.SIGHUP, lambda signum, frame: self._noted.append(RESTART))
+        reader, writer = socket.socketpair()
+        writer.setblocking(False)
+        signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
+        self._socket = writer           # kept open for as long as the process lives
+        threading.Thread(target=self._listen, args=(reader,), name='signal-wake',
+                         daemon=True).start()
+
+    def wake_with(self, wake: Callable[[], None]) -> None:
+        """Call ``wake()`` (from another thread) whenever a signal arrives from now on."""
+        self._wake = wake
+
+    def _listen(self, reader: socket.socket) -> None:
+        while True:
+            try:
+                if not reader.recv(64):
+                    return
+            except OSError:
+                return
+            wake = self._wake
+            if wake is not None:
+                try:
+                    wake()
+                except Exception:   # the node is being destroyed: the loop sees the signal
+                    pass
 
     def take(self) -> List[str]:
         """The requests noted since the last call, in order: at most two stops (a second one

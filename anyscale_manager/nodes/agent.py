@@ -56,6 +56,7 @@ from ..interrupt import restore_ctrl_c
 from .shutdown import shut_rclpy_down
 
 EXIT_WAKE_S = 0.001          # the one-shot wake after a node exits (agent/exits.py)
+LOOP_WAIT_S = 1.0            # the longest wait for a callback; a signal wakes it at once
 UNSIGNED = ('layouts are not signed and anyone on this ROS domain can move or stop the nodes '
             'of this scale (anyscale-manager keygen; docs/decider.md, security)')
 
@@ -373,6 +374,11 @@ def run(args: Optional[List[str]], program: str,
         except (DeploymentError, AgentError, LockError, ValueError) as e:
             print(f'{program}: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
             return 2
+        # The loop waits for callbacks until a signal wakes it (Signals.wake_with): a wait
+        # of TICK_S woke the process ten times a second with nothing to do.
+        signal_wake = node.create_timer(EXIT_WAKE_S, lambda: signal_wake.cancel())
+        signal_wake.cancel()
+        signals.wake_with(signal_wake.reset)
         executor = make_executor()
         executor.add_node(node)
         if other is not None:
@@ -389,7 +395,7 @@ def run(args: Optional[List[str]], program: str,
             if node.finished or node.restarting:
                 break
             try:
-                executor.spin_once(timeout_sec=TICK_S)
+                executor.spin_once(timeout_sec=LOOP_WAIT_S)
             except (KeyboardInterrupt, ExternalShutdownException):
                 raise
             except Exception:   # a bug in one callback must not orphan or stop the nodes

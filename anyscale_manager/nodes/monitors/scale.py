@@ -16,6 +16,8 @@ from ...protocol_auth import Sealer
 from ...runtime import cpu as cpu_math
 from .common import Publishers, period_of, scale_of, status
 
+FULL_WALK_EVERY = 8     # samples between two walks of every thread's children (4 s at 2 Hz)
+
 
 class _SystemCpu:
     """Cumulative busy CPU seconds of the scale: its cgroup when a quota confines it, else the
@@ -138,6 +140,7 @@ class ScaleMonitor:
         self._total = cpu_math.CpuCounter()
         self._procs = cpu_math.ProcessGroupCpu()
         self._own = cpu_math.ProcessGroupCpu()
+        self._walks, self._walked_roots, self._members = 0, set(), set()
         self.source = cpu_math.CGROUP if self._system.quota_confined else cpu_math.MACHINE
         self.sharing: Tuple[str, ...] = ()
         self._out = Publishers(node, p.TOPIC_SCALE_STATUS, sealer)
@@ -209,7 +212,7 @@ class ScaleMonitor:
                 self._node.get_logger().warning(f'scale monitor: own_pids() failed: {e}',
                                                 throttle_duration_sec=10.0)
                 roots = {os.getpid()}
-        table = procs.tree_table(roots | set(leaders.values())) if leaders or own else {}
+        table = self._walk(roots | set(leaders.values())) if leaders or own else {}
         samples = procs.tree_cpu_seconds(table, leaders) if leaders else {}
         if own:
             # The first sample after a switch only primes the counter: no reading then.
@@ -218,6 +221,18 @@ class ScaleMonitor:
         else:
             self._own = cpu_math.ProcessGroupCpu()
         return total, self._procs.update(now, samples)
+
+    def _walk(self, roots: Set[int]) -> Dict[int, Tuple[int, float]]:
+        """The trees of ``roots``: every thread's children every FULL_WALK_EVERY samples, or
+        when the roots change; else the main threads' children and the processes of the last
+        full walk (procs.tree_table), a fifth of the reads for nodes of 15 threads."""
+        self._walks += 1
+        full = roots != self._walked_roots or self._walks >= FULL_WALK_EVERY
+        table = procs.tree_table(roots, self._members, all_threads=full)
+        if full:
+            self._walks, self._walked_roots = 0, roots
+        self._members = set(table)
+        return table
 
     def _ref(self, core_seconds_per_s: float) -> float:
         return cpu_math.reference_percent(core_seconds_per_s, self._scale.capacity_cpu,
@@ -239,7 +254,7 @@ class ScaleMonitor:
             scale=self._scale.name, stamp=time.time(), cpu_total=cpu_total,
             capacity_cpu=capacity,
             cpu_by_node={name: self._ref(v) for name, v in sorted(by_node.items())},
-            mem_percent=float(psutil.virtual_memory().percent),
+            mem_percent=procs.memory_percent(),
             load_1m=float(os.getloadavg()[0]), cpu_source=self.source,
             cores=self._system.cores)
         self.last = message
