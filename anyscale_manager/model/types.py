@@ -310,8 +310,9 @@ class DiscoverySettings:
 
 @dataclass(frozen=True)
 class MonitorSettings:
-    scale_rate_hz: float = setting(2.0, 'scale status rate', low=0, high=1000, low_open=True,
-                                   unit='Hz')
+    scale_rate_hz: float = setting(1.0, 'scale status rate (one reading a turn of the decider '
+                                        'at the default period_s)', low=0, high=1000,
+                                   low_open=True, unit='Hz')
     heartbeat_rate_hz: float = setting(4.0, "the master's heartbeats to each remote scale",
                                        low=0, high=1000, low_open=True, unit='Hz')
     heartbeat_misses_down: int = setting(3, 'a link is down after this many missed heartbeats '
