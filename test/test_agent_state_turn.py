@@ -279,6 +279,34 @@ def test_with_no_state_heard_yet_a_move_waits_for_the_first_state_of_the_copy_it
     assert agent.channel.sent == [('lc', b'from b')]
 
 
+def test_while_the_copy_it_replaces_is_reported_serving_a_move_waits_longer_for_its_state(
+        make_sup):
+    """A move out as a link opens (the three-scale test-bed: both master links at once, the
+    robot saturated): the copy there serves on, reported so by its agent, and its state writer
+    may take seconds to be found across the link. The copy here waits past FIRST_STATE_WAIT_S
+    for it, up to half of readiness_timeout_s, then serves from its own and says so."""
+    from test_agent_turn import peer_report
+    agent = Agent(make_sup)
+    agent.channel.subscribed = agent.channel.acked = True
+    agent.turn.on_layout(layout(1, lc='b'), agent.now)
+    agent.until(lambda out: agent.label() == lc.INACTIVE, 'the standby copy configured')
+    agent.turn.on_layout(layout(2, lc='a'), agent.now)            # moved here from b
+    moved = agent.now
+    limit = agent.turn.deployment.agent.readiness_timeout_s / 2.0
+    assert limit > FIRST_STATE_WAIT_S + 1.0
+    outs = []
+    while agent.now - moved < FIRST_STATE_WAIT_S + 1.0:
+        agent.turn.on_agent_state(peer_report('b', 2, lc=p.ProcState.RUNNING), agent.now)
+        outs.append(agent.step())
+    assert agent.label() == lc.INACTIVE, 'served from its own while the copy there serves'
+    while agent.label() != lc.ACTIVE:
+        assert agent.now - moved < limit + 1.0, 'still waiting past half the readiness timeout'
+        agent.turn.on_agent_state(peer_report('b', 2, lc=p.ProcState.RUNNING), agent.now)
+        outs.append(agent.step())
+    assert agent.now - moved >= limit
+    assert any('no state heard yet' in t for t in lines(outs)) and agent.channel.sent == []
+
+
 def test_an_agent_whose_first_layout_is_not_the_first_waits_for_the_state_of_the_serving_copy(
         make_sup):
     """The laptop's agent whose link came up after the first layouts hears generation 2 first,

@@ -248,6 +248,14 @@ class Reconciler:
         state = peer.nodes.get(node, (ProcState.STOPPED, False))[0]
         return state not in (ProcState.RUNNING, ProcState.STARTING)
 
+    def reported_serving(self, node: str, scale: str, now: float, within_s: float) -> bool:
+        """Whether ``scale``'s agent reported, within ``within_s``, its copy of ``node``
+        serving (running and ready); False when not heard lately."""
+        peer = self.peers.get(scale)
+        if peer is None or now - peer.heard > within_s:
+            return False
+        return peer.nodes.get(node) == (ProcState.RUNNING, True)
+
     def copies_elsewhere(self, node: str, now: float) -> int:
         """How many live instances of ``node`` other live agents account for in the ROS graph
         (a plain node's readiness counts the instances of its name)."""

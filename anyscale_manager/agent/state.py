@@ -47,11 +47,15 @@ class Handover:
 
 @dataclass
 class Pending:
-    """A hand-over under way: sent once the copy's restore input is matched."""
+    """A hand-over under way: sent once the copy's restore input is matched.
+    ``awaiting_first``: no state heard yet, the copy waits for the first (bounded by the turn,
+    agent/turn.py FIRST_STATE_WAIT_S); ``since`` then counts that wait, and the restore input's
+    from when the state came."""
 
     copy: int
     since: float
     sent: bool = False
+    awaiting_first: bool = False
 
 
 class StateBook:
@@ -188,7 +192,7 @@ class StateBook:
         without its state rather than not at all."""
         out: List[Line] = []
         for node, p in list(self._pending.items()):
-            if now - p.since > timeout_s:
+            if not p.awaiting_first and now - p.since > timeout_s:
                 out.append(('warn', f'{node}: its copy (pid {p.copy}) did not take its '
                                     f'state on {self.specs[node].restore} (remapped to its own '
                                     f'topic) within {timeout_s:g} s: it serves from its own '

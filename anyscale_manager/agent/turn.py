@@ -39,7 +39,9 @@ STOPPING_TICK_S = 0.02
 IDLE_TICK_S = 1.0
 # A copy to be handed a state when this agent has heard none yet waits this long at most for
 # the first one from the copy the layout moves the node from, unless that copy's agent said,
-# at most PEER_FRESH_BEATS heartbeats ago, that it neither serves nor starts.
+# at most PEER_FRESH_BEATS heartbeats ago, that it neither serves nor starts; while that agent
+# says its copy serves, up to half of agent.readiness_timeout_s (the copy there serves on
+# meanwhile, and its writer may take seconds to be found across a link that just opened).
 FIRST_STATE_WAIT_S = 3.0
 PEER_FRESH_BEATS = 3.0
 # A layout that names unknown nodes or scales is logged entry by entry up to this many.
@@ -272,16 +274,22 @@ class AgentTurn:
                 # and a copy may serve elsewhere with its state on the way: wait as for one.
                 before = self.reconciler.moved_from.get(name, '')
                 fresh_s = PEER_FRESH_BEATS / self.deployment.agent.heartbeat_rate_hz
+                limit = FIRST_STATE_WAIT_S
+                if self.reconciler.reported_serving(name, before, now, fresh_s):
+                    limit = max(limit, self.deployment.agent.readiness_timeout_s / 2.0)
                 if before and before != self.scale \
                         and not self.reconciler.reported_not_serving(name, before, now, fresh_s) \
-                        and now - pending.since < FIRST_STATE_WAIT_S:
+                        and now - pending.since < limit:
                     where = 'serving before this agent heard a layout' \
                         if before == UNKNOWN_SCALE else f'on {before}'
+                    pending.awaiting_first = True
                     return f'its state is handed to the copy first: waiting for the first ' \
                            f'state of its copy {where}'
                 self._logs.extend(lines)            # none to be had: it starts from its own
                 states.handed(name, pid)
                 return ''
+            if pending.awaiting_first:              # it came: the restore input's wait begins
+                pending.awaiting_first, pending.since = False, now
             if channel is None or not topic:        # no ROS side to hand it with (a test)
                 states.handed(name, pid)
                 return ''
