@@ -1,0 +1,107 @@
+#!/usr/bin/env python3
+"""The manager's own CPU on a test-bed's robot, settled (needs root).
+
+    sudo python bench/bench_testbed_footprint.py [--config FILE] [--on laptop]
+        [--window 60] [--settle 10] [--domain-id N] [--out FILE]
+
+The test-bed of ``--config`` (default the ICAR one) in namespaces, the robot under its CPU
+quota. Once AMCL and AR serve on ``--on`` and ``--settle`` seconds more have passed, the CPU
+every process of the robot's cgroup spends over ``--window`` seconds (/proc, user + system),
+by process: the manager's (its agent, its decider, its warden) in % of one core of this machine
+and of the robot's quota, beside its nodes.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+from typing import Dict, Tuple
+
+import psutil
+
+from anyscale_manager.agent.catalogue import ENV_NODE
+from anyscale_manager.testbed import harness, netns
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'icar2015_testbed.yaml')
+MOVING = {'amcl', 'ar'}
+MANAGER = ('agent', 'decider', 'warden')
+
+
+def who(p: psutil.Process) -> str:
+    """A node by its catalogue name; the manager's processes by their module."""
+    node = p.environ().get(ENV_NODE)
+    if node:
+        return node
+    line = ' '.join(p.cmdline())
+    for name in ('warden', 'master', 'decider', 'agent'):
+        if f'anyscale_manager.nodes.{name}' in line or f'agent.{name}' in line:
+            return name
+    return os.path.basename(p.cmdline()[0]) if p.cmdline() else str(p.pid)
+
+
+def robot_cpu(tb: harness.Testbed) -> Dict[int, Tuple[str, float]]:
+    """pid -> (who, CPU seconds) of every process in the robot's cgroup."""
+    out = {}
+    for pid in tb.network.groups['robot'].pids():
+        try:
+            p = psutil.Process(pid)
+            t = p.cpu_times()
+            out[pid] = (who(p), t.user + t.system)
+        except psutil.Error:
+            pass
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--config', default=CONFIG)
+    ap.add_argument('--on', default='laptop', help='where AMCL and AR serve when measured')
+    ap.add_argument('--window', type=float, default=60.0)
+    ap.add_argument('--settle', type=float, default=10.0)
+    ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', 44)))
+    ap.add_argument('--out', default='', help='write the figures as JSON')
+    args = ap.parse_args()
+    ok, why = netns.available()
+    if not ok:
+        print(f'bench_testbed_footprint: no test-bed here: {why}', file=sys.stderr)
+        return 2
+    tb = harness.Testbed(harness.Options(args.config, args.domain_id, mode='netns')).start()
+    try:
+        tb.wait_for(lambda r: set(r.running_on(args.on, ready_only=True)) >= MOVING, 120.0,
+                    f'AMCL and AR serving on {args.on}')
+        end = time.monotonic() + args.settle
+        while time.monotonic() < end:
+            time.sleep(0.2)
+        t0, before = time.monotonic(), robot_cpu(tb)
+        end = t0 + args.window
+        while time.monotonic() < end:
+            time.sleep(0.5)
+        t1, after = time.monotonic(), robot_cpu(tb)
+        quota = tb.cpu_cores['robot']
+        by: Dict[str, float] = {}
+        for pid, (name, cpu) in after.items():
+            if pid in before:
+                by[name] = by.get(name, 0.0) + (cpu - before[pid][1]) / (t1 - t0)
+        manager = sum(v for k, v in by.items() if k in MANAGER)
+        print(f'{os.path.basename(args.config)}: AMCL and AR on {args.on}, {args.window:g} s '
+              f'after {args.settle:g} s; robot quota {quota:.2f} cores of this machine')
+        print(f'{"process":12s} {"% of a core":>12s} {"% of quota":>11s}')
+        for name, cores in sorted(by.items(), key=lambda kv: -kv[1]):
+            print(f'{name:12s} {100 * cores:12.2f} {100 * cores / quota:11.2f}')
+        print(f'the manager (agent + decider + warden): {100 * manager:.2f} % of one core, '
+              f'{100 * manager / quota:.2f} % of the robot\'s quota')
+        if args.out:
+            with open(args.out, 'w') as f:
+                json.dump({'quota_cores': quota, 'window_s': args.window,
+                           'cores_by_process': by, 'manager_cores': manager}, f, indent=1)
+        return 0
+    finally:
+        notes = tb.stop()
+        if notes:
+            print(f'teardown: {notes}')
+
+
+if __name__ == '__main__':
+    sys.exit(main())
