@@ -154,18 +154,19 @@ class Within(Rule):
     kinds: ClassVar[Tuple[Any, ...]] = (int, float)
 
     def check(self, value: Any, where: str) -> None:
-        lo = _shown(self.lo)
         if self.hi is None:
             if not value >= self.lo:
-                raise ProtocolError(f'{where}: must be >= {lo}, got {_shown(value)}')
+                raise ProtocolError(f'{where}: must be >= {_shown(self.lo)}, '
+                                    f'got {_shown(value)}')
             return
-        hi = _shown(self.hi)
+        if self.lo <= value <= self.hi:
+            return
+        lo, hi = _shown(self.lo), _shown(self.hi)
         if value < self.lo:
             raise ProtocolError(f'{where}: must be in [{lo}, {hi}] (must be >= {lo}, '
                                 f'got {_shown(value)})')
-        if value > self.hi:
-            raise ProtocolError(f'{where}: must be in [{lo}, {hi}] ({_shown(value)} is beyond '
-                                f'the bound {hi})')
+        raise ProtocolError(f'{where}: must be in [{lo}, {hi}] ({_shown(value)} is beyond '
+                            f'the bound {hi})')
 
 
 @dataclass(frozen=True)
@@ -311,7 +312,8 @@ def _depth_ok(data: Any, where: str) -> None:
             continue
         if depth > MAX_DEPTH:
             raise ProtocolError(f'{where}: nested deeper than {MAX_DEPTH} levels')
-        todo.extend((child, depth + 1) for child in children)
+        todo.extend((child, depth + 1) for child in children
+                    if isinstance(child, (dict, list)))
 
 
 class Message:
@@ -334,7 +336,8 @@ class Message:
         where = where or cls.__name__
         if not isinstance(data, dict):
             raise ProtocolError(f'{where}: expected a JSON object, got {data!r:.60}')
-        unknown = sorted(str(k) for k in data if k not in cls.SCHEMA)
+        unknown = () if data.keys() <= cls.SCHEMA.keys() \
+            else sorted(str(k) for k in data if k not in cls.SCHEMA)
         if unknown:
             # A layout that smuggles a command (or any field we do not know) is refused whole.
             raise ProtocolError(f'{where}: unknown field {unknown[0]!r:.60}')
