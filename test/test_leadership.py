@@ -129,6 +129,34 @@ def test_a_lone_leader_that_stalled_briefly_keeps_leading():
     assert d.check(11.5).role == STANDBY                   # 5.5 s: a newcomer may lead now
 
 
+def test_a_leader_nobody_listens_to_commands_between_its_looks_but_not_after_a_stop():
+    """Alone (no other decider reads its beats), a leader looks every alone_wait_s: that
+    quiet time is no stall. Stopped longer while alone, a standby started meanwhile may have
+    found no beat and taken over: resumed, it commands nothing and its check steps it down."""
+    d = Leadership(ident('a'), beat_s=BEAT, takeover_s=TAKEOVER, discovery_s=DISCOVERY,
+                   lease_s=LEASE, started=0.0, alone_wait_s=0.5)
+    d.check(5.0)
+    d.beaten(5.0)
+    t = 5.0
+    for _ in range(10):                      # its beat thread's turns, each a look
+        assert d.check(t) is None
+        d.listened(False, t)
+        assert d.may_command(t) and d.may_command(t + 0.5 + d.stall_s - 0.01)
+        t += 0.5
+    # SIGSTOP for 3 s, alone when it stopped: no command before its beat thread has looked
+    # again (nobody known and less than discovery_s: it then leads on).
+    t += 3.0
+    assert not d.may_command(t)
+    assert d.check(t) is None
+    d.listened(False, t)
+    assert d.may_command(t)
+    # A standby started meanwhile is heard: a stop past the stall steps it down at once.
+    d.heard_beat(ident('s', started=300.0), STANDBY, 0, 0, t)
+    assert not d.may_command(t + 1.0)
+    change = d.check(t + 1.0)
+    assert change is not None and change.role == STANDBY and 'could not beat' in change.reason
+
+
 def test_a_leader_that_hears_a_higher_term_stands_by_then_leads_above_it():
     d = decider('a')
     d.check(5.0)

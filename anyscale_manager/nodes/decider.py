@@ -33,7 +33,7 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import String
 
 from . import qos
-from .decider_beat import BeatThread
+from .decider_beat import BeatThread, alone_wait_s
 from .executor import make_executor
 from .log_lines import log_at
 from .readers import Readers, subscribe
@@ -142,7 +142,8 @@ class DeciderNode(Node):
         self._lock = threading.RLock()
         self.lead = _Locked(Leadership(self.identity, beat_s=s.beat_s, takeover_s=s.takeover_s,
                                        discovery_s=s.discovery_s, lease_s=s.lease_s,
-                                       started=started), self._lock)
+                                       started=started, alone_wait_s=alone_wait_s(s)),
+                            self._lock)
         self.beat_gate = auth.StatusGate(self.key, security.replay_window_s)
         self.seq = 0
         # decider id -> its last layout (a standby takes over from the leader's)

@@ -15,9 +15,10 @@ on the robot. A decider that starts subscribes before it listens ``discovery_s``
 and the leader beats from its first turn after the graph shows it, as DDS matches the two. The
 leadership counts a beat as given all the same, and the beats it hears of itself (its own
 subscription receives them) are dropped before they are decoded. A leader alone wakes every
-``ALONE_WAIT_S`` rather than every ``beat_s``, and its quiet time is no stall (nobody could
-have taken over meanwhile: Leadership.listened); a standby's turns time its takeover and stay at
-``beat_s``.
+``ALONE_WAIT_S`` rather than every ``beat_s``, and that quiet time is no stall (nobody could
+have taken over meanwhile: Leadership.listened); a longer one is (a standby may have started and
+found no beat), and until its thread has looked again it commands nothing. A standby's turns
+time its takeover and stay at ``beat_s``.
 
 A beat says "this decider decides": a callback stuck with the lock stops the beats, and so
 does an executor that has not turned for ``period_s + takeover_s``; a standby then takes over,
@@ -40,6 +41,11 @@ from ..runtime.leadership import LEADER
 ALONE_WAIT_S = 0.5
 # Beats taken per wake-up at most (a burst of forged ones must not hold the lock for long).
 MAX_TAKEN = 200
+
+
+def alone_wait_s(settings) -> float:
+    """How long a leader nobody listens to waits between two turns of its beat thread."""
+    return max(settings.beat_s, min(ALONE_WAIT_S, settings.discovery_s / 4.0))
 
 
 class BeatThread:
@@ -112,8 +118,7 @@ class BeatThread:
             # a status view that appears (and beat for it from then on) well within
             # discovery_s, the time a starting decider listens before it leads.
             alone = not listened and d.lead.role == LEADER
-            self.wait_s = max(d.settings.beat_s, min(ALONE_WAIT_S, d.settings.discovery_s / 4.0)) \
-                if alone else d.settings.beat_s
+            self.wait_s = alone_wait_s(d.settings) if alone else d.settings.beat_s
         if beat is not None:
             self.pub.publish(String(data=d.sealer.seal(beat)))
             # When it went out: a takeover's first layout, published in check_role, can take

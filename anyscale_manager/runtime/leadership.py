@@ -80,9 +80,11 @@ class Change:
 
 class Leadership:
     def __init__(self, me: DeciderIdentity, *, beat_s: float, takeover_s: float,
-                 discovery_s: float, lease_s: float, started: float):
+                 discovery_s: float, lease_s: float, started: float, alone_wait_s: float = 0.0):
         self.me = me
         self.beat_s, self.takeover_s = beat_s, takeover_s
+        # How long a leader alone waits between two looks at who listens (its quiet time).
+        self.alone_wait_s = alone_wait_s
         self.discovery_s, self.lease_s = discovery_s, lease_s
         self.started = started
         self.role = STANDBY
@@ -94,7 +96,8 @@ class Leadership:
         self.beats_heard = False                    # a leader's beat, not only its layouts
         self.last_beat: Optional[float] = None      # our own last beat
         # A leader nobody listens to (no other decider, no status view): its beats go to no
-        # one, and a gap between them is no stall anyone could take over in (``alone``).
+        # one, and a gap between them of up to alone_wait_s is no stall anyone could take over
+        # in (``alone``). A longer one is: a standby may have started and found no beat.
         self.alone = False
         self.stall_s = takeover_s - min(DELIVERY_S, takeover_s / 3.0)
         self.deposed = False        # stepped down: goes after every live standby
@@ -142,7 +145,7 @@ class Leadership:
         term that is due now, if any."""
         if self.role == LEADER:
             last = self.last_beat
-            if last is not None and now - last > self.stall_s and not self.alone:
+            if last is not None and now - last > self._stall_limit():
                 # The deciders known when the stall began: a stall longer than lease_s would
                 # otherwise forget them all (their beats stamped before it).
                 known = any(p.received >= last - self.lease_s for p in self.peers.values())
@@ -176,9 +179,16 @@ class Leadership:
             self.last_beat = now
         self.alone = not listened and self.role == LEADER
 
+    def _stall_limit(self) -> float:
+        """The longest time since the last beat (or, alone, the last look at who listens) that
+        is no stall: a leader alone looks every alone_wait_s. A leader stopped or starved for
+        longer, alone when it stopped, may have been taken over by a standby started
+        meanwhile: it neither commands nor leads on until its beat thread has judged that."""
+        return self.stall_s + (self.alone_wait_s if self.alone else 0.0)
+
     def may_command(self, now: float) -> bool:
         return self.role == LEADER and self.last_beat is not None \
-            and (self.alone or now - self.last_beat <= self.stall_s)
+            and now - self.last_beat <= self._stall_limit()
 
     # --- views ----------------------------------------------------------------------------
     def live_leader(self, now: float) -> Optional[Peer]:
