@@ -57,6 +57,7 @@ from .shutdown import shut_rclpy_down
 
 EXIT_WAKE_S = 0.001          # the one-shot wake after a node exits (agent/exits.py)
 LOOP_WAIT_S = 1.0            # the longest wait for a callback; a signal wakes it at once
+REPORT_LATE_PERIODS = 3.0    # a report this many periods after the last is said to be late
 UNSIGNED = ('layouts are not signed and anyone on this ROS domain can move or stop the nodes '
             'of this scale (anyscale-manager keygen; docs/decider.md, security)')
 
@@ -116,6 +117,8 @@ class AgentNode(Node):
         self._state_gate = auth.Gate(key, d.security.replay_window_s)
         self._objective_gate = auth.Gate(key, d.security.replay_window_s)
         self._seq = 0
+        self._report_s = 1.0 / self.settings.heartbeat_rate_hz
+        self._reported_at = time.monotonic()
         self._bad = ThrottledLog(self.get_logger())    # bad input: one line per kind and 10 s
         stem, self.log_dir = places(self.settings, d.name, scale, os.environ)
         self._lock_file = take_lock(stem + '.lock', f'agent for scale {scale!r} of {d.name!r}')
@@ -177,7 +180,7 @@ class AgentNode(Node):
         # most) when nothing is; every input that changes what runs steps at once.
         self._tick_s = TICK_S
         self._tick_timer = self.create_timer(TICK_S, self._tick)
-        self.create_timer(1.0 / self.settings.heartbeat_rate_hz, self._publish_state)
+        self.create_timer(self._report_s, self._on_report_timer)
         # One signer for the monitors' topics (a key: signed; else plain JSON, as before).
         self._hosted = AgentMonitors(self, d, scale, auth.Sealer(key, f'agent {scale}'),
                                      self.turn.serving_pids, self.turn.supervised_pids,
@@ -253,9 +256,26 @@ class AgentNode(Node):
         self._exit_wake.cancel()
         self._tick()
 
+    def _on_report_timer(self) -> None:
+        self._report_check(time.monotonic(), 'its timer fired')
+        self._publish_state()
+
+    def _report_check(self, now: float, where: str) -> None:
+        """Say when the periodic report is late: the peers count this agent silent after
+        agent_timeout_s, and whether it published tells a late report from a lost one."""
+        gap = now - self._reported_at
+        if gap > REPORT_LATE_PERIODS * self._report_s:
+            self.get_logger().warning(
+                f'the report is {gap:.1f} s after the last one (every {self._report_s:g} s, '
+                f'agent.heartbeat_rate_hz): {where}', throttle_duration_sec=5.0)
+
     def _tick(self) -> None:
         now = time.monotonic()
         self._bad.flush()
+        if now - self._reported_at > REPORT_LATE_PERIODS * self._report_s:
+            # The report's timer has not fired for several periods: the step sends it.
+            self._report_check(now, 'sent from the step, its timer silent')
+            self._publish_state()
         probes = self._probes
         if probes is not None:
             probes.poll_writers(now)
@@ -300,6 +320,7 @@ class AgentNode(Node):
         self._seq += 1
         state.seq = self._seq
         self._state_pub.publish(String(data=auth.seal(self._key, state)))
+        self._reported_at = time.monotonic()
 
     # --- shutdown -------------------------------------------------------------------------
     def on_signals(self, kinds: List[str]) -> None:
