@@ -91,7 +91,7 @@ def main() -> int:
         for name, cores in sorted(by.items(), key=lambda kv: -kv[1]):
             print(f'{name:12s} {100 * cores:12.2f} {100 * cores / quota:11.2f}')
         print(f'the manager (agent + decider + warden): {100 * manager:.2f} % of one core, '
-              f'{100 * manager / quota:.2f} % of the robot\'s quota')
+              f"{100 * manager / quota:.2f} % of the robot's quota")
         if args.out:
             with open(args.out, 'w') as f:
                 json.dump({'quota_cores': quota, 'window_s': args.window,
