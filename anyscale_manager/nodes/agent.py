@@ -28,7 +28,7 @@ from std_msgs.msg import String
 
 from . import qos
 from .agent_monitors import AgentMonitors
-from .executor import make_executor
+from .executor import collect_between_callbacks, collect_due, make_executor
 from .lifecycle_client import CopyClients
 from .readers import Readers
 from .log_lines import log_at
@@ -404,7 +404,9 @@ def run(args: Optional[List[str]], program: str,
         executor.add_node(node)
         if other is not None:
             executor.add_node(other)
+        collect_between_callbacks()
         while rclpy.ok():
+            collect_due()
             taken = signals.take()
             if other is not None and STOP in taken:
                 # A stop: the guest goes first (a decider must not answer the nodes' stop).

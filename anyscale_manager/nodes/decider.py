@@ -34,7 +34,7 @@ from std_msgs.msg import String
 
 from . import qos
 from .decider_beat import BeatThread, alone_wait_s
-from .executor import make_executor
+from .executor import collect_between_callbacks, collect_due, make_executor
 from .log_lines import log_at
 from .readers import Readers, subscribe
 from .throttled_log import ThrottledLog
@@ -572,8 +572,10 @@ def main(args=None) -> int:
         node = DeciderNode()
         executor = make_executor()
         executor.add_node(node)
+        collect_between_callbacks()
         while rclpy.ok() and not stop_asked():
             executor.spin_once(timeout_sec=1.0)
+            collect_due()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
