@@ -29,8 +29,8 @@ def collect_between_callbacks() -> None:
     """Python's cyclic garbage collection, run from the spin loop between two callbacks rather
     than wherever an allocation triggers it. Triggered inside a callback, it runs within the
     events executor's C++ dispatch, and a collected rclpy object's finalizer can then wait on
-    what that dispatch holds: a decider started in a chaos soak hung for good, its only thread
-    in "Garbage-collecting" under the executor's EventHandler.__exit__. Called once where a
+    what that dispatch holds: a decider started in a chaos soak hung until it was killed, its
+    thread in "Garbage-collecting" under the executor's EventHandler.__exit__. Called once where a
     program's loop begins; ``collect_due`` after each turn of the loop does what the automatic
     collector would have done (the same thresholds, youngest generation first)."""
     gc.disable()
