@@ -257,24 +257,25 @@ class AgentNode(Node):
         self._tick()
 
     def _on_report_timer(self) -> None:
-        self._report_check(time.monotonic(), 'its timer fired')
+        self._report_late(time.monotonic(), 'its timer fired')
         self._publish_state()
 
-    def _report_check(self, now: float, where: str) -> None:
-        """Say when the periodic report is late: the peers count this agent silent after
-        agent_timeout_s, and whether it published tells a late report from a lost one."""
+    def _report_late(self, now: float, where: str) -> bool:
+        """Whether the periodic report is more than REPORT_LATE_PERIODS periods after the last
+        one, said when it is: the peers count this agent silent after agent_timeout_s, and the
+        line tells a late report from a lost one."""
         gap = now - self._reported_at
-        if gap > REPORT_LATE_PERIODS * self._report_s:
-            self.get_logger().warning(
-                f'the report is {gap:.1f} s after the last one (every {self._report_s:g} s, '
-                f'agent.heartbeat_rate_hz): {where}', throttle_duration_sec=5.0)
+        if gap <= REPORT_LATE_PERIODS * self._report_s:
+            return False
+        self.get_logger().warning(
+            f'the report is {gap:.1f} s after the last one (every {self._report_s:g} s, '
+            f'agent.heartbeat_rate_hz): {where}', throttle_duration_sec=5.0)
+        return True
 
     def _tick(self) -> None:
         now = time.monotonic()
         self._bad.flush()
-        if now - self._reported_at > REPORT_LATE_PERIODS * self._report_s:
-            # The report's timer has not fired for several periods: the step sends it.
-            self._report_check(now, 'sent from the step, its timer silent')
+        if self._report_late(now, 'sent from the step, no timer having sent it'):
             self._publish_state()
         probes = self._probes
         if probes is not None:

@@ -16,7 +16,7 @@ from ...protocol_auth import Sealer
 from ...runtime import cpu as cpu_math
 from .common import Publishers, period_of, scale_of, status
 
-FULL_WALK_EVERY = 8     # samples between two walks of every thread's children (4 s at 2 Hz)
+FULL_WALK_EVERY = 8     # samples between two walks of every thread's children (8 s at 1 Hz)
 
 
 class _SystemCpu:
