@@ -2,13 +2,15 @@
 """The manager's own CPU on a test-bed's robot, settled (needs root).
 
     sudo python bench/bench_testbed_footprint.py [--config FILE] [--on laptop]
-        [--window 60] [--settle 10] [--domain-id N] [--out FILE]
+        [--window 60] [--settle 10] [--master] [--domain-id N] [--out FILE]
 
 The test-bed of ``--config`` (default the ICAR one) in namespaces, the robot under its CPU
 quota. Once AMCL and AR serve on ``--on`` and ``--settle`` seconds more have passed, the CPU
 every process of the robot's cgroup spends over ``--window`` seconds (/proc, user + system),
 by process: the manager's (its agent, its decider, its warden) in % of one core of this machine
-and of the robot's quota, beside its nodes.
+and of the robot's quota, beside its nodes; and the manager's by thread (the Python threads by
+their names, the DDS middleware's and the executor's by theirs). ``--master``: the robot runs the
+agent and the decider as one process (`ros2 run anyscale_manager master`).
 """
 
 import argparse
@@ -26,7 +28,7 @@ from anyscale_manager.testbed import harness, netns
 HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'icar2015_testbed.yaml')
 MOVING = {'amcl', 'ar'}
-MANAGER = ('agent', 'decider', 'warden')
+MANAGER = ('agent', 'decider', 'master', 'warden')
 
 
 def who(p: psutil.Process) -> str:
@@ -42,15 +44,37 @@ def who(p: psutil.Process) -> str:
 
 
 def robot_cpu(tb: harness.Testbed) -> Dict[int, Tuple[str, float]]:
-    """pid -> (who, CPU seconds) of every process in the robot's cgroup."""
+    """pid -> (who, CPU seconds) of every process in the robot's cgroup; and of each thread
+    of the manager's processes, under (pid, tid) -> ('process/thread name', CPU seconds)."""
     out = {}
     for pid in tb.network.groups['robot'].pids():
         try:
             p = psutil.Process(pid)
             t = p.cpu_times()
-            out[pid] = (who(p), t.user + t.system)
+            name = who(p)
+            out[pid] = (name, t.user + t.system)
+            if name in MANAGER:
+                out.update(thread_cpu(pid, name))
         except psutil.Error:
             pass
+    return out
+
+
+def thread_cpu(pid: int, process: str) -> Dict[Tuple[int, int], Tuple[str, float]]:
+    """(pid, tid) -> ('process/thread', CPU seconds), from /proc/PID/task/TID/stat."""
+    tick = os.sysconf('SC_CLK_TCK')
+    out = {}
+    for tid in os.listdir(f'/proc/{pid}/task'):
+        try:
+            with open(f'/proc/{pid}/task/{tid}/stat') as f:
+                stat = f.read()
+        except OSError:
+            continue
+        comm = stat[stat.index('(') + 1:stat.rindex(')')]
+        fields = stat[stat.rindex(')') + 2:].split()
+        # a thread pool's numbered names counted as one
+        out[(pid, int(tid))] = (f'{process}/{comm.rstrip("0123456789-")}',
+                                (int(fields[11]) + int(fields[12])) / tick)
     return out
 
 
@@ -61,13 +85,17 @@ def main() -> int:
     ap.add_argument('--window', type=float, default=60.0)
     ap.add_argument('--settle', type=float, default=10.0)
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', 44)))
+    ap.add_argument('--master', action='store_true',
+                    help='the robot runs `master` (agent and decider in one process)')
     ap.add_argument('--out', default='', help='write the figures as JSON')
     args = ap.parse_args()
     ok, why = netns.available()
     if not ok:
         print(f'bench_testbed_footprint: no test-bed here: {why}', file=sys.stderr)
         return 2
-    tb = harness.Testbed(harness.Options(args.config, args.domain_id, mode='netns')).start()
+    options = harness.Options(args.config, args.domain_id, mode='netns',
+                              master_process=args.master)
+    tb = harness.Testbed(options).start()
     try:
         tb.wait_for(lambda r: set(r.running_on(args.on, ready_only=True)) >= MOVING, 120.0,
                     f'AMCL and AR serving on {args.on}')
@@ -81,21 +109,29 @@ def main() -> int:
         t1, after = time.monotonic(), robot_cpu(tb)
         quota = tb.cpu_cores['robot']
         by: Dict[str, float] = {}
-        for pid, (name, cpu) in after.items():
-            if pid in before:
-                by[name] = by.get(name, 0.0) + (cpu - before[pid][1]) / (t1 - t0)
+        threads: Dict[str, float] = {}
+        for key, (name, cpu) in after.items():
+            if key in before:
+                into = threads if isinstance(key, tuple) else by
+                into[name] = into.get(name, 0.0) + (cpu - before[key][1]) / (t1 - t0)
         manager = sum(v for k, v in by.items() if k in MANAGER)
         print(f'{os.path.basename(args.config)}: AMCL and AR on {args.on}, {args.window:g} s '
-              f'after {args.settle:g} s; robot quota {quota:.2f} cores of this machine')
-        print(f'{"process":12s} {"% of a core":>12s} {"% of quota":>11s}')
+              f'after {args.settle:g} s; robot quota {quota:.2f} cores of this machine'
+              f'{"; the robot runs master" if args.master else ""}')
+        print(f'{"process":24s} {"% of a core":>12s} {"% of quota":>11s}')
         for name, cores in sorted(by.items(), key=lambda kv: -kv[1]):
-            print(f'{name:12s} {100 * cores:12.2f} {100 * cores / quota:11.2f}')
+            print(f'{name:24s} {100 * cores:12.2f} {100 * cores / quota:11.2f}')
+        print("the manager's processes by thread:")
+        for name, cores in sorted(threads.items(), key=lambda kv: -kv[1]):
+            if cores > 0:
+                print(f'{name:24s} {100 * cores:12.2f} {100 * cores / quota:11.2f}')
         print(f'the manager (agent + decider + warden): {100 * manager:.2f} % of one core, '
               f"{100 * manager / quota:.2f} % of the robot's quota")
         if args.out:
             with open(args.out, 'w') as f:
                 json.dump({'quota_cores': quota, 'window_s': args.window,
-                           'cores_by_process': by, 'manager_cores': manager}, f, indent=1)
+                           'master': args.master, 'cores_by_process': by,
+                           'cores_by_thread': threads, 'manager_cores': manager}, f, indent=1)
         return 0
     finally:
         notes = tb.stop()

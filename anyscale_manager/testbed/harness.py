@@ -87,6 +87,8 @@ class Options:
     # 'server': the deployment's discovery.mode server, on links that carry no multicast
     # (namespaces only); 'multicast': the file's own (its neighbours static peers).
     discovery: str = 'multicast'
+    # True: the master scale runs the agent and the decider as one process (`master`).
+    master_process: bool = False
 
 
 class Testbed:
@@ -221,7 +223,8 @@ class Testbed:
                           "the robot agent's scale monitor")
             _lift_quota(robot_group)
             self.mark('boot: robot CPU quota lifted while the nodes start')
-        self.start_decider()
+        if not self.options.master_process:
+            self.start_decider()
         managed = [n.name for n in self.deployment.nodes if n.managed]
         self.wait_for(lambda r: all(r.where(n) for n in managed), ready_timeout_s,
                       'every managed node running')
@@ -402,8 +405,12 @@ class Testbed:
                       f'the observer on the {scale} to start')
 
     def start_agent(self, scale: str) -> Proc:
-        argv = [self.options.python, '-m', 'anyscale_manager.nodes.agent']
+        joint = self.options.master_process and scale == self.deployment.master.name
+        argv = [self.options.python, '-m',
+                f'anyscale_manager.nodes.{"master" if joint else "agent"}']
         argv += self._deployment_args() + ['-p', f'scale:={scale}']
+        if joint:
+            argv += self._decider_args()
         proc = self._spawn(f'agent_{scale}', scale, argv)
         self.mark(f'agent {scale} started (pid {proc.popen.pid})')
         return proc
@@ -412,12 +419,14 @@ class Testbed:
         """The decider; under another ``name``, a second one (started by mistake);
         ``quota=False``: outside the robot's CPU quota."""
         argv = [self.options.python, '-m', 'anyscale_manager.nodes.decider']
-        argv += self._deployment_args()
-        for param, value in sorted(self.options.decider_parameters.items()):
-            argv += ['-p', f'{param}:={value}']
+        argv += self._deployment_args() + self._decider_args()
         proc = self._spawn(name, 'robot', argv, quota=quota)
         self.mark(f'{name} started (pid {proc.popen.pid})')
         return proc
+
+    def _decider_args(self) -> List[str]:
+        return [arg for param, value in sorted(self.options.decider_parameters.items())
+                for arg in ('-p', f'{param}:={value}')]
 
     def start_tool(self, name: str, scale: str, argv: Sequence[str],
                    quota: bool = False) -> Proc:

@@ -137,6 +137,17 @@ class Cadence:
             job()
 
 
+# An unchanged status (LinkStatus, ConnectionStatus) goes out this often at most, and a third
+# of the decider's observation_max_age_s at least (a reading that old counts as missing); a
+# change of what its readers act on at once.
+STATUS_REFRESH_S = 1.0
+
+
+def refresh_s(deployment: Deployment, period_s: float) -> float:
+    """How often a monitor publishing every ``period_s`` at most sends an unchanged status."""
+    return max(period_s, min(STATUS_REFRESH_S, deployment.decider.observation_max_age_s / 3.0))
+
+
 def period_of(rate_hz: float, what: str) -> float:
     if not rate_hz > 0:
         raise ValueError(f'monitoring.{what} must be positive, got {rate_hz!r}')

@@ -27,7 +27,7 @@ from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import (DELIVERY_SPAN_S, BandwidthEstimate, crossing_connections,
                                   delivered_kbps, used_kbps)
 from ...runtime.rates import HeartbeatTracker
-from .common import (LATCHED_QOS, Cadence, Publishers, period_of, scale_of,
+from .common import (LATCHED_QOS, Cadence, Publishers, period_of, refresh_s, scale_of,
                      status)
 from .echoes import EchoSocket
 from .throughput import ProbeServer, probe_throughput
@@ -35,10 +35,6 @@ from ..throttled_log import ThrottledLog
 
 CHECKS_PER_BEAT = 4            # up/down judged this many times per heartbeat period
 RESOLVE_RETRY_S = 5.0
-# An unchanged LinkStatus goes out this often at most (and a third of the decider's
-# observation_max_age_s at least: a link not reported for that long counts as down); a change
-# of what the decider acts on (up, congested, the far agent, the bandwidth figure) at once.
-LINK_STATUS_REFRESH_S = 1.0
 # What a tracker judges over, in seconds rather than beats, so that a faster beat sees a cut
 # sooner without making the queueing-delay verdict twitchier: a scale starved of CPU for a
 # moment delays a beat or two, a full link delays all of them. Half a second: a throttle is
@@ -100,8 +96,10 @@ class LinkMonitor:
         self._scale = scale_of(deployment, scale)
         settings = deployment.monitoring
         self._period = period_of(settings.heartbeat_rate_hz, 'heartbeat_rate_hz')
-        self._refresh_s = max(self._period, min(LINK_STATUS_REFRESH_S,
-                                                deployment.decider.observation_max_age_s / 3.0))
+        # An unchanged LinkStatus every refresh_s (a link not reported for the decider's
+        # observation_max_age_s counts as down); a change of what the decider acts on (up,
+        # congested, the far agent, the bandwidth figure) at once.
+        self._refresh_s = refresh_s(deployment, self._period)
         self._group = MutuallyExclusiveCallbackGroup()
         self._log = node.get_logger()
         self._bad = ThrottledLog(self._log)
@@ -178,9 +176,14 @@ class LinkMonitor:
                                               callback_group=self._group)
         self._timers.append(self._timer)
         self.quiet = False          # whether the timer wakes for the beats and deadlines only
-        self._readings_max_age = max(3.0, 3.0 / settings.probe_publish_rate_hz)
+        # The probes send a reading on a change and refresh it (ProbeManager): the last one
+        # stands for a refresh period and one of lateness; older, it delivers nothing (the far
+        # end's reports wait in a full queue too).
+        probe_period = period_of(settings.probe_publish_rate_hz, 'probe_publish_rate_hz')
+        probe_refresh = refresh_s(self._deployment, probe_period)
+        self._readings_max_age = max(3.0, 3.0 * probe_refresh)
         self._delivery_stale_s = min(self._readings_max_age,
-                                     DELIVERY_SPAN_S + 2.0 / settings.probe_publish_rate_hz)
+                                     DELIVERY_SPAN_S + probe_refresh + probe_period)
         self._probe_duration = settings.bandwidth_probe_duration_s
         self._congestion_s = settings.congestion_delay_ms / 1000.0
 

@@ -16,8 +16,16 @@ every 50 ms. A wake-up of
 the executor costs about as much as a drain of a few messages (70 us on the test machine), and
 twenty a second for topics at a few hertz were a tenth of the robot agent's CPU. Since the
 arrivals keep their reception times, a later take changes no reading.
+
+What is sent: the readings are taken every report period (``probe_publish_rate_hz``: the Δ
+verdicts advance there, and the diagnostics go out there) and published when they say something
+the last ones sent did not (``moved``: a level, a stretch that ended, the senders, a figure moved
+by a quarter), else once a refresh period (``monitors/common.refresh_s``, as the LinkStatus).
+Three readers take each report (the decider, both ends' link monitors), each at a cost per
+message whatever it says.
 """
 
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -35,8 +43,8 @@ from ...runtime.delta import DeltaJudge
 from ...runtime.rates import (RateWindow, SenderOverlap, WriterStreams, live_window_s,
                               two_senders_past)
 from .clocks import clock_offset_s
-from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, scale_of,
-                     status)
+from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, refresh_s,
+                     scale_of, status)
 
 TYPE_RESOLVE_PERIOD_S = 1.0
 # Every 50 ms while a topic is fast: the probe QoS holds 100 messages, a 1 kHz topic's 0.1 s,
@@ -46,6 +54,9 @@ DRAIN_LIMIT = 1000          # messages taken from one subscription per drain, at
 # A topic may be left to the reports' drains while its fastest rate yet brings at most this many
 # messages between two of them: a quarter of what its subscription holds.
 SLOW_DRAIN_MESSAGES = qos.PROBE.depth // 4
+# A figure of a reading (rate, bytes per second, recent bytes per second) that moved by more
+# than this fraction of the one last sent is a change (``moved``), as is one to or from nothing.
+MOVED_FRACTION = 0.25
 
 
 @dataclass
@@ -104,7 +115,12 @@ class ProbeManager:
         self._fast_s = min(DRAIN_PERIOD_S, period)
         self._slow_s = min(period, TYPE_RESOLVE_PERIOD_S)
         self._drained_at = time.monotonic()
-        self._published = 0                 # reports sent
+        self._published = 0                 # readings taken for a report
+        # The readings are taken every period and sent on a change (``moved``), else every
+        # refresh_s: most reports of a steady graph said what the last one did.
+        self._refresh_s = refresh_s(deployment, period)
+        self._sent: Optional[Dict[str, p.ConnectionReading]] = None
+        self._sent_at = -math.inf
         self._cadence = Cadence(self._fast_s, time.monotonic())
         self._cadence.every(max(TYPE_RESOLVE_PERIOD_S, self._fast_s), self._resolve_pending)
         self._cadence.every(period, self._publish)
@@ -352,7 +368,9 @@ class ProbeManager:
         message = p.ConnectionStatus(scale=self._scale.name, stamp=time.time(),
                                      connections={k: r for k, (r, _) in readings.items()})
         self.last = message
-        self._out.send(message)
+        if moved(self._sent, message.connections) or now - self._sent_at >= self._refresh_s:
+            self._out.send(message)
+            self._sent, self._sent_at = message.connections, now
         statuses = []
         with self._lock:
             probes = sorted(self._probes.items())
@@ -414,6 +432,34 @@ def received_at(info, offset_s: float, now: float) -> float:
     never later than ``now``; ``now`` when the middleware gave none."""
     received_ns = info.get('received_timestamp', 0) if isinstance(info, dict) else 0
     return min(received_ns / 1e9 - offset_s, now) if received_ns else now
+
+
+def moved(before: Optional[Dict[str, p.ConnectionReading]],
+          after: Dict[str, p.ConnectionReading]) -> bool:
+    """Whether readings ``after`` say something those last sent (``before``; None: none yet)
+    did not: another set of connections, a level, a stretch below that ended, another count of
+    senders, two senders at once (their readers judge how long by the reading: each one goes),
+    or a figure moved by more than MOVED_FRACTION. A stretch below that goes on is no change:
+    its readers time it from its start."""
+    if before is None or before.keys() != after.keys():
+        return True
+    for name, a in after.items():
+        b = before[name]
+        if a.level != b.level or (a.ended_below_s or 0.0) > 0.0 or a.senders != b.senders \
+                or a.senders_for_s or b.senders_for_s:
+            return True
+        if _moved(b.rate_hz, a.rate_hz) or _moved(b.bytes_per_s, a.bytes_per_s) \
+                or _moved(b.recent_bytes_per_s, a.recent_bytes_per_s):
+            return True
+    return False
+
+
+def _moved(before: Optional[float], after: Optional[float]) -> bool:
+    if before is None or after is None:
+        return before is not after
+    if before == 0.0 or after == 0.0:
+        return before != after
+    return abs(after - before) > MOVED_FRACTION * before
 
 
 def _describe(conn: Connection, reading: p.ConnectionReading, note: str) -> str:
