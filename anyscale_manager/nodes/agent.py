@@ -28,7 +28,7 @@ from std_msgs.msg import String
 
 from . import qos
 from .agent_monitors import AgentMonitors
-from .executor import collect_between_callbacks, collect_due, make_executor
+from .executor import collect_between_callbacks, collect_due, make_executor, steady_timer
 from .lifecycle_client import CopyClients
 from .readers import Readers
 from .log_lines import log_at
@@ -179,8 +179,8 @@ class AgentNode(Node):
         # under way, STOPPING_TICK_S while a node stops, the next deadline (IDLE_TICK_S at
         # most) when nothing is; every input that changes what runs steps at once.
         self._tick_s = TICK_S
-        self._tick_timer = self.create_timer(TICK_S, self._tick)
-        self.create_timer(self._report_s, self._on_report_timer)
+        self._tick_timer = steady_timer(self, TICK_S, self._tick)
+        steady_timer(self, self._report_s, self._on_report_timer)
         # One signer for the monitors' topics (a key: signed; else plain JSON, as before).
         self._hosted = AgentMonitors(self, d, scale, auth.Sealer(key, f'agent {scale}'),
                                      self.turn.serving_pids, self.turn.supervised_pids,

@@ -34,7 +34,7 @@ from std_msgs.msg import String
 
 from . import qos
 from .decider_beat import BeatThread, alone_wait_s
-from .executor import collect_between_callbacks, collect_due, make_executor
+from .executor import collect_between_callbacks, collect_due, make_executor, steady_timer
 from .log_lines import log_at
 from .readers import Readers, subscribe
 from .throttled_log import ThrottledLog
@@ -169,10 +169,10 @@ class DeciderNode(Node):
             subscribe(self, readers, self, String, topic, profile, self._locked(callback))
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._locked(self._after_set_parameters))
-        self.timer = self.create_timer(self.settings.period_s, self._locked(self._on_timer))
+        self.timer = steady_timer(self, self.settings.period_s, self._locked(self._on_timer))
         # The lease of the agents' follow rule: re-published well within it.
-        self.renew_timer = self.create_timer(self.settings.lease_s / 3.0,
-                                             self._locked(self._renew))
+        self.renew_timer = steady_timer(self, self.settings.lease_s / 3.0,
+                                        self._locked(self._renew))
         self.beat = BeatThread(self, self._lock)
         self.beat.start()
         if self.key is None:
@@ -235,7 +235,7 @@ class DeciderNode(Node):
         if new.period_s != old.period_s:
             self.timer.cancel()
             self.destroy_timer(self.timer)
-            self.timer = self.create_timer(new.period_s, self._locked(self._on_timer))
+            self.timer = steady_timer(self, new.period_s, self._locked(self._on_timer))
         for key in changes:
             self._event('settings', '', '', '', f'decider.{key} = {changes[key]!r}')
 

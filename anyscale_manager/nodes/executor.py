@@ -8,7 +8,8 @@ the default one is used.
 """
 
 import gc
-from typing import Optional
+import time
+from typing import Callable, Optional
 
 from rclpy.context import Context
 from rclpy.executors import Executor, SingleThreadedExecutor
@@ -47,4 +48,35 @@ def collect_due() -> None:
         gc.collect(generation)
 
 
-__all__ = ['collect_between_callbacks', 'collect_due', 'make_executor']
+def steady_timer(node, period_s: float, callback: Callable[[], None], **kwargs):
+    """``node.create_timer(period_s, callback, **kwargs)`` whose callback runs once a period,
+    however often the executor dispatches it.
+
+    rclpy's events executor (Jazzy, 7.1) queues a dispatch of a ready timer at every update of
+    its timers that runs before the first dispatch does (any timer's reset queues an update,
+    and so does each dispatch), and rcl advances a timer by one period at each dispatch: on a
+    busy loop a 0.5 s timer was called 33 times at once, then not for 12.5 s while the loop sat
+    idle (test/test_executor_timers.py; the robot agents' reports and connection status went
+    quiet for 1.5-8 s after a boot under a saturated CPU quota). Here a dispatch less than half
+    a period after the last call is not passed on, and a timer left more than a period ahead
+    is set back to one period from now. The period is the timer's own at each call (a caller
+    may change ``timer_period_ns``)."""
+    timer = None
+    last = [-float('inf')]
+
+    def fire() -> None:
+        now = time.monotonic()
+        try:
+            if now - last[0] >= timer.timer_period_ns / 2e9:
+                last[0] = now
+                callback()
+        finally:
+            left = timer.time_until_next_call()
+            if left is not None and left > timer.timer_period_ns:
+                timer.reset()
+
+    timer = node.create_timer(period_s, fire, **kwargs)
+    return timer
+
+
+__all__ = ['collect_between_callbacks', 'collect_due', 'make_executor', 'steady_timer']

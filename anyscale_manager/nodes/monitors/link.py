@@ -27,6 +27,7 @@ from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import (DELIVERY_SPAN_S, BandwidthEstimate, crossing_connections,
                                   delivered_kbps, used_kbps)
 from ...runtime.rates import HeartbeatTracker
+from ..executor import steady_timer
 from .common import (LATCHED_QOS, Cadence, Publishers, period_of, refresh_s, scale_of,
                      status)
 from .echoes import EchoSocket
@@ -172,8 +173,8 @@ class LinkMonitor:
         self._cadence = Cadence(check_s, time.monotonic())
         self._cadence.every(check_s, self._check)
         self._cadence.every(self._period, self._beat)
-        self._timer = self._node.create_timer(check_s, self._on_tick,
-                                              callback_group=self._group)
+        self._timer = steady_timer(self._node, check_s, self._on_tick,
+                                   callback_group=self._group)
         self._timers.append(self._timer)
         self.quiet = False          # whether the timer wakes for the beats and deadlines only
         # The probes send a reading on a change and refresh it (ProbeManager): the last one

@@ -43,6 +43,7 @@ from ...runtime.delta import DeltaJudge
 from ...runtime.rates import (RateWindow, SenderOverlap, WriterStreams, live_window_s,
                               two_senders_past)
 from .clocks import clock_offset_s
+from ..executor import steady_timer
 from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, refresh_s,
                      scale_of, status)
 
@@ -124,7 +125,7 @@ class ProbeManager:
         self._cadence = Cadence(self._fast_s, time.monotonic())
         self._cadence.every(max(TYPE_RESOLVE_PERIOD_S, self._fast_s), self._resolve_pending)
         self._cadence.every(period, self._publish)
-        self._timer = node.create_timer(self._fast_s, self._on_tick, callback_group=self._group)
+        self._timer = steady_timer(node, self._fast_s, self._on_tick, callback_group=self._group)
 
     @property
     def connections(self) -> Tuple[str, ...]:

@@ -14,6 +14,7 @@ from ...agent import procs
 from ...model.types import Deployment
 from ...protocol_auth import Sealer
 from ...runtime import cpu as cpu_math
+from ..executor import steady_timer
 from .common import Publishers, period_of, scale_of, status
 
 FULL_WALK_EVERY = 8     # samples between two walks of every thread's children (8 s at 1 Hz)
@@ -147,7 +148,7 @@ class ScaleMonitor:
         self._group = MutuallyExclusiveCallbackGroup()
         self.last: Optional[p.ScaleStatus] = None
         self._sample()     # prime every counter now, so the first tick already has a reading
-        self._timer = node.create_timer(period, self._tick, callback_group=self._group)
+        self._timer = steady_timer(node, period, self._tick, callback_group=self._group)
         # What this process can use against what the file declares: a machine (or quota) of 2
         # CPUs running a scale declared with 1 core is not an error, but the readings then mean
         # something else than the file suggests, and the log says what to change.
