@@ -28,7 +28,8 @@ from std_msgs.msg import String
 
 from . import qos
 from .agent_monitors import AgentMonitors
-from .executor import collect_between_callbacks, collect_due, make_executor, steady_timer
+from .executor import (collect_between_callbacks, collect_due, make_executor, release_timers,
+                       serve_timers, steady_timer)
 from .lifecycle_client import CopyClients
 from .readers import Readers
 from .log_lines import log_at
@@ -388,6 +389,9 @@ def run(args: Optional[List[str]], program: str,
     executor = None
     signals = Signals()
     signals.install()
+    # The periodic jobs of the agent, its monitors and a guest: run by this loop, not by rclpy
+    # timers (executor.SteadyLoop).
+    loop = serve_timers(rclpy.get_default_context())
     try:
         try:
             readers = Readers()
@@ -413,23 +417,27 @@ def run(args: Optional[List[str]], program: str,
                 # A stop: the guest goes first (a decider must not answer the nodes' stop).
                 executor.remove_node(other)
                 readers.drop(other)
+                loop.drop(other)
                 other.destroy_node()
                 other = None
             node.on_signals(taken)
             if node.finished or node.restarting:
                 break
             try:
-                executor.spin_once(timeout_sec=LOOP_WAIT_S)
+                executor.spin_once(timeout_sec=loop.wait_s(LOOP_WAIT_S))
             except (KeyboardInterrupt, ExternalShutdownException):
                 raise
             except Exception:   # a bug in one callback must not orphan or stop the nodes
                 node.get_logger().error('callback failed:\n' + traceback.format_exc())
+            loop.run_due(lambda e: node.get_logger().error(
+                'a periodic job failed:\n' + ''.join(traceback.format_exception(e))))
         if node.finished:
             node._publish_state()    # the final report: everything stopped
             executor.spin_once(timeout_sec=0.05)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        release_timers(rclpy.get_default_context())
         if other is not None:
             other.destroy_node()
         if node is not None:

@@ -21,6 +21,7 @@ import socket
 import sys
 import threading
 import time
+import traceback
 from dataclasses import fields
 from typing import Any, Dict, List, Optional
 
@@ -34,7 +35,8 @@ from std_msgs.msg import String
 
 from . import qos
 from .decider_beat import BeatThread, alone_wait_s
-from .executor import collect_between_callbacks, collect_due, make_executor, steady_timer
+from .executor import (collect_between_callbacks, collect_due, destroy_steady, make_executor,
+                       release_timers, serve_timers, steady_timer)
 from .log_lines import log_at
 from .readers import Readers, subscribe
 from .throttled_log import ThrottledLog
@@ -234,7 +236,7 @@ class DeciderNode(Node):
         self.core.update_settings(new)
         if new.period_s != old.period_s:
             self.timer.cancel()
-            self.destroy_timer(self.timer)
+            destroy_steady(self, self.timer)
             self.timer = steady_timer(self, new.period_s, self._locked(self._on_timer))
         for key in changes:
             self._event('settings', '', '', '', f'decider.{key} = {changes[key]!r}')
@@ -568,13 +570,21 @@ def main(args=None) -> int:
     rclpy_stops_on_sigint()
     node = None
     code = 0
+    # The turns and the lease's renewals: jobs of this loop, not rclpy timers
+    # (executor.SteadyLoop).
+    loop = serve_timers(rclpy.get_default_context())
     try:
         node = DeciderNode()
         executor = make_executor()
         executor.add_node(node)
         collect_between_callbacks()
+
+        def failed(e: BaseException) -> None:
+            node.get_logger().error(
+                'a periodic job failed:\n' + ''.join(traceback.format_exception(e)))
         while rclpy.ok() and not stop_asked():
-            executor.spin_once(timeout_sec=1.0)
+            executor.spin_once(timeout_sec=loop.wait_s(1.0))
+            loop.run_due(failed)
             collect_due()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
@@ -589,6 +599,7 @@ def main(args=None) -> int:
         code = 2
     finally:
         ignore_interrupts()          # a repeated SIGINT must not break the cleanup
+        release_timers(rclpy.get_default_context())
         if node is not None:
             node.destroy_node()
         shut_rclpy_down()

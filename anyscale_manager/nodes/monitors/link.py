@@ -27,7 +27,7 @@ from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import (DELIVERY_SPAN_S, BandwidthEstimate, crossing_connections,
                                   delivered_kbps, used_kbps)
 from ...runtime.rates import HeartbeatTracker
-from ..executor import steady_timer
+from ..executor import destroy_steady, steady_timer
 from .common import (LATCHED_QOS, Cadence, Publishers, period_of, refresh_s, scale_of,
                      status)
 from .echoes import EchoSocket
@@ -551,7 +551,7 @@ class LinkMonitor:
 
     def destroy(self) -> None:
         for timer in self._timers:
-            self._node.destroy_timer(timer)
+            destroy_steady(self._node, timer)
         for sub in self._subs:
             self._node.destroy_subscription(sub)
         if self._watching and self._readers is not None:

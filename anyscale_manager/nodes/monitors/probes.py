@@ -43,7 +43,7 @@ from ...runtime.delta import DeltaJudge
 from ...runtime.rates import (RateWindow, SenderOverlap, WriterStreams, live_window_s,
                               two_senders_past)
 from .clocks import clock_offset_s
-from ..executor import steady_timer
+from ..executor import destroy_steady, steady_timer
 from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, refresh_s,
                      scale_of, status)
 
@@ -403,7 +403,7 @@ class ProbeManager:
         self._out.send_diagnostics(statuses)
 
     def destroy(self) -> None:
-        self._node.destroy_timer(self._timer)
+        destroy_steady(self._node, self._timer)
         with self._lock:
             for probe in self._topics.values():
                 if probe.subscription is not None:

@@ -14,7 +14,7 @@ from ...agent import procs
 from ...model.types import Deployment
 from ...protocol_auth import Sealer
 from ...runtime import cpu as cpu_math
-from ..executor import steady_timer
+from ..executor import destroy_steady, steady_timer
 from .common import Publishers, period_of, scale_of, status
 
 FULL_WALK_EVERY = 8     # samples between two walks of every thread's children (8 s at 1 Hz)
@@ -272,5 +272,5 @@ class ScaleMonitor:
             self._out.send_diagnostics([status(name, level, text, self._scale.host, values)])
 
     def destroy(self) -> None:
-        self._node.destroy_timer(self._timer)
+        destroy_steady(self._node, self._timer)
         self._out.destroy()
