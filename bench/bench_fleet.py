@@ -35,7 +35,7 @@ room, not T, decides the next hand-over), and nothing moved for 5 s; the next ro
 new holder.
 
 Over-commit, in both: claims above the server's capacity, or the CPU its serving copies declare
-above it in two samples in a row (testbed/fleet_record.over_capacity).
+above it for half a second (testbed/fleet_record.over_capacity).
 """
 
 import argparse

@@ -13,7 +13,8 @@ from anyscale_manager.testbed.fleet import FleetShape, HOME, SERVER
 from anyscale_manager.testbed.fleet_demo import (FLEET_SCHEDULE, draw_fleet_timeline,
                                                  event_lines, moves, over_commit_s,
                                                  parse_fleet_schedule, robot_summary)
-from anyscale_manager.testbed.fleet_record import FleetRecord, FleetSample
+from anyscale_manager.testbed.fleet_record import (OVER_SPAN_S, FleetRecord, FleetSample,
+                                                   over_capacity)
 
 SHAPE = FleetShape()
 
@@ -53,9 +54,9 @@ def sample(t, a_home=0, a_away=0, b_home=0, b_away=0, a_up=True, claims=None):
 
 
 def test_over_commit_counts_the_time_two_were_on_the_server_or_claims_above_capacity():
-    """Claims above capacity count at once; lifecycle copies serving above it from the second
-    sample in a row (one sample is the serving judge's resolution: fleet_record.over_capacity),
-    plain ones at once."""
+    """Claims above capacity count at once; lifecycle copies serving above it once seen so for
+    OVER_SPAN_S (the serving judge's resolution: fleet_record.over_capacity), plain ones at
+    once."""
     samples = [sample(0.0, a_away=1, claims={'robot_a': 60.0}),
                sample(1.0, a_away=1, b_away=1, claims={'robot_a': 60.0}),
                sample(1.5, a_away=1, claims={'robot_a': 60.0, 'robot_b': 60.0}),
@@ -67,6 +68,12 @@ def test_over_commit_counts_the_time_two_were_on_the_server_or_claims_above_capa
     assert over_commit_s(samples, icar) == pytest.approx(1.0 + 0.5)
     assert over_commit_s(samples, worker) == pytest.approx(0.5 + 1.0 + 0.5 + 0.5)
     assert over_commit_s(samples[3:5], icar) == 0.0
+    # Every 0.2 s, as the fleet test samples: a copy deactivated a moment ago is seen serving in
+    # two samples; four in a row (0.6 s) are an over-commit.
+    every = [sample(0.2 * k, a_away=1, b_away=int(2 <= k <= 3 or 6 <= k <= 9),
+                    claims={'robot_a': 60.0}) for k in range(12)]
+    assert over_capacity(every, SHAPE.capacity_cpu, lifecycle=True) == every[9:10]
+    assert OVER_SPAN_S == pytest.approx(0.5)
 
 
 def test_moves_pass_through_both_and_none():

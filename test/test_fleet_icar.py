@@ -19,7 +19,7 @@ robot's own namespace, by the Δ rule (the critical chain's Δ is 0). One fleet,
 (d) robot_a's server agent is SIGKILLed: robot_a serves at home within every Δ, and robot_b
     moves in only once robot_a's claims ran out with their lease;
 never more on the server than its capacity (its claims at any sample; the CPU its serving copies
-declare in two samples in a row: fleet_record.over_capacity), and never a connection of either
+declare for half a second: fleet_record.over_capacity), and never a connection of either
 robot past its Δ while it runs.
 
 About 80 s of wall time. Part of the default suite; skipped, with the reason printed, without

@@ -13,8 +13,13 @@ import threading
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from .fleet import HOME, SERVER
+from .fleet import ACTIVE_WINDOW_S, HOME, SERVER
 from .record import HEARD_LAG_S
+
+
+# How long lifecycle copies must be seen serving above the capacity to count (over_capacity): the
+# serving judge's reach back (twice its window) and a sample's lateness.
+OVER_SPAN_S = 2 * ACTIVE_WINDOW_S + 0.1
 
 
 @dataclass(frozen=True)
@@ -63,16 +68,19 @@ class FleetSample:
 def over_capacity(samples: Sequence[FleetSample], capacity_cpu: float,
                   lifecycle: bool) -> List[FleetSample]:
     """The samples in which the server is over ``capacity_cpu``: its claims above it, or the CPU
-    its serving copies declare above it (``lifecycle``: in that sample and the one before). A
-    lifecycle copy is judged serving from its CPU over the last 0.2 s (fleet.Activity), so a
-    copy deactivated within that window still counts beside the one its robot's claim let
-    activate after it: one sample over is the judge's resolution, two in a row are not. A
-    plain copy serves while its process lives: one sample over is over."""
+    its serving copies declare above it (``lifecycle``: in every sample for OVER_SPAN_S up to
+    that one). A lifecycle copy is judged serving from its CPU since the newest sample of it at
+    least ACTIVE_WINDOW_S old (fleet.Activity), up to twice that window back when the samples
+    come every 0.2 s, so a copy deactivated within it still counts beside the one its robot's
+    claim let activate after it (two samples 0.2 s apart, each over, were that alone). A plain
+    copy serves while its process lives: one sample over is over."""
     out = []
-    for prev, s in zip([None] + list(samples[:-1]), samples):
-        serving = s.serving_cpu > capacity_cpu + 1e-9 and (
-            not lifecycle or (prev is not None and prev.serving_cpu > capacity_cpu + 1e-9))
-        if serving or s.claimed_cpu > capacity_cpu + 1e-9:
+    since: Optional[float] = None       # the start of the stretch of samples serving over
+    for s in samples:
+        serving = s.serving_cpu > capacity_cpu + 1e-9
+        since = (s.t if since is None else since) if serving else None
+        counted = serving and (not lifecycle or s.t - since >= OVER_SPAN_S - 1e-9)
+        if counted or s.claimed_cpu > capacity_cpu + 1e-9:
             out.append(s)
     return out
 
