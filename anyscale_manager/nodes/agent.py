@@ -258,7 +258,7 @@ class AgentNode(Node):
         self._tick()
 
     def _on_report_timer(self) -> None:
-        self._report_late(time.monotonic(), 'its timer fired')
+        self._report_late(time.monotonic(), 'at its period')
         self._publish_state()
 
     def _report_late(self, now: float, where: str) -> bool:
@@ -276,7 +276,7 @@ class AgentNode(Node):
     def _tick(self) -> None:
         now = time.monotonic()
         self._bad.flush()
-        if self._report_late(now, 'sent from the step, no timer having sent it'):
+        if self._report_late(now, 'sent from the step, the periodic report not sent'):
             self._publish_state()
         probes = self._probes
         if probes is not None:
