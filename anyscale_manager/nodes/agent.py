@@ -28,8 +28,8 @@ from std_msgs.msg import String
 
 from . import qos
 from .agent_monitors import AgentMonitors
-from .executor import (collect_between_callbacks, collect_due, make_executor, release_timers,
-                       serve_timers, steady_timer)
+from .executor import collect_between_callbacks, collect_due, make_executor
+from .steady_loop import release_timers, serve_timers, steady_timer
 from .lifecycle_client import CopyClients
 from .readers import Readers
 from .log_lines import log_at
@@ -390,7 +390,7 @@ def run(args: Optional[List[str]], program: str,
     signals = Signals()
     signals.install()
     # The periodic jobs of the agent, its monitors and a guest: run by this loop, not by rclpy
-    # timers (executor.SteadyLoop).
+    # timers (steady_loop.SteadyLoop).
     loop = serve_timers(rclpy.get_default_context())
     try:
         try:

@@ -35,8 +35,8 @@ from std_msgs.msg import String
 
 from . import qos
 from .decider_beat import BeatThread, alone_wait_s
-from .executor import (collect_between_callbacks, collect_due, destroy_steady, make_executor,
-                       release_timers, serve_timers, steady_timer)
+from .executor import collect_between_callbacks, collect_due, make_executor
+from .steady_loop import destroy_steady, release_timers, serve_timers, steady_timer
 from .log_lines import log_at
 from .readers import Readers, subscribe
 from .throttled_log import ThrottledLog
@@ -571,7 +571,7 @@ def main(args=None) -> int:
     node = None
     code = 0
     # The turns and the lease's renewals: jobs of this loop, not rclpy timers
-    # (executor.SteadyLoop).
+    # (steady_loop.SteadyLoop).
     loop = serve_timers(rclpy.get_default_context())
     try:
         node = DeciderNode()

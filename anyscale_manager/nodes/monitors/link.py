@@ -27,7 +27,7 @@ from ...protocol_auth import Gate, Sealer, StatusGate
 from ...runtime.bandwidth import (DELIVERY_SPAN_S, BandwidthEstimate, crossing_connections,
                                   delivered_kbps, used_kbps)
 from ...runtime.rates import HeartbeatTracker
-from ..executor import destroy_steady, steady_timer
+from ..steady_loop import destroy_steady, steady_timer
 from .common import (LATCHED_QOS, Cadence, Publishers, period_of, refresh_s, scale_of,
                      status)
 from .echoes import EchoSocket

@@ -43,7 +43,7 @@ from ...runtime.delta import DeltaJudge
 from ...runtime.rates import (RateWindow, SenderOverlap, WriterStreams, live_window_s,
                               two_senders_past)
 from .clocks import clock_offset_s
-from ..executor import destroy_steady, steady_timer
+from ..steady_loop import destroy_steady, steady_timer
 from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, refresh_s,
                      scale_of, status)
 

@@ -14,7 +14,7 @@ from ...agent import procs
 from ...model.types import Deployment
 from ...protocol_auth import Sealer
 from ...runtime import cpu as cpu_math
-from ..executor import destroy_steady, steady_timer
+from ..steady_loop import destroy_steady, steady_timer
 from .common import Publishers, period_of, scale_of, status
 
 FULL_WALK_EVERY = 8     # samples between two walks of every thread's children (8 s at 1 Hz)

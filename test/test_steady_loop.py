@@ -1,4 +1,4 @@
-"""Periodic jobs of the agent's and the decider's processes (nodes/executor.py, SteadyLoop):
+"""Periodic jobs of the agent's and the decider's processes (nodes/steady_loop.py):
 rclpy's events executor dispatches a ready timer once per queued timer update and rcl moves it a
 period ahead at each dispatch, so a plain timer on a busy loop is called many times at once and
 then not for as many periods; a job of the loop runs once a period, also after a busy stretch.
@@ -8,8 +8,9 @@ import time
 
 import pytest
 
-from anyscale_manager.nodes.executor import (EventsExecutor, LoopTimer, make_executor,
-                                             release_timers, serve_timers, steady_timer)
+from anyscale_manager.nodes.executor import EventsExecutor, make_executor
+from anyscale_manager.nodes.steady_loop import (LoopTimer, release_timers, serve_timers,
+                                                steady_timer)
 from spinning import RosContext
 
 pytestmark = [pytest.mark.timeout(60),
