@@ -214,7 +214,8 @@ def test_start_move_stop_and_hostile_layouts(setup):
     a, b = agent('a'), agent('b')
     h.publish(1, {'talker': 'a', 'talker2': 'a'})
     h.wait(lambda: h.running('a', 'talker') and h.running('a', 'talker2')
-           and 'b' in h.states, what='both talkers running and ready on a')
+           and 'b' in h.states and h.states['b'].generation == 1,
+           what='both talkers running and ready on a, b at the same layout')
     h.wait(lambda: any(d.startswith('a ') for _, d, _ in h.heard), what='chatter from a')
     assert h.states['a'].generation == 1 and h.states['b'].generation == 1
     assert h.report('b', 'talker').state == 'stopped'
