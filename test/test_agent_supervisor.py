@@ -856,7 +856,7 @@ def test_the_monitors_use_one_timer_each_however_many_connections_and_links(monk
     built = [monitors.ScaleMonitor(node, d, 'a', pids=dict)]
     try:
         built.append(monitors.LinkMonitor(node, d, 'a'))      # it watches two links
-        built.append(monitors.ProbeManager(node, d, 'a', watch_node=_TimerCountingNode()))
+        built.append(monitors.ProbeManager(node, d, 'a', handovers=True))
         built[-1].set_connections(c.name for c in d.connections)
         assert len(built[-1].connections) == 40
         assert len(node.timers) == 3

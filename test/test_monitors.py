@@ -204,15 +204,14 @@ def test_probe_hears_a_newly_started_writer_of_a_migratable_publisher(ros, deplo
     running, one started later."""
     make, executor = ros.node, ros.executor
     agent = make('agent_watch')
-    watch = ros.node('agent_watch_handover', spin=False, start_parameter_services=False)
-    probes = ProbeManager(agent, deployment, 'robot', watch_node=watch)
+    probes = ProbeManager(agent, deployment, 'robot', handovers=True)
     probes.set_connections(['amcl_ekf', 'laser_navigation'])
     try:
         old = Publisher(make('amcl_old'), '/amcl_pose', rate_hz=20.0)
 
         def polled(cond):
             def check():
-                probes.poll_writers(time.monotonic())
+                probes.poll_writers()
                 return cond()
             return check
         # The old copy's stream builds up (its numbers run past what the new copy will send).
@@ -242,15 +241,14 @@ def test_two_writers_heard_at_once_past_the_bound_are_an_error_diagnostic(ros, d
     deployment = dataclasses.replace(deployment, monitoring=dataclasses.replace(
         deployment.monitoring, duplicate_sender_s=1.0))
     agent = make('agent_two')
-    watch = ros.node('agent_two_handover', spin=False, start_parameter_services=False)
     listener = Listener(make('two_listener'), p.TOPIC_CONNECTION_STATUS, p.ConnectionStatus)
-    probes = ProbeManager(agent, deployment, 'robot', watch_node=watch)
+    probes = ProbeManager(agent, deployment, 'robot', handovers=True)
     probes.set_connections(['amcl_ekf'])
     diagnostic = 'anyscale/connection/amcl_ekf'
 
     def polled(cond):
         def check():
-            probes.poll_writers(time.monotonic())
+            probes.poll_writers()
             r = reading(listener, 'amcl_ekf')
             return r is not None and cond(r, listener.last_status(diagnostic))
         return check

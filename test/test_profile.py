@@ -145,7 +145,7 @@ def test_tolerance_floor_is_above_a_cold_move():
 # --- the graph --------------------------------------------------------------------------------
 def test_project_and_hidden_nodes_are_left_out():
     from anyscale_manager.nodes.decider import NODE_NAME
-    for name in (NODE_NAME, 'anyscale_agent_robot', 'anyscale_agent_robot_handover',
+    for name in (NODE_NAME, 'anyscale_agent_robot', 'anyscale_agent_robot_state',
                  'anyscale_status_4242', 'anyscale_testbed_observer', 'anyscale_profile_7'):
         assert g.is_project_node('/' + name) and not g.kept_node('/ns/' + name), name
     assert g.is_hidden_node('/_ros2cli_daemon_0') and not g.kept_node('/_x')

@@ -280,7 +280,7 @@ class AgentNode(Node):
             self._publish_state()
         probes = self._probes
         if probes is not None:
-            probes.poll_writers(now)
+            probes.poll_writers()
         graph = self.get_node_names_and_namespaces() if self.turn.watches_graph else ()
         heard, requests = self._relay.drain(now) if self._relay is not None else ((), ())
         self._act(self.turn.step(now, AgentInputs(

@@ -2,7 +2,7 @@
 the connections its serving nodes subscribe to. A broken install, or a monitor that cannot
 start, never takes the supervision down: what is missing is said and the agent goes on."""
 
-from typing import Any, Callable, Dict, List, Optional
+from typing import Any, Callable, Dict, List
 
 from rclpy.node import Node
 
@@ -23,7 +23,6 @@ class AgentMonitors:
         self._node = node
         self.monitors: List[Any] = []
         self.probes: Any = None               # the ProbeManager, if it runs
-        self._watch: Optional[Node] = None
         log = node.get_logger()
         if _monitors is None:
             log.warn(f'monitors not available ({_MONITORS_MISSING}); '
@@ -35,7 +34,7 @@ class AgentMonitors:
                                                      shared_with=shared_with, sealer=sealer)),
                     ('LinkMonitor', lambda cls: cls(node, d, scale, sealer=sealer)),
                     ('ProbeManager', lambda cls: cls(node, d, scale,
-                                                     watch_node=self._handover_node(),
+                                                     handovers=True,
                                                      sealer=sealer)))
         for name, build in builders:
             cls = getattr(_monitors, name, None)
@@ -51,14 +50,6 @@ class AgentMonitors:
             if name == 'ProbeManager':
                 self.probes = monitor
 
-    def _handover_node(self) -> Node:
-        """A node no executor spins, whose subscriptions the probes read themselves (with the
-        message info the events executor does not hand out): who wrote, for handovers."""
-        if self._watch is None:
-            self._watch = Node(f'{self._node.get_name()}_handover', context=self._node.context,
-                               start_parameter_services=False)
-        return self._watch
-
     def destroy(self) -> None:
         for monitor in self.monitors:
             try:
@@ -67,6 +58,3 @@ class AgentMonitors:
                 self._node.get_logger().error(f'destroying {type(monitor).__name__}: {e!r}')
         self.monitors = []
         self.probes = None
-        if self._watch is not None:
-            self._watch.destroy_node()
-            self._watch = None

@@ -13,7 +13,7 @@ from typing import Dict, Iterable, List, Optional, Set, Tuple
 from .. import protocol
 
 # The names the project's nodes take (nodes/decider.py NODE_NAME, nodes/agent.py
-# 'anyscale_agent_<scale>' and '<that>_handover', nodes/status.py 'anyscale_status_<pid>',
+# 'anyscale_agent_<scale>' and '<that>_state', nodes/status.py 'anyscale_status_<pid>',
 # testbed/observer.py, and profiling/watch.py 'anyscale_profile_<pid>').
 PROJECT_NODE_RE = re.compile(
     r'^anyscale_(decider|agent_[A-Za-z0-9_]+|status_[0-9]+|testbed_observer|profile_[0-9]+)$')

@@ -2,11 +2,13 @@
 scale, and who wrote (handovers).
 
 The probe subscriptions live on a node of their own that no executor spins, and are drained
-in batches (``take_message``, raw, with the message info) before each report and, while a
-probed topic is fast, every ``DRAIN_PERIOD_S``; each arrival is placed at its DDS reception
-time, not at the time it was taken. A callback per message would cost far more than the
-message: on a 1 kHz image topic the events executor's dispatch was 110 us per message against
-8 us for a take (bench_probe_cost.py).
+in batches (``take_message``, raw, with the message info) before each report, at each step of
+the agent and, while a probed topic is fast, every ``DRAIN_PERIOD_S``; each arrival is placed
+at its DDS reception time, not at the time it was taken. On a topic whose publisher is
+migratable the same take also tells who wrote: the message info's publication sequence number
+tells a newly started writer from the old one (``WriterStreams``). A callback per message
+would cost far more than the message: on a 1 kHz image topic the events executor's dispatch
+was 110 us per message against 8 us for a take (bench_probe_cost.py).
 
 How often: a subscription holds ``qos.PROBE.depth`` messages (100: a 1 kHz topic's 0.1 s), and
 a drain must come before it fills. Topics whose fastest rate yet fills at most a quarter of it
@@ -69,31 +71,29 @@ class _TopicProbe:
     declared_type: str = ''
     subscription: object = None     # on the manager's reader node: drained, never spun
     type_name: str = ''
-    msg_class: object = None
-    watch: object = None       # a second subscription, polled: who wrote (handovers)
     writers: WriterStreams = field(default_factory=WriterStreams)
     overlap: SenderOverlap = field(default_factory=SenderOverlap)
     problem: str = ''          # why there is no subscription yet
     fatal: bool = False        # the type cannot be used here: no reading at all
     judges: Dict[str, DeltaJudge] = field(default_factory=dict)   # connection -> its Δ judge
+    watched: bool = False      # its writers are told apart (a migratable publisher)
     peak_hz: Optional[float] = None   # its fastest rate between two drains (None: not heard)
 
 
 class ProbeManager:
     """Raw-subscription probes for the connections whose subscriber runs on this scale.
 
-    With a ``watch_node`` (a node no executor spins), the topics of connections whose publisher
-    is migratable get a second subscription there, read by ``poll_writers``: it takes each
-    message with its info, whose publication sequence number tells a newly started writer from
-    the old one (``WriterStreams``). The agent asks ``writer_joined_since`` before it lets a
-    moving node's old copy go. (The events executor the agent spins on does not hand message
-    info to callbacks, hence the polling.)
+    With ``handovers``, the topics of connections whose publisher is migratable are watched:
+    each message taken there also counts its writer (``poll_writers`` takes them between the
+    reports). The agent asks ``writer_joined_since`` before it lets a moving node's old copy
+    go. (The events executor the agent spins on does not hand message info to callbacks,
+    hence the taking.)
     """
 
-    def __init__(self, node, deployment: Deployment, scale: str, watch_node=None,
+    def __init__(self, node, deployment: Deployment, scale: str, handovers: bool = False,
                  sealer: Optional[Sealer] = None):
         self._node = node
-        self._watch_node = watch_node
+        self._handovers = handovers
         self._migratable = frozenset(deployment.migratable_nodes)
         self._deployment = deployment
         self._scale = scale_of(deployment, scale)
@@ -172,16 +172,11 @@ class ProbeManager:
                 f'connection on it declares {probe.declared_type}; probing with the latter')
         probe.judges[conn.name] = DeltaJudge(conn.freq_min_hz, conn.tolerance_s,
                                              started=time.monotonic(), window_s=self._window_s)
-        self._ensure_watch(probe)
+        self._set_watched(probe)
 
-    def _ensure_watch(self, probe: _TopicProbe) -> None:
-        if self._watch_node is None or probe.watch is not None or probe.msg_class is None:
-            return
-        if not any(self._deployment.connection(n).publisher in self._migratable
-                   for n in probe.judges):
-            return
-        probe.watch = self._watch_node.create_subscription(
-            probe.msg_class, probe.topic, lambda _msg: None, PROBE_QOS, raw=True)
+    def _set_watched(self, probe: _TopicProbe) -> None:
+        probe.watched = self._handovers and probe.subscription is not None and any(
+            self._deployment.connection(n).publisher in self._migratable for n in probe.judges)
 
     def _release(self, topic: str, name: str) -> None:
         topic = self._resolve(topic)
@@ -192,9 +187,9 @@ class ProbeManager:
         if not probe.judges:
             if probe.subscription is not None:
                 self._reader.destroy_subscription(probe.subscription)
-            if probe.watch is not None:
-                self._watch_node.destroy_subscription(probe.watch)
             del self._topics[topic]
+        else:
+            self._set_watched(probe)
 
     def _subscribe(self, probe: _TopicProbe) -> None:
         type_name = probe.declared_type
@@ -213,8 +208,7 @@ class ProbeManager:
         probe.subscription = self._reader.create_subscription(
             cls, probe.topic, lambda _raw: None, PROBE_QOS, raw=True)
         probe.type_name, probe.problem, probe.fatal = type_name, '', False
-        probe.msg_class = cls
-        self._ensure_watch(probe)
+        self._set_watched(probe)
 
     @property
     def tick_s(self) -> float:
@@ -264,11 +258,10 @@ class ProbeManager:
                     self._subscribe(probe)
 
     def drain(self) -> None:
-        """Take every message the probe and watch subscriptions hold: arrivals into their rate
-        windows, writers into their streams."""
+        """Take every message the probe subscriptions hold: arrivals into their rate windows,
+        the writers of watched topics into their streams."""
         with self._lock:
             self._drain_locked()
-        self.poll_writers(time.monotonic())
 
     def _drain_locked(self) -> None:
         # Reception times are on the system clock; the windows run on the monotonic one.
@@ -284,30 +277,26 @@ class ProbeManager:
                 continue
             count = 0
             try:
+                writers = probe.writers if probe.watched else None
                 for raw, info in _taken(subscription, DRAIN_LIMIT):
                     at = received_at(info, offset_s, now)
                     window.add(at, len(raw))
                     for judge in probe.judges.values():
                         judge.add(at)
+                    if writers is not None:
+                        writers.add(at, info.get('publication_sequence_number'))
                     count += 1
             except Exception:   # destroyed meanwhile: its topic is no longer probed
                 continue
             if count:
                 probe.peak_hz = max(probe.peak_hz or 0.0, count / elapsed)
 
-    def poll_writers(self, now: float, limit: int = 200) -> None:
-        """Read what the watch subscriptions hold: who wrote each message (see the class), at
-        its reception time."""
+    def poll_writers(self) -> None:
+        """Take what the subscriptions hold when a topic is watched (see the class): who wrote
+        each message, at its reception time; the arrivals count as at any drain."""
         with self._lock:
-            watched = [(p.watch, p.writers) for p in self._topics.values() if p.watch is not None]
-        offset_s = clock_offset_s()
-        for subscription, writers in watched:
-            try:
-                for _raw, info in _taken(subscription, limit):
-                    writers.add(received_at(info, offset_s, now),
-                                info.get('publication_sequence_number'))
-            except Exception:   # destroyed meanwhile: its topic is no longer probed
-                continue
+            if any(p.watched for p in self._topics.values()):
+                self._drain_locked()
 
     def writer_joined_since(self, name: str, since: float) -> Optional[bool]:
         """Whether connection ``name``'s topic was heard from a writer that started later than
@@ -316,7 +305,7 @@ class ProbeManager:
         with self._lock:
             conn = self._probes.get(name)
             probe = self._topics.get(self._resolve(conn.topic)) if conn else None
-            if probe is None or probe.watch is None:
+            if probe is None or not probe.watched:
                 return None
             return probe.writers.joined_since(since)
 
@@ -334,7 +323,7 @@ class ProbeManager:
                 # A topic silent past 1/freq_min reads 0 Hz at once (the window would decay).
                 rate = 0.0 if verdict.silent else probe.window.rate_hz(now)
                 senders = senders_for_s = None
-                if probe.watch is not None:
+                if probe.watched:
                     senders, senders_for_s = self._senders_locked(probe, now, counted)
                 reading = p.ConnectionReading(rate_hz=rate,
                                               bytes_per_s=probe.window.bytes_per_s(now),
@@ -364,7 +353,6 @@ class ProbeManager:
     def _publish(self) -> None:
         now = time.monotonic()
         self._published += 1
-        self.poll_writers(now)
         readings = self.readings(now)
         message = p.ConnectionStatus(scale=self._scale.name, stamp=time.time(),
                                      connections={k: r for k, (r, _) in readings.items()})
@@ -408,8 +396,6 @@ class ProbeManager:
             for probe in self._topics.values():
                 if probe.subscription is not None:
                     self._reader.destroy_subscription(probe.subscription)
-                if probe.watch is not None:
-                    self._watch_node.destroy_subscription(probe.watch)
             self._topics.clear()
             self._probes.clear()
         self._reader.destroy_node()
