@@ -12,7 +12,7 @@ import json
 import math
 import types
 import typing
-from dataclasses import KW_ONLY, asdict, dataclass, field, fields, is_dataclass
+from dataclasses import KW_ONLY, dataclass, field, fields
 from enum import StrEnum
 from typing import Any, ClassVar, Dict, Optional, Tuple, Type, TypeVar, Union
 
@@ -362,8 +362,12 @@ class Message:
     def to_dict(self) -> Dict[str, Any]:
         """The JSON object. An optional field that is None is left out: the strict decoder of
         an earlier version, which refuses fields it does not know, still reads it."""
-        return {f.name: _nested(getattr(self, f.name)) for f in fields(self)
-                if getattr(self, f.name) is not None or not _is_optional(self.SCHEMA[f.name])}
+        out = {}
+        for name, optional in _field_names(type(self)):
+            value = getattr(self, name)
+            if value is not None or not optional:
+                out[name] = _nested(value)
+        return out
 
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), separators=(',', ':'), sort_keys=True)
@@ -405,14 +409,46 @@ def _nested(value: Any) -> Any:
     """A field's value as JSON: a message inside another as its fields (its optional ones null,
     but those of ``OMIT_WHEN_NONE`` left out when None)."""
     if isinstance(value, Message):
-        out = asdict(value)
+        out = _plain(value)
         for key in type(value).OMIT_WHEN_NONE:
             if out.get(key) is None:
                 out.pop(key, None)
         return out
     if isinstance(value, dict):
         return {k: _nested(v) for k, v in value.items()}
-    return asdict(value) if is_dataclass(value) and not isinstance(value, type) else value
+    return _plain(value)
+
+
+_SCALARS = frozenset({str, int, float, bool, type(None)})
+_FIELD_NAMES: Dict[type, Tuple[Tuple[str, bool], ...]] = {}
+
+
+def _field_names(cls: type) -> Tuple[Tuple[str, bool], ...]:
+    """A dataclass's (field name, whether the wire's schema makes it optional), in order."""
+    names = _FIELD_NAMES.get(cls)
+    if names is None:
+        schema = getattr(cls, 'SCHEMA', {})
+        names = _FIELD_NAMES[cls] = tuple((f.name, f.name in schema and
+                                           _is_optional(schema[f.name])) for f in fields(cls))
+    return names
+
+
+def _plain(value: Any) -> Any:
+    """What ``dataclasses.asdict`` makes of ``value`` (dataclasses as dicts of their fields,
+    containers of the same type, recursively), without its deep copy of every leaf: a
+    message's leaves are immutable values, and the JSON of both is the same."""
+    cls = type(value)
+    if cls in _SCALARS:
+        return value
+    if hasattr(cls, '__dataclass_fields__'):
+        return {name: _plain(getattr(value, name)) for name, _ in _field_names(cls)}
+    if isinstance(value, dict):
+        return cls((_plain(k), _plain(v)) for k, v in value.items())
+    if isinstance(value, tuple) and hasattr(value, '_fields'):
+        return cls(*[_plain(v) for v in value])
+    if isinstance(value, (list, tuple)):
+        return cls(_plain(v) for v in value)
+    return value
 
 
 def _reject_constant(name: str) -> None:
@@ -612,7 +648,7 @@ class LinkStatus(Signed, Message):
     def to_dict(self) -> Dict[str, Any]:
         # A reading not known travels as null, as link monitors have always sent it; only the
         # signed fields are left out when unset.
-        out = asdict(self)
+        out = _plain(self)
         for key in SIGNED_FIELDS:
             if out[key] is None:
                 del out[key]
