@@ -43,6 +43,27 @@ def test_unknown_goal_is_refused():
         driver().set_goal('asleep')
 
 
+def test_reachability_is_looked_up_only_when_a_call_is_due():
+    """Looking the services up reads the ROS graph: a copy at its goal, one whose call is out
+    and one in its backoff make none."""
+    asked = []
+
+    def reachable():
+        asked.append(1)
+        return True
+    d = driver()
+    d.set_goal(lc.ACTIVE)
+    assert d.next_request(0.0, reachable).kind == 'get' and len(asked) == 1
+    assert d.next_request(0.1, reachable) is None and len(asked) == 1       # the call is out
+    answer(d, 0.1, state='active')
+    for t in (0.2, 0.3, 5.0):
+        assert d.next_request(t, reachable) is None
+    assert len(asked) == 1 and d.at_goal
+    d.set_goal(lc.INACTIVE)
+    assert d.next_request(6.0, reachable).transition == 'deactivate' and len(asked) == 2
+    assert d.next_request(6.1, lambda: False) is None
+
+
 def test_a_new_copy_is_read_then_configured_then_activated():
     d = driver()
     d.set_goal(lc.ACTIVE)

@@ -15,7 +15,7 @@ when the goal was to finalize it, signals it anyway. Reaching the goal clears th
 """
 
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Optional, Set, Tuple
+from typing import Callable, Dict, Iterable, List, Optional, Set, Tuple, Union
 
 from ..protocol import LIVE_STATES, LifecycleState, ProcState
 
@@ -51,6 +51,10 @@ def next_transition(state: LifecycleState, goal: LifecycleState) -> Optional[str
     if goal not in _PATH:
         raise ValueError(f'unknown lifecycle goal {goal!r} (expected one of {", ".join(GOALS)})')
     return _PATH[goal].get(state)
+
+
+def _ask(reachable: Union[bool, Callable[[], bool]]) -> bool:
+    return reachable() if callable(reachable) else bool(reachable)
 
 
 def label_state(label: str) -> LifecycleState:
@@ -140,22 +144,29 @@ class Driver:
         return (self.pending is None and not self._check and not self.failed
                 and (self.goal is None or self.state == self.goal))
 
-    def next_request(self, now: float, reachable: bool) -> Optional[Request]:
+    def next_request(self, now: float,
+                     reachable: Union[bool, Callable[[], bool]]) -> Optional[Request]:
         """The call to make now, if any (the caller makes it at once); None while one is out,
-        while the services are not reachable, in a backoff, at the goal, or after giving up."""
+        while the services are not reachable, in a backoff, at the goal, or after giving up.
+        ``reachable`` may be a function: it is asked only when a call would be made (a look
+        at the ROS graph, which a copy at its goal does not need at each step)."""
         if self.pending is not None:
             if now < self.pending.deadline:
                 return None
             self._timed_out(now)
-        if not reachable or self.failed:
+        if self.failed:
             return None
         if self._check:
-            if now < self.check_at:
+            if now < self.check_at or not _ask(reachable):
                 return None
             return self._send('get', '', now, self.get_timeout_s)
         if self.goal is None or now < self.retry_at:
             return None
         transition = next_transition(self.state, self.goal)
+        if transition is None and self.state == self.goal:
+            return None
+        if not _ask(reachable):
+            return None
         if transition is None:
             if self.state != self.goal:     # finalized, with a live goal: only a restart helps
                 self.failures = self.max_failures - 1

@@ -32,7 +32,7 @@ class CopyClients:
 
     def poll(self) -> None:
         """Make the call the driver asks for now, if any."""
-        request = self.driver.next_request(self._clock(), self.reachable())
+        request = self.driver.next_request(self._clock(), self.reachable)
         if request is None:
             return
         try:
