@@ -201,10 +201,16 @@ def signal_session(sid: int, sig: int, extra: Tuple[int, ...] = ()) -> int:
 
 
 def descendants(pid: int) -> Tuple[int, ...]:
-    """Every descendant of a process now (children that left the session included)."""
+    """Every live descendant of a process now (children that left the session included):
+    through the children each thread lists (``tree_table``), a few files a process of the
+    tree where psutil reads every process of the machine; an agent looks at each step of a
+    stopping node (STOPPING_TICK_S)."""
+    if CHILDREN_FILES:
+        return tuple(child for child in tree_table([pid]) if child != pid)
     try:
-        return tuple(p.pid for p in psutil.Process(pid).children(recursive=True))
-    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        return tuple(p.pid for p in psutil.Process(pid).children(recursive=True)
+                     if p.status() != psutil.STATUS_ZOMBIE)
+    except psutil.Error:
         return ()
 
 
