@@ -32,3 +32,25 @@ def test_cycles_are_collected_by_the_loop_and_only_there():
     finally:
         if was:
             gc.enable()
+
+
+def test_what_lives_when_the_loop_begins_is_left_out_of_every_collection():
+    from anyscale_manager.nodes.executor import collect_between_callbacks
+    was = gc.isenabled()
+    try:
+        early = Cycle()
+        early_gone = weakref.ref(early)
+        collect_between_callbacks()
+        assert not gc.isenabled() and gc.get_freeze_count() > 0
+        del early
+        late = Cycle()
+        late_gone = weakref.ref(late)
+        del late
+        gc.collect()
+        assert late_gone() is None                  # a cycle made later is still collected
+        assert early_gone() is not None             # frozen: never walked, never freed
+    finally:
+        gc.unfreeze()
+        gc.collect()
+        if was:
+            gc.enable()

@@ -32,8 +32,15 @@ def collect_between_callbacks() -> None:
     what that dispatch holds: a decider started in a chaos soak hung until it was killed, its
     thread in "Garbage-collecting" under the executor's EventHandler.__exit__. Called once where a
     program's loop begins; ``collect_due`` after each turn of the loop does what the automatic
-    collector would have done (the same thresholds, youngest generation first)."""
+    collector would have done (the same thresholds, youngest generation first).
+
+    What is alive by then (the modules, the message classes, the nodes and their entities) is
+    moved out of the collector's sight (``gc.freeze``): it lives as long as the program, and a
+    full collection that walked it took about 30 ms of the CPU each time. Later
+    objects are collected as before."""
     gc.disable()
+    gc.collect()
+    gc.freeze()
 
 
 def collect_due() -> None:
