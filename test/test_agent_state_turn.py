@@ -9,7 +9,7 @@ import pytest
 from anyscale_manager import protocol as p
 from anyscale_manager.agent import lifecycle as lc
 from anyscale_manager.agent.turn import (AgentInputs, AgentTurn, FIRST_STATE_WAIT_S,
-                                         STOPPING_TICK_S)
+                                         IDLE_TICK_S, STOPPING_TICK_S)
 from anyscale_manager.model.loader import load_mapping
 from test_agent_supervisor import deployment_dict
 from test_agent_turn import WALL_OFFSET, layout, lifecycle_entry
@@ -124,6 +124,25 @@ def test_a_copy_is_handed_the_latest_state_and_activated_only_once_it_took_it(ma
     agent.turn.on_layout(layout(3, lc='a'), agent.now)          # and back
     agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated again')
     assert agent.channel.sent[-1] == ('lc', b'newer')
+
+
+def test_a_state_kept_asks_for_no_step_and_one_heard_between_steps_is_handed_on(make_sup):
+    """The states are taken between steps (hear_states, the agent's own job): a settled
+    agent that keeps a node's state steps at IDLE_TICK_S like any other, and what it heard
+    meanwhile is what the next serving copy gets."""
+    agent = Agent(make_sup)
+    agent.channel.subscribed = agent.channel.acked = True
+    agent.turn.on_layout(layout(1, lc='a'), agent.now)
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy active')
+    agent.step(dt=31.0)                  # past the look for its DDS ports (test_agent_turn)
+    assert agent.step().tick_s == IDLE_TICK_S
+    assert agent.turn.hear_states([('lc', b'between 1', 8), ('lc', b'between 2', 9)],
+                                  agent.now) == []
+    agent.turn.on_layout(layout(2, lc='b'), agent.now)          # moved away: standby here
+    agent.until(lambda out: agent.label() == lc.INACTIVE, 'the copy deactivated')
+    agent.turn.on_layout(layout(3, lc='a'), agent.now)          # and back
+    agent.until(lambda out: agent.label() == lc.ACTIVE, 'the copy activated again')
+    assert agent.channel.sent[-1] == ('lc', b'between 2')
 
 
 def test_a_restarted_copy_is_handed_the_state_of_the_one_that_died(make_sup):

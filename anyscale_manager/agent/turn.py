@@ -411,13 +411,20 @@ class AgentTurn:
         return driver.may_be_active or (driver.state == lc.UNKNOWN
                                         and self.supervisor.adopted(name))
 
+    def hear_states(self, heard: Sequence[Tuple[str, bytes, int]], now: float) -> List[LogLine]:
+        """State messages heard (``AgentInputs.heard``) into the book of the latest state of
+        each node, between steps as well as at them; returns what to log."""
+        out: List[LogLine] = []
+        for node, data, seq in heard:
+            out.extend(self.states.heard(node, data, now, seq))
+        return out
+
     def step(self, now: float, inputs: AgentInputs) -> AgentOutput:
         """One step at ``now``: decide what runs here, drive the processes and lifecycles."""
         out = AgentOutput()
         self._logs = out.logs
         sup = self.supervisor
-        for node, data, seq in inputs.heard:
-            out.logs.extend(self.states.heard(node, data, now, seq))
+        out.logs.extend(self.hear_states(inputs.heard, now))
         self._forward_requests(inputs, out, now)
         if self.shutdown_requests:
             want: Set[str] = set()
@@ -492,11 +499,11 @@ class AgentTurn:
     def _under_way(self) -> bool:
         """Whether a step may have work before an input arrives (IDLE_TICK_S): a process on its
         way (starting, backing off, not seen yet, stopping), a lifecycle copy not at its goal,
-        a move held back, a shutdown, or a node's state kept here (its reader, of depth 1, is
-        taken at each step, and the check for two writers counts what it sees)."""
+        a move held back, a shutdown, or a state set by others not forwarded yet. (The states
+        kept here are taken between steps: ``hear_states``.)"""
         sup = self.supervisor
         return bool(self.shutdown_requests or self.reconciler.waiting or self._finalize_since
-                    or self.states.specs or not sup.settled
+                    or self._to_forward or not sup.settled
                     or any(not d.settled for n, d in self.drivers.items()
                            if sup.state(n) in LIVE_STATES))
 

@@ -18,7 +18,7 @@ import secrets
 import sys
 import time
 import traceback
-from typing import IO, Any, Callable, Dict, List, Optional
+from typing import IO, Any, Callable, Dict, List, Optional, Tuple
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -191,6 +191,11 @@ class AgentNode(Node):
         self._relay = StateRelay(self, self.catalogue,
                                  {n: d.state_msg_type(n) for n in self.turn.states.specs},
                                  self._log)
+        # Each state reader keeps one message: taken every TICK_S, whatever the step's period
+        # (a step at TICK_S for that alone was most of an idle agent's work).
+        self._requests: List[Tuple[str, bytes]] = []
+        if self._relay.nodes:
+            steady_timer(self, TICK_S, self._take_states)
         for level, text in start_warden(d, scale, self.supervisor, stem, self.log_dir):
             self._log(level, text)
         self.get_logger().info(
@@ -257,6 +262,19 @@ class AgentNode(Node):
         self._exit_wake.cancel()
         self._tick()
 
+    def _take_states(self) -> None:
+        """The states heard since the last take, into the turn's book; a state set by others
+        (a pose set in RViz) steps the agent at once, which hands it on."""
+        if self._relay is None:
+            return
+        now = time.monotonic()
+        heard, requests = self._relay.drain(now)
+        for level, text in self.turn.hear_states(heard, now):
+            self._log(level, text)
+        if requests:
+            self._requests.extend(requests)
+            self._tick()
+
     def _on_report_timer(self) -> None:
         self._report_late(time.monotonic(), 'at its period')
         self._publish_state()
@@ -282,7 +300,8 @@ class AgentNode(Node):
         if probes is not None:
             probes.poll_writers()
         graph = self.get_node_names_and_namespaces() if self.turn.watches_graph else ()
-        heard, requests = self._relay.drain(now) if self._relay is not None else ((), ())
+        heard, requests = self._relay.drain(now) if self._relay is not None else ((), [])
+        requests, self._requests = self._requests + list(requests), []
         self._act(self.turn.step(now, AgentInputs(
             wall=time.time(), visible=name_counts(graph),
             poll=lambda name: self._lifecycle[name].poll(),
