@@ -364,30 +364,31 @@ class ProbeManager:
         with self._lock:
             probes = sorted(self._probes.items())
         for name, conn in probes:
+            key = f'anyscale/connection/{name}'
+            reading, note = readings.get(name, (None, ''))
+            duplicate = reading is not None and reading.senders is not None and \
+                two_senders_past(reading.senders_for_s,
+                                 self._deployment.monitoring.duplicate_sender_s)
+            level = p.STALE if reading is None else p.ERROR if duplicate else reading.level
+            if not self._out.diagnostics_due(key, level):
+                continue        # built only when it goes out: most readings say the same
             values = {'topic': conn.topic, 'publisher': conn.publisher,
                       'subscriber': conn.subscriber, 'freq_min_hz': conn.freq_min_hz,
                       'tolerance_s': conn.tolerance_s}
-            if name not in readings:
+            if reading is None:
                 probe = self._topics.get(self._resolve(conn.topic))
-                problem = probe.problem if probe else 'no probe'
-                if self._out.diagnostics_due(f'anyscale/connection/{name}', p.STALE):
-                    statuses.append(status(f'anyscale/connection/{name}', p.STALE, problem,
-                                           self._scale.host, values))
+                statuses.append(status(key, level, probe.problem if probe else 'no probe',
+                                       self._scale.host, values))
                 continue
-            reading, note = readings[name]
             values.update({'rate_hz': reading.rate_hz, 'bytes_per_s': reading.bytes_per_s,
                            'below_for_s': reading.below_for_s})
-            level, text = reading.level, _describe(conn, reading, note)
+            text = _describe(conn, reading, note)
             if reading.senders is not None:
                 values['senders'] = reading.senders
-                if two_senders_past(reading.senders_for_s,
-                                    self._deployment.monitoring.duplicate_sender_s):
-                    level = p.ERROR
-                    text = (f'{reading.senders} senders for {reading.senders_for_s:.1f} s '
-                            f'(copies of {conn.publisher} on more than one scale?); {text}')
-            if self._out.diagnostics_due(f'anyscale/connection/{name}', level):
-                statuses.append(status(f'anyscale/connection/{name}', level, text,
-                                       self._scale.host, values))
+            if duplicate:
+                text = (f'{reading.senders} senders for {reading.senders_for_s:.1f} s '
+                        f'(copies of {conn.publisher} on more than one scale?); {text}')
+            statuses.append(status(key, level, text, self._scale.host, values))
         self._out.send_diagnostics(statuses)
 
     def destroy(self) -> None:
