@@ -100,3 +100,46 @@ def test_a_steady_topic_is_reported_at_the_refresh_and_its_stop_at_once(ros, tes
     ros.spin_until(lambda: any(m.stamp == first_below.stamp for m in got), 2.0,
                    'the first reading below sent at once')
     probes.destroy()
+
+
+def test_what_the_steps_take_between_two_drains_counts_at_the_next_not_as_a_peak(
+        ros, testbed_path, monkeypatch):
+    """The agent's steps take the watched topics' messages at any moment (poll_writers); a
+    step 55 ms after the last drain that finds three messages of a 40 Hz topic (delivery
+    jitter) is no 54 Hz peak: they count with the next timed drain's, over its whole span."""
+    from types import SimpleNamespace
+    from anyscale_manager.nodes.monitors import probes as probes_module
+    clock = [1000.0]
+    monkeypatch.setattr(probes_module, 'time', SimpleNamespace(
+        monotonic=lambda: clock[0], time=lambda: 1.7e9 + clock[0]))
+    inbox = []
+
+    def taken(_subscription, limit):
+        while inbox and limit > 0:
+            limit -= 1
+            yield inbox.pop(0)
+    monkeypatch.setattr(probes_module, '_taken', taken)
+    d = load_deployment(testbed_path)
+    probes = ProbeManager(ros.node('agent_peaks'), d, 'robot', handovers=True)
+    probes.set_connections(['amcl_ekf'])                  # AMCL is migratable: watched
+    probe = probes._topics['/amcl_pose']
+    assert probe.watched
+    seq = [0]
+
+    def arrive(count):
+        for _ in range(count):
+            seq[0] += 1
+            inbox.append((b'pose', {'publication_sequence_number': seq[0]}))
+    try:
+        probes.drain()
+        for _ in range(10):
+            clock[0] += 0.055
+            arrive(3)                                     # a burst right after the drain
+            probes.poll_writers()
+            clock[0] += 0.445
+            arrive(17)                                    # 20 in the drain's 0.5 s: 40 Hz
+            probes.drain()
+        assert probe.peak_hz == pytest.approx(40.0)
+        assert probes.writer_joined_since('amcl_ekf', 0.0) is False   # one writer, heard
+    finally:
+        probes.destroy()

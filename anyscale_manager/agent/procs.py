@@ -208,10 +208,17 @@ def descendants(pid: int) -> Tuple[int, ...]:
     if CHILDREN_FILES:
         return tuple(child for child in tree_table([pid]) if child != pid)
     try:
-        return tuple(p.pid for p in psutil.Process(pid).children(recursive=True)
-                     if p.status() != psutil.STATUS_ZOMBIE)
+        children = psutil.Process(pid).children(recursive=True)
     except psutil.Error:
         return ()
+    return tuple(p.pid for p in children if _live(p))
+
+
+def _live(p: psutil.Process) -> bool:
+    try:
+        return p.status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
 
 
 def create_time(pid: int) -> Optional[float]:
