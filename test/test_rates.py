@@ -511,10 +511,12 @@ def test_a_congestion_that_outlasts_what_was_sent_back_takes_the_link_to_what_ar
 
 
 def test_a_reading_that_has_not_come_through_lately_delivers_nothing():
-    recent = {'laser_amcl': (28000.0, 0.3), 'camera_ar': (760000.0, 1.6)}   # (B/s, age s)
-    assert delivered_kbps(recent, 1.0) == pytest.approx(224.0)
-    assert delivered_kbps(recent, 2.0) == pytest.approx(224.0 + 6080.0)
-    assert delivered_kbps({}, 1.0) == 0.0
+    # (B/s, age s, stale past s): each reading by the bound of the scale that sent it
+    assert delivered_kbps({'laser_amcl': (28000.0, 0.3, 1.0),
+                           'camera_ar': (760000.0, 1.6, 1.0)}) == pytest.approx(224.0)
+    assert delivered_kbps({'laser_amcl': (28000.0, 0.3, 1.0),
+                           'camera_ar': (760000.0, 1.6, 2.0)}) == pytest.approx(224.0 + 6080.0)
+    assert delivered_kbps({}) == 0.0
 
 
 def test_recent_bytes_count_only_the_last_span():

@@ -177,13 +177,13 @@ def crossing_connections(connections: Iterable[Tuple[str, str, str]],
     return out
 
 
-def delivered_kbps(recent: Mapping[str, Tuple[float, float]], stale_s: float) -> float:
-    """kbit/s the connections deliver, from (recent B/s, the reading's age in s) each; a
-    reading older than ``stale_s`` counts as delivering nothing (on a congested link the far
-    end's reports wait in the same full queue: the last one through describes the link
+def delivered_kbps(recent: Mapping[str, Tuple[float, float, float]]) -> float:
+    """kbit/s the connections deliver, from (recent B/s, the reading's age in s, the age past
+    which it is stale) each; a stale reading counts as delivering nothing (on a congested link
+    the far end's reports wait in the same full queue: the last one through describes the link
     before it filled)."""
-    return used_kbps({n: (bps if age <= stale_s else 0.0) for n, (bps, age) in recent.items()},
-                     recent)
+    return used_kbps({n: (bps if age <= stale_s else 0.0)
+                      for n, (bps, age, stale_s) in recent.items()}, recent)
 
 
 def used_kbps(bytes_per_s: Mapping[str, float], names: Iterable[str]) -> float:

@@ -177,14 +177,17 @@ class LinkMonitor:
                                    callback_group=self._group)
         self._timers.append(self._timer)
         self.quiet = False          # whether the timer wakes for the beats and deadlines only
-        # The probes send a reading on a change and refresh it (ProbeManager): the last one
-        # stands for a refresh period and one of lateness; older, it delivers nothing (the far
-        # end's reports wait in a full queue too).
+        # A remote scale's probes send every period: its last reading stands for two; older,
+        # it delivers nothing (the far end's reports wait in a full queue too). The master's
+        # send on a change and refresh (ProbeManager): its last stands for a refresh period
+        # and one of lateness (read here, on the master, never across a link).
         probe_period = period_of(settings.probe_publish_rate_hz, 'probe_publish_rate_hz')
         probe_refresh = refresh_s(self._deployment, probe_period)
         self._readings_max_age = max(3.0, 3.0 * probe_refresh)
-        self._delivery_stale_s = min(self._readings_max_age,
-                                     DELIVERY_SPAN_S + probe_refresh + probe_period)
+        self._delivery_stale_s = {
+            s.name: min(self._readings_max_age, DELIVERY_SPAN_S + (
+                probe_refresh + probe_period if s.name == self._deployment.master.name
+                else 2.0 * probe_period)) for s in self._deployment.scales}
         self._probe_duration = settings.bandwidth_probe_duration_s
         self._congestion_s = settings.congestion_delay_ms / 1000.0
 
@@ -244,21 +247,22 @@ class LinkMonitor:
     def used_kbps(self, remote: str, now: float) -> float:
         """kbit/s of the connections measured crossing the link to ``remote`` now."""
         fresh = self._crossing(remote, now)
-        return used_kbps({n: bps for n, (bps, _, _) in fresh.items()}, fresh)
+        return used_kbps({n: bps for n, (bps, _, _, _) in fresh.items()}, fresh)
 
     def delivery_kbps(self, remote: str, now: float) -> Tuple[float, float]:
         """(delivered, needed) kbit/s of the connections crossing the link to ``remote`` that
         are measured: over the last DELIVERY_SPAN_S, against their declared bandwidth; a
-        reading older than that span and two report periods delivers nothing
-        (``delivered_kbps``)."""
+        reading older than that span and two report periods (a refresh period and one for
+        the master's own) delivers nothing (``delivered_kbps``)."""
         fresh = self._crossing(remote, now)
         needed = sum(self._deployment.connection(n).bandwidth_kbps for n in fresh)
-        return delivered_kbps({n: (recent, age) for n, (_, recent, age) in fresh.items()},
-                              self._delivery_stale_s), needed
+        return delivered_kbps({n: (recent, age, stale_s)
+                               for n, (_, recent, age, stale_s) in fresh.items()}), needed
 
-    def _crossing(self, remote: str, now: float) -> Dict[str, Tuple[float, float, float]]:
-        """Connection -> (B/s, recent B/s, the reading's age in s) for those crossing the
-        link to ``remote`` with a fresh reading."""
+    def _crossing(self, remote: str, now: float
+                  ) -> Dict[str, Tuple[float, float, float, float]]:
+        """Connection -> (B/s, recent B/s, the reading's age in s, the age past which it
+        delivers nothing) for those crossing the link to ``remote`` with a fresh reading."""
         # Every live copy counts: while a node is handed over, the copy still running on the
         # far end receives across the link (merging the reports into one place per node hid
         # that flow, depending on which scale had reported first).
@@ -275,7 +279,7 @@ class LinkMonitor:
         for name, where in crossing.items():
             bps, recent, at = self._readings.get((where, name), (0.0, 0.0, -math.inf))
             if now - at <= self._readings_max_age:
-                fresh[name] = (bps, recent, now - at)
+                fresh[name] = (bps, recent, now - at, self._delivery_stale_s[where])
         return fresh
 
     def _on_tick(self) -> None:

@@ -20,11 +20,16 @@ twenty a second for topics at a few hertz were a tenth of the robot agent's CPU.
 arrivals keep their reception times, a later take changes no reading.
 
 What is sent: the readings are taken every report period (``probe_publish_rate_hz``: the Δ
-verdicts advance there, and the diagnostics go out there) and published when they say something
-the last ones sent did not (``moved``: a level, a stretch that ended, the senders, a figure moved
-by a quarter), else once a refresh period (``monitors/common.refresh_s``, as the LinkStatus).
-Three readers take each report (the decider, both ends' link monitors), each at a cost per
-message whatever it says.
+verdicts advance there, and the diagnostics go out there). A remote scale sends every one: its
+readings of the connections that cross a link are what the link's monitor, at the other end,
+judges a congestion by, and a reading that does not arrive there says the link holds it (a
+full queue holds the far end's reports too; ``LinkMonitor.delivery_kbps``); a pause between
+sends would read the same. The master scale's readings cross no link to their monitor (the
+master watches each of its links itself): they are sent when they say something the last ones
+sent did not (``moved``: a level, a stretch that ended, the senders, a figure moved by a
+quarter), else once a refresh period (``monitors/common.refresh_s``, as the LinkStatus), which
+spares its decider and its link monitor, on the weakest computer, most reports of a steady
+graph.
 """
 
 import math
@@ -118,9 +123,10 @@ class ProbeManager:
         self._slow_s = min(period, TYPE_RESOLVE_PERIOD_S)
         self._drained_at = time.monotonic()
         self._published = 0                 # readings taken for a report
-        # The readings are taken every period and sent on a change (``moved``), else every
-        # refresh_s: most reports of a steady graph said what the last one did.
-        self._refresh_s = refresh_s(deployment, period)
+        # The readings are taken every period; the master's are sent on a change (``moved``),
+        # else every refresh_s, a remote scale's every period (see the module).
+        self._refresh_s = refresh_s(deployment, period) \
+            if deployment.master.name == self._scale.name else 0.0
         self._sent: Optional[Dict[str, p.ConnectionReading]] = None
         self._sent_at = -math.inf
         self._cadence = Cadence(self._fast_s, time.monotonic())
