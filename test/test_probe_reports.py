@@ -150,3 +150,10 @@ def test_what_the_steps_take_between_two_drains_counts_at_the_next_not_as_a_peak
         assert probes.writer_joined_since('amcl_ekf', 0.0) is False   # one writer, heard
     finally:
         probes.destroy()
+
+
+def test_the_master_refreshes_unchanged_readings_and_a_remote_sends_each(testbed_path):
+    from anyscale_manager.nodes.monitors.common import connection_status_refresh_s
+    d = load_deployment(testbed_path)
+    assert connection_status_refresh_s(d, 'robot', 0.25) == refresh_s(d, 0.25) > 0.25
+    assert connection_status_refresh_s(d, 'laptop', 0.25) == 0.0

@@ -148,6 +148,14 @@ def refresh_s(deployment: Deployment, period_s: float) -> float:
     return max(period_s, min(STATUS_REFRESH_S, deployment.decider.observation_max_age_s / 3.0))
 
 
+def connection_status_refresh_s(deployment: Deployment, scale: str, period_s: float) -> float:
+    """How often ``scale``'s probes, taking readings every ``period_s``, send unchanged ones:
+    the master at ``refresh_s``, a remote scale never later than the next reading (0.0: every
+    reading goes out), for its readings of the connections crossing a link are the delivery
+    evidence of the link's monitor at the other end (ProbeManager)."""
+    return refresh_s(deployment, period_s) if scale == deployment.master.name else 0.0
+
+
 def period_of(rate_hz: float, what: str) -> float:
     if not rate_hz > 0:
         raise ValueError(f'monitoring.{what} must be positive, got {rate_hz!r}')

@@ -28,8 +28,8 @@ from ...runtime.bandwidth import (DELIVERY_SPAN_S, BandwidthEstimate, crossing_c
                                   delivered_kbps, used_kbps)
 from ...runtime.rates import HeartbeatTracker
 from ..steady_loop import destroy_steady, steady_timer
-from .common import (LATCHED_QOS, Cadence, Publishers, period_of, refresh_s, scale_of,
-                     status)
+from .common import (LATCHED_QOS, Cadence, Publishers, connection_status_refresh_s, period_of,
+                     refresh_s, scale_of, status)
 from .echoes import EchoSocket
 from .throughput import ProbeServer, probe_throughput
 from ..throttled_log import ThrottledLog
@@ -177,17 +177,17 @@ class LinkMonitor:
                                    callback_group=self._group)
         self._timers.append(self._timer)
         self.quiet = False          # whether the timer wakes for the beats and deadlines only
-        # A remote scale's probes send every period: its last reading stands for two; older,
-        # it delivers nothing (the far end's reports wait in a full queue too). The master's
-        # send on a change and refresh (ProbeManager): its last stands for a refresh period
-        # and one of lateness (read here, on the master, never across a link).
+        # A scale's last reading stands for as long as its probes may go without sending one
+        # (a period for a remote scale, a refresh period for the master: ProbeManager) and a
+        # period of lateness; older, it delivers nothing (the far end's reports wait in a full
+        # queue too).
         probe_period = period_of(settings.probe_publish_rate_hz, 'probe_publish_rate_hz')
-        probe_refresh = refresh_s(self._deployment, probe_period)
-        self._readings_max_age = max(3.0, 3.0 * probe_refresh)
+        self._readings_max_age = max(3.0, 3.0 * refresh_s(self._deployment, probe_period))
         self._delivery_stale_s = {
-            s.name: min(self._readings_max_age, DELIVERY_SPAN_S + (
-                probe_refresh + probe_period if s.name == self._deployment.master.name
-                else 2.0 * probe_period)) for s in self._deployment.scales}
+            s.name: min(self._readings_max_age, DELIVERY_SPAN_S + probe_period + max(
+                probe_period, connection_status_refresh_s(self._deployment, s.name,
+                                                          probe_period)))
+            for s in self._deployment.scales}
         self._probe_duration = settings.bandwidth_probe_duration_s
         self._congestion_s = settings.congestion_delay_ms / 1000.0
 

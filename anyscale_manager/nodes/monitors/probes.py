@@ -51,8 +51,8 @@ from ...runtime.rates import (RateWindow, SenderOverlap, WriterStreams, live_win
                               two_senders_past)
 from .clocks import clock_offset_s
 from ..steady_loop import destroy_steady, steady_timer
-from .common import (PROBE_QOS, Cadence, Publishers, import_message_class, period_of, refresh_s,
-                     scale_of, status)
+from .common import (PROBE_QOS, Cadence, Publishers, connection_status_refresh_s,
+                     import_message_class, period_of, scale_of, status)
 
 TYPE_RESOLVE_PERIOD_S = 1.0
 # Every 50 ms while a topic is fast: the probe QoS holds 100 messages, a 1 kHz topic's 0.1 s,
@@ -125,8 +125,7 @@ class ProbeManager:
         self._published = 0                 # readings taken for a report
         # The readings are taken every period; the master's are sent on a change (``moved``),
         # else every refresh_s, a remote scale's every period (see the module).
-        self._refresh_s = refresh_s(deployment, period) \
-            if deployment.master.name == self._scale.name else 0.0
+        self._refresh_s = connection_status_refresh_s(deployment, self._scale.name, period)
         self._sent: Optional[Dict[str, p.ConnectionReading]] = None
         self._sent_at = -math.inf
         self._cadence = Cadence(self._fast_s, time.monotonic())
