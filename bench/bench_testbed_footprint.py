@@ -2,15 +2,20 @@
 """The manager's own CPU on a test-bed's robot, settled (needs root).
 
     sudo python bench/bench_testbed_footprint.py [--config FILE] [--on laptop]
-        [--window 60] [--settle 10] [--master] [--domain-id N] [--out FILE]
+        [--window 60] [--settle 10] [--master] [--discovery server] [--domain-id N]
+        [--out FILE]
 
 The test-bed of ``--config`` (default the ICAR one) in namespaces, the robot under its CPU
 quota. Once AMCL and AR serve on ``--on`` and ``--settle`` seconds more have passed, the CPU
 every process of the robot's cgroup spends over ``--window`` seconds (/proc, user + system),
 by process: the manager's (its agent, its decider, its warden) in % of one core of this machine
 and of the robot's quota, beside its nodes; and the manager's by thread (the Python threads by
-their names, the DDS middleware's and the executor's by theirs). ``--master``: the robot runs the
-agent and the decider as one process (`ros2 run anyscale_manager master`).
+their names, the DDS middleware's and the executor's by theirs), each split into user and
+system time: the system time of a send on the test-bed's veth link carries the receiving end's
+kernel work as well (this kernel charges a softirq to the task it interrupts), which a real
+radio's driver does not. ``--master``: the robot runs the agent and the decider as one process
+(`ros2 run anyscale_manager master`). ``--discovery server``: the deployment's discovery through
+the scales' discovery servers, on links without multicast.
 """
 
 import argparse
@@ -43,16 +48,20 @@ def who(p: psutil.Process) -> str:
     return os.path.basename(p.cmdline()[0]) if p.cmdline() else str(p.pid)
 
 
-def robot_cpu(tb: harness.Testbed) -> Dict[int, Tuple[str, float]]:
-    """pid -> (who, CPU seconds) of every process in the robot's cgroup; and of each thread
-    of the manager's processes, under (pid, tid) -> ('process/thread name', CPU seconds)."""
-    out = {}
+Times = Tuple[str, float, float]     # who, user CPU seconds, system CPU seconds
+
+
+def robot_cpu(tb: harness.Testbed) -> Dict[object, Times]:
+    """pid -> (who, user, system CPU seconds) of every process in the robot's cgroup; and of
+    each thread of the manager's processes, under (pid, tid) -> ('process/thread name', user,
+    system)."""
+    out: Dict[object, Times] = {}
     for pid in tb.network.groups['robot'].pids():
         try:
             p = psutil.Process(pid)
             t = p.cpu_times()
             name = who(p)
-            out[pid] = (name, t.user + t.system)
+            out[pid] = (name, t.user, t.system)
             if name in MANAGER:
                 out.update(thread_cpu(pid, name))
         except psutil.Error:
@@ -60,8 +69,9 @@ def robot_cpu(tb: harness.Testbed) -> Dict[int, Tuple[str, float]]:
     return out
 
 
-def thread_cpu(pid: int, process: str) -> Dict[Tuple[int, int], Tuple[str, float]]:
-    """(pid, tid) -> ('process/thread', CPU seconds), from /proc/PID/task/TID/stat."""
+def thread_cpu(pid: int, process: str) -> Dict[Tuple[int, int], Times]:
+    """(pid, tid) -> ('process/thread', user, system CPU seconds), from
+    /proc/PID/task/TID/stat."""
     tick = os.sysconf('SC_CLK_TCK')
     out = {}
     for tid in os.listdir(f'/proc/{pid}/task'):
@@ -74,7 +84,7 @@ def thread_cpu(pid: int, process: str) -> Dict[Tuple[int, int], Tuple[str, float
         fields = stat[stat.rindex(')') + 2:].split()
         # a thread pool's numbered names counted as one
         out[(pid, int(tid))] = (f'{process}/{comm.rstrip("0123456789-")}',
-                                (int(fields[11]) + int(fields[12])) / tick)
+                                int(fields[11]) / tick, int(fields[12]) / tick)
     return out
 
 
@@ -87,6 +97,8 @@ def main() -> int:
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', 44)))
     ap.add_argument('--master', action='store_true',
                     help='the robot runs `master` (agent and decider in one process)')
+    ap.add_argument('--discovery', choices=('multicast', harness.SERVER), default='multicast',
+                    help="the deployment's discovery.mode")
     ap.add_argument('--out', default='', help='write the figures as JSON')
     args = ap.parse_args()
     ok, why = netns.available()
@@ -94,7 +106,7 @@ def main() -> int:
         print(f'bench_testbed_footprint: no test-bed here: {why}', file=sys.stderr)
         return 2
     options = harness.Options(args.config, args.domain_id, mode='netns',
-                              master_process=args.master)
+                              master_process=args.master, discovery=args.discovery)
     tb = harness.Testbed(options).start()
     try:
         tb.wait_for(lambda r: set(r.running_on(args.on, ready_only=True)) >= MOVING, 120.0,
@@ -110,28 +122,37 @@ def main() -> int:
         quota = tb.cpu_cores['robot']
         by: Dict[str, float] = {}
         threads: Dict[str, float] = {}
-        for key, (name, cpu) in after.items():
+        system: Dict[str, float] = {}       # the system part of each, by the same names
+        for key, (name, user_s, sys_s) in after.items():
             if key in before:
                 into = threads if isinstance(key, tuple) else by
-                into[name] = into.get(name, 0.0) + (cpu - before[key][1]) / (t1 - t0)
+                _, user0, sys0 = before[key]
+                into[name] = into.get(name, 0.0) + (user_s + sys_s - user0 - sys0) / (t1 - t0)
+                system[name] = system.get(name, 0.0) + (sys_s - sys0) / (t1 - t0)
         manager = sum(v for k, v in by.items() if k in MANAGER)
+        manager_sys = sum(v for k, v in system.items() if k in MANAGER)
         print(f'{os.path.basename(args.config)}: AMCL and AR on {args.on}, {args.window:g} s '
               f'after {args.settle:g} s; robot quota {quota:.2f} cores of this machine'
-              f'{"; the robot runs master" if args.master else ""}')
-        print(f'{"process":24s} {"% of a core":>12s} {"% of quota":>11s}')
+              f'{"; the robot runs master" if args.master else ""}; discovery {args.discovery}')
+        print(f'{"process":24s} {"% of a core":>12s} {"% of quota":>11s} {"of it system":>13s}')
         for name, cores in sorted(by.items(), key=lambda kv: -kv[1]):
-            print(f'{name:24s} {100 * cores:12.2f} {100 * cores / quota:11.2f}')
+            print(f'{name:24s} {100 * cores:12.2f} {100 * cores / quota:11.2f} '
+                  f'{100 * system[name]:13.2f}')
         print("the manager's processes by thread:")
         for name, cores in sorted(threads.items(), key=lambda kv: -kv[1]):
             if cores > 0:
-                print(f'{name:24s} {100 * cores:12.2f} {100 * cores / quota:11.2f}')
-        print(f'the manager (agent + decider + warden): {100 * manager:.2f} % of one core, '
-              f"{100 * manager / quota:.2f} % of the robot's quota")
+                print(f'{name:24s} {100 * cores:12.2f} {100 * cores / quota:11.2f} '
+                      f'{100 * system[name]:13.2f}')
+        print(f'the manager (agent + decider + warden): {100 * manager:.2f} % of one core '
+              f'({100 * manager_sys:.2f} system), {100 * manager / quota:.2f} % of the '
+              "robot's quota")
         if args.out:
             with open(args.out, 'w') as f:
                 json.dump({'quota_cores': quota, 'window_s': args.window,
-                           'master': args.master, 'cores_by_process': by,
-                           'cores_by_thread': threads, 'manager_cores': manager}, f, indent=1)
+                           'master': args.master, 'discovery': args.discovery,
+                           'cores_by_process': by, 'cores_by_thread': threads,
+                           'system_cores_by_name': system, 'manager_cores': manager,
+                           'manager_system_cores': manager_sys}, f, indent=1)
         return 0
     finally:
         notes = tb.stop()
