@@ -2,8 +2,8 @@
 """The manager's own CPU on a test-bed's robot, settled (needs root).
 
     sudo python bench/bench_testbed_footprint.py [--config FILE] [--on laptop]
-        [--window 60] [--settle 10] [--master] [--discovery server] [--domain-id N]
-        [--out FILE]
+        [--window 60] [--settle 10] [--master] [--discovery server] [--default-rates]
+        [--domain-id N] [--out FILE]
 
 The test-bed of ``--config`` (default the ICAR one) in namespaces, the robot under its CPU
 quota. Once AMCL and AR serve on ``--on`` and ``--settle`` seconds more have passed, the CPU
@@ -15,17 +15,22 @@ system time: the system time of a send on the test-bed's veth link carries the r
 kernel work as well (this kernel charges a softirq to the task it interrupts), which a real
 radio's driver does not. ``--master``: the robot runs the agent and the decider as one process
 (`ros2 run anyscale_manager master`). ``--discovery server``: the deployment's discovery through
-the scales' discovery servers, on links without multicast.
+the scales' discovery servers, on links without multicast. ``--default-rates``: the file's own
+rates of the decider's turn and the monitors (``RATE_KEYS``) left out, so that the package's
+defaults apply (a copy of the file without them, for this run).
 """
 
 import argparse
 import json
 import os
+import shutil
 import sys
+import tempfile
 import time
 from typing import Dict, Tuple
 
 import psutil
+import yaml
 
 from anyscale_manager.agent.catalogue import ENV_NODE
 from anyscale_manager.testbed import harness, netns
@@ -34,6 +39,23 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(os.path.dirname(HERE), 'config', 'icar2015_testbed.yaml')
 MOVING = {'amcl', 'ar'}
 MANAGER = ('agent', 'decider', 'master', 'warden')
+# What --default-rates leaves out of the file: (section, key).
+RATE_KEYS = (('decider', 'period_s'), ('monitoring', 'scale_rate_hz'),
+             ('monitoring', 'heartbeat_rate_hz'), ('monitoring', 'probe_publish_rate_hz'))
+
+
+def without_rates(path: str, into: str) -> str:
+    """A copy of deployment file ``path`` in directory ``into`` without RATE_KEYS; its
+    path."""
+    with open(path) as f:
+        data = yaml.safe_load(f)
+    params = next(iter(data.values()))['ros__parameters']
+    for section, key in RATE_KEYS:
+        params.get(section, {}).pop(key, None)
+    out = os.path.join(into, os.path.basename(path))
+    with open(out, 'w') as f:
+        yaml.safe_dump(data, f, sort_keys=False)
+    return out
 
 
 def who(p: psutil.Process) -> str:
@@ -99,13 +121,18 @@ def main() -> int:
                     help='the robot runs `master` (agent and decider in one process)')
     ap.add_argument('--discovery', choices=('multicast', harness.SERVER), default='multicast',
                     help="the deployment's discovery.mode")
+    ap.add_argument('--default-rates', action='store_true',
+                    help="the package's default rates for the decider's turn and the monitors")
     ap.add_argument('--out', default='', help='write the figures as JSON')
     args = ap.parse_args()
     ok, why = netns.available()
     if not ok:
         print(f'bench_testbed_footprint: no test-bed here: {why}', file=sys.stderr)
         return 2
-    options = harness.Options(args.config, args.domain_id, mode='netns',
+    config = args.config
+    if args.default_rates:
+        config = without_rates(config, tempfile.mkdtemp(prefix='bench-footprint-'))
+    options = harness.Options(config, args.domain_id, mode='netns',
                               master_process=args.master, discovery=args.discovery)
     tb = harness.Testbed(options).start()
     try:
@@ -133,7 +160,8 @@ def main() -> int:
         manager_sys = sum(v for k, v in system.items() if k in MANAGER)
         print(f'{os.path.basename(args.config)}: AMCL and AR on {args.on}, {args.window:g} s '
               f'after {args.settle:g} s; robot quota {quota:.2f} cores of this machine'
-              f'{"; the robot runs master" if args.master else ""}; discovery {args.discovery}')
+              f'{"; the robot runs master" if args.master else ""}; discovery {args.discovery}'
+              f'{"; the default rates" if args.default_rates else ""}')
         print(f'{"process":24s} {"% of a core":>12s} {"% of quota":>11s} {"of it system":>13s}')
         for name, cores in sorted(by.items(), key=lambda kv: -kv[1]):
             print(f'{name:24s} {100 * cores:12.2f} {100 * cores / quota:11.2f} '
@@ -150,6 +178,7 @@ def main() -> int:
             with open(args.out, 'w') as f:
                 json.dump({'quota_cores': quota, 'window_s': args.window,
                            'master': args.master, 'discovery': args.discovery,
+                           'default_rates': args.default_rates,
                            'cores_by_process': by, 'cores_by_thread': threads,
                            'system_cores_by_name': system, 'manager_cores': manager,
                            'manager_system_cores': manager_sys}, f, indent=1)
@@ -158,6 +187,8 @@ def main() -> int:
         notes = tb.stop()
         if notes:
             print(f'teardown: {notes}')
+        if config != args.config:
+            shutil.rmtree(os.path.dirname(config), ignore_errors=True)
 
 
 if __name__ == '__main__':
