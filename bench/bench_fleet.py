@@ -40,6 +40,7 @@ above it for half a second (testbed/fleet_record.over_capacity).
 
 import argparse
 import os
+import shutil
 import statistics
 import sys
 import tempfile
@@ -128,10 +129,8 @@ def quiet(bed, shape, not_before, what):
     return holder, next(r for r in ROBOTS if r != holder)
 
 
-def cuts(a) -> int:
+def cuts(a, run_dir: str) -> int:
     """The holder's link cut, ``a.cuts`` times, in namespaces (the module's docstring)."""
-    run_dir = a.keep or tempfile.mkdtemp(prefix='fleet_cuts_')
-    os.makedirs(run_dir, exist_ok=True)
     shape = FleetShape(hysteresis_s=a.hysteresis)
     domains = {'robot_a': a.domain_id, 'robot_b': other_domain(a.domain_id)}
     rows = {k: [] for k in ('home', 'freed', 'serving', 'gap')}
@@ -174,7 +173,7 @@ def cuts(a) -> int:
     over_n, over_s = over_commit(bed.record.samples, shape)
     print(f'fleet, link cuts: 2 robots in namespaces, one server (capacity '
           f'{shape.capacity_cpu:g}, worker {shape.worker_cpu:g}), {len(rows["home"])} cuts, '
-          f'hysteresis {shape.hysteresis_s:g} s, Δ {shape.tolerance_s:g} s; run folder {run_dir}')
+          f'hysteresis {shape.hysteresis_s:g} s, Δ {shape.tolerance_s:g} s{kept(a, run_dir)}')
     _table([("cut -> the holder's worker home", rows['home']),
             ('cut -> room freed (copy gone, claim released)', rows['freed']),
             ("room freed -> the other's worker serving there", rows['serving']),
@@ -185,10 +184,8 @@ def cuts(a) -> int:
     return 1 if violations or early or over_n else 0
 
 
-def preemptions(a) -> int:
+def preemptions(a, run_dir: str) -> int:
     """robot_b (priority 1) preempts robot_a ``a.preemptions`` times (the module's docstring)."""
-    run_dir = a.keep or tempfile.mkdtemp(prefix='fleet_preemptions_')
-    os.makedirs(run_dir, exist_ok=True)
     shape = FleetShape(hysteresis_s=a.hysteresis, graph=a.graph)
     low, high = ROBOTS
     domains = {low: a.domain_id, high: other_domain(a.domain_id)}
@@ -214,11 +211,13 @@ def preemptions(a) -> int:
             there = rec.first(lambda s: s.all_away(high, moving), since=start)
             bed.until(lambda s: s.t >= took.t + 2.0 and rec.judged_until(low) >= s.t - 0.5,
                       20.0, f"round {i + 1}: {low}'s observer's lines past the hand-over")
-            past, longest = 0, 0.0
+            past, longest, which = 0, 0.0, []
             for j in graph.judged(low):
                 n, worst = stretches_past_delta(rec.heard(low, j.topic), start - 2.0,
                                                 took.t + 2.0, j)
                 past, longest = past + n, max(longest, worst)
+                if n:
+                    which.append(f'{j.name} {worst:.2f} s below (Δ {j.tolerance_s:g} s)')
             violations += past > 0
             gone = bed.stop(high)
             back = bed.until(lambda s: s.all_away(low, moving), shape.hysteresis_s + 60.0,
@@ -227,14 +226,15 @@ def preemptions(a) -> int:
             rows['gap'].append(longest)
             rows['back'].append(back.t - gone)
             print(f'[{i + 1}/{a.preemptions}] freed -> {high} there {there - freed:.2f} s; '
-                  f'{low} below freq_min {longest:.2f} s at most{", PAST Δ" if past else ""}; '
+                  f'{low} below freq_min {longest:.2f} s at most'
+                  f'{", PAST Δ: " + ", ".join(which) if past else ""}; '
                   f'{high} gone -> {low} back {back.t - gone:.2f} s', flush=True)
     finally:
         notes = bed.close()
     over_n, over_s = over_commit(rec.samples, shape)
     print(f'fleet, preemptions: 2 robots in namespaces, graph {shape.graph}, one server '
           f'(capacity {shape.capacity_cpu:g}; {graph.needs()}), {len(rows["there"])} '
-          f'preemptions, hysteresis {shape.hysteresis_s:g} s; run folder {run_dir}')
+          f'preemptions, hysteresis {shape.hysteresis_s:g} s{kept(a, run_dir)}')
     _table([('room freed -> the higher robot all there', rows['there']),
             ("the lower robot's longest stretch below freq_min", rows['gap']),
             ('the higher robot gone -> the lower one back', rows['back'])])
@@ -254,7 +254,8 @@ def main(argv=None) -> int:
     ap.add_argument('--hysteresis', type=float, default=None,
                     help='seconds (default 5, with --cuts 6)')
     ap.add_argument('--domain-id', type=int, default=int(os.environ.get('ROS_DOMAIN_ID', 57)))
-    ap.add_argument('--keep', default='')
+    ap.add_argument('--keep', default='',
+                    help='keep the run folder (logs, the host ledger) here; else it is removed')
     a = ap.parse_args(argv)
     if a.cuts < 0 or a.preemptions < 0:
         ap.error('--cuts and --preemptions take a count of 0 or more')
@@ -266,7 +267,26 @@ def main(argv=None) -> int:
     if not ok:
         print(f'the fleet in namespaces needs the test-bed: {why}', file=sys.stderr)
         return 2
-    return cuts(a) if a.cuts else preemptions(a)
+    # The run's folder (logs, the host's ledger): --keep's, else a temporary one removed at the
+    # end of a run that passed, kept and named after one that did not.
+    run_dir = a.keep or tempfile.mkdtemp(prefix=f'fleet_{"cuts" if a.cuts else "preemptions"}_')
+    os.makedirs(run_dir, exist_ok=True)
+    code = 1
+    try:
+        code = cuts(a, run_dir) if a.cuts else preemptions(a, run_dir)
+    finally:
+        if a.keep:
+            pass
+        elif code == 0:
+            shutil.rmtree(run_dir, ignore_errors=True)
+        else:
+            print(f'bench_fleet: the run folder is kept for its logs: {run_dir}', file=sys.stderr)
+    return code
+
+
+def kept(a, run_dir: str) -> str:
+    """The summary's mention of the run folder: only one --keep keeps."""
+    return f'; run folder {run_dir}' if a.keep else ''
 
 
 if __name__ == '__main__':
