@@ -275,17 +275,15 @@ def main(argv=None) -> int:
     try:
         code = cuts(a, run_dir) if a.cuts else preemptions(a, run_dir)
     finally:
-        if a.keep:
-            pass
-        elif code == 0:
+        if not a.keep and code == 0:
             shutil.rmtree(run_dir, ignore_errors=True)
-        else:
+        elif not a.keep:
             print(f'bench_fleet: the run folder is kept for its logs: {run_dir}', file=sys.stderr)
     return code
 
 
 def kept(a, run_dir: str) -> str:
-    """The summary's mention of the run folder: only one --keep keeps."""
+    """The summary's mention of the run folder, named only when --keep keeps it."""
     return f'; run folder {run_dir}' if a.keep else ''
 
 

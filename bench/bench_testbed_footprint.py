@@ -23,7 +23,6 @@ defaults apply (a copy of the file without them, for this run).
 import argparse
 import json
 import os
-import shutil
 import sys
 import tempfile
 import time
@@ -129,9 +128,14 @@ def main() -> int:
     if not ok:
         print(f'bench_testbed_footprint: no test-bed here: {why}', file=sys.stderr)
         return 2
-    config = args.config
-    if args.default_rates:
-        config = without_rates(config, tempfile.mkdtemp(prefix='bench-footprint-'))
+    if not args.default_rates:
+        return measure(args, args.config)
+    with tempfile.TemporaryDirectory(prefix='bench-footprint-') as into:
+        return measure(args, without_rates(args.config, into))
+
+
+def measure(args, config: str) -> int:
+    """The run of ``main``'s arguments on deployment file ``config``."""
     options = harness.Options(config, args.domain_id, mode='netns',
                               master_process=args.master, discovery=args.discovery)
     tb = harness.Testbed(options).start()
@@ -187,8 +191,6 @@ def main() -> int:
         notes = tb.stop()
         if notes:
             print(f'teardown: {notes}')
-        if config != args.config:
-            shutil.rmtree(os.path.dirname(config), ignore_errors=True)
 
 
 if __name__ == '__main__':

@@ -9,7 +9,7 @@ from std_msgs.msg import String
 from anyscale_manager import protocol as p
 from anyscale_manager.model.loader import load_deployment
 from anyscale_manager.nodes.monitors import STATUS_QOS, ProbeManager
-from anyscale_manager.nodes.monitors.common import refresh_s
+from anyscale_manager.nodes.monitors.common import connection_status_refresh_s, refresh_s
 from anyscale_manager.nodes.monitors.probes import moved
 from anyscale_manager.nodes.workload_messages import build_message, parse_endpoint
 
@@ -153,7 +153,6 @@ def test_what_the_steps_take_between_two_drains_counts_at_the_next_not_as_a_peak
 
 
 def test_the_master_refreshes_unchanged_readings_and_a_remote_sends_each(testbed_path):
-    from anyscale_manager.nodes.monitors.common import connection_status_refresh_s
     d = load_deployment(testbed_path)
     assert connection_status_refresh_s(d, 'robot', 0.25) == refresh_s(d, 0.25) > 0.25
     assert connection_status_refresh_s(d, 'laptop', 0.25) == 0.0
