@@ -194,10 +194,12 @@ def test_a_full_probe_is_not_a_cut_and_a_cut_during_one_is_read_at_once(
         watched.wait(lambda t, s: t >= t_first_cut and not s.up, 10.0, 'the first cut read')
         net.restore()
         t_again = wait_probe(net, watched, laptop_ip, port, 20.0)
-        watched.wait(lambda t, s: t >= t_again + 1.0, 5.0, 'a second of the probe')
+        # The fault's schedule, not a wait: the master's reports may come late on a busy machine.
+        time.sleep(max(0.0, t_again + 1.0 - time.monotonic()))
+        assert probe_running(net, laptop_ip, port), 'the probe ended within its first second'
         t_cut = time.monotonic()
         net.cut()
-        assert t_cut - t_again < 1.6, 'the probe may have ended before the cut'
+        assert t_cut - t_again < 1.6, f'the cut came {t_cut - t_again:.2f} s into the probe'
         t_down, _ = watched.wait(lambda t, s: t >= t_cut and not s.up, 10.0, 'the cut read')
         late = t_down - t_cut
         print(f'a 2-s probe: {len(full)} reports, all up; a cut {t_cut - t_again:.2f} s into '
