@@ -15,6 +15,7 @@ from lifecycle_msgs.srv import GetState
 from std_msgs.msg import String
 
 from anyscale_manager import protocol
+from anyscale_manager.agent import ports
 from processes import LoggedProcess
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -427,10 +428,19 @@ def test_restart_in_place_keeps_every_node_running_and_adopts_it(setup, tmp_path
     log_a = tmp_path / 'log' / 'agent_test' / 'a' / 'warm.log'
     transitions_before = log_a.read_text().count('transition: ')
 
+    domain = ports.domain_of(os.environ)
+    dds_before = {s: ports.unicast_ports([agent_pids[s]], domain) for s in agent_pids}
+    assert all(dds_before.values()), dds_before
     for scale, proc in (('a', a), ('b', b)):
         os.kill(proc.proc.pid, signal.SIGHUP)
     h.wait(lambda: all(h.states[s].instance != before[s] for s in ('a', 'b')),
            what='both agents reporting as new processes')
+    # Each new participant took ports of its own: the old one's are held through the exec
+    # (peers that missed its goodbye would leave a participant on them unmatched).
+    for s in agent_pids:
+        now = ports.unicast_ports([agent_pids[s]], domain)
+        assert dds_before[s] <= now and now - dds_before[s], (s, dds_before[s], now)
+    assert "the previous participant's DDS ports" in a.text() + b.text()
     for (scale, node), pid in pids.items():
         proc = a if scale == 'a' else b
         h.wait(lambda: f'{node}: adopted pid {pid}' in proc.text(), timeout=15.0,

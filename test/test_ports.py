@@ -6,6 +6,8 @@ import signal
 import socket
 import time
 
+import pytest
+
 from anyscale_manager.agent import ports
 from supervision import drive, py_entry
 
@@ -72,6 +74,28 @@ def test_a_hold_binds_until_its_time_is_up_and_skips_a_taken_port():
     finally:
         hold.release()
         taken.close()
+
+
+def test_a_hold_passed_on_by_descriptor_is_adopted_and_anything_else_closed():
+    """A restart in place passes its held sockets by descriptor: the new process holds the
+    same ports for its own hold_s; a descriptor that is not a UDP socket is closed, not kept."""
+    port = free_port_in(DOMAIN)
+    old = ports.PortHold(hold_s=5.0)
+    assert old.hold([port], now=0.0) == [port]
+    fds = [os.dup(s.fileno()) for s in old.sockets()]
+    old.release()
+    read_end, write_end = os.pipe()
+    stream = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    new = ports.PortHold(hold_s=5.0)
+    try:
+        assert new.adopt(fds + [read_end, stream.detach()], now=100.0) == [port]
+        assert not bindable(port) and new.held() == {port}
+        with pytest.raises(OSError):
+            os.fstat(read_end)                  # closed, not kept
+        assert new.release(now=104.0) == 0 and new.release(now=105.0) == 1 and bindable(port)
+    finally:
+        new.release()
+        os.close(write_end)
 
 
 BINDER = ('import socket, sys, time\n'

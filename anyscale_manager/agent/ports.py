@@ -122,6 +122,32 @@ class PortHold:
         self._held = keep
         return closed
 
+    def sockets(self) -> List[socket.socket]:
+        """The sockets that hold the ports (to be passed on across an exec)."""
+        return [s for _, s in self._held]
+
+    def adopt(self, fds: Iterable[int], now: float) -> List[int]:
+        """Hold until ``now + hold_s`` the bound sockets of ``fds`` (inherited from the process
+        this one replaced); returns their ports. A descriptor that is not a bound UDP socket is
+        closed and skipped."""
+        ports = []
+        for fd in fds:
+            try:
+                s = socket.socket(fileno=fd)
+                port = s.getsockname()[1]
+            except OSError:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+                continue
+            if s.type != socket.SOCK_DGRAM or not port:
+                s.close()
+                continue
+            self._held.append((now + self.hold_s, s))
+            ports.append(port)
+        return ports
+
     def held(self) -> FrozenSet[int]:
         return frozenset(s.getsockname()[1] for _, s in self._held)
 

@@ -18,6 +18,10 @@ from .warden import spawn as spawn_warden, warden_port
 
 SCALE_RE = re.compile(r'^[A-Za-z][A-Za-z0-9_]*$')
 STOP, RESTART = 'stop', 'restart'
+# Across a restart in place: the descriptors of the sockets bound to the old participant's DDS
+# ports. A participant that takes the ports of one its peers knew is left unmatched by those
+# that missed its goodbye (agent/ports.py); the new agent's must take others.
+HELD_PORTS_ENV = 'ANYSCALE_AGENT_HELD_PORTS'
 
 
 def scale_from_args(args: Sequence[str]) -> Optional[str]:
@@ -151,11 +155,12 @@ class Signals:
         return out
 
 
-def restart_in_place() -> None:
+def restart_in_place(held: Sequence[socket.socket] = ()) -> None:
     """Replace this process with a new agent: same pid, same command line, the code installed
     now. The nodes stay its children (in sessions of their own) and the new agent adopts them
     from the state file; ``systemctl reload`` with ``ExecReload=/bin/kill -HUP $MAINPID``
-    (docs/agent.md)."""
+    (docs/agent.md). ``held``: sockets bound to the deleted participant's ports, passed on so
+    that the new agent's participant takes others (``held_ports``)."""
     # Nothing of this process but stdin, stdout and stderr may reach the new one: a DDS socket
     # or lock file kept open would look like a live participant to the others.
     for entry in os.listdir('/proc/self/fd'):
@@ -165,6 +170,12 @@ def restart_in_place() -> None:
                 os.set_inheritable(fd, False)
             except OSError:
                 pass                 # the listing's own descriptor, already closed
+    fds = []
+    for s in held:
+        os.set_inheritable(s.fileno(), True)
+        fds.append(str(s.fileno()))
+    if fds:
+        os.environ[HELD_PORTS_ENV] = ','.join(fds)
     # A second SIGHUP before the new process has its handler would end it (the default
     # action): ignored until then (an ignored signal stays ignored across exec).
     signal.signal(signal.SIGHUP, signal.SIG_IGN)
@@ -172,6 +183,16 @@ def restart_in_place() -> None:
     sys.stderr.flush()
     argv = list(getattr(sys, 'orig_argv', None) or [sys.executable] + sys.argv)
     os.execv(sys.executable, argv)
+
+
+def held_ports() -> List[int]:
+    """The descriptors of the ports the process this one replaced held for it (a restart in
+    place), taken out of the environment so that no node inherits the variable."""
+    fds = []
+    for item in os.environ.pop(HELD_PORTS_ENV, '').split(','):
+        if item.strip().isdigit():
+            fds.append(int(item))
+    return fds
 
 
 def stop_offline(supervisor: Supervisor, deadline_s: float) -> None:

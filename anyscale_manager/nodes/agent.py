@@ -45,8 +45,9 @@ from ..agent.exits import ExitWatcher
 from ..agent.ledger import Ledger, LedgerError
 from ..agent.host import this_host
 from ..agent.lock import LockError, release_lock, take_lock
-from ..agent.process import (places, restart_in_place, RESTART, scale_from_args, SCALE_RE,
-                             Signals, start_warden, STOP, stop_offline)
+from ..agent import ports
+from ..agent.process import (held_ports, places, restart_in_place, RESTART, scale_from_args,
+                             SCALE_RE, Signals, start_warden, STOP, stop_offline)
 from ..agent.supervisor import Supervisor
 from ..agent.turn import AgentInputs, AgentOutput, AgentTurn, name_counts, TICK_S
 from ..model.capacity import claim_lease_s
@@ -396,6 +397,8 @@ def run(args: Optional[List[str]], program: str,
         return 2
     if refuse_bad_params_files(program, argv):    # said with its line, not as rcl words it
         return 2
+    # A restart in place: the old participant's ports, still bound, until this one has others.
+    carried = held_ports()
     # discovery.mode server: a client of the deployment's discovery servers (before it joins).
     apply_client_setup(program, argv, super_client=True)
     try:
@@ -419,6 +422,13 @@ def run(args: Optional[List[str]], program: str,
         except (DeploymentError, AgentError, LockError, ValueError) as e:
             print(f'{program}: cannot start on scale {scale!r}:\n{e}', file=sys.stderr)
             return 2
+        if carried:
+            hold = node.supervisor.port_hold
+            kept = hold.adopt(carried, time.monotonic())
+            node.get_logger().info(
+                "restarted in place: the previous participant's DDS ports "
+                f'{", ".join(map(str, kept)) or "(none)"} held for {hold.hold_s:g} s, so that '
+                'this one took others')
         # The loop waits for callbacks until a signal wakes it (Signals.wake_with): a wait
         # of TICK_S woke the process ten times a second with nothing to do.
         signal_wake = node.create_timer(EXIT_WAKE_S, lambda: signal_wake.cancel())
@@ -469,6 +479,10 @@ def run(args: Optional[List[str]], program: str,
                 s = node.settings
                 stop_offline(node.supervisor, s.sigint_grace_s + s.sigterm_grace_s + 5.0)
             node.destroy_node()
+        domain = ports.domain_of(os.environ)
+        restarting = node is not None and node.restarting
+        # The participant's ports (and those the supervisor holds), read before it goes.
+        before = ports.unicast_ports([os.getpid()], domain) if restarting else frozenset()
         if executor is not None:
             executor.shutdown()
         shut_rclpy_down()
@@ -478,8 +492,12 @@ def run(args: Optional[List[str]], program: str,
         # participant left undeleted made the new process deaf, one restart in about twenty:
         # its peers went on writing to the old process's shared-memory port, and the new agent
         # saw neither its layout nor its nodes.
+        # Its ports are held across the exec (agent/process.py HELD_PORTS_ENV): those its peers
+        # knew it by, that missed its goodbye, would leave a new participant there unmatched.
         rclpy.get_default_context().destroy()
-        restart_in_place()
+        hold = ports.PortHold()
+        hold.hold(before - ports.unicast_ports([os.getpid()], domain), time.monotonic())
+        restart_in_place(hold.sockets() + node.supervisor.port_hold.sockets())
     return 0
 
 

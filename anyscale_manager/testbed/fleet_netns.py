@@ -229,8 +229,14 @@ class FleetBed:
         if stream is None:
             raise HarnessError(f"{robot}'s observer has no output pipe")
 
+        lines = open(os.path.join(self.run_dir, f'{robot}_observer.jsonl'), 'ab')
+        self._logs.append(lines)
+
         def read() -> None:
+            # Every line kept in the run folder too: what the robot's users heard, each
+            # message's sequence number and send time, for a reading the record does not make.
             for raw in iter(stream.readline, b''):
+                lines.write(raw)
                 self.record.ingest_line(robot, raw.decode('utf-8', 'replace'))
         reader = threading.Thread(target=read, name=f'{robot}-observer', daemon=True)
         reader.start()
@@ -264,6 +270,8 @@ class FleetBed:
         notes += self.network.teardown()
         for log in self._logs:
             log.close()
+        with open(os.path.join(self.run_dir, 'marks.txt'), 'w') as f:
+            f.writelines(f'{t:.3f} {text}\n' for t, text in self.record.marks)
         return notes
 
     # --- acting and observing -----------------------------------------------------------------
