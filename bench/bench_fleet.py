@@ -15,7 +15,8 @@ Each robot's users are an observer in its own namespace; the bed samples at 5 Hz
 processes under each agent and the active claims in the host's database.
 
 Preemptions: robot_a (priority 0) starts and its worker goes to the server; then,
---preemptions times: robot_b starts with priority 1 and preempts it (robot_a takes its worker
+--preemptions times, once robot_a's every judged connection has been heard for 4 s and none is
+below freq_min: robot_b starts with priority 1 and preempts it (robot_a takes its worker
 home, then robot_b's starts there), and robot_b stops, after which robot_a's worker goes back
 once its hysteresis (--hysteresis s) has passed. Measured each cycle: from the room freed
 (robot_a's server copy gone and its claim released, the later) to robot_b's worker started
@@ -48,7 +49,7 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), '..'))
 
-from anyscale_manager.runtime.delta import rate_below  # noqa: E402
+from anyscale_manager.runtime.delta import DEFAULT_WINDOW_S, rate_below  # noqa: E402
 from anyscale_manager.testbed import netns  # noqa: E402
 from anyscale_manager.testbed.fleet import (FleetShape, HOME, other_domain,  # noqa: E402
                                             SERVER, stretches_past_delta)
@@ -76,12 +77,31 @@ def _table(rows):
 ROBOTS = ('robot_a', 'robot_b')
 # How long the layout must stay as it is before a cut: several turns of both deciders.
 QUIET_S = 5.0
+# A preemption's judged window opens this long before the higher robot starts; a round starts
+# only once the lower robot's every connection has been heard for STEADY_S (a window and the
+# Δ rule's 2 s of intervals): its first round began 1-2 s after the chain's first messages,
+# and their start-up read as stretches below freq_min.
+JUDGED_BEFORE_S = 2.0
+STEADY_S = JUDGED_BEFORE_S + DEFAULT_WINDOW_S
 
 
 def heard_rate(record, robot, now, topic=None, window_s=1.0):
     """Messages a second ``robot``'s users heard (of ``topic``; None: any) over the
     ``window_s`` before ``now``."""
     return sum(1 for t in record.heard(robot, topic) if now - window_s <= t <= now) / window_s
+
+
+def steady(record, robot, judged, now):
+    """Every connection of ``judged`` heard by ``robot``'s users since STEADY_S before ``now``
+    at least, and none below freq_min over the last JUDGED_BEFORE_S: a round's judged window
+    (from JUDGED_BEFORE_S before its start) then holds nothing of the robot's boot."""
+    for j in judged:
+        heard = record.heard(robot, j.topic)
+        if not heard or heard[0] > now - STEADY_S:
+            return False
+        if stretches_past_delta(heard, now - JUDGED_BEFORE_S, now, j)[1] > 0.0:
+            return False
+    return True
 
 
 def link_judged_up(bed, robot):
@@ -199,9 +219,11 @@ def preemptions(a, run_dir: str) -> int:
         bed.start(low, domains[low], priority=0)
         for i in range(a.preemptions):
             bed.until(lambda s: s.all_away(low, moving) and not rate_below(
-                shown.freq_min_hz, heard_rate(rec, low, s.t - 0.6, shown.topic)),
+                shown.freq_min_hz, heard_rate(rec, low, s.t - 0.6, shown.topic))
+                and steady(rec, low, graph.judged(low), s.t),
                 shape.hysteresis_s + 120.0,
-                f"round {i + 1}: {low}'s {graph.what} serving from the server")
+                f"round {i + 1}: {low}'s {graph.what} serving from the server, every "
+                f'connection heard for {STEADY_S:g} s and none below freq_min')
             start = time.monotonic()
             bed.start(high, domains[high], priority=1)
             took = bed.until(lambda s: s.all_away(high, moving) and s.none_away(low), 90.0,
@@ -213,8 +235,8 @@ def preemptions(a, run_dir: str) -> int:
                       20.0, f"round {i + 1}: {low}'s observer's lines past the hand-over")
             past, longest, which = 0, 0.0, []
             for j in graph.judged(low):
-                n, worst = stretches_past_delta(rec.heard(low, j.topic), start - 2.0,
-                                                took.t + 2.0, j)
+                n, worst = stretches_past_delta(rec.heard(low, j.topic),
+                                                start - JUDGED_BEFORE_S, took.t + 2.0, j)
                 past, longest = past + n, max(longest, worst)
                 if n:
                     which.append(f'{j.name} {worst:.2f} s below (Δ {j.tolerance_s:g} s)')
