@@ -287,9 +287,10 @@ def test_frequency_below_min_past_delta_brings_the_node_back(testbed):
 
 
 def test_grace_after_a_move_then_judged(testbed):
-    """A moved node whose input never arrives is not judged in its grace, then sent back."""
+    """A moved node whose input never arrives there is not judged in its grace, then sent
+    back."""
     bed = BedTrace(testbed)
-    bed.rate_factor['laser_amcl'] = lambda t: 0.0
+    bed.rate_factor['laser_amcl'] = lambda t: 1.0 if bed.running['amcl'] == bed.master else 0.0
     bed.run(15.0)
     outs, backs = bed.moves(MIGRATE, 'amcl'), bed.moves(MIGRATE_BACK, 'amcl')
     assert outs and backs

@@ -235,6 +235,10 @@ class DeciderSettings:
     grace_s: float = setting(
         5.0, 'after a move, the connections of the moved node are not judged', low=0,
         high=3600, unit='s', live=True)
+    bringup_s: float = setting(
+        30.0, 'a starting decider moves nothing out until every monitored connection whose '
+              'nodes run has been heard, or for this long at most (the graph boots)',
+        low=0, high=3600, unit='s', live=True)
     agent_timeout_s: float = setting(
         5.0, 'an agent silent this long loses its scale; its nodes move', low=0, high=3600,
         low_open=True, unit='s', live=True)

@@ -145,6 +145,7 @@ class MigrationPolicy:
             layout, _ = adopt(self.deployment, master_layout(self.deployment), running)
             self.reset(layout, now, running)
         step = Step(self.deployment, self.settings, obs, running, self.memory)
+        step.hear()
         decisions = settle_pending(step)
         decisions += shared_answers(step)
         decisions += failover(step)

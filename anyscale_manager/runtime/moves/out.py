@@ -16,7 +16,8 @@ def migrate_out(step: Step, snap: Snapshot) -> List[Decision]:
     T does not hold it back from; the first that fits moves. Nothing moves while the master's
     agent is silent, a move is pending, or the master's CPU has not been reported yet (within
     the start-up allowance), and a scale that cannot be told yet holds the whole move out.
-    When none moves: ``rebalance``."""
+    Nor while the graph comes up: a monitored connection whose nodes run and that was never
+    heard, within ``bringup_s`` of the start. When none moves: ``rebalance``."""
     d, s, now, master, notes = step.deployment, step.settings, step.now, step.master, step.notes
     if not s.migration:
         return []
@@ -33,6 +34,13 @@ def migrate_out(step: Step, snap: Snapshot) -> List[Decision]:
         # same start-up allowance as every other observation (after it, nominal CPU).
         notes.append(f'waiting for a first CPU report from {master} (nodes are ranked '
                      f'by measured CPU)')
+        return []
+    unheard = step.unheard()
+    if unheard and snap.since_start < s.bringup_s:
+        # The graph boots: a node moved now would be judged on inputs that never came (its
+        # output 0 Hz past Δ once its grace ends) and sent back.
+        notes.append(f'no move out while the graph comes up: {", ".join(unheard)} not heard '
+                     f'yet ({snap.since_start:.0f} of bringup_s {s.bringup_s:g} s)')
         return []
     last_back = step.memory.last_back
     remotes = by_worth(d, [x.name for x in d.remote_scales])

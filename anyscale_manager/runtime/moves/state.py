@@ -2,12 +2,12 @@
 
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Dict, List, Mapping, Optional, Set, Tuple
 
 from ...model.types import DeciderSettings, Deployment, frozen_map
 from ..constraints import ConstraintReport
 from ..filters import Snapshot, agent_at
-from ..observations import Decision, Observations
+from ..observations import Decision, Observations, is_fresh
 
 
 @dataclass
@@ -28,6 +28,8 @@ class Memory:
     history: List[Tuple[float, Decision]] = field(default_factory=list)
     last_move_out: float = -math.inf
     started: Optional[float] = None
+    # Monitored connections heard delivering (a fresh reading above 0 Hz) since the start.
+    heard: Set[str] = field(default_factory=set)
 
     def in_migrated(self, node: str) -> bool:
         return any(n == node for n, _ in self.migrated)
@@ -72,6 +74,21 @@ class Step:
     def agent_silent(self, scale: str) -> str:
         """Why the agent of ``scale`` cannot take a node now ('' when it can)."""
         return agent_at(self.obs, self.settings, scale).reason
+
+    def hear(self) -> None:
+        """Note the monitored connections this step's readings show delivering."""
+        for c in self.deployment.connections:
+            reading = self.obs.connections.get(c.name)
+            if c.monitored and reading is not None and reading.rate_hz > 0.0 \
+                    and is_fresh(reading.stamp, self.now, self.settings):
+                self.memory.heard.add(c.name)
+
+    def unheard(self) -> List[str]:
+        """The monitored connections whose publisher and subscriber both run, not heard
+        delivering yet since the start (a graph still booting)."""
+        return [c.name for c in self.deployment.connections
+                if c.monitored and c.name not in self.memory.heard
+                and c.publisher in self.running and c.subscriber in self.running]
 
     def hold_for_master(self, node: str) -> bool:
         """Whether a move of ``node`` back to the master waits because the master's agent is
