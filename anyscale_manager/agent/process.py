@@ -8,10 +8,11 @@ import socket
 import sys
 import threading
 import time
-from typing import Callable, List, Mapping, Optional, Sequence, Tuple
+from typing import Callable, FrozenSet, List, Mapping, Optional, Sequence, Tuple
 
 from ..model.types import AgentSettings, Deployment
 from ..model.discovery import domain_of, server_port, uses_servers
+from . import ports
 from .discovery import DiscoveryError, server_argv
 from .supervisor import Supervisor
 from .warden import spawn as spawn_warden, warden_port
@@ -155,12 +156,23 @@ class Signals:
         return out
 
 
-def restart_in_place(held: Sequence[socket.socket] = ()) -> None:
+def own_dds_ports() -> FrozenSet[int]:
+    """The participant-range UDP ports this process binds (its DDS participant's, and those a
+    PortHold of it holds)."""
+    return ports.unicast_ports([os.getpid()], ports.domain_of(os.environ))
+
+
+def restart_in_place(participant_ports: FrozenSet[int] = frozenset(),
+                     also: Optional[ports.PortHold] = None) -> None:
     """Replace this process with a new agent: same pid, same command line, the code installed
     now. The nodes stay its children (in sessions of their own) and the new agent adopts them
     from the state file; ``systemctl reload`` with ``ExecReload=/bin/kill -HUP $MAINPID``
-    (docs/agent.md). ``held``: sockets bound to the deleted participant's ports, passed on so
+    (docs/agent.md). ``participant_ports``: ``own_dds_ports()`` read before the participant
+    was deleted; those it freed are bound and passed on, with the sockets ``also`` holds, so
     that the new agent's participant takes others (``held_ports``)."""
+    hold = ports.PortHold()
+    hold.hold(participant_ports - own_dds_ports(), time.monotonic())
+    held = hold.sockets() + (also.sockets() if also is not None else [])
     # Nothing of this process but stdin, stdout and stderr may reach the new one: a DDS socket
     # or lock file kept open would look like a live participant to the others.
     for entry in os.listdir('/proc/self/fd'):

@@ -45,9 +45,8 @@ from ..agent.exits import ExitWatcher
 from ..agent.ledger import Ledger, LedgerError
 from ..agent.host import this_host
 from ..agent.lock import LockError, release_lock, take_lock
-from ..agent import ports
-from ..agent.process import (held_ports, places, restart_in_place, RESTART, scale_from_args,
-                             SCALE_RE, Signals, start_warden, STOP, stop_offline)
+from ..agent.process import (held_ports, own_dds_ports, places, restart_in_place, RESTART,
+                             scale_from_args, SCALE_RE, Signals, start_warden, STOP, stop_offline)
 from ..agent.supervisor import Supervisor
 from ..agent.turn import AgentInputs, AgentOutput, AgentTurn, name_counts, TICK_S
 from ..model.capacity import claim_lease_s
@@ -479,14 +478,13 @@ def run(args: Optional[List[str]], program: str,
                 s = node.settings
                 stop_offline(node.supervisor, s.sigint_grace_s + s.sigterm_grace_s + 5.0)
             node.destroy_node()
-        domain = ports.domain_of(os.environ)
         restarting = node is not None and node.restarting
         # The participant's ports (and those the supervisor holds), read before it goes.
-        before = ports.unicast_ports([os.getpid()], domain) if restarting else frozenset()
+        before = own_dds_ports() if restarting else frozenset()
         if executor is not None:
             executor.shutdown()
         shut_rclpy_down()
-    if node is not None and node.restarting:
+    if restarting:
         # The DDS participant is deleted now, not left to exit (exec runs no destructor): the
         # others drop it at once, and its shared-memory ports are closed as they should be. A
         # participant left undeleted made the new process deaf, one restart in about twenty:
@@ -495,9 +493,7 @@ def run(args: Optional[List[str]], program: str,
         # Its ports are held across the exec (agent/process.py HELD_PORTS_ENV): those its peers
         # knew it by, that missed its goodbye, would leave a new participant there unmatched.
         rclpy.get_default_context().destroy()
-        hold = ports.PortHold()
-        hold.hold(before - ports.unicast_ports([os.getpid()], domain), time.monotonic())
-        restart_in_place(hold.sockets() + node.supervisor.port_hold.sockets())
+        restart_in_place(before, node.supervisor.port_hold)
     return 0
 
 
